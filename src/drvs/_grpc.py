@@ -1,0 +1,97 @@
+"""gRPC plumbing shared by every role: the one place domain errors map to status codes."""
+
+from __future__ import annotations
+
+import functools
+import logging
+from collections.abc import Awaitable, Callable
+from typing import Any, TypeVar
+
+import grpc
+from grpc import aio
+
+from drvs import errors
+
+log = logging.getLogger(__name__)
+
+_TO_STATUS: dict[type[errors.DrvsError], grpc.StatusCode] = {
+    errors.InvalidArgument: grpc.StatusCode.INVALID_ARGUMENT,
+    errors.NotFound: grpc.StatusCode.NOT_FOUND,
+    errors.Unavailable: grpc.StatusCode.UNAVAILABLE,
+    errors.DeadlineExceeded: grpc.StatusCode.DEADLINE_EXCEEDED,
+    errors.FailedPrecondition: grpc.StatusCode.FAILED_PRECONDITION,
+    errors.ResourceExhausted: grpc.StatusCode.RESOURCE_EXHAUSTED,
+}
+_FROM_STATUS = {code: cls for cls, code in _TO_STATUS.items()}
+
+#: Bound every message: reports and requests are small; anything near this is an attack or a bug.
+MAX_MESSAGE_BYTES = 4 * 1024 * 1024
+CHANNEL_OPTIONS: list[tuple[str, Any]] = [
+    ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+    # Reconnect quickly after a peer restarts: the default backoff grows to two minutes.
+    ("grpc.initial_reconnect_backoff_ms", 200),
+    ("grpc.max_reconnect_backoff_ms", 2000),
+    ("grpc.min_reconnect_backoff_ms", 200),
+]
+SERVER_OPTIONS: list[tuple[str, Any]] = [
+    ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.so_reuseport", 0),
+]
+
+T = TypeVar("T")
+Handler = Callable[..., Awaitable[T]]
+
+
+def status_of(exc: errors.DrvsError) -> grpc.StatusCode:
+    for cls in type(exc).__mro__:
+        if cls in _TO_STATUS:
+            return _TO_STATUS[cls]  # type: ignore[index]
+    return grpc.StatusCode.UNKNOWN
+
+
+def from_rpc_error(exc: grpc.RpcError, what: str) -> errors.DrvsError:
+    """Turn a failed call into the domain error robot code sees (never a raw grpc.RpcError)."""
+    code = exc.code() if hasattr(exc, "code") else grpc.StatusCode.UNKNOWN
+    details = exc.details() if hasattr(exc, "details") else str(exc)
+    cls = _FROM_STATUS.get(code, errors.DrvsError)
+    return cls(f"{what}: {details or code.name}")
+
+
+def servicer_method(method: Handler[T]) -> Handler[T]:
+    """Map DrvsError to its status; log and hide anything unexpected as INTERNAL."""
+
+    @functools.wraps(method)
+    async def wrapper(self: Any, request: Any, context: aio.ServicerContext[Any, Any]) -> T:
+        try:
+            return await method(self, request, context)
+        except errors.DrvsError as exc:
+            await context.abort(status_of(exc), str(exc))
+        except aio.AbortError:
+            raise
+        except Exception:
+            log.exception("%s failed", method.__qualname__)
+            await context.abort(grpc.StatusCode.INTERNAL, f"{method.__name__}: internal error")
+        raise AssertionError("unreachable")  # context.abort always raises
+
+    return wrapper
+
+
+def insecure_channel(address: str) -> aio.Channel:
+    return aio.insecure_channel(address, options=CHANNEL_OPTIONS)
+
+
+def new_server() -> aio.Server:
+    return aio.server(options=SERVER_OPTIONS)
+
+
+def bind(server: aio.Server, address: str) -> int:
+    """Bind `address` (port 0 = any free port); returns the bound port or raises OSError."""
+    try:
+        port = server.add_insecure_port(address)
+    except RuntimeError as exc:
+        raise OSError(f"cannot listen on {address}: {exc}") from exc
+    if port == 0:
+        raise OSError(f"cannot listen on {address}")
+    return port

@@ -1,0 +1,311 @@
+"""The camera node role: serves DetectObjectBoundary to the server, reports to robots."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+from types import TracebackType
+from typing import Any
+
+import grpc
+from grpc import aio
+
+from drvs import _grpc
+from drvs.callback import CallbackSender
+from drvs.convert import homography_to_pb, request_from_pb
+from drvs.detection import DEFAULT_MIN_AREA_PX, FrameAnalysis, HsvDetector
+from drvs.errors import DrvsError, FailedPrecondition, InvalidArgument, ResourceExhausted
+from drvs.filters import HsvRange
+from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
+from drvs.health import add_health_and_reflection, mark_serving
+from drvs.model import DetectionReport, DetectionRequest, check_id
+from drvs.net import format_address, local_ip_towards, parse_address
+from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
+
+from .source import FrameSource
+
+log = logging.getLogger("drvs.camera")
+
+SERVICE_NAMES = (detection_pb2.DESCRIPTOR.services_by_name["DetectObjectBoundary"].full_name,)
+#: A frame older than this is not used for detection: the camera says so instead.
+DEFAULT_MAX_FRAME_AGE_S = 2.0
+#: Concurrent requests a node serves at once; more are refused with RESOURCE_EXHAUSTED.
+MAX_ACTIVE_REQUESTS = 512
+#: How long a robot's callback may take beyond the request's own duration.
+CALLBACK_SLACK_S = 10.0
+
+
+class CameraNode:
+    """A camera node as an object: start(), stop(grace), `async with`."""
+
+    def __init__(
+        self,
+        camera_id: str,
+        source: FrameSource,
+        homography: Homography,
+        server: str,
+        *,
+        listen: str = "127.0.0.1:0",
+        advertise: str | None = None,
+        max_range_m: float = DEFAULT_MAX_RANGE_M,
+        min_area_px: float = DEFAULT_MIN_AREA_PX,
+        first_frame_timeout_s: float = 15.0,
+        max_frame_age_s: float = DEFAULT_MAX_FRAME_AGE_S,
+    ) -> None:
+        self.camera_id = check_id(camera_id, "camera_id")
+        self.source = source
+        self.homography = homography
+        self.server_address = server
+        parse_address(server, "server")
+        self.listen = listen
+        parse_address(listen, "listen", allow_port_zero=True)
+        self.advertise = advertise
+        if advertise is not None:
+            parse_address(advertise, "advertise")
+        self.max_range_m = max_range_m
+        self.min_area_px = min_area_px
+        self.first_frame_timeout_s = first_frame_timeout_s
+        self.max_frame_age_s = max_frame_age_s
+        self.detector: HsvDetector | None = None
+        self.field_of_view: FieldOfView | None = None
+        self.port = 0
+        self.registered = asyncio.Event()
+        self.requests_served = 0
+        self._server: aio.Server | None = None
+        self._health: Any = None
+        self._channel: aio.Channel | None = None
+        self._registrar: asyncio.Task[None] | None = None
+        self._jobs: set[asyncio.Task[None]] = set()
+        self._callbacks = CallbackSender()
+        self._analysis: FrameAnalysis | None = None
+        self._stopped = False
+
+    @property
+    def address(self) -> str:
+        """The address the server is told to dial."""
+        if self.advertise:
+            return self.advertise
+        host = self.listen.rpartition(":")[0].strip("[]")
+        if host in ("0.0.0.0", "::", ""):
+            host = local_ip_towards(self.server_address)
+        return format_address(host, self.port)
+
+    async def start(self) -> None:
+        self.source.start()
+        frame = await self.source.wait_first_frame(self.first_frame_timeout_s)
+        image_size = frame.size
+        self.field_of_view = FieldOfView.compute(self.homography, image_size, self.max_range_m)
+        self.detector = HsvDetector(
+            self.homography,
+            self.field_of_view,
+            image_size,
+            camera_id=self.camera_id,
+            min_area_px=self.min_area_px,
+        )
+        log.info(
+            "camera %s: source %s gives %dx%d; field of view %.1f m²",
+            self.camera_id,
+            self.source.description,
+            *image_size,
+            self.field_of_view.floor.area,
+        )
+        server = _grpc.new_server()
+        detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(_ServerFacing(self), server)
+        self._health = add_health_and_reflection(server, SERVICE_NAMES)
+        self.port = _grpc.bind(server, self.listen)
+        await server.start()
+        self._server = server
+        await mark_serving(self._health, SERVICE_NAMES)
+        bound = format_address(self.listen.rpartition(":")[0].strip("[]"), self.port)
+        log.info("camera %s listening on %s (advertised as %s)", self.camera_id, bound, self.address)
+        self._channel = _grpc.insecure_channel(self.server_address)
+        self._registrar = asyncio.get_running_loop().create_task(self._keep_registered(image_size))
+
+    async def stop(self, grace: float = 2.0) -> None:
+        if self._stopped:
+            return
+        self._stopped = True
+        if self._registrar is not None:
+            self._registrar.cancel()
+            await asyncio.gather(self._registrar, return_exceptions=True)
+        if self.registered.is_set() and self._channel is not None:
+            try:
+                stub = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
+                await stub.Deregister(registry_pb2.DeregisterRequest(camera_id=self.camera_id), timeout=1.0)
+                log.info("camera %s deregistered", self.camera_id)
+            except grpc.RpcError as exc:
+                log.warning("camera %s: deregistration failed: %s", self.camera_id, _details(exc))
+        if self._health is not None:
+            await self._health.enter_graceful_shutdown()
+        if self._server is not None:
+            await self._server.stop(grace)
+        for job in list(self._jobs):
+            job.cancel()
+        await asyncio.gather(*self._jobs, return_exceptions=True)
+        await self._callbacks.close()
+        if self._channel is not None:
+            await self._channel.close()
+        await asyncio.to_thread(self.source.stop)
+        log.info("camera %s stopped", self.camera_id)
+
+    async def wait_for_termination(self) -> None:
+        assert self._server is not None
+        await self._server.wait_for_termination()
+
+    async def __aenter__(self) -> CameraNode:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.stop()
+
+    # --- registration: soft state ------------------------------------------------------------
+
+    async def _keep_registered(self, image_size: tuple[int, int]) -> None:
+        assert self._channel is not None
+        stub = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
+        register = registry_pb2.RegisterRequest(
+            camera_id=self.camera_id,
+            address=self.address,
+            homography=homography_to_pb(self.homography),
+            image_width=image_size[0],
+            image_height=image_size[1],
+            max_range_m=self.max_range_m,
+            detector_kinds=[HsvDetector.kind],
+        )
+        interval = 1.0
+        backoff = 0.2
+        ever_registered = False
+        registered = False
+        while True:
+            try:
+                if not registered:
+                    reply = await stub.Register(register, timeout=5.0)
+                    registered = True
+                    interval = max(0.1, reply.lease_ttl_s / 3)
+                    log.info(
+                        "camera %s %s with %s: lease %.1f s, field of view %.1f m²",
+                        self.camera_id,
+                        "re-registered" if ever_registered else "registered",
+                        self.server_address,
+                        reply.lease_ttl_s,
+                        self.field_of_view.floor.area if self.field_of_view else 0.0,
+                    )
+                    ever_registered = True
+                    self.registered.set()
+                else:
+                    reply_hb = await stub.Heartbeat(
+                        registry_pb2.HeartbeatRequest(camera_id=self.camera_id), timeout=interval
+                    )
+                    interval = max(0.1, reply_hb.lease_ttl_s / 3)
+                backoff = 0.2
+                await asyncio.sleep(interval)
+            except grpc.RpcError as exc:
+                code = exc.code() if isinstance(exc, aio.AioRpcError) else grpc.StatusCode.UNKNOWN
+                if code == grpc.StatusCode.NOT_FOUND:
+                    log.info("camera %s: server does not know this camera (restarted?); registering again", self.camera_id)
+                    registered = False
+                    continue
+                if code == grpc.StatusCode.INVALID_ARGUMENT:
+                    log.error("camera %s: server refused registration: %s", self.camera_id, _details(exc))
+                else:
+                    log.warning("camera %s: server %s unreachable: %s", self.camera_id, self.server_address, _details(exc))
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2, interval)
+
+    # --- serving requests --------------------------------------------------------------------
+
+    def accept(self, request: DetectionRequest) -> None:
+        if request.kind != HsvDetector.kind:
+            raise InvalidArgument(f"filter_def: camera {self.camera_id} does not run detector {request.kind!r}")
+        HsvRange.parse(request.filter_def)
+        if len(self._jobs) >= MAX_ACTIVE_REQUESTS:
+            raise ResourceExhausted(f"camera {self.camera_id}: {len(self._jobs)} requests active; try later")
+        log.info(
+            "camera %s: request %s from robot %r: %s, %s",
+            self.camera_id,
+            request.request_id,
+            request.robot_id,
+            request.filter_def,
+            "single shot"
+            if request.continuous.single_shot
+            else f"{request.continuous.rate_hz:g} Hz for {request.continuous.duration_s:g} s",
+        )
+        self.requests_served += 1
+        job = asyncio.get_running_loop().create_task(self._serve(request))
+        self._jobs.add(job)
+        job.add_done_callback(self._jobs.discard)
+
+    async def _serve(self, request: DetectionRequest) -> None:
+        loop = asyncio.get_running_loop()
+        offsets = request.continuous.report_times()
+        stream = self._callbacks.open(request.callback_address, offsets[-1] + CALLBACK_SLACK_S)
+        start = loop.time()
+        try:
+            for sequence, offset in enumerate(offsets):
+                delay = start + offset - loop.time()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                report = await self._look(request, sequence, final=sequence == len(offsets) - 1)
+                if not await stream.send(report):
+                    log.info("camera %s: request %s cancelled by the robot", self.camera_id, request.request_id)
+                    break
+            await stream.close()
+        except DrvsError as exc:
+            log.warning("camera %s: request %s: %s", self.camera_id, request.request_id, exc)
+            stream.abort()
+        except BaseException:
+            stream.abort()
+            raise
+
+    async def _look(self, request: DetectionRequest, sequence: int, final: bool) -> DetectionReport:
+        frame = self.source.latest()
+        now = time.time()
+        if frame is None or now - frame.capture_time > self.max_frame_age_s:
+            age = "no frame" if frame is None else f"newest frame is {now - frame.capture_time:.1f} s old"
+            return DetectionReport(
+                request_id=request.request_id,
+                camera_id=self.camera_id,
+                capture_time=frame.capture_time if frame else 0.0,
+                sequence=sequence,
+                final=final,
+                error=f"camera {self.camera_id}: no fresh frame ({age})",
+            )
+        analysis = self._analysis
+        if analysis is None or analysis.frame.sequence != frame.sequence:
+            analysis = FrameAnalysis(frame)
+            self._analysis = analysis
+        assert self.detector is not None
+        detections = await asyncio.to_thread(self.detector.detect, analysis, request.filter_def, request.region)
+        return DetectionReport(
+            request_id=request.request_id,
+            camera_id=self.camera_id,
+            capture_time=frame.capture_time,
+            sequence=sequence,
+            final=final,
+            detections=tuple(detections),
+        )
+
+
+def _details(exc: grpc.RpcError) -> str:
+    if isinstance(exc, aio.AioRpcError):
+        return f"{exc.code().name} {exc.details()}"
+    return str(exc)
+
+
+class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
+    def __init__(self, node: CameraNode) -> None:
+        self._node = node
+
+    @_grpc.servicer_method
+    async def DetectObjects(
+        self, message: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
+    ) -> detection_pb2.DetectionReply:
+        if self._node.detector is None:
+            raise FailedPrecondition(f"camera {self._node.camera_id} is not started")
+        request = request_from_pb(message, require_request_id=True)
+        self._node.accept(request)
+        return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=[self._node.camera_id])

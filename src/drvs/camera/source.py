@@ -1,0 +1,139 @@
+"""Frame sources: a background grabber that always holds the newest frame."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import os
+import threading
+import time
+from typing import Protocol
+
+import cv2
+
+from drvs.detection import Frame
+from drvs.errors import FailedPrecondition
+
+log = logging.getLogger("drvs.camera.source")
+
+
+class FrameSource(Protocol):
+    """Anything that yields frames: a device, a file, a stream, a simulator."""
+
+    description: str
+
+    def start(self) -> None: ...
+
+    def stop(self) -> None: ...
+
+    def latest(self) -> Frame | None: ...
+
+    async def wait_first_frame(self, timeout_s: float) -> Frame: ...
+
+
+def parse_source(spec: str) -> int | str:
+    """A device index ("0"), or a file path or stream URL, as OpenCV VideoCapture takes them."""
+    spec = spec.strip()
+    if not spec:
+        raise ValueError("source: empty")
+    return int(spec) if spec.isdigit() else spec
+
+
+class VideoSource:
+    """Any OpenCV VideoCapture source, read by a background thread that keeps the newest frame.
+
+    A video file plays at its own frame rate and loops; a device or stream is read as fast as it
+    delivers, and reopened with backoff when it drops.
+    """
+
+    def __init__(self, spec: str, *, loop_file: bool = True, reconnect_max_s: float = 5.0) -> None:
+        self.source = parse_source(spec)
+        self.description = str(spec)
+        self.is_file = isinstance(self.source, str) and os.path.isfile(self.source)
+        self.loop_file = loop_file
+        self.reconnect_max_s = reconnect_max_s
+        self._lock = threading.Lock()
+        self._latest: Frame | None = None
+        self._first = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._sequence = 0
+        self.error: str | None = None
+        self._opened_once = False
+
+    def start(self) -> None:
+        if isinstance(self.source, str) and "://" not in self.source and not self.is_file:
+            raise FileNotFoundError(f"source: {self.source!r} is neither a device index, a file nor a URL")
+        self._thread = threading.Thread(target=self._run, name=f"grabber:{self.description}", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5)
+
+    def latest(self) -> Frame | None:
+        with self._lock:
+            return self._latest
+
+    async def wait_first_frame(self, timeout_s: float) -> Frame:
+        if not await asyncio.to_thread(self._first.wait, timeout_s):
+            raise FailedPrecondition(
+                f"source {self.description!r}: no frame within {timeout_s:g} s" + (f" ({self.error})" if self.error else "")
+            )
+        frame = self.latest()
+        assert frame is not None
+        return frame
+
+    def _open(self) -> cv2.VideoCapture | None:
+        cap = cv2.VideoCapture(self.source)
+        if not cap.isOpened():
+            cap.release()
+            return None
+        if self._opened_once:
+            log.debug("source %s reopened", self.description)
+        else:
+            log.info("source %s opened", self.description)
+            self._opened_once = True
+        return cap
+
+    def _run(self) -> None:
+        backoff = 0.2
+        while not self._stop.is_set():
+            cap = self._open()
+            if cap is None:
+                self.error = "cannot open source"
+                log.warning("source %s: cannot open; retrying in %.1f s", self.description, backoff)
+                self._stop.wait(backoff)
+                backoff = min(backoff * 2, self.reconnect_max_s)
+                continue
+            backoff = 0.2
+            self._read_until_done(cap)
+            cap.release()
+            if self.is_file and not self.loop_file:
+                return
+
+    def _read_until_done(self, cap: cv2.VideoCapture) -> None:
+        fps = cap.get(cv2.CAP_PROP_FPS) if self.is_file else 0.0
+        period = 1.0 / fps if fps and fps > 0 else (1.0 / 30 if self.is_file else 0.0)
+        next_at = time.monotonic()
+        while not self._stop.is_set():
+            ok, image = cap.read()
+            if not ok or image is None:
+                if self.is_file:
+                    return  # end of file: reopen to loop
+                self.error = "source stopped delivering frames"
+                log.warning("source %s stopped delivering frames; reconnecting", self.description)
+                return
+            now = time.time()
+            with self._lock:
+                self._sequence += 1
+                self._latest = Frame(image=image, capture_time=now, sequence=self._sequence)
+            self._first.set()
+            if period:
+                next_at += period
+                delay = next_at - time.monotonic()
+                if delay > 0:
+                    self._stop.wait(delay)
+                else:
+                    next_at = time.monotonic()

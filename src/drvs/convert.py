@@ -1,0 +1,137 @@
+"""The one module that converts between wire messages (drvs.v1) and domain objects."""
+
+from __future__ import annotations
+
+from shapely.geometry import Point, Polygon
+
+from drvs.errors import InvalidArgument
+from drvs.geometry import Homography, box_region, polygon_coords, polygon_region
+from drvs.model import ContinuousMode, Detection, DetectionReport, DetectionRequest, PixelBox
+from drvs.v1 import detection_pb2, geometry_pb2, registry_pb2
+
+
+def polygon_to_pb(poly: Polygon) -> geometry_pb2.Polygon:
+    return geometry_pb2.Polygon(points=[geometry_pb2.Point2(x=x, y=y) for x, y in polygon_coords(poly)])
+
+
+def polygon_from_pb(msg: geometry_pb2.Polygon, name: str) -> Polygon:
+    return polygon_region(((p.x, p.y) for p in msg.points), name)
+
+
+def region_to_pb(region: Polygon) -> geometry_pb2.Region:
+    """A rectangle travels as the paper's box, anything else as a polygon."""
+    if region.equals(region.envelope):
+        x0, y0, x1, y1 = region.bounds
+        return geometry_pb2.Region(box=geometry_pb2.Box(x_lower=x0, y_lower=y0, x_upper=x1, y_upper=y1))
+    return geometry_pb2.Region(polygon=polygon_to_pb(region))
+
+
+def region_from_pb(msg: geometry_pb2.Region, name: str = "region") -> Polygon:
+    shape = msg.WhichOneof("shape")
+    if shape == "box":
+        b = msg.box
+        return box_region(b.x_lower, b.y_lower, b.x_upper, b.y_upper, name)
+    if shape == "polygon":
+        return polygon_from_pb(msg.polygon, f"{name}.polygon")
+    raise InvalidArgument(f"{name}: missing; give a box or a polygon")
+
+
+def request_to_pb(req: DetectionRequest) -> detection_pb2.DetectionRequest:
+    return detection_pb2.DetectionRequest(
+        request_id=req.request_id,
+        robot_id=req.robot_id,
+        filter_def=req.filter_def,
+        region=region_to_pb(req.region),
+        callback_address=req.callback_address,
+        continuous=detection_pb2.ContinuousMode(
+            rate_hz=req.continuous.rate_hz, duration_s=req.continuous.duration_s
+        ),
+    )
+
+
+def request_from_pb(msg: detection_pb2.DetectionRequest, *, require_request_id: bool = True) -> DetectionRequest:
+    """Validate every field; InvalidArgument names the first one that is wrong."""
+    req = DetectionRequest(
+        request_id=msg.request_id,
+        robot_id=msg.robot_id,
+        filter_def=msg.filter_def,
+        region=region_from_pb(msg.region) if msg.HasField("region") else _missing_region(),
+        callback_address=msg.callback_address,
+        continuous=ContinuousMode(msg.continuous.rate_hz, msg.continuous.duration_s),
+    )
+    req.validate(require_request_id=require_request_id)
+    return req
+
+
+def _missing_region() -> Polygon:
+    raise InvalidArgument("region: missing; give a box or a polygon")
+
+
+def detection_to_pb(d: Detection) -> detection_pb2.Detection:
+    x0, y0, x1, y1 = d.bounds
+    return detection_pb2.Detection(
+        outline=polygon_to_pb(d.outline),
+        bounds=geometry_pb2.Box(x_lower=x0, y_lower=y0, x_upper=x1, y_upper=y1),
+        centroid=geometry_pb2.Point2(x=d.centroid.x, y=d.centroid.y),
+        ground_contact=geometry_pb2.Point2(x=d.ground_contact.x, y=d.ground_contact.y),
+        pixel_box=geometry_pb2.PixelBox(
+            x=d.pixel_box.x, y=d.pixel_box.y, width=d.pixel_box.width, height=d.pixel_box.height
+        ),
+        area_m2=d.area_m2,
+        area_px=d.area_px,
+        score=d.score,
+        filter_def=d.filter_def,
+    )
+
+
+def detection_from_pb(msg: detection_pb2.Detection, camera_id: str, capture_time: float) -> Detection:
+    b = msg.bounds
+    outline = Polygon([(p.x, p.y) for p in msg.outline.points]) if len(msg.outline.points) >= 3 else Polygon()
+    return Detection(
+        outline=outline,
+        bounds=(b.x_lower, b.y_lower, b.x_upper, b.y_upper),
+        centroid=Point(msg.centroid.x, msg.centroid.y),
+        ground_contact=Point(msg.ground_contact.x, msg.ground_contact.y),
+        pixel_box=PixelBox(msg.pixel_box.x, msg.pixel_box.y, msg.pixel_box.width, msg.pixel_box.height),
+        area_m2=msg.area_m2,
+        area_px=msg.area_px,
+        score=msg.score,
+        filter_def=msg.filter_def,
+        camera_id=camera_id,
+        capture_time=capture_time,
+    )
+
+
+def report_to_pb(r: DetectionReport) -> detection_pb2.DetectionReport:
+    msg = detection_pb2.DetectionReport(
+        request_id=r.request_id,
+        camera_id=r.camera_id,
+        sequence=r.sequence,
+        final=r.final,
+        detections=[detection_to_pb(d) for d in r.detections],
+        error=r.error,
+    )
+    if r.capture_time:
+        msg.capture_time.FromNanoseconds(round(r.capture_time * 1e9))
+    return msg
+
+
+def report_from_pb(msg: detection_pb2.DetectionReport) -> DetectionReport:
+    capture_time = msg.capture_time.ToNanoseconds() / 1e9 if msg.HasField("capture_time") else 0.0
+    return DetectionReport(
+        request_id=msg.request_id,
+        camera_id=msg.camera_id,
+        capture_time=capture_time,
+        sequence=msg.sequence,
+        final=msg.final,
+        detections=tuple(detection_from_pb(d, msg.camera_id, capture_time) for d in msg.detections),
+        error=msg.error,
+    )
+
+
+def homography_to_pb(h: Homography) -> registry_pb2.Homography:
+    return registry_pb2.Homography(m=h.to_list())
+
+
+def homography_from_pb(msg: registry_pb2.Homography) -> Homography:
+    return Homography.from_values(list(msg.m), "homography")

@@ -1,0 +1,163 @@
+"""Colour-blob detection on real pixels, mapped onto the floor. Pure OpenCV, no gRPC.
+
+The expensive part of a request is per frame, not per request: the colour conversion and each
+filter's blobs are computed once per frame (FrameAnalysis) and shared by every request that
+looks at that frame; a request only filters the blobs by its region.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+import shapely
+from numpy.typing import NDArray
+from shapely.geometry import Point, Polygon
+
+from drvs.filters import HsvRange
+from drvs.geometry import FieldOfView, Homography
+from drvs.model import Detection, PixelBox
+
+#: Blobs smaller than this many pixels are noise.
+DEFAULT_MIN_AREA_PX = 30.0
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A captured image (BGR) with its capture time (Unix seconds) and a per-source sequence number."""
+
+    image: NDArray[np.uint8]
+    capture_time: float
+    sequence: int
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return int(self.image.shape[1]), int(self.image.shape[0])
+
+
+@dataclass
+class FrameAnalysis:
+    """Per-frame caches shared by all requests served from this frame."""
+
+    frame: Frame
+    _hsv: NDArray[np.uint8] | None = None
+    _blobs: dict[str, tuple[Detection, ...]] = field(default_factory=dict)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+
+    def hsv(self) -> NDArray[np.uint8]:
+        if self._hsv is None:
+            self._hsv = cv2.cvtColor(self.frame.image, cv2.COLOR_BGR2HSV)
+        return self._hsv
+
+
+class HsvDetector:
+    """Threshold in HSV, clean up, keep connected blobs above a minimum size, map them to the floor."""
+
+    kind = "hsv"
+
+    def __init__(
+        self,
+        homography: Homography,
+        field_of_view: FieldOfView,
+        image_size: tuple[int, int],
+        *,
+        camera_id: str = "",
+        min_area_px: float = DEFAULT_MIN_AREA_PX,
+        kernel_px: int = 3,
+    ) -> None:
+        self.homography = homography
+        self.field_of_view = field_of_view
+        self.image_size = image_size
+        self.camera_id = camera_id
+        self.min_area_px = min_area_px
+        self._kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (kernel_px, kernel_px))
+        width, height = image_size
+        # Only pixels that map into the field of view may become detections: above the horizon the
+        # homography maps to points behind the camera or at infinity.
+        self._fov_mask = np.zeros((height, width), dtype=np.uint8)
+        ring = np.round(np.asarray(field_of_view.image.exterior.coords)[:-1]).astype(np.int32)
+        cv2.fillPoly(self._fov_mask, [ring], 255)
+
+    def detect(self, analysis: FrameAnalysis, filter_def: str, region: Polygon | None = None) -> list[Detection]:
+        """Blobs of this filter in the frame whose floor outline meets `region` (all blobs when None)."""
+        blobs = self.blobs(analysis, filter_def)
+        if region is None:
+            return list(blobs)
+        shapely.prepare(region)
+        return [d for d in blobs if region.intersects(d.outline)]
+
+    def blobs(self, analysis: FrameAnalysis, filter_def: str) -> tuple[Detection, ...]:
+        with analysis._lock:
+            cached = analysis._blobs.get(filter_def)
+            if cached is None:
+                cached = self._find_blobs(analysis, filter_def)
+                analysis._blobs[filter_def] = cached
+            return cached
+
+    def _find_blobs(self, analysis: FrameAnalysis, filter_def: str) -> tuple[Detection, ...]:
+        frame = analysis.frame
+        if frame.size != self.image_size:
+            raise ValueError(f"frame size {frame.size} differs from the calibrated size {self.image_size}")
+        hsv_range = HsvRange.parse(filter_def)
+        raw = cv2.bitwise_and(hsv_range.mask(analysis.hsv()), self._fov_mask)
+        mask = cv2.morphologyEx(raw, cv2.MORPH_OPEN, self._kernel)
+        mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, self._kernel)
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        found: list[Detection] = []
+        for contour in contours:
+            area_px = float(cv2.contourArea(contour))
+            if area_px < self.min_area_px:
+                continue
+            detection = self._to_floor(contour, area_px, raw, filter_def, frame.capture_time)
+            if detection is not None:
+                found.append(detection)
+        found.sort(key=lambda d: d.area_px, reverse=True)
+        return tuple(found)
+
+    def _to_floor(
+        self,
+        contour: NDArray[np.int32],
+        area_px: float,
+        raw_mask: NDArray[np.uint8],
+        filter_def: str,
+        capture_time: float,
+    ) -> Detection | None:
+        x, y, w, h = (int(v) for v in cv2.boundingRect(contour))
+        # Score: how much of the blob's outline is really the colour (morphology may have filled holes).
+        blob = np.zeros((h, w), dtype=np.uint8)
+        cv2.drawContours(blob, [contour - np.array([x, y], dtype=np.int32)], -1, 255, thickness=cv2.FILLED)
+        inside = int(np.count_nonzero(blob))
+        hits = int(np.count_nonzero(cv2.bitwise_and(blob, raw_mask[y : y + h, x : x + w])))
+        score = hits / inside if inside else 0.0
+
+        pts = contour.reshape(-1, 2).astype(np.float64)
+        if len(pts) < 3:
+            return None
+        floor_pts = self.homography.apply(pts)
+        if not np.all(np.isfinite(floor_pts)):
+            return None
+        outline = Polygon(floor_pts)
+        if not outline.is_valid:
+            fixed = shapely.make_valid(outline)
+            polys = [g for g in getattr(fixed, "geoms", [fixed]) if isinstance(g, Polygon) and not g.is_empty]
+            if not polys:
+                return None
+            outline = max(polys, key=lambda g: g.area)
+        if outline.is_empty or outline.area <= 0:
+            return None
+        contact = self.homography.apply([[x + (w - 1) / 2.0, y + h - 1.0]])[0]
+        return Detection(
+            outline=outline,
+            bounds=tuple(float(v) for v in outline.bounds),  # type: ignore[arg-type]
+            centroid=outline.centroid,
+            ground_contact=Point(float(contact[0]), float(contact[1])),
+            pixel_box=PixelBox(x, y, w, h),
+            area_m2=float(outline.area),
+            area_px=area_px,
+            score=float(score),
+            filter_def=filter_def,
+            camera_id=self.camera_id,
+            capture_time=capture_time,
+        )

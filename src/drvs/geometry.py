@@ -1,0 +1,238 @@
+"""Floor geometry: regions, homographies, fields of view. Pure logic, no gRPC.
+
+World frame: metres, right-handed, floor = x-y plane, z up. Homographies map image pixels
+(u, v, 1) to floor points (x, y, 1).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+import shapely
+from numpy.typing import ArrayLike, NDArray
+from shapely.geometry import Point, Polygon, box
+
+from drvs.errors import InvalidArgument
+
+#: Coordinates beyond this many metres are refused: no building is that large, and it keeps
+#: floating-point geometry well-conditioned.
+MAX_COORDINATE_M = 1.0e6
+#: Default clip of a camera's field of view, metres from the nearest floor point it sees.
+DEFAULT_MAX_RANGE_M = 15.0
+#: Image rows closer to the horizon than this fraction of the bottom row's projective scale are
+#: dropped: near the horizon one pixel spans metres and detections are meaningless.
+HORIZON_MARGIN = 0.05
+_MIN_AREA_M2 = 1e-9
+
+
+def _finite(value: float, name: str) -> float:
+    try:
+        v = float(value)
+    except (TypeError, ValueError):
+        raise InvalidArgument(f"{name}: {value!r} is not a number") from None
+    if not math.isfinite(v):
+        raise InvalidArgument(f"{name}: {v} is not finite")
+    if abs(v) > MAX_COORDINATE_M:
+        raise InvalidArgument(f"{name}: {v} is beyond ±{MAX_COORDINATE_M:g} m")
+    return v
+
+
+def box_region(x_lower: float, y_lower: float, x_upper: float, y_upper: float, name: str = "region") -> Polygon:
+    """The paper's box as a polygon; lower must be below upper on both axes."""
+    x0 = _finite(x_lower, f"{name}.box.x_lower")
+    y0 = _finite(y_lower, f"{name}.box.y_lower")
+    x1 = _finite(x_upper, f"{name}.box.x_upper")
+    y1 = _finite(y_upper, f"{name}.box.y_upper")
+    if not x0 < x1:
+        raise InvalidArgument(f"{name}.box: x_lower {x0:g} must be less than x_upper {x1:g}")
+    if not y0 < y1:
+        raise InvalidArgument(f"{name}.box: y_lower {y0:g} must be less than y_upper {y1:g}")
+    return box(x0, y0, x1, y1)
+
+
+def polygon_region(points: Iterable[Sequence[float]], name: str = "region.polygon") -> Polygon:
+    """A simple polygon with positive area from its exterior ring (closing point optional)."""
+    coords = []
+    for i, p in enumerate(points):
+        if len(p) != 2:
+            raise InvalidArgument(f"{name}.points[{i}]: expected [x, y], got {len(p)} values")
+        coords.append((_finite(p[0], f"{name}.points[{i}].x"), _finite(p[1], f"{name}.points[{i}].y")))
+    if len(coords) >= 2 and coords[0] == coords[-1]:
+        coords.pop()
+    if len(coords) < 3:
+        raise InvalidArgument(f"{name}: needs at least 3 distinct points, got {len(coords)}")
+    poly = Polygon(coords)
+    if not poly.is_valid:
+        reason = shapely.is_valid_reason(poly)
+        raise InvalidArgument(f"{name}: not a simple polygon ({reason})")
+    if poly.area <= _MIN_AREA_M2:
+        raise InvalidArgument(f"{name}: has zero area")
+    return poly
+
+
+@dataclass(frozen=True)
+class Homography:
+    """A 3x3 image -> floor homography, normalised so that its determinant is positive."""
+
+    matrix: NDArray[np.float64]
+
+    @classmethod
+    def from_values(cls, values: ArrayLike, name: str = "homography") -> Homography:
+        try:
+            m = np.asarray(values, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise InvalidArgument(f"{name}: expected 9 numbers (3x3 row-major)") from None
+        if m.size != 9:
+            raise InvalidArgument(f"{name}: expected 9 numbers (3x3 row-major), got {m.size}")
+        m = m.reshape(3, 3)
+        if not np.all(np.isfinite(m)):
+            raise InvalidArgument(f"{name}: contains NaN or infinite values")
+        scale = float(np.max(np.abs(m)))
+        if scale == 0.0:
+            raise InvalidArgument(f"{name}: all zeros")
+        m = m / scale
+        det = float(np.linalg.det(m))
+        if abs(det) < 1e-12 or np.linalg.cond(m) > 1e12:
+            raise InvalidArgument(f"{name}: singular (determinant {det:.3g}); it cannot map an image to a floor")
+        return cls(m)
+
+    def inverse(self) -> Homography:
+        return Homography(np.linalg.inv(self.matrix))
+
+    def apply(self, points: ArrayLike) -> NDArray[np.float64]:
+        """Map an (N, 2) array of points; returns (N, 2)."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 1, 2)
+        if pts.shape[0] == 0:
+            return np.zeros((0, 2), dtype=np.float64)
+        return cv2.perspectiveTransform(pts, self.matrix).reshape(-1, 2)  # type: ignore[no-any-return]
+
+    def projective_scale(self, points: ArrayLike) -> NDArray[np.float64]:
+        """The third homogeneous coordinate w of each mapped point (0 on the horizon)."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        return pts @ self.matrix[2, :2] + self.matrix[2, 2]  # type: ignore[no-any-return]
+
+    def to_list(self) -> list[float]:
+        return [float(v) for v in self.matrix.reshape(-1)]
+
+
+@dataclass(frozen=True)
+class FieldOfView:
+    """The floor polygon a camera sees, and the image polygon it comes from."""
+
+    floor: Polygon
+    image: Polygon
+
+    @classmethod
+    def compute(
+        cls,
+        homography: Homography,
+        image_size: tuple[int, int],
+        max_range_m: float = DEFAULT_MAX_RANGE_M,
+        name: str = "field_of_view",
+    ) -> FieldOfView:
+        """The image below the horizon (with a margin), mapped to the floor, clipped to max_range_m.
+
+        "Below" is the side of the horizon holding the bottom-centre pixel: cameras look down at
+        the floor, so the bottom of the image is floor. The range is measured from the floor point
+        seen at the bottom centre.
+        """
+        width, height = image_size
+        if not (0 < width <= 100_000 and 0 < height <= 100_000):
+            raise InvalidArgument(f"{name}: image size {width}x{height} is not a real image size")
+        max_range = float(max_range_m)
+        if not (math.isfinite(max_range) and 0 < max_range <= 10_000):
+            raise InvalidArgument(f"{name}: max_range_m {max_range_m} must be in (0, 10000]")
+        bottom = np.array([[width / 2.0, height - 0.5]])
+        w_bottom = float(homography.projective_scale(bottom)[0])
+        if abs(w_bottom) < 1e-12:
+            raise InvalidArgument(f"{name}: the bottom of the image lies on the horizon; the camera sees no floor")
+        # Image-space half-plane s*(a*u + b*v + c) >= margin*|w_bottom|, as an OpenCV-friendly polygon clip.
+        sign = 1.0 if w_bottom > 0 else -1.0
+        a, b, c = (homography.matrix[2] * sign).tolist()
+        threshold = HORIZON_MARGIN * abs(w_bottom)
+        rect = box(0.0, 0.0, float(width), float(height))
+        image_poly = _clip_half_plane(rect, a, b, c - threshold)
+        if image_poly.is_empty or image_poly.area < 1.0:
+            raise InvalidArgument(f"{name}: no part of the image is below the horizon; the camera sees no floor")
+        ring = np.asarray(image_poly.exterior.coords)[:-1]
+        floor_pts = homography.apply(ring)
+        floor = Polygon(floor_pts)
+        if not floor.is_valid:
+            floor = shapely.make_valid(floor)
+        near = Point(homography.apply(bottom)[0])
+        floor = floor.intersection(near.buffer(max_range, quad_segs=16))
+        floor = _largest_polygon(floor)
+        if floor is None or floor.area <= _MIN_AREA_M2:
+            raise InvalidArgument(f"{name}: the camera sees no floor (empty field of view)")
+        if not np.all(np.isfinite(np.asarray(floor.exterior.coords))):
+            raise InvalidArgument(f"{name}: field of view is not finite")
+        # The image polygon that maps into the clipped floor polygon (for masking detections).
+        image_clip = Polygon(homography.inverse().apply(np.asarray(floor.exterior.coords)[:-1]))
+        if not image_clip.is_valid:
+            image_clip = _largest_polygon(shapely.make_valid(image_clip)) or image_poly
+        image_clip = _largest_polygon(image_clip.intersection(rect)) or image_poly
+        return cls(floor=floor, image=image_clip)
+
+
+def _clip_half_plane(poly: Polygon, a: float, b: float, c: float) -> Polygon:
+    """poly ∩ {(u, v): a*u + b*v + c >= 0} (Sutherland-Hodgman on a convex ring)."""
+    pts = list(poly.exterior.coords)[:-1]
+    out: list[tuple[float, float]] = []
+    for i, p in enumerate(pts):
+        q = pts[(i + 1) % len(pts)]
+        fp = a * p[0] + b * p[1] + c
+        fq = a * q[0] + b * q[1] + c
+        if fp >= 0:
+            out.append(p)
+        if (fp >= 0) != (fq >= 0):
+            t = fp / (fp - fq)
+            out.append((p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1])))
+    if len(out) < 3:
+        return Polygon()
+    return Polygon(out)
+
+
+def _largest_polygon(geom: shapely.Geometry) -> Polygon | None:
+    if isinstance(geom, Polygon):
+        return None if geom.is_empty else geom
+    polys = [g for g in getattr(geom, "geoms", []) if isinstance(g, Polygon) and not g.is_empty]
+    return max(polys, key=lambda g: g.area) if polys else None
+
+
+def homography_from_pose(
+    position: Sequence[float],
+    yaw_deg: float,
+    pitch_deg: float,
+    hfov_deg: float,
+    resolution: tuple[int, int],
+) -> Homography:
+    """Image -> floor homography of an ideal pinhole camera (no distortion, square pixels).
+
+    position: (x, y, z) with z the mounting height; yaw: the optical axis on the floor,
+    counter-clockwise from +x; pitch: tilt below horizontal.
+    """
+    width, height = resolution
+    cx, cy, cz = (float(v) for v in position)
+    if cz <= 0:
+        raise InvalidArgument(f"position: camera height {cz} must be above the floor (z > 0)")
+    if not 0 < hfov_deg < 180:
+        raise InvalidArgument(f"hfov_deg: {hfov_deg} must be in (0, 180)")
+    yaw, pitch = math.radians(yaw_deg), math.radians(pitch_deg)
+    forward = np.array([math.cos(pitch) * math.cos(yaw), math.cos(pitch) * math.sin(yaw), -math.sin(pitch)])
+    right = np.array([math.sin(yaw), -math.cos(yaw), 0.0])
+    down = np.cross(forward, right)
+    rot = np.vstack([right, down, forward])  # world -> camera (OpenCV axes: x right, y down, z forward)
+    f = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+    k = np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+    t = -rot @ np.array([cx, cy, cz])
+    world_to_image = k @ np.column_stack([rot[:, 0], rot[:, 1], t])
+    return Homography.from_values(np.linalg.inv(world_to_image))
+
+
+def polygon_coords(poly: Polygon) -> list[tuple[float, float]]:
+    """Exterior ring without the closing point."""
+    return [(float(x), float(y)) for x, y in list(poly.exterior.coords)[:-1]]

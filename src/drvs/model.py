@@ -1,0 +1,126 @@
+"""Domain objects that robot code and camera logic see: dataclasses and shapely geometry."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+from shapely.geometry import Point, Polygon
+
+from drvs.errors import InvalidArgument
+from drvs.filters import detector_kind
+from drvs.net import parse_address
+
+#: Continuous requests are bounded so one request cannot keep cameras busy forever.
+MAX_RATE_HZ = 100.0
+MAX_DURATION_S = 3600.0
+MAX_ID_LENGTH = 128
+
+
+@dataclass(frozen=True, slots=True)
+class PixelBox:
+    x: int
+    y: int
+    width: int
+    height: int
+
+
+@dataclass(frozen=True)
+class Detection:
+    """One object seen by one camera, in floor coordinates (metres)."""
+
+    outline: Polygon
+    bounds: tuple[float, float, float, float]
+    centroid: Point
+    ground_contact: Point
+    pixel_box: PixelBox
+    area_m2: float
+    area_px: float
+    score: float
+    filter_def: str
+    camera_id: str = ""
+    capture_time: float = 0.0
+
+
+@dataclass(frozen=True)
+class DetectionReport:
+    """What one camera saw for one request at one instant."""
+
+    request_id: str
+    camera_id: str
+    capture_time: float
+    sequence: int
+    final: bool
+    detections: tuple[Detection, ...] = ()
+    error: str = ""
+
+
+@dataclass(frozen=True)
+class ContinuousMode:
+    rate_hz: float = 0.0
+    duration_s: float = 0.0
+
+    @property
+    def single_shot(self) -> bool:
+        return self.rate_hz == 0.0 and self.duration_s == 0.0
+
+    def validate(self) -> None:
+        for name, value, limit in (
+            ("continuous.rate_hz", self.rate_hz, MAX_RATE_HZ),
+            ("continuous.duration_s", self.duration_s, MAX_DURATION_S),
+        ):
+            if not math.isfinite(value) or value < 0:
+                raise InvalidArgument(f"{name}: {value} must be a finite number >= 0")
+            if value > limit:
+                raise InvalidArgument(f"{name}: {value:g} exceeds the limit of {limit:g}")
+        if (self.rate_hz == 0) != (self.duration_s == 0):
+            raise InvalidArgument(
+                "continuous: rate_hz and duration_s must both be > 0 (continuous) or both 0 (single shot); "
+                f"got rate_hz={self.rate_hz:g}, duration_s={self.duration_s:g}"
+            )
+
+    def report_times(self) -> list[float]:
+        """Offsets (s) from the start at which reports are taken; the last one is final."""
+        if self.single_shot:
+            return [0.0]
+        period = 1.0 / self.rate_hz
+        count = math.floor(self.duration_s * self.rate_hz + 1e-9)
+        return [i * period for i in range(count + 1)]
+
+
+@dataclass(frozen=True)
+class DetectionRequest:
+    """A validated request: what to look for, where, and where to send the reports."""
+
+    request_id: str
+    robot_id: str
+    filter_def: str
+    region: Polygon
+    callback_address: str
+    continuous: ContinuousMode = field(default_factory=ContinuousMode)
+
+    def validate(self, *, require_request_id: bool = True) -> None:
+        """Everything but the region, which is validated when it is built."""
+        if require_request_id and not self.request_id:
+            raise InvalidArgument("request_id: empty")
+        check_id(self.request_id, "request_id", allow_empty=not require_request_id)
+        check_id(self.robot_id, "robot_id", allow_empty=True)
+        detector_kind(self.filter_def)
+        parse_address(self.callback_address, "callback_address")
+        self.continuous.validate()
+
+    @property
+    def kind(self) -> str:
+        return detector_kind(self.filter_def)
+
+
+def check_id(value: str, name: str, *, allow_empty: bool = False) -> str:
+    if not value:
+        if allow_empty:
+            return value
+        raise InvalidArgument(f"{name}: empty")
+    if len(value) > MAX_ID_LENGTH:
+        raise InvalidArgument(f"{name}: longer than {MAX_ID_LENGTH} characters")
+    if not all(c.isalnum() or c in "-_.:" for c in value):
+        raise InvalidArgument(f"{name}: {value[:40]!r} may hold only letters, digits and - _ . :")
+    return value

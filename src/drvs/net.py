@@ -1,0 +1,58 @@
+"""host:port addresses as DRVS passes them around."""
+
+from __future__ import annotations
+
+import ipaddress
+import re
+import socket
+
+from drvs.errors import InvalidArgument
+
+_HOST_RE = re.compile(r"^(?=.{1,253}$)[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$")
+
+
+def parse_address(address: str, name: str = "address", *, allow_port_zero: bool = False) -> tuple[str, int]:
+    """Split 'host:port' or '[v6]:port'; InvalidArgument names the field when it is malformed."""
+    if not isinstance(address, str) or not address:
+        raise InvalidArgument(f"{name}: empty; expected host:port")
+    if address.startswith("["):
+        end = address.find("]")
+        if end < 0 or address[end + 1 : end + 2] != ":":
+            raise InvalidArgument(f"{name}: {address[:80]!r} is not [ipv6]:port")
+        host, port_text = address[1:end], address[end + 2 :]
+        try:
+            ipaddress.IPv6Address(host)
+        except ValueError:
+            raise InvalidArgument(f"{name}: {host[:80]!r} is not an IPv6 address") from None
+    else:
+        host, sep, port_text = address.rpartition(":")
+        if not sep or not host:
+            raise InvalidArgument(f"{name}: {address[:80]!r} is not host:port")
+        if not _HOST_RE.match(host):
+            raise InvalidArgument(f"{name}: {host[:80]!r} is not a valid host name or IPv4 address")
+    if not port_text.isdigit():
+        raise InvalidArgument(f"{name}: port {port_text[:20]!r} is not a number")
+    port = int(port_text)
+    if not (0 if allow_port_zero else 1) <= port <= 65535:
+        raise InvalidArgument(f"{name}: port {port} is out of range")
+    return host, port
+
+
+def format_address(host: str, port: int) -> str:
+    return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
+
+
+def local_ip_towards(address: str) -> str:
+    """The local IP this host would use to reach `address` (no packet is sent)."""
+    host, port = parse_address(address)
+    if host in ("localhost",) or host.startswith("127."):
+        return "127.0.0.1"
+    if host == "::1":
+        return "::1"
+    family = socket.AF_INET6 if ":" in host else socket.AF_INET
+    try:
+        with socket.socket(family, socket.SOCK_DGRAM) as s:
+            s.connect((host, port))
+            return str(s.getsockname()[0])
+    except OSError:
+        return "127.0.0.1"

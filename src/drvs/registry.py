@@ -1,0 +1,152 @@
+"""The server's camera registry: fields of view in a spatial index, held by leases. Pure logic."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+import shapely
+from shapely import STRtree
+from shapely.geometry import Polygon
+
+from drvs.errors import InvalidArgument, NotFound
+from drvs.geometry import FieldOfView, Homography
+from drvs.model import check_id
+from drvs.net import parse_address
+
+DEFAULT_LEASE_TTL_S = 10.0
+_MIN_OVERLAP_M2 = 1e-9
+
+
+@dataclass(frozen=True)
+class CameraEntry:
+    camera_id: str
+    address: str
+    field_of_view: Polygon
+    detector_kinds: frozenset[str]
+    homography: Homography
+    image_size: tuple[int, int]
+
+
+class Registry:
+    """Cameras by id, with an STRtree over their fields of view rebuilt lazily after changes.
+
+    Lookups are O(log n + k) in the number of cameras. Registrations are rare next to lookups, so
+    the (immutable) STRtree is rebuilt on the first lookup after one; leases live apart from the
+    index, so heartbeats never touch it.
+    """
+
+    def __init__(self, lease_ttl_s: float = DEFAULT_LEASE_TTL_S, clock: Callable[[], float] = time.monotonic) -> None:
+        if not lease_ttl_s > 0:
+            raise ValueError(f"lease_ttl_s must be > 0, got {lease_ttl_s}")
+        self.lease_ttl_s = lease_ttl_s
+        self._clock = clock
+        self._entries: dict[str, CameraEntry] = {}
+        self._expires: dict[str, float] = {}
+        self._tree: STRtree | None = None
+        self._tree_entries: list[CameraEntry] = []
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    def __contains__(self, camera_id: object) -> bool:
+        return camera_id in self._entries
+
+    def get(self, camera_id: str) -> CameraEntry:
+        try:
+            return self._entries[camera_id]
+        except KeyError:
+            raise NotFound(f"camera_id: {camera_id!r} is not registered") from None
+
+    def register(
+        self,
+        camera_id: str,
+        address: str,
+        homography: Homography,
+        image_size: tuple[int, int],
+        detector_kinds: frozenset[str] | set[str],
+        max_range_m: float,
+    ) -> CameraEntry:
+        """Validate everything first, then add or replace the entry (replacing renews the lease)."""
+        check_id(camera_id, "camera_id")
+        parse_address(address, "address")
+        if not detector_kinds:
+            raise InvalidArgument("detector_kinds: empty; a camera must run at least one detector")
+        for kind in detector_kinds:
+            check_id(kind, "detector_kinds")
+        fov = FieldOfView.compute(homography, image_size, max_range_m)
+        entry = CameraEntry(
+            camera_id=camera_id,
+            address=address,
+            field_of_view=fov.floor,
+            detector_kinds=frozenset(detector_kinds),
+            homography=homography,
+            image_size=image_size,
+        )
+        self._entries[camera_id] = entry
+        self._expires[camera_id] = self._clock() + self.lease_ttl_s
+        self._tree = None
+        return entry
+
+    def renew(self, camera_id: str) -> CameraEntry:
+        entry = self.get(camera_id)
+        now = self._clock()
+        if self._expires[camera_id] <= now:
+            self.remove(camera_id)
+            raise NotFound(f"camera_id: {camera_id!r}'s lease expired; register again")
+        self._expires[camera_id] = now + self.lease_ttl_s
+        return entry
+
+    def remove(self, camera_id: str) -> CameraEntry:
+        entry = self._entries.pop(camera_id, None)
+        if entry is None:
+            raise NotFound(f"camera_id: {camera_id!r} is not registered")
+        del self._expires[camera_id]
+        self._tree = None
+        return entry
+
+    def expire(self) -> list[CameraEntry]:
+        """Drop every entry whose lease has run out; returns them."""
+        now = self._clock()
+        gone = [self._entries[cid] for cid, t in self._expires.items() if t <= now]
+        for entry in gone:
+            del self._entries[entry.camera_id]
+            del self._expires[entry.camera_id]
+        if gone:
+            self._tree = None
+        return gone
+
+    def is_live(self, camera_id: str) -> bool:
+        return self._expires.get(camera_id, 0.0) > self._clock()
+
+    def cameras(self) -> list[CameraEntry]:
+        return sorted((e for e in self._entries.values() if self.is_live(e.camera_id)), key=lambda e: e.camera_id)
+
+    def cameras_seeing(self, region: Polygon, kind: str | None = None) -> list[CameraEntry]:
+        """Live cameras whose field of view meets `region` with positive area (and run `kind`)."""
+        if self._tree is None:
+            self._tree_entries = list(self._entries.values())
+            self._tree = STRtree([e.field_of_view for e in self._tree_entries])
+        if not self._tree_entries:
+            return []
+        candidates = self._tree.query(region, predicate="intersects")
+        if len(candidates) == 0:
+            return []
+        entries = [self._tree_entries[i] for i in np.sort(candidates)]
+        overlap = shapely.area(shapely.intersection([e.field_of_view for e in entries], region))
+        now = self._clock()
+        return sorted(
+            (
+                e
+                for e, a in zip(entries, overlap, strict=True)
+                if a > _MIN_OVERLAP_M2
+                and self._expires.get(e.camera_id, 0.0) > now
+                and (kind is None or kind in e.detector_kinds)
+            ),
+            key=lambda e: e.camera_id,
+        )
+
+    def remaining_s(self, camera_id: str) -> float:
+        return max(0.0, self._expires.get(camera_id, 0.0) - self._clock())

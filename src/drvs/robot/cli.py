@@ -1,0 +1,171 @@
+"""drvs-robot: ask DRVS from the command line (what a robot's code does through DrvsClient)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import sys
+from typing import Any
+
+from drvs._cli import env, setup_logging
+from drvs.errors import DrvsError, InvalidArgument
+from drvs.model import Detection, DetectionReport
+from drvs.robot.client import DEFAULT_TIMEOUT_S, DrvsClient, RegionLike
+
+ENV_SERVER = "DRVS_SERVER"
+
+
+def parse_numbers(text: str, name: str) -> list[float]:
+    try:
+        return [float(v) for v in text.split(",")]
+    except ValueError:
+        raise InvalidArgument(f"{name}: {text!r} is not a comma-separated list of numbers") from None
+
+
+def parse_roi(args: argparse.Namespace) -> RegionLike:
+    if args.roi and args.polygon:
+        raise InvalidArgument("give --roi or --polygon, not both")
+    if args.roi:
+        values = parse_numbers(args.roi, "--roi")
+        if len(values) != 4:
+            raise InvalidArgument(f"--roi: expected X0,Y0,X1,Y1, got {len(values)} numbers")
+        return values
+    if args.polygon:
+        values = parse_numbers(args.polygon, "--polygon")
+        if len(values) % 2 or len(values) < 6:
+            raise InvalidArgument("--polygon: expected X,Y pairs of at least three points: X0,Y0,X1,Y1,X2,Y2,...")
+        return [values[i : i + 2] for i in range(0, len(values), 2)]
+    raise InvalidArgument("a region is required: --roi X0,Y0,X1,Y1 or --polygon X0,Y0,X1,Y1,X2,Y2,...")
+
+
+def detection_json(d: Detection) -> dict[str, Any]:
+    return {
+        "camera_id": d.camera_id,
+        "filter_def": d.filter_def,
+        "centroid": [round(d.centroid.x, 4), round(d.centroid.y, 4)],
+        "ground_contact": [round(d.ground_contact.x, 4), round(d.ground_contact.y, 4)],
+        "bounds": [round(v, 4) for v in d.bounds],
+        "outline": [[round(x, 4), round(y, 4)] for x, y in list(d.outline.exterior.coords)[:-1]],
+        "area_m2": round(d.area_m2, 5),
+        "area_px": d.area_px,
+        "pixel_box": [d.pixel_box.x, d.pixel_box.y, d.pixel_box.width, d.pixel_box.height],
+        "score": round(d.score, 3),
+    }
+
+
+def report_json(r: DetectionReport) -> dict[str, Any]:
+    out: dict[str, Any] = {
+        "request_id": r.request_id,
+        "camera_id": r.camera_id,
+        "sequence": r.sequence,
+        "final": r.final,
+        "capture_time": r.capture_time,
+        "detections": [detection_json(d) for d in r.detections],
+    }
+    if r.error:
+        out["error"] = r.error
+    return out
+
+
+def print_report(r: DetectionReport) -> None:
+    head = f"{r.camera_id} #{r.sequence}{' final' if r.final else ''}: "
+    if r.error:
+        print(head + f"error: {r.error}")
+        return
+    print(head + (f"{len(r.detections)} object(s)" if r.detections else "nothing seen"))
+    for d in r.detections:
+        x0, y0, x1, y1 = d.bounds
+        print(
+            f"    centroid ({d.centroid.x:7.3f}, {d.centroid.y:7.3f}) m  "
+            f"bounds [{x0:.2f}, {y0:.2f}, {x1:.2f}, {y1:.2f}]  area {d.area_m2:.3f} m²  score {d.score:.2f}"
+        )
+
+
+async def detect(args: argparse.Namespace) -> int:
+    region = parse_roi(args)
+    async with DrvsClient(args.server, robot_id=args.robot_id, listen=args.listen, advertise=args.advertise) as client:
+        sub = await client.subscribe(
+            args.filter, region, rate_hz=args.rate, duration_s=args.duration, timeout_s=args.timeout
+        )
+        if not args.json:
+            print(f"request {sub.request_id}: dispatched to {', '.join(sub.camera_ids) or 'no camera'}")
+        async for report in sub:
+            if args.json:
+                print(json.dumps(report_json(report)), flush=True)
+            else:
+                print_report(report)
+        missing = sub.result.missing_cameras
+        if missing:
+            print(f"drvs-robot: no final report from {', '.join(sorted(missing))} within the timeout", file=sys.stderr)
+            return 3
+    return 0
+
+
+async def cameras(args: argparse.Namespace) -> int:
+    region = parse_roi(args) if (args.roi or args.polygon) else None
+    async with DrvsClient(args.server, robot_id=args.robot_id) as client:
+        found = await client.cameras(region)
+    for c in found:
+        if args.json:
+            coords = [[round(x, 4), round(y, 4)] for x, y in list(c.field_of_view.exterior.coords)[:-1]]
+            print(
+                json.dumps(
+                    {
+                        "camera_id": c.camera_id,
+                        "address": c.address,
+                        "field_of_view": coords,
+                        "detector_kinds": list(c.detector_kinds),
+                        "lease_remaining_s": round(c.lease_remaining_s, 2),
+                    }
+                )
+            )
+        else:
+            x0, y0, x1, y1 = c.field_of_view.bounds
+            print(
+                f"{c.camera_id:12s} {c.address:22s} field of view {c.field_of_view.area:6.1f} m² "
+                f"within [{x0:.1f}, {y0:.1f}, {x1:.1f}, {y1:.1f}]  lease {c.lease_remaining_s:.1f} s"
+            )
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="drvs-robot", description="Ask DRVS where objects are.")
+    sub = p.add_subparsers(dest="command", required=True)
+
+    def common(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument("--server", default=env(ENV_SERVER, "127.0.0.1:50051"), help=f"HOST:PORT (env {ENV_SERVER})")
+        sp.add_argument("--roi", help="box X0,Y0,X1,Y1 in metres")
+        sp.add_argument("--polygon", help="polygon X0,Y0,X1,Y1,X2,Y2,... in metres")
+        sp.add_argument("--robot-id", default="drvs-robot-cli")
+        sp.add_argument("--json", action="store_true", help="one JSON object per line")
+        sp.add_argument("--log-level", default="WARNING")
+
+    d = sub.add_parser("detect", help="detect objects in a region")
+    common(d)
+    d.add_argument("--filter", required=True, help="filter_def, e.g. hsv_014110130035225200 (yellow)")
+    d.add_argument("--rate", type=float, default=0.0, metavar="HZ", help="continuous mode: reports per second")
+    d.add_argument("--duration", type=float, default=0.0, metavar="S", help="continuous mode: for how long")
+    d.add_argument(
+        "--timeout", type=float, default=DEFAULT_TIMEOUT_S, metavar="S", help="wait this long beyond the duration"
+    )
+    d.add_argument("--listen", default=None, help="HOST:PORT for the callback listener (default: ephemeral)")
+    d.add_argument("--advertise", default=None, help="HOST:PORT cameras should call back, if not --listen")
+    d.set_defaults(func=detect)
+
+    c = sub.add_parser("cameras", help="list the registered cameras (optionally those seeing a region)")
+    common(c)
+    c.set_defaults(func=cameras)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    setup_logging(args.log_level)
+    try:
+        return int(asyncio.run(args.func(args)))
+    except DrvsError as exc:
+        print(f"drvs-robot: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130

@@ -1,0 +1,302 @@
+"""DrvsClient: robot code asks for objects and gets Python objects back."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import uuid
+from collections.abc import AsyncIterator, Sequence
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Any
+
+import grpc
+from grpc import aio
+from shapely.geometry import Polygon
+
+from drvs import _grpc
+from drvs.convert import polygon_from_pb, region_to_pb, report_from_pb, request_to_pb
+from drvs.errors import DrvsError, InvalidArgument
+from drvs.geometry import box_region, polygon_region
+from drvs.model import ContinuousMode, Detection, DetectionReport, DetectionRequest
+from drvs.net import format_address, local_ip_towards, parse_address
+from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
+
+log = logging.getLogger("drvs.robot")
+
+#: How long to wait for every camera's final report beyond a request's own duration.
+DEFAULT_TIMEOUT_S = 5.0
+#: Reports buffered per request before the listener pushes back on cameras.
+MAX_QUEUED_REPORTS = 1024
+
+RegionLike = Polygon | Sequence[float] | Sequence[Sequence[float]]
+
+
+def as_region(region: RegionLike) -> Polygon:
+    """A shapely polygon, a box (x0, y0, x1, y1), or a list of [x, y] points."""
+    if isinstance(region, Polygon):
+        return polygon_region(list(region.exterior.coords), "region")
+    items = list(region)
+    if len(items) == 4 and all(isinstance(v, (int, float)) for v in items):
+        return box_region(*items)  # type: ignore[arg-type]
+    if items and all(isinstance(p, Sequence) for p in items):
+        return polygon_region(items, "region")  # type: ignore[arg-type]
+    raise InvalidArgument("region: expected a shapely Polygon, a box (x0, y0, x1, y1) or a list of [x, y] points")
+
+
+@dataclass(frozen=True)
+class CameraInfo:
+    camera_id: str
+    address: str
+    field_of_view: Polygon
+    detector_kinds: tuple[str, ...]
+    lease_remaining_s: float
+
+
+@dataclass
+class DetectionResult:
+    """Everything one request brought back."""
+
+    request_id: str
+    camera_ids: tuple[str, ...]
+    reports: list[DetectionReport] = field(default_factory=list)
+
+    @property
+    def detections(self) -> list[Detection]:
+        return [d for r in self.reports for d in r.detections]
+
+    @property
+    def finished_cameras(self) -> set[str]:
+        return {r.camera_id for r in self.reports if r.final}
+
+    @property
+    def missing_cameras(self) -> set[str]:
+        """Dispatched cameras that sent no final report before the timeout."""
+        return set(self.camera_ids) - self.finished_cameras
+
+    @property
+    def complete(self) -> bool:
+        return not self.missing_cameras
+
+    @property
+    def errors(self) -> list[str]:
+        return [r.error for r in self.reports if r.error]
+
+
+class Subscription:
+    """The reports of one request, as an async iterator that ends when every dispatched camera has
+    sent its final report, or when the timeout passes."""
+
+    def __init__(self, client: DrvsClient, request: DetectionRequest, timeout_s: float) -> None:
+        self._client = client
+        self.request = request
+        self.request_id = request.request_id
+        self.camera_ids: tuple[str, ...] = ()
+        self._queue: asyncio.Queue[DetectionReport] = asyncio.Queue(MAX_QUEUED_REPORTS)
+        self._deadline = 0.0
+        self._timeout_s = timeout_s
+        self.closed = False
+        self.result = DetectionResult(request.request_id, ())
+
+    def _dispatched(self, camera_ids: Sequence[str]) -> None:
+        self.camera_ids = tuple(camera_ids)
+        self.result.camera_ids = self.camera_ids
+        loop = asyncio.get_running_loop()
+        self._deadline = loop.time() + self.request.continuous.duration_s + self._timeout_s
+
+    async def _deliver(self, report: DetectionReport) -> bool:
+        if self.closed:
+            return False
+        await self._queue.put(report)
+        return True
+
+    def __aiter__(self) -> AsyncIterator[DetectionReport]:
+        return self._iterate()
+
+    async def _iterate(self) -> AsyncIterator[DetectionReport]:
+        loop = asyncio.get_running_loop()
+        try:
+            while not self.closed and self.result.missing_cameras:
+                remaining = self._deadline - loop.time()
+                if remaining <= 0:
+                    break
+                try:
+                    report = await asyncio.wait_for(self._queue.get(), remaining)
+                except asyncio.TimeoutError:
+                    break
+                if report.camera_id not in self.camera_ids:
+                    log.warning("request %s: report from undispatched camera %s ignored", self.request_id, report.camera_id)
+                    continue
+                self.result.reports.append(report)
+                yield report
+        finally:
+            self.close()
+
+    async def collect(self) -> DetectionResult:
+        async for _ in self:
+            pass
+        return self.result
+
+    def close(self) -> None:
+        """Stop listening: cameras still streaming for this request are told to stop."""
+        if not self.closed:
+            self.closed = True
+            self._client._subscriptions.pop(self.request_id, None)
+
+
+class DrvsClient:
+    """Connects to a DRVS server and runs the robot's CallbackCoordinates listener.
+
+    The listener binds `listen` (default: the local address that reaches the server, port 0) and
+    tells cameras to call `advertise` (default: the bound address).
+    """
+
+    def __init__(
+        self,
+        server: str,
+        *,
+        robot_id: str = "",
+        listen: str | None = None,
+        advertise: str | None = None,
+    ) -> None:
+        parse_address(server, "server")
+        self.server = server
+        self.robot_id = robot_id
+        self.listen = listen or format_address(local_ip_towards(server), 0)
+        parse_address(self.listen, "listen", allow_port_zero=True)
+        self._advertise = advertise
+        if advertise:
+            parse_address(advertise, "advertise")
+        self.port = 0
+        self._channel: aio.Channel | None = None
+        self._listener: aio.Server | None = None
+        self._subscriptions: dict[str, Subscription] = {}
+        self.reports_received = 0
+
+    @property
+    def callback_address(self) -> str:
+        if self._advertise:
+            return self._advertise
+        host = self.listen.rpartition(":")[0].strip("[]")
+        if host in ("0.0.0.0", "::"):
+            host = local_ip_towards(self.server)
+        return format_address(host, self.port)
+
+    async def start(self) -> None:
+        listener = _grpc.new_server()
+        detection_pb2_grpc.add_CallbackCoordinatesServicer_to_server(_Listener(self), listener)
+        self.port = _grpc.bind(listener, self.listen)
+        await listener.start()
+        self._listener = listener
+        self._channel = _grpc.insecure_channel(self.server)
+        self._detect = detection_pb2_grpc.DetectObjectBoundaryStub(self._channel)
+        self._registry = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
+        log.debug("robot %r listening for reports on %s", self.robot_id, self.callback_address)
+
+    async def close(self) -> None:
+        for sub in list(self._subscriptions.values()):
+            sub.close()
+        if self._listener is not None:
+            await self._listener.stop(0.5)
+            self._listener = None
+        if self._channel is not None:
+            await self._channel.close()
+            self._channel = None
+
+    async def __aenter__(self) -> DrvsClient:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.close()
+
+    async def subscribe(
+        self,
+        filter_def: str,
+        region: RegionLike,
+        *,
+        rate_hz: float = 0.0,
+        duration_s: float = 0.0,
+        timeout_s: float = DEFAULT_TIMEOUT_S,
+        request_id: str | None = None,
+        rpc_timeout_s: float = 5.0,
+    ) -> Subscription:
+        """Send a request; iterate the returned Subscription for its reports."""
+        if self._channel is None:
+            raise DrvsError("DrvsClient is not started; use `async with DrvsClient(...)` or await start()")
+        request = DetectionRequest(
+            request_id=request_id or uuid.uuid4().hex,
+            robot_id=self.robot_id,
+            filter_def=filter_def,
+            region=as_region(region),
+            callback_address=self.callback_address,
+            continuous=ContinuousMode(float(rate_hz), float(duration_s)),
+        )
+        request.validate()
+        if request.request_id in self._subscriptions:
+            raise InvalidArgument(f"request_id: {request.request_id!r} is already in use")
+        # Registered before sending: a camera may report before the server's reply arrives.
+        sub = Subscription(self, request, timeout_s)
+        self._subscriptions[request.request_id] = sub
+        try:
+            reply = await self._detect.DetectObjects(request_to_pb(request), timeout=rpc_timeout_s)
+        except grpc.RpcError as exc:
+            sub.close()
+            raise _grpc.from_rpc_error(exc, f"server {self.server}") from None
+        sub._dispatched(reply.camera_ids)
+        return sub
+
+    async def detect(
+        self,
+        filter_def: str,
+        region: RegionLike,
+        *,
+        rate_hz: float = 0.0,
+        duration_s: float = 0.0,
+        timeout_s: float = DEFAULT_TIMEOUT_S,
+    ) -> DetectionResult:
+        """Send a request and collect every report until each camera is done or the timeout passes."""
+        sub = await self.subscribe(filter_def, region, rate_hz=rate_hz, duration_s=duration_s, timeout_s=timeout_s)
+        return await sub.collect()
+
+    async def cameras(self, region: RegionLike | None = None, *, rpc_timeout_s: float = 5.0) -> list[CameraInfo]:
+        """The cameras the server routes to (optionally only those that see `region`)."""
+        if self._channel is None:
+            raise DrvsError("DrvsClient is not started")
+        msg = registry_pb2.ListCamerasRequest()
+        if region is not None:
+            msg.region.CopyFrom(region_to_pb(as_region(region)))
+        try:
+            reply = await self._registry.ListCameras(msg, timeout=rpc_timeout_s)
+        except grpc.RpcError as exc:
+            raise _grpc.from_rpc_error(exc, f"server {self.server}") from None
+        return [
+            CameraInfo(
+                camera_id=c.camera_id,
+                address=c.address,
+                field_of_view=polygon_from_pb(c.field_of_view, "field_of_view"),
+                detector_kinds=tuple(c.detector_kinds),
+                lease_remaining_s=c.lease_remaining_s,
+            )
+            for c in reply.cameras
+        ]
+
+
+class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):
+    def __init__(self, client: DrvsClient) -> None:
+        self._client = client
+
+    async def ReportDetections(
+        self, request_iterator: AsyncIterator[detection_pb2.DetectionReport], context: aio.ServicerContext[Any, Any]
+    ) -> detection_pb2.ReportAck:
+        received = 0
+        async for message in request_iterator:
+            sub = self._client._subscriptions.get(message.request_id)
+            if sub is None or not await sub._deliver(report_from_pb(message)):
+                # Unknown or closed request: tell the camera to stop streaming.
+                return detection_pb2.ReportAck(received=received, cancelled=True)
+            received += 1
+            self._client.reports_received += 1
+        return detection_pb2.ReportAck(received=received)

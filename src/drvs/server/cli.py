@@ -1,0 +1,74 @@
+"""drvs-server: the DRVS server process."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+
+from drvs._cli import env, setup_logging, shutdown_event
+from drvs.errors import DrvsError
+from drvs.net import parse_address
+from drvs.registry import DEFAULT_LEASE_TTL_S
+from drvs.server.server import DEFAULT_FORWARD_TIMEOUT_S, DEFAULT_LISTEN, DrvsServer
+
+log = logging.getLogger("drvs.server")
+
+ENV_LISTEN = "DRVS_SERVER_LISTEN"
+ENV_LEASE_TTL = "DRVS_LEASE_TTL"
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="drvs-server", description="Run the DRVS server (registry and routing).")
+    p.add_argument(
+        "--listen",
+        default=env(ENV_LISTEN, DEFAULT_LISTEN),
+        help=f"HOST:PORT to serve on; port 0 picks a free one (env {ENV_LISTEN}; default %(default)s)",
+    )
+    p.add_argument(
+        "--lease-ttl",
+        type=float,
+        default=float(env(ENV_LEASE_TTL, str(DEFAULT_LEASE_TTL_S)) or DEFAULT_LEASE_TTL_S),
+        metavar="SECONDS",
+        help=f"camera lease time-to-live (env {ENV_LEASE_TTL}; default %(default)s)",
+    )
+    p.add_argument(
+        "--forward-timeout",
+        type=float,
+        default=DEFAULT_FORWARD_TIMEOUT_S,
+        metavar="SECONDS",
+        help="how long a camera may take to accept a forwarded request (default %(default)s)",
+    )
+    p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING (env DRVS_LOG_LEVEL)")
+    return p
+
+
+async def serve(args: argparse.Namespace) -> None:
+    stop = shutdown_event()
+    server = DrvsServer(args.listen, lease_ttl_s=args.lease_ttl, forward_timeout_s=args.forward_timeout)
+    await server.start()
+    try:
+        await stop.wait()
+        log.info("shutting down")
+    finally:
+        await server.stop(grace=2.0)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        parse_address(args.listen, "--listen", allow_port_zero=True)
+        if not 0 < args.lease_ttl <= 3600:
+            raise DrvsError(f"--lease-ttl: {args.lease_ttl} must be in (0, 3600]")
+        if not 0 < args.forward_timeout <= 60:
+            raise DrvsError(f"--forward-timeout: {args.forward_timeout} must be in (0, 60]")
+    except DrvsError as exc:
+        parser.error(str(exc))
+    setup_logging(args.log_level)
+    try:
+        asyncio.run(serve(args))
+    except OSError as exc:
+        log.error("%s", exc)
+        return 1
+    return 0

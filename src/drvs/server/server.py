@@ -1,0 +1,299 @@
+"""The DRVS server: routes robots' requests to the cameras that see the region."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import time
+import uuid
+from types import TracebackType
+from typing import Any
+
+import grpc
+from grpc import aio
+from shapely.geometry import Polygon
+
+from drvs import _grpc
+from drvs.callback import CallbackSender
+from drvs.convert import (
+    homography_from_pb,
+    polygon_to_pb,
+    region_from_pb,
+    request_from_pb,
+)
+from drvs.errors import InvalidArgument
+from drvs.geometry import DEFAULT_MAX_RANGE_M
+from drvs.health import add_health_and_reflection, mark_serving
+from drvs.model import DetectionReport, DetectionRequest, check_id
+from drvs.net import format_address
+from drvs.registry import DEFAULT_LEASE_TTL_S, CameraEntry, Registry
+from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
+
+log = logging.getLogger("drvs.server")
+
+DEFAULT_LISTEN = "127.0.0.1:50051"
+#: How long the server waits for a camera to accept a forwarded request.
+DEFAULT_FORWARD_TIMEOUT_S = 2.0
+SERVICE_NAMES = (
+    detection_pb2.DESCRIPTOR.services_by_name["DetectObjectBoundary"].full_name,
+    registry_pb2.DESCRIPTOR.services_by_name["RegisterVisionService"].full_name,
+)
+
+
+class _CameraLink:
+    """One reused channel per camera, replaced when the camera registers a new address."""
+
+    def __init__(self, address: str) -> None:
+        self.address = address
+        self.channel = _grpc.insecure_channel(address)
+        self.stub = detection_pb2_grpc.DetectObjectBoundaryStub(self.channel)
+
+
+class DrvsServer:
+    """The server role as an object: start(), stop(grace), `async with`; port 0 picks a free port."""
+
+    def __init__(
+        self,
+        listen: str = DEFAULT_LISTEN,
+        *,
+        lease_ttl_s: float = DEFAULT_LEASE_TTL_S,
+        forward_timeout_s: float = DEFAULT_FORWARD_TIMEOUT_S,
+        default_max_range_m: float = DEFAULT_MAX_RANGE_M,
+    ) -> None:
+        self.listen = listen
+        self.registry = Registry(lease_ttl_s)
+        self.forward_timeout_s = forward_timeout_s
+        self.default_max_range_m = default_max_range_m
+        self.port = 0
+        self._server: aio.Server | None = None
+        self._health: Any = None
+        self._links: dict[str, _CameraLink] = {}
+        # Cameras whose last forward failed: skipped until their next heartbeat proves them alive.
+        self._unreachable: set[str] = set()
+        self._tasks: set[asyncio.Task[None]] = set()
+        self._sweeper: asyncio.Task[None] | None = None
+        self._callbacks = CallbackSender()
+        self._stopped = False
+
+    @property
+    def address(self) -> str:
+        host = self.listen.rpartition(":")[0].strip("[]")
+        return format_address(host, self.port)
+
+    async def start(self) -> None:
+        server = _grpc.new_server()
+        detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(_RobotFacing(self), server)
+        registry_pb2_grpc.add_RegisterVisionServiceServicer_to_server(_Registration(self), server)
+        self._health = add_health_and_reflection(server, SERVICE_NAMES)
+        self.port = _grpc.bind(server, self.listen)
+        await server.start()
+        self._server = server
+        await mark_serving(self._health, SERVICE_NAMES)
+        self._sweeper = asyncio.get_running_loop().create_task(self._sweep_leases())
+        log.info("drvs-server listening on %s (lease %.1f s)", self.address, self.registry.lease_ttl_s)
+
+    async def stop(self, grace: float = 2.0) -> None:
+        if self._stopped or self._server is None:
+            return
+        self._stopped = True
+        await self._health.enter_graceful_shutdown()
+        if self._sweeper is not None:
+            self._sweeper.cancel()
+        await self._server.stop(grace)
+        for task in list(self._tasks):
+            task.cancel()
+        await asyncio.gather(*self._tasks, return_exceptions=True)
+        await asyncio.gather(*(link.channel.close() for link in self._links.values()), return_exceptions=True)
+        self._links.clear()
+        await self._callbacks.close()
+        log.info("drvs-server stopped")
+
+    async def wait_for_termination(self) -> None:
+        assert self._server is not None
+        await self._server.wait_for_termination()
+
+    async def __aenter__(self) -> DrvsServer:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.stop()
+
+    # --- routing ---------------------------------------------------------------------------
+
+    def route(self, request: DetectionRequest) -> list[CameraEntry]:
+        """The live cameras that see the request's region, run its detector and are reachable."""
+        seeing = self.registry.cameras_seeing(request.region, request.kind)
+        return [c for c in seeing if c.camera_id not in self._unreachable]
+
+    def dispatch(self, request: DetectionRequest, message: detection_pb2.DetectionRequest) -> list[str]:
+        cameras = self.route(request)
+        for camera in cameras:
+            self._spawn(self._forward(camera, request, message))
+        log.info(
+            "request %s from robot %r (%s): dispatched to %s",
+            request.request_id,
+            request.robot_id,
+            request.filter_def,
+            ", ".join(c.camera_id for c in cameras) or "no camera",
+        )
+        return [c.camera_id for c in cameras]
+
+    def _spawn(self, coro: Any) -> None:
+        task = asyncio.get_running_loop().create_task(coro)
+        self._tasks.add(task)
+        task.add_done_callback(self._tasks.discard)
+
+    def _link(self, camera: CameraEntry) -> _CameraLink:
+        link = self._links.get(camera.camera_id)
+        if link is None or link.address != camera.address:
+            if link is not None:
+                self._spawn(link.channel.close())
+            link = _CameraLink(camera.address)
+            self._links[camera.camera_id] = link
+        return link
+
+    async def _forward(
+        self, camera: CameraEntry, request: DetectionRequest, message: detection_pb2.DetectionRequest
+    ) -> None:
+        link = self._link(camera)
+        try:
+            await link.stub.DetectObjects(message, timeout=self.forward_timeout_s)
+            return
+        except grpc.RpcError as exc:
+            code = exc.code() if isinstance(exc, aio.AioRpcError) else grpc.StatusCode.UNKNOWN
+            details = exc.details() if isinstance(exc, aio.AioRpcError) else str(exc)
+            reason = f"camera {camera.camera_id} did not accept the request: {code.name} {details}"
+        log.warning("request %s: %s", request.request_id, reason)
+        if code in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
+            self._unreachable.add(camera.camera_id)
+        # Answer for the camera, so the robot knows it will not report and need not wait for it.
+        report = DetectionReport(
+            request_id=request.request_id,
+            camera_id=camera.camera_id,
+            capture_time=time.time(),
+            sequence=0,
+            final=True,
+            error=reason,
+        )
+        try:
+            await self._callbacks.send_one(request.callback_address, report, self.forward_timeout_s)
+        except Exception as exc:
+            log.warning("request %s: could not tell the robot: %s", request.request_id, exc)
+
+    def _forget(self, camera_id: str) -> None:
+        self._unreachable.discard(camera_id)
+        link = self._links.pop(camera_id, None)
+        if link is not None:
+            self._spawn(link.channel.close())
+
+    async def _sweep_leases(self) -> None:
+        period = min(1.0, self.registry.lease_ttl_s / 4)
+        while True:
+            await asyncio.sleep(period)
+            for entry in self.registry.expire():
+                log.info("camera %s left routing: lease expired", entry.camera_id)
+                self._forget(entry.camera_id)
+
+
+class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
+    def __init__(self, server: DrvsServer) -> None:
+        self._s = server
+
+    @_grpc.servicer_method
+    async def DetectObjects(
+        self, message: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
+    ) -> detection_pb2.DetectionReply:
+        request = request_from_pb(message, require_request_id=False)
+        if not request.request_id:
+            request = DetectionRequest(
+                request_id=uuid.uuid4().hex,
+                robot_id=request.robot_id,
+                filter_def=request.filter_def,
+                region=request.region,
+                callback_address=request.callback_address,
+                continuous=request.continuous,
+            )
+            forwarded = detection_pb2.DetectionRequest()
+            forwarded.CopyFrom(message)
+            forwarded.request_id = request.request_id
+            message = forwarded
+        camera_ids = self._s.dispatch(request, message)
+        return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=camera_ids)
+
+
+class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
+    def __init__(self, server: DrvsServer) -> None:
+        self._s = server
+
+    @_grpc.servicer_method
+    async def Register(
+        self, message: registry_pb2.RegisterRequest, context: aio.ServicerContext[Any, Any]
+    ) -> registry_pb2.RegisterReply:
+        if not message.HasField("homography"):
+            raise InvalidArgument("homography: missing")
+        max_range = message.max_range_m or self._s.default_max_range_m
+        entry = self._s.registry.register(
+            camera_id=message.camera_id,
+            address=message.address,
+            homography=homography_from_pb(message.homography),
+            image_size=(message.image_width, message.image_height),
+            detector_kinds=set(message.detector_kinds),
+            max_range_m=max_range,
+        )
+        self._s._unreachable.discard(entry.camera_id)
+        self._s._link(entry)
+        log.info(
+            "camera %s registered at %s: field of view %.1f m², detectors %s",
+            entry.camera_id,
+            entry.address,
+            entry.field_of_view.area,
+            ",".join(sorted(entry.detector_kinds)),
+        )
+        return registry_pb2.RegisterReply(
+            lease_ttl_s=self._s.registry.lease_ttl_s, field_of_view=polygon_to_pb(entry.field_of_view)
+        )
+
+    @_grpc.servicer_method
+    async def Heartbeat(
+        self, message: registry_pb2.HeartbeatRequest, context: aio.ServicerContext[Any, Any]
+    ) -> registry_pb2.HeartbeatReply:
+        check_id(message.camera_id, "camera_id")
+        self._s.registry.renew(message.camera_id)
+        self._s._unreachable.discard(message.camera_id)
+        return registry_pb2.HeartbeatReply(lease_ttl_s=self._s.registry.lease_ttl_s)
+
+    @_grpc.servicer_method
+    async def Deregister(
+        self, message: registry_pb2.DeregisterRequest, context: aio.ServicerContext[Any, Any]
+    ) -> registry_pb2.DeregisterReply:
+        check_id(message.camera_id, "camera_id")
+        self._s.registry.remove(message.camera_id)
+        self._s._forget(message.camera_id)
+        log.info("camera %s deregistered", message.camera_id)
+        return registry_pb2.DeregisterReply()
+
+    @_grpc.servicer_method
+    async def ListCameras(
+        self, message: registry_pb2.ListCamerasRequest, context: aio.ServicerContext[Any, Any]
+    ) -> registry_pb2.ListCamerasReply:
+        entries: list[CameraEntry]
+        if message.HasField("region"):
+            region: Polygon = region_from_pb(message.region)
+            entries = self._s.registry.cameras_seeing(region)
+        else:
+            entries = self._s.registry.cameras()
+        return registry_pb2.ListCamerasReply(
+            cameras=[
+                registry_pb2.CameraInfo(
+                    camera_id=e.camera_id,
+                    address=e.address,
+                    field_of_view=polygon_to_pb(e.field_of_view),
+                    detector_kinds=sorted(e.detector_kinds),
+                    lease_remaining_s=self._s.registry.remaining_s(e.camera_id),
+                )
+                for e in entries
+            ]
+        )

@@ -1,0 +1,1 @@
+"""Simulation: rendered camera views of a floor with objects on it."""

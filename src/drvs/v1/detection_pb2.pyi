@@ -1,0 +1,91 @@
+import datetime
+
+from drvs.v1 import geometry_pb2 as _geometry_pb2
+from google.protobuf import timestamp_pb2 as _timestamp_pb2
+from google.protobuf.internal import containers as _containers
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class ContinuousMode(_message.Message):
+    __slots__ = ("rate_hz", "duration_s")
+    RATE_HZ_FIELD_NUMBER: _ClassVar[int]
+    DURATION_S_FIELD_NUMBER: _ClassVar[int]
+    rate_hz: float
+    duration_s: float
+    def __init__(self, rate_hz: _Optional[float] = ..., duration_s: _Optional[float] = ...) -> None: ...
+
+class DetectionRequest(_message.Message):
+    __slots__ = ("request_id", "robot_id", "filter_def", "region", "callback_address", "continuous")
+    REQUEST_ID_FIELD_NUMBER: _ClassVar[int]
+    ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
+    FILTER_DEF_FIELD_NUMBER: _ClassVar[int]
+    REGION_FIELD_NUMBER: _ClassVar[int]
+    CALLBACK_ADDRESS_FIELD_NUMBER: _ClassVar[int]
+    CONTINUOUS_FIELD_NUMBER: _ClassVar[int]
+    request_id: str
+    robot_id: str
+    filter_def: str
+    region: _geometry_pb2.Region
+    callback_address: str
+    continuous: ContinuousMode
+    def __init__(self, request_id: _Optional[str] = ..., robot_id: _Optional[str] = ..., filter_def: _Optional[str] = ..., region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., callback_address: _Optional[str] = ..., continuous: _Optional[_Union[ContinuousMode, _Mapping]] = ...) -> None: ...
+
+class DetectionReply(_message.Message):
+    __slots__ = ("request_id", "camera_ids")
+    REQUEST_ID_FIELD_NUMBER: _ClassVar[int]
+    CAMERA_IDS_FIELD_NUMBER: _ClassVar[int]
+    request_id: str
+    camera_ids: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, request_id: _Optional[str] = ..., camera_ids: _Optional[_Iterable[str]] = ...) -> None: ...
+
+class Detection(_message.Message):
+    __slots__ = ("outline", "bounds", "centroid", "ground_contact", "pixel_box", "area_m2", "area_px", "score", "filter_def")
+    OUTLINE_FIELD_NUMBER: _ClassVar[int]
+    BOUNDS_FIELD_NUMBER: _ClassVar[int]
+    CENTROID_FIELD_NUMBER: _ClassVar[int]
+    GROUND_CONTACT_FIELD_NUMBER: _ClassVar[int]
+    PIXEL_BOX_FIELD_NUMBER: _ClassVar[int]
+    AREA_M2_FIELD_NUMBER: _ClassVar[int]
+    AREA_PX_FIELD_NUMBER: _ClassVar[int]
+    SCORE_FIELD_NUMBER: _ClassVar[int]
+    FILTER_DEF_FIELD_NUMBER: _ClassVar[int]
+    outline: _geometry_pb2.Polygon
+    bounds: _geometry_pb2.Box
+    centroid: _geometry_pb2.Point2
+    ground_contact: _geometry_pb2.Point2
+    pixel_box: _geometry_pb2.PixelBox
+    area_m2: float
+    area_px: float
+    score: float
+    filter_def: str
+    def __init__(self, outline: _Optional[_Union[_geometry_pb2.Polygon, _Mapping]] = ..., bounds: _Optional[_Union[_geometry_pb2.Box, _Mapping]] = ..., centroid: _Optional[_Union[_geometry_pb2.Point2, _Mapping]] = ..., ground_contact: _Optional[_Union[_geometry_pb2.Point2, _Mapping]] = ..., pixel_box: _Optional[_Union[_geometry_pb2.PixelBox, _Mapping]] = ..., area_m2: _Optional[float] = ..., area_px: _Optional[float] = ..., score: _Optional[float] = ..., filter_def: _Optional[str] = ...) -> None: ...
+
+class DetectionReport(_message.Message):
+    __slots__ = ("request_id", "camera_id", "capture_time", "sequence", "final", "detections", "error")
+    REQUEST_ID_FIELD_NUMBER: _ClassVar[int]
+    CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
+    CAPTURE_TIME_FIELD_NUMBER: _ClassVar[int]
+    SEQUENCE_FIELD_NUMBER: _ClassVar[int]
+    FINAL_FIELD_NUMBER: _ClassVar[int]
+    DETECTIONS_FIELD_NUMBER: _ClassVar[int]
+    ERROR_FIELD_NUMBER: _ClassVar[int]
+    request_id: str
+    camera_id: str
+    capture_time: _timestamp_pb2.Timestamp
+    sequence: int
+    final: bool
+    detections: _containers.RepeatedCompositeFieldContainer[Detection]
+    error: str
+    def __init__(self, request_id: _Optional[str] = ..., camera_id: _Optional[str] = ..., capture_time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., sequence: _Optional[int] = ..., final: bool = ..., detections: _Optional[_Iterable[_Union[Detection, _Mapping]]] = ..., error: _Optional[str] = ...) -> None: ...
+
+class ReportAck(_message.Message):
+    __slots__ = ("received", "cancelled")
+    RECEIVED_FIELD_NUMBER: _ClassVar[int]
+    CANCELLED_FIELD_NUMBER: _ClassVar[int]
+    received: int
+    cancelled: bool
+    def __init__(self, received: _Optional[int] = ..., cancelled: bool = ...) -> None: ...

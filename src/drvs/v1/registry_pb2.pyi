@@ -1,0 +1,88 @@
+from drvs.v1 import geometry_pb2 as _geometry_pb2
+from google.protobuf.internal import containers as _containers
+from google.protobuf import descriptor as _descriptor
+from google.protobuf import message as _message
+from collections.abc import Iterable as _Iterable, Mapping as _Mapping
+from typing import ClassVar as _ClassVar, Optional as _Optional, Union as _Union
+
+DESCRIPTOR: _descriptor.FileDescriptor
+
+class Homography(_message.Message):
+    __slots__ = ("m",)
+    M_FIELD_NUMBER: _ClassVar[int]
+    m: _containers.RepeatedScalarFieldContainer[float]
+    def __init__(self, m: _Optional[_Iterable[float]] = ...) -> None: ...
+
+class RegisterRequest(_message.Message):
+    __slots__ = ("camera_id", "address", "homography", "image_width", "image_height", "max_range_m", "detector_kinds")
+    CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
+    ADDRESS_FIELD_NUMBER: _ClassVar[int]
+    HOMOGRAPHY_FIELD_NUMBER: _ClassVar[int]
+    IMAGE_WIDTH_FIELD_NUMBER: _ClassVar[int]
+    IMAGE_HEIGHT_FIELD_NUMBER: _ClassVar[int]
+    MAX_RANGE_M_FIELD_NUMBER: _ClassVar[int]
+    DETECTOR_KINDS_FIELD_NUMBER: _ClassVar[int]
+    camera_id: str
+    address: str
+    homography: Homography
+    image_width: int
+    image_height: int
+    max_range_m: float
+    detector_kinds: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, camera_id: _Optional[str] = ..., address: _Optional[str] = ..., homography: _Optional[_Union[Homography, _Mapping]] = ..., image_width: _Optional[int] = ..., image_height: _Optional[int] = ..., max_range_m: _Optional[float] = ..., detector_kinds: _Optional[_Iterable[str]] = ...) -> None: ...
+
+class RegisterReply(_message.Message):
+    __slots__ = ("lease_ttl_s", "field_of_view")
+    LEASE_TTL_S_FIELD_NUMBER: _ClassVar[int]
+    FIELD_OF_VIEW_FIELD_NUMBER: _ClassVar[int]
+    lease_ttl_s: float
+    field_of_view: _geometry_pb2.Polygon
+    def __init__(self, lease_ttl_s: _Optional[float] = ..., field_of_view: _Optional[_Union[_geometry_pb2.Polygon, _Mapping]] = ...) -> None: ...
+
+class HeartbeatRequest(_message.Message):
+    __slots__ = ("camera_id",)
+    CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
+    camera_id: str
+    def __init__(self, camera_id: _Optional[str] = ...) -> None: ...
+
+class HeartbeatReply(_message.Message):
+    __slots__ = ("lease_ttl_s",)
+    LEASE_TTL_S_FIELD_NUMBER: _ClassVar[int]
+    lease_ttl_s: float
+    def __init__(self, lease_ttl_s: _Optional[float] = ...) -> None: ...
+
+class DeregisterRequest(_message.Message):
+    __slots__ = ("camera_id",)
+    CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
+    camera_id: str
+    def __init__(self, camera_id: _Optional[str] = ...) -> None: ...
+
+class DeregisterReply(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class ListCamerasRequest(_message.Message):
+    __slots__ = ("region",)
+    REGION_FIELD_NUMBER: _ClassVar[int]
+    region: _geometry_pb2.Region
+    def __init__(self, region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ...) -> None: ...
+
+class CameraInfo(_message.Message):
+    __slots__ = ("camera_id", "address", "field_of_view", "detector_kinds", "lease_remaining_s")
+    CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
+    ADDRESS_FIELD_NUMBER: _ClassVar[int]
+    FIELD_OF_VIEW_FIELD_NUMBER: _ClassVar[int]
+    DETECTOR_KINDS_FIELD_NUMBER: _ClassVar[int]
+    LEASE_REMAINING_S_FIELD_NUMBER: _ClassVar[int]
+    camera_id: str
+    address: str
+    field_of_view: _geometry_pb2.Polygon
+    detector_kinds: _containers.RepeatedScalarFieldContainer[str]
+    lease_remaining_s: float
+    def __init__(self, camera_id: _Optional[str] = ..., address: _Optional[str] = ..., field_of_view: _Optional[_Union[_geometry_pb2.Polygon, _Mapping]] = ..., detector_kinds: _Optional[_Iterable[str]] = ..., lease_remaining_s: _Optional[float] = ...) -> None: ...
+
+class ListCamerasReply(_message.Message):
+    __slots__ = ("cameras",)
+    CAMERAS_FIELD_NUMBER: _ClassVar[int]
+    cameras: _containers.RepeatedCompositeFieldContainer[CameraInfo]
+    def __init__(self, cameras: _Optional[_Iterable[_Union[CameraInfo, _Mapping]]] = ...) -> None: ...
