@@ -47,7 +47,7 @@ Handler = Callable[..., Awaitable[T]]
 def status_of(exc: errors.DrvsError) -> grpc.StatusCode:
     for cls in type(exc).__mro__:
         if cls in _TO_STATUS:
-            return _TO_STATUS[cls]  # type: ignore[index]
+            return _TO_STATUS[cls]
     return grpc.StatusCode.UNKNOWN
 
 

@@ -49,7 +49,9 @@ def request_to_pb(req: DetectionRequest) -> detection_pb2.DetectionRequest:
     )
 
 
-def request_from_pb(msg: detection_pb2.DetectionRequest, *, require_request_id: bool = True) -> DetectionRequest:
+def request_from_pb(
+    msg: detection_pb2.DetectionRequest, *, require_request_id: bool = True
+) -> DetectionRequest:
     """Validate every field; InvalidArgument names the first one that is wrong."""
     req = DetectionRequest(
         request_id=msg.request_id,

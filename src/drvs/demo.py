@@ -82,10 +82,10 @@ async def run(args: argparse.Namespace) -> int:
 
             async with DrvsClient(address, robot_id="demo-robot") as robot:
                 print(f"drvs-demo: robot listening for reports on {robot.callback_address}\n")
-                for cam in await robot.cameras():
-                    x0, y0, x1, y1 = cam.field_of_view.bounds
+                for info in await robot.cameras():
+                    x0, y0, x1, y1 = info.field_of_view.bounds
                     print(
-                        f"  {cam.camera_id:10s} sees {cam.field_of_view.area:5.1f} m² "
+                        f"  {info.camera_id:10s} sees {info.field_of_view.area:5.1f} m² "
                         f"within x {x0:.1f}..{x1:.1f}, y {y0:.1f}..{y1:.1f}"
                     )
                 for title, region in (
@@ -108,7 +108,9 @@ async def run(args: argparse.Namespace) -> int:
                 sub = await robot.subscribe(YELLOW, (14.0, 0.0, 26.0, 10.0), rate_hz=5, duration_s=1.0)
                 async for report in sub:
                     flag = " (final)" if report.final else ""
-                    print(f"  {report.camera_id} report #{report.sequence}: {len(report.detections)} object(s){flag}")
+                    print(
+                        f"  {report.camera_id} report #{report.sequence}: {len(report.detections)} object(s){flag}"
+                    )
                 print(f"\nthe robot received {robot.reports_received} reports and never touched a pixel")
         finally:
             for proc in reversed(procs):

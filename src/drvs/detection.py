@@ -8,6 +8,7 @@ looks at that frame; a request only filters the blobs by its region.
 from __future__ import annotations
 
 import threading
+from typing import Any
 from dataclasses import dataclass, field
 
 import cv2
@@ -48,7 +49,7 @@ class FrameAnalysis:
 
     def hsv(self) -> NDArray[np.uint8]:
         if self._hsv is None:
-            self._hsv = cv2.cvtColor(self.frame.image, cv2.COLOR_BGR2HSV)
+            self._hsv = np.asarray(cv2.cvtColor(self.frame.image, cv2.COLOR_BGR2HSV), dtype=np.uint8)
         return self._hsv
 
 
@@ -80,7 +81,9 @@ class HsvDetector:
         ring = np.round(np.asarray(field_of_view.image.exterior.coords)[:-1]).astype(np.int32)
         cv2.fillPoly(self._fov_mask, [ring], 255)
 
-    def detect(self, analysis: FrameAnalysis, filter_def: str, region: Polygon | None = None) -> list[Detection]:
+    def detect(
+        self, analysis: FrameAnalysis, filter_def: str, region: Polygon | None = None
+    ) -> list[Detection]:
         """Blobs of this filter in the frame whose floor outline meets `region` (all blobs when None)."""
         blobs = self.blobs(analysis, filter_def)
         if region is None:
@@ -118,9 +121,9 @@ class HsvDetector:
 
     def _to_floor(
         self,
-        contour: NDArray[np.int32],
+        contour: NDArray[Any],
         area_px: float,
-        raw_mask: NDArray[np.uint8],
+        raw_mask: NDArray[Any],
         filter_def: str,
         capture_time: float,
     ) -> Detection | None:

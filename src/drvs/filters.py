@@ -19,6 +19,14 @@ _LIMITS = {"H": 179, "S": 255, "V": 255}
 DETECTOR_KINDS = ("hsv",)
 
 
+def validate_filter_def(filter_def: str) -> str:
+    """The detector kind of a well-formed filter_def; InvalidArgument says what is wrong."""
+    kind = detector_kind(filter_def)
+    if kind == "hsv":
+        HsvRange.parse(filter_def)
+    return kind
+
+
 def detector_kind(filter_def: str) -> str:
     """The detector kind a filter_def asks for (its prefix), or InvalidArgument."""
     if not isinstance(filter_def, str) or not filter_def:
@@ -80,10 +88,12 @@ class HsvRange:
     def mask(self, hsv: NDArray[np.uint8]) -> NDArray[np.uint8]:
         """Binary mask (0/255) of the pixels of an HSV image inside this range."""
         if not self.wraps:
-            return cv2.inRange(hsv, (self.h_lo, self.s_lo, self.v_lo), (self.h_hi, self.s_hi, self.v_hi))  # type: ignore[no-any-return]
+            return np.asarray(
+                cv2.inRange(hsv, (self.h_lo, self.s_lo, self.v_lo), (self.h_hi, self.s_hi, self.v_hi)), dtype=np.uint8
+            )
         upper = cv2.inRange(hsv, (self.h_lo, self.s_lo, self.v_lo), (179, self.s_hi, self.v_hi))
         lower = cv2.inRange(hsv, (0, self.s_lo, self.v_lo), (self.h_hi, self.s_hi, self.v_hi))
-        return cv2.bitwise_or(upper, lower)  # type: ignore[no-any-return]
+        return np.asarray(cv2.bitwise_or(upper, lower), dtype=np.uint8)
 
     def centre_hsv(self) -> tuple[int, int, int]:
         """An HSV colour in the middle of the range (useful to paint test objects)."""

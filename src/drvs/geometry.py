@@ -41,7 +41,9 @@ def _finite(value: float, name: str) -> float:
     return v
 
 
-def box_region(x_lower: float, y_lower: float, x_upper: float, y_upper: float, name: str = "region") -> Polygon:
+def box_region(
+    x_lower: float, y_lower: float, x_upper: float, y_upper: float, name: str = "region"
+) -> Polygon:
     """The paper's box as a polygon; lower must be below upper on both axes."""
     x0 = _finite(x_lower, f"{name}.box.x_lower")
     y0 = _finite(y_lower, f"{name}.box.y_lower")
@@ -76,7 +78,7 @@ def polygon_region(points: Iterable[Sequence[float]], name: str = "region.polygo
 
 @dataclass(frozen=True)
 class Homography:
-    """A 3x3 image -> floor homography, normalised so that its determinant is positive."""
+    """A 3x3 image -> floor homography, scaled so that its largest entry has magnitude 1."""
 
     matrix: NDArray[np.float64]
 
@@ -97,18 +99,20 @@ class Homography:
         m = m / scale
         det = float(np.linalg.det(m))
         if abs(det) < 1e-12 or np.linalg.cond(m) > 1e12:
-            raise InvalidArgument(f"{name}: singular (determinant {det:.3g}); it cannot map an image to a floor")
+            raise InvalidArgument(
+                f"{name}: singular (determinant {det:.3g}); it cannot map an image to a floor"
+            )
         return cls(m)
 
     def inverse(self) -> Homography:
-        return Homography(np.linalg.inv(self.matrix))
+        return Homography(np.asarray(np.linalg.inv(self.matrix), dtype=np.float64))
 
     def apply(self, points: ArrayLike) -> NDArray[np.float64]:
         """Map an (N, 2) array of points; returns (N, 2)."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 1, 2)
         if pts.shape[0] == 0:
             return np.zeros((0, 2), dtype=np.float64)
-        return cv2.perspectiveTransform(pts, self.matrix).reshape(-1, 2)  # type: ignore[no-any-return]
+        return np.asarray(cv2.perspectiveTransform(pts, self.matrix), dtype=np.float64).reshape(-1, 2)
 
     def projective_scale(self, points: ArrayLike) -> NDArray[np.float64]:
         """The third homogeneous coordinate w of each mapped point (0 on the horizon)."""
@@ -136,9 +140,12 @@ class FieldOfView:
     ) -> FieldOfView:
         """The image below the horizon (with a margin), mapped to the floor, clipped to max_range_m.
 
-        "Below" is the side of the horizon holding the bottom-centre pixel: cameras look down at
-        the floor, so the bottom of the image is floor. The range is measured from the floor point
-        seen at the bottom centre.
+        Which side of the horizon is floor does not depend on the matrix's arbitrary scale: a real
+        camera (image v pointing down, right-handed floor frame) maps the floor in front of it with
+        reversed orientation, and the Jacobian determinant of a homography at a point is
+        det(H) / w³, so floor pixels are those where w·det(H) < 0. A camera looking above the
+        horizon, or a mirrored homography, sees no floor. The range is measured from the nearest
+        floor point in view (the bottom centre of the image when it shows floor).
         """
         width, height = image_size
         if not (0 < width <= 100_000 and 0 < height <= 100_000):
@@ -146,24 +153,33 @@ class FieldOfView:
         max_range = float(max_range_m)
         if not (math.isfinite(max_range) and 0 < max_range <= 10_000):
             raise InvalidArgument(f"{name}: max_range_m {max_range_m} must be in (0, 10000]")
-        bottom = np.array([[width / 2.0, height - 0.5]])
-        w_bottom = float(homography.projective_scale(bottom)[0])
-        if abs(w_bottom) < 1e-12:
-            raise InvalidArgument(f"{name}: the bottom of the image lies on the horizon; the camera sees no floor")
-        # Image-space half-plane s*(a*u + b*v + c) >= margin*|w_bottom|, as an OpenCV-friendly polygon clip.
-        sign = 1.0 if w_bottom > 0 else -1.0
-        a, b, c = (homography.matrix[2] * sign).tolist()
-        threshold = HORIZON_MARGIN * abs(w_bottom)
+        sign = -1.0 if np.linalg.det(homography.matrix) > 0 else 1.0
         rect = box(0.0, 0.0, float(width), float(height))
-        image_poly = _clip_half_plane(rect, a, b, c - threshold)
+        corners = np.asarray(rect.exterior.coords)[:-1]
+        nearest_scale = float(np.max(sign * homography.projective_scale(corners)))
+        if nearest_scale <= 0:
+            raise InvalidArgument(
+                f"{name}: the whole image is above the horizon; the camera sees no floor "
+                "(is it pitched up, or is the homography mirrored?)"
+            )
+        # Keep s*w >= margin * (s*w of the nearest corner): near the horizon one pixel spans metres.
+        a, b, c = (homography.matrix[2] * sign).tolist()
+        image_poly = _clip_half_plane(rect, a, b, c - HORIZON_MARGIN * nearest_scale)
         if image_poly.is_empty or image_poly.area < 1.0:
-            raise InvalidArgument(f"{name}: no part of the image is below the horizon; the camera sees no floor")
+            raise InvalidArgument(
+                f"{name}: no part of the image is below the horizon; the camera sees no floor"
+            )
+        bottom = np.array([[width / 2.0, height - 0.5]])
+        if sign * float(homography.projective_scale(bottom)[0]) > 0:
+            near_px = bottom
+        else:
+            near_px = corners[int(np.argmax(sign * homography.projective_scale(corners)))].reshape(1, 2)
+        near = Point(homography.apply(near_px)[0])
         ring = np.asarray(image_poly.exterior.coords)[:-1]
         floor_pts = homography.apply(ring)
         floor = Polygon(floor_pts)
         if not floor.is_valid:
             floor = shapely.make_valid(floor)
-        near = Point(homography.apply(bottom)[0])
         floor = floor.intersection(near.buffer(max_range, quad_segs=16))
         floor = _largest_polygon(floor)
         if floor is None or floor.area <= _MIN_AREA_M2:

@@ -84,7 +84,9 @@ class ManagedProcess:
                     print(f"[{self.name}] {line}", file=self.echo, flush=True)
                 self._changed.notify_all()
 
-    async def wait_for_line(self, pattern: str | re.Pattern[str], timeout: float = 30.0, start: int = 0) -> re.Match[str]:
+    async def wait_for_line(
+        self, pattern: str | re.Pattern[str], timeout: float = 30.0, start: int = 0
+    ) -> re.Match[str]:
         """The first line (from index `start`) matching `pattern`; raises if the process ends first."""
         regex = re.compile(pattern) if isinstance(pattern, str) else pattern
         seen = start
@@ -115,7 +117,8 @@ class ManagedProcess:
             return await asyncio.wait_for(wait(), timeout)
         except asyncio.TimeoutError:
             raise TimeoutError(
-                f"{self.name} did not log {regex.pattern!r} within {timeout:g} s:\n" + "\n".join(self.lines[-20:])
+                f"{self.name} did not log {regex.pattern!r} within {timeout:g} s:\n"
+                + "\n".join(self.lines[-20:])
             ) from None
 
     def output(self) -> str:
@@ -151,13 +154,20 @@ class ManagedProcess:
 
 
 async def start_server(*args: str, echo: TextIO | None = None) -> tuple[ManagedProcess, str]:
-    proc = await ManagedProcess.entry_point("server", "drvs-server", "--listen", "127.0.0.1:0", *args, echo=echo).start()
+    proc = await ManagedProcess.entry_point(
+        "server", "drvs-server", "--listen", "127.0.0.1:0", *args, echo=echo
+    ).start()
     m = await proc.wait_for_line(SERVER_READY)
     return proc, m.group(1)
 
 
 async def start_camera(
-    camera_id: str, source: str | Path, homography: str | Path, server: str, *args: str, echo: TextIO | None = None
+    camera_id: str,
+    source: str | Path,
+    homography: str | Path,
+    server: str,
+    *args: str,
+    echo: TextIO | None = None,
 ) -> ManagedProcess:
     proc = ManagedProcess.entry_point(
         camera_id,

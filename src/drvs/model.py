@@ -8,7 +8,7 @@ from dataclasses import dataclass, field
 from shapely.geometry import Point, Polygon
 
 from drvs.errors import InvalidArgument
-from drvs.filters import detector_kind
+from drvs.filters import detector_kind, validate_filter_def
 from drvs.net import parse_address
 
 #: Continuous requests are bounded so one request cannot keep cameras busy forever.
@@ -105,7 +105,7 @@ class DetectionRequest:
             raise InvalidArgument("request_id: empty")
         check_id(self.request_id, "request_id", allow_empty=not require_request_id)
         check_id(self.robot_id, "robot_id", allow_empty=True)
-        detector_kind(self.filter_def)
+        validate_filter_def(self.filter_def)
         parse_address(self.callback_address, "callback_address")
         self.continuous.validate()
 

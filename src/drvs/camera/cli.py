@@ -26,10 +26,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--id", required=True, help="camera id, unique in the building")
     p.add_argument("--source", required=True, help="device index (0), video file path, or stream URL")
     p.add_argument(
-        "--homography", required=True, metavar="FILE", help="JSON/YAML file whose 'homography' is the 3x3 image->floor matrix"
+        "--homography",
+        required=True,
+        metavar="FILE",
+        help="JSON/YAML file whose 'homography' is the 3x3 image->floor matrix",
     )
     p.add_argument(
-        "--server", default=env(ENV_SERVER, "127.0.0.1:50051"), help=f"DRVS server HOST:PORT (env {ENV_SERVER})"
+        "--server",
+        default=env(ENV_SERVER, "127.0.0.1:50051"),
+        help=f"DRVS server HOST:PORT (env {ENV_SERVER})",
     )
     p.add_argument(
         "--listen",
@@ -41,8 +46,16 @@ def build_parser() -> argparse.ArgumentParser:
         default=env(ENV_CAMERA_ADVERTISE),
         help=f"HOST:PORT the server should dial, when it differs from --listen (env {ENV_CAMERA_ADVERTISE})",
     )
-    p.add_argument("--max-range", type=float, default=DEFAULT_MAX_RANGE_M, metavar="M", help="field-of-view range, metres")
-    p.add_argument("--min-area", type=float, default=DEFAULT_MIN_AREA_PX, metavar="PX", help="smallest blob, pixels")
+    p.add_argument(
+        "--max-range",
+        type=float,
+        default=DEFAULT_MAX_RANGE_M,
+        metavar="M",
+        help="field-of-view range, metres",
+    )
+    p.add_argument(
+        "--min-area", type=float, default=DEFAULT_MIN_AREA_PX, metavar="PX", help="smallest blob, pixels"
+    )
     p.add_argument("--no-loop", action="store_true", help="play a video file once instead of looping it")
     p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING (env DRVS_LOG_LEVEL)")
     return p

@@ -16,7 +16,6 @@ from drvs.callback import CallbackSender
 from drvs.convert import homography_to_pb, request_from_pb
 from drvs.detection import DEFAULT_MIN_AREA_PX, FrameAnalysis, HsvDetector
 from drvs.errors import DrvsError, FailedPrecondition, InvalidArgument, ResourceExhausted
-from drvs.filters import HsvRange
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
 from drvs.health import add_health_and_reflection, mark_serving
 from drvs.model import DetectionReport, DetectionRequest, check_id
@@ -206,13 +205,21 @@ class CameraNode:
             except grpc.RpcError as exc:
                 code = exc.code() if isinstance(exc, aio.AioRpcError) else grpc.StatusCode.UNKNOWN
                 if code == grpc.StatusCode.NOT_FOUND:
-                    log.info("camera %s: server does not know this camera (restarted?); registering again", self.camera_id)
+                    log.info(
+                        "camera %s: server does not know this camera (restarted?); registering again",
+                        self.camera_id,
+                    )
                     registered = False
                     continue
                 if code == grpc.StatusCode.INVALID_ARGUMENT:
                     log.error("camera %s: server refused registration: %s", self.camera_id, _details(exc))
                 else:
-                    log.warning("camera %s: server %s unreachable: %s", self.camera_id, self.server_address, _details(exc))
+                    log.warning(
+                        "camera %s: server %s unreachable: %s",
+                        self.camera_id,
+                        self.server_address,
+                        _details(exc),
+                    )
                 await asyncio.sleep(backoff)
                 backoff = min(backoff * 2, interval)
 
@@ -220,8 +227,9 @@ class CameraNode:
 
     def accept(self, request: DetectionRequest) -> None:
         if request.kind != HsvDetector.kind:
-            raise InvalidArgument(f"filter_def: camera {self.camera_id} does not run detector {request.kind!r}")
-        HsvRange.parse(request.filter_def)
+            raise InvalidArgument(
+                f"filter_def: camera {self.camera_id} does not run detector {request.kind!r}"
+            )
         if len(self._jobs) >= MAX_ACTIVE_REQUESTS:
             raise ResourceExhausted(f"camera {self.camera_id}: {len(self._jobs)} requests active; try later")
         log.info(
@@ -251,7 +259,9 @@ class CameraNode:
                     await asyncio.sleep(delay)
                 report = await self._look(request, sequence, final=sequence == len(offsets) - 1)
                 if not await stream.send(report):
-                    log.info("camera %s: request %s cancelled by the robot", self.camera_id, request.request_id)
+                    log.info(
+                        "camera %s: request %s cancelled by the robot", self.camera_id, request.request_id
+                    )
                     break
             await stream.close()
         except DrvsError as exc:
@@ -279,7 +289,9 @@ class CameraNode:
             analysis = FrameAnalysis(frame)
             self._analysis = analysis
         assert self.detector is not None
-        detections = await asyncio.to_thread(self.detector.detect, analysis, request.filter_def, request.region)
+        detections = await asyncio.to_thread(
+            self.detector.detect, analysis, request.filter_def, request.region
+        )
         return DetectionReport(
             request_id=request.request_id,
             camera_id=self.camera_id,

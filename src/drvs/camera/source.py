@@ -10,6 +10,7 @@ import time
 from typing import Protocol
 
 import cv2
+import numpy as np
 
 from drvs.detection import Frame
 from drvs.errors import FailedPrecondition
@@ -79,7 +80,8 @@ class VideoSource:
     async def wait_first_frame(self, timeout_s: float) -> Frame:
         if not await asyncio.to_thread(self._first.wait, timeout_s):
             raise FailedPrecondition(
-                f"source {self.description!r}: no frame within {timeout_s:g} s" + (f" ({self.error})" if self.error else "")
+                f"source {self.description!r}: no frame within {timeout_s:g} s"
+                + (f" ({self.error})" if self.error else "")
             )
         frame = self.latest()
         assert frame is not None
@@ -128,7 +130,7 @@ class VideoSource:
             now = time.time()
             with self._lock:
                 self._sequence += 1
-                self._latest = Frame(image=image, capture_time=now, sequence=self._sequence)
+                self._latest = Frame(image=np.asarray(image, dtype=np.uint8), capture_time=now, sequence=self._sequence)
             self._first.set()
             if period:
                 next_at += period

@@ -8,7 +8,7 @@ import uuid
 from collections.abc import AsyncIterator, Sequence
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Any
+from typing import Any, TypeAlias
 
 import grpc
 from grpc import aio
@@ -29,19 +29,21 @@ DEFAULT_TIMEOUT_S = 5.0
 #: Reports buffered per request before the listener pushes back on cameras.
 MAX_QUEUED_REPORTS = 1024
 
-RegionLike = Polygon | Sequence[float] | Sequence[Sequence[float]]
+RegionLike: TypeAlias = "Polygon | Sequence[float] | Sequence[Sequence[float]]"
 
 
 def as_region(region: RegionLike) -> Polygon:
     """A shapely polygon, a box (x0, y0, x1, y1), or a list of [x, y] points."""
     if isinstance(region, Polygon):
         return polygon_region(list(region.exterior.coords), "region")
-    items = list(region)
+    items: list[Any] = list(region)
     if len(items) == 4 and all(isinstance(v, (int, float)) for v in items):
-        return box_region(*items)  # type: ignore[arg-type]
+        return box_region(*items)
     if items and all(isinstance(p, Sequence) for p in items):
-        return polygon_region(items, "region")  # type: ignore[arg-type]
-    raise InvalidArgument("region: expected a shapely Polygon, a box (x0, y0, x1, y1) or a list of [x, y] points")
+        return polygon_region(items, "region")
+    raise InvalidArgument(
+        "region: expected a shapely Polygon, a box (x0, y0, x1, y1) or a list of [x, y] points"
+    )
 
 
 @dataclass(frozen=True)
@@ -125,7 +127,11 @@ class Subscription:
                 except asyncio.TimeoutError:
                     break
                 if report.camera_id not in self.camera_ids:
-                    log.warning("request %s: report from undispatched camera %s ignored", self.request_id, report.camera_id)
+                    log.warning(
+                        "request %s: report from undispatched camera %s ignored",
+                        self.request_id,
+                        report.camera_id,
+                    )
                     continue
                 self.result.reports.append(report)
                 yield report
@@ -258,10 +264,14 @@ class DrvsClient:
         timeout_s: float = DEFAULT_TIMEOUT_S,
     ) -> DetectionResult:
         """Send a request and collect every report until each camera is done or the timeout passes."""
-        sub = await self.subscribe(filter_def, region, rate_hz=rate_hz, duration_s=duration_s, timeout_s=timeout_s)
+        sub = await self.subscribe(
+            filter_def, region, rate_hz=rate_hz, duration_s=duration_s, timeout_s=timeout_s
+        )
         return await sub.collect()
 
-    async def cameras(self, region: RegionLike | None = None, *, rpc_timeout_s: float = 5.0) -> list[CameraInfo]:
+    async def cameras(
+        self, region: RegionLike | None = None, *, rpc_timeout_s: float = 5.0
+    ) -> list[CameraInfo]:
         """The cameras the server routes to (optionally only those that see `region`)."""
         if self._channel is None:
             raise DrvsError("DrvsClient is not started")
@@ -289,7 +299,9 @@ class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):
         self._client = client
 
     async def ReportDetections(
-        self, request_iterator: AsyncIterator[detection_pb2.DetectionReport], context: aio.ServicerContext[Any, Any]
+        self,
+        request_iterator: AsyncIterator[detection_pb2.DetectionReport],
+        context: aio.ServicerContext[Any, Any],
     ) -> detection_pb2.ReportAck:
         received = 0
         async for message in request_iterator:

@@ -75,7 +75,7 @@ def write_video(path: str | Path, frames: Iterable[NDArray[np.uint8]], fps: floa
     path = Path(path)
     frames = list(frames)
     height, width = frames[0].shape[:2]
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (width, height))
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), fps, (width, height))
     if not writer.isOpened():
         raise OSError(f"cannot write video {path}")
     try:
@@ -116,7 +116,10 @@ def record_camera(
     rng = np.random.default_rng(seed)
     video = write_video(
         directory / f"{camera_id}.avi",
-        (render_view(homography, image_size, patches, noise_sigma=noise_sigma, rng=rng) for _ in range(frames)),
+        (
+            render_view(homography, image_size, patches, noise_sigma=noise_sigma, rng=rng)
+            for _ in range(frames)
+        ),
         fps,
     )
     hfile = directory / f"{camera_id}.homography.yaml"
