@@ -43,15 +43,11 @@ def request_to_pb(req: DetectionRequest) -> detection_pb2.DetectionRequest:
         filter_def=req.filter_def,
         region=region_to_pb(req.region),
         callback_address=req.callback_address,
-        continuous=detection_pb2.ContinuousMode(
-            rate_hz=req.continuous.rate_hz, duration_s=req.continuous.duration_s
-        ),
+        continuous=detection_pb2.ContinuousMode(rate_hz=req.continuous.rate_hz, duration_s=req.continuous.duration_s),
     )
 
 
-def request_from_pb(
-    msg: detection_pb2.DetectionRequest, *, require_request_id: bool = True
-) -> DetectionRequest:
+def request_from_pb(msg: detection_pb2.DetectionRequest, *, require_request_id: bool = True) -> DetectionRequest:
     """Validate every field; InvalidArgument names the first one that is wrong."""
     req = DetectionRequest(
         request_id=msg.request_id,

@@ -48,9 +48,7 @@ OBJECTS = [
 
 
 def build_world(directory: Path) -> dict[str, tuple[Path, Path]]:
-    patches = [
-        FloorPatch.disc(o.center, o.radius, HsvRange.parse(o.filter_def).centre_bgr()) for o in OBJECTS
-    ]
+    patches = [FloorPatch.disc(o.center, o.radius, HsvRange.parse(o.filter_def).centre_bgr()) for o in OBJECTS]
     files = {}
     for i, (camera_id, (position, yaw, pitch)) in enumerate(CAMERAS.items()):
         h = homography_from_pose(position, yaw, pitch, 60.0, IMAGE_SIZE)
@@ -108,9 +106,7 @@ async def run(args: argparse.Namespace) -> int:
                 sub = await robot.subscribe(YELLOW, (14.0, 0.0, 26.0, 10.0), rate_hz=5, duration_s=1.0)
                 async for report in sub:
                     flag = " (final)" if report.final else ""
-                    print(
-                        f"  {report.camera_id} report #{report.sequence}: {len(report.detections)} object(s){flag}"
-                    )
+                    print(f"  {report.camera_id} report #{report.sequence}: {len(report.detections)} object(s){flag}")
                 print(f"\nthe robot received {robot.reports_received} reports and never touched a pixel")
         finally:
             for proc in reversed(procs):

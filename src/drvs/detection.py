@@ -8,8 +8,8 @@ looks at that frame; a request only filters the blobs by its region.
 from __future__ import annotations
 
 import threading
-from typing import Any
 from dataclasses import dataclass, field
+from typing import Any
 
 import cv2
 import numpy as np
@@ -81,9 +81,7 @@ class HsvDetector:
         ring = np.round(np.asarray(field_of_view.image.exterior.coords)[:-1]).astype(np.int32)
         cv2.fillPoly(self._fov_mask, [ring], 255)
 
-    def detect(
-        self, analysis: FrameAnalysis, filter_def: str, region: Polygon | None = None
-    ) -> list[Detection]:
+    def detect(self, analysis: FrameAnalysis, filter_def: str, region: Polygon | None = None) -> list[Detection]:
         """Blobs of this filter in the frame whose floor outline meets `region` (all blobs when None)."""
         blobs = self.blobs(analysis, filter_def)
         if region is None:

@@ -12,7 +12,7 @@ from numpy.typing import NDArray
 from drvs.errors import InvalidArgument
 
 HSV_PREFIX = "hsv_"
-_HSV_RE = re.compile(r"hsv_(\d{18})")
+_HSV_RE = re.compile(r"hsv_([0-9]{18})")
 _LIMITS = {"H": 179, "S": 255, "V": 255}
 
 #: Detector kinds this package can run, keyed by the filter_def prefix.

@@ -41,9 +41,7 @@ def _finite(value: float, name: str) -> float:
     return v
 
 
-def box_region(
-    x_lower: float, y_lower: float, x_upper: float, y_upper: float, name: str = "region"
-) -> Polygon:
+def box_region(x_lower: float, y_lower: float, x_upper: float, y_upper: float, name: str = "region") -> Polygon:
     """The paper's box as a polygon; lower must be below upper on both axes."""
     x0 = _finite(x_lower, f"{name}.box.x_lower")
     y0 = _finite(y_lower, f"{name}.box.y_lower")
@@ -99,9 +97,7 @@ class Homography:
         m = m / scale
         det = float(np.linalg.det(m))
         if abs(det) < 1e-12 or np.linalg.cond(m) > 1e12:
-            raise InvalidArgument(
-                f"{name}: singular (determinant {det:.3g}); it cannot map an image to a floor"
-            )
+            raise InvalidArgument(f"{name}: singular (determinant {det:.3g}); it cannot map an image to a floor")
         return cls(m)
 
     def inverse(self) -> Homography:
@@ -166,9 +162,7 @@ class FieldOfView:
         a, b, c = (homography.matrix[2] * sign).tolist()
         image_poly = _clip_half_plane(rect, a, b, c - HORIZON_MARGIN * nearest_scale)
         if image_poly.is_empty or image_poly.area < 1.0:
-            raise InvalidArgument(
-                f"{name}: no part of the image is below the horizon; the camera sees no floor"
-            )
+            raise InvalidArgument(f"{name}: no part of the image is below the horizon; the camera sees no floor")
         bottom = np.array([[width / 2.0, height - 0.5]])
         if sign * float(homography.projective_scale(bottom)[0]) > 0:
             near_px = bottom

@@ -117,8 +117,7 @@ class ManagedProcess:
             return await asyncio.wait_for(wait(), timeout)
         except asyncio.TimeoutError:
             raise TimeoutError(
-                f"{self.name} did not log {regex.pattern!r} within {timeout:g} s:\n"
-                + "\n".join(self.lines[-20:])
+                f"{self.name} did not log {regex.pattern!r} within {timeout:g} s:\n" + "\n".join(self.lines[-20:])
             ) from None
 
     def output(self) -> str:

@@ -121,6 +121,6 @@ def check_id(value: str, name: str, *, allow_empty: bool = False) -> str:
         raise InvalidArgument(f"{name}: empty")
     if len(value) > MAX_ID_LENGTH:
         raise InvalidArgument(f"{name}: longer than {MAX_ID_LENGTH} characters")
-    if not all(c.isalnum() or c in "-_.:" for c in value):
+    if not (value.isascii() and all(c.isalnum() or c in "-_.:" for c in value)):
         raise InvalidArgument(f"{name}: {value[:40]!r} may hold only letters, digits and - _ . :")
     return value

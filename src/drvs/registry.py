@@ -38,9 +38,7 @@ class Registry:
     index, so heartbeats never touch it.
     """
 
-    def __init__(
-        self, lease_ttl_s: float = DEFAULT_LEASE_TTL_S, clock: Callable[[], float] = time.monotonic
-    ) -> None:
+    def __init__(self, lease_ttl_s: float = DEFAULT_LEASE_TTL_S, clock: Callable[[], float] = time.monotonic) -> None:
         if not lease_ttl_s > 0:
             raise ValueError(f"lease_ttl_s must be > 0, got {lease_ttl_s}")
         self.lease_ttl_s = lease_ttl_s
@@ -124,9 +122,7 @@ class Registry:
         return self._expires.get(camera_id, 0.0) > self._clock()
 
     def cameras(self) -> list[CameraEntry]:
-        return sorted(
-            (e for e in self._entries.values() if self.is_live(e.camera_id)), key=lambda e: e.camera_id
-        )
+        return sorted((e for e in self._entries.values() if self.is_live(e.camera_id)), key=lambda e: e.camera_id)
 
     def cameras_seeing(self, region: Polygon, kind: str | None = None) -> list[CameraEntry]:
         """Live cameras whose field of view meets `region` with positive area (and run `kind`)."""

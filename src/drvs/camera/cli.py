@@ -53,9 +53,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="M",
         help="field-of-view range, metres",
     )
-    p.add_argument(
-        "--min-area", type=float, default=DEFAULT_MIN_AREA_PX, metavar="PX", help="smallest blob, pixels"
-    )
+    p.add_argument("--min-area", type=float, default=DEFAULT_MIN_AREA_PX, metavar="PX", help="smallest blob, pixels")
     p.add_argument("--no-loop", action="store_true", help="play a video file once instead of looping it")
     p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING (env DRVS_LOG_LEVEL)")
     return p

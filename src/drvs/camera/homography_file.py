@@ -28,9 +28,7 @@ def load_homography(path: str | Path) -> Homography:
         if any(len(r) != 3 for r in value):
             raise InvalidArgument(f"homography file {p}: 'homography' must be 3 rows of 3 numbers")
         value = [v for row in value for v in row]
-    if not isinstance(value, list) or not all(
-        isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
-    ):
+    if not isinstance(value, list) or not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in value):
         raise InvalidArgument(f"homography file {p}: 'homography' must be a 3x3 list of numbers")
     return Homography.from_values(value, f"homography file {p}: homography")
 

@@ -227,9 +227,7 @@ class CameraNode:
 
     def accept(self, request: DetectionRequest) -> None:
         if request.kind != HsvDetector.kind:
-            raise InvalidArgument(
-                f"filter_def: camera {self.camera_id} does not run detector {request.kind!r}"
-            )
+            raise InvalidArgument(f"filter_def: camera {self.camera_id} does not run detector {request.kind!r}")
         if len(self._jobs) >= MAX_ACTIVE_REQUESTS:
             raise ResourceExhausted(f"camera {self.camera_id}: {len(self._jobs)} requests active; try later")
         log.info(
@@ -259,9 +257,7 @@ class CameraNode:
                     await asyncio.sleep(delay)
                 report = await self._look(request, sequence, final=sequence == len(offsets) - 1)
                 if not await stream.send(report):
-                    log.info(
-                        "camera %s: request %s cancelled by the robot", self.camera_id, request.request_id
-                    )
+                    log.info("camera %s: request %s cancelled by the robot", self.camera_id, request.request_id)
                     break
             await stream.close()
         except DrvsError as exc:
@@ -289,9 +285,7 @@ class CameraNode:
             analysis = FrameAnalysis(frame)
             self._analysis = analysis
         assert self.detector is not None
-        detections = await asyncio.to_thread(
-            self.detector.detect, analysis, request.filter_def, request.region
-        )
+        detections = await asyncio.to_thread(self.detector.detect, analysis, request.filter_def, request.region)
         return DetectionReport(
             request_id=request.request_id,
             camera_id=self.camera_id,

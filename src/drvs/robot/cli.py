@@ -34,9 +34,7 @@ def parse_roi(args: argparse.Namespace) -> RegionLike:
     if args.polygon:
         values = parse_numbers(args.polygon, "--polygon")
         if len(values) % 2 or len(values) < 6:
-            raise InvalidArgument(
-                "--polygon: expected X,Y pairs of at least three points: X0,Y0,X1,Y1,X2,Y2,..."
-            )
+            raise InvalidArgument("--polygon: expected X,Y pairs of at least three points: X0,Y0,X1,Y1,X2,Y2,...")
         return [values[i : i + 2] for i in range(0, len(values), 2)]
     raise InvalidArgument("a region is required: --roi X0,Y0,X1,Y1 or --polygon X0,Y0,X1,Y1,X2,Y2,...")
 
@@ -86,9 +84,7 @@ def print_report(r: DetectionReport) -> None:
 
 async def detect(args: argparse.Namespace) -> int:
     region = parse_roi(args)
-    async with DrvsClient(
-        args.server, robot_id=args.robot_id, listen=args.listen, advertise=args.advertise
-    ) as client:
+    async with DrvsClient(args.server, robot_id=args.robot_id, listen=args.listen, advertise=args.advertise) as client:
         sub = await client.subscribe(
             args.filter, region, rate_hz=args.rate, duration_s=args.duration, timeout_s=args.timeout
         )
@@ -141,9 +137,7 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     def common(sp: argparse.ArgumentParser) -> None:
-        sp.add_argument(
-            "--server", default=env(ENV_SERVER, "127.0.0.1:50051"), help=f"HOST:PORT (env {ENV_SERVER})"
-        )
+        sp.add_argument("--server", default=env(ENV_SERVER, "127.0.0.1:50051"), help=f"HOST:PORT (env {ENV_SERVER})")
         sp.add_argument("--roi", help="box X0,Y0,X1,Y1 in metres")
         sp.add_argument("--polygon", help="polygon X0,Y0,X1,Y1,X2,Y2,... in metres")
         sp.add_argument("--robot-id", default="drvs-robot-cli")
@@ -153,9 +147,7 @@ def build_parser() -> argparse.ArgumentParser:
     d = sub.add_parser("detect", help="detect objects in a region")
     common(d)
     d.add_argument("--filter", required=True, help="filter_def, e.g. hsv_014110130035225200 (yellow)")
-    d.add_argument(
-        "--rate", type=float, default=0.0, metavar="HZ", help="continuous mode: reports per second"
-    )
+    d.add_argument("--rate", type=float, default=0.0, metavar="HZ", help="continuous mode: reports per second")
     d.add_argument("--duration", type=float, default=0.0, metavar="S", help="continuous mode: for how long")
     d.add_argument(
         "--timeout",

@@ -41,9 +41,7 @@ def as_region(region: RegionLike) -> Polygon:
         return box_region(*items)
     if items and all(isinstance(p, Sequence) for p in items):
         return polygon_region(items, "region")
-    raise InvalidArgument(
-        "region: expected a shapely Polygon, a box (x0, y0, x1, y1) or a list of [x, y] points"
-    )
+    raise InvalidArgument("region: expected a shapely Polygon, a box (x0, y0, x1, y1) or a list of [x, y] points")
 
 
 @dataclass(frozen=True)
@@ -264,14 +262,10 @@ class DrvsClient:
         timeout_s: float = DEFAULT_TIMEOUT_S,
     ) -> DetectionResult:
         """Send a request and collect every report until each camera is done or the timeout passes."""
-        sub = await self.subscribe(
-            filter_def, region, rate_hz=rate_hz, duration_s=duration_s, timeout_s=timeout_s
-        )
+        sub = await self.subscribe(filter_def, region, rate_hz=rate_hz, duration_s=duration_s, timeout_s=timeout_s)
         return await sub.collect()
 
-    async def cameras(
-        self, region: RegionLike | None = None, *, rpc_timeout_s: float = 5.0
-    ) -> list[CameraInfo]:
+    async def cameras(self, region: RegionLike | None = None, *, rpc_timeout_s: float = 5.0) -> list[CameraInfo]:
         """The cameras the server routes to (optionally only those that see `region`)."""
         if self._channel is None:
             raise DrvsError("DrvsClient is not started")

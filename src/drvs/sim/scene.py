@@ -116,10 +116,7 @@ def record_camera(
     rng = np.random.default_rng(seed)
     video = write_video(
         directory / f"{camera_id}.avi",
-        (
-            render_view(homography, image_size, patches, noise_sigma=noise_sigma, rng=rng)
-            for _ in range(frames)
-        ),
+        (render_view(homography, image_size, patches, noise_sigma=noise_sigma, rng=rng) for _ in range(frames)),
         fps,
     )
     hfile = directory / f"{camera_id}.homography.yaml"
