@@ -51,9 +51,7 @@ def nearest(filter_def: str, x: float, y: float) -> tuple[TrueObject, float]:
 def recorded(tmp_path_factory: pytest.TempPathFactory) -> dict[str, RecordedCamera]:
     """Two cameras' video files of the same floor, with their homography files."""
     directory: Path = tmp_path_factory.mktemp("floor")
-    patches = [
-        FloorPatch.disc(o.center, o.radius, HsvRange.parse(o.filter_def).centre_bgr()) for o in OBJECTS
-    ]
+    patches = [FloorPatch.disc(o.center, o.radius, HsvRange.parse(o.filter_def).centre_bgr()) for o in OBJECTS]
     out = {}
     for seed, (camera_id, position) in enumerate(CAMERA_POSES.items()):
         h = homography_from_pose(position, 90.0, 40.0, 60.0, IMAGE_SIZE)
@@ -70,9 +68,7 @@ class Office:
 
     async def start_camera(self, camera_id: str) -> ManagedProcess:
         rec = self.recorded[camera_id]
-        proc = await start_camera(
-            camera_id, rec.video, rec.homography_file, self.address, "--max-range", MAX_RANGE
-        )
+        proc = await start_camera(camera_id, rec.video, rec.homography_file, self.address, "--max-range", MAX_RANGE)
         self.cameras[camera_id] = proc
         return proc
 

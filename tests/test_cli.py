@@ -28,9 +28,7 @@ async def test_robot_detect_json_prints_one_object_per_report(office: Office) ->
     assert len(reports) == 1
     report = reports[0]
     assert report["camera_id"] == "cam1" and report["final"] is True and report["request_id"]
-    assert len(report["detections"]) == len(
-        [o for o in OBJECTS if o.filter_def == YELLOW and o.center[0] < 6]
-    )
+    assert len(report["detections"]) == len([o for o in OBJECTS if o.filter_def == YELLOW and o.center[0] < 6])
     for d in report["detections"]:
         assert d["filter_def"] == YELLOW and len(d["bounds"]) == 4
         assert nearest(YELLOW, *d["centroid"])[1] < 0.03
@@ -48,9 +46,7 @@ async def test_robot_detect_continuous_json(office: Office) -> None:
 
 
 async def test_robot_detect_human_output_and_cameras(office: Office) -> None:
-    code, lines = await run_robot(
-        "detect", "--server", office.address, "--filter", YELLOW, "--roi", roi(CAM1_REGION)
-    )
+    code, lines = await run_robot("detect", "--server", office.address, "--filter", YELLOW, "--roi", roi(CAM1_REGION))
     assert code == 0, lines
     assert "dispatched to cam1" in lines[0]
     assert any("centroid" in line for line in lines)
@@ -60,17 +56,13 @@ async def test_robot_detect_human_output_and_cameras(office: Office) -> None:
 
 
 async def test_robot_bad_filter_is_an_error_naming_the_field(office: Office) -> None:
-    code, lines = await run_robot(
-        "detect", "--server", office.address, "--filter", "hsv_12", "--roi", "0,0,1,1"
-    )
+    code, lines = await run_robot("detect", "--server", office.address, "--filter", "hsv_12", "--roi", "0,0,1,1")
     assert code != 0
     assert any("filter_def" in line for line in lines), lines
 
 
 async def test_robot_bad_roi_is_an_error(office: Office) -> None:
-    code, lines = await run_robot(
-        "detect", "--server", office.address, "--filter", YELLOW, "--roi", "1,1,0,0"
-    )
+    code, lines = await run_robot("detect", "--server", office.address, "--filter", YELLOW, "--roi", "1,1,0,0")
     assert code != 0 and any("x_lower" in line for line in lines), lines
 
 

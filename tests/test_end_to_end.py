@@ -59,9 +59,7 @@ async def test_polygon_region_and_other_colours(office: Office) -> None:
         result = await robot.detect(green.filter_def, triangle, timeout_s=10)
     assert result.camera_ids == ("cam1",)
     assert len(result.detections) == 1
-    assert (
-        nearest(green.filter_def, result.detections[0].centroid.x, result.detections[0].centroid.y)[1] < 0.03
-    )
+    assert nearest(green.filter_def, result.detections[0].centroid.x, result.detections[0].centroid.y)[1] < 0.03
 
 
 async def test_region_seen_by_no_camera_dispatches_nowhere(office: Office) -> None:

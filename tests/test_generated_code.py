@@ -10,9 +10,7 @@ ROOT = Path(__file__).resolve().parent.parent
 
 
 def test_generated_code_matches_protos(tmp_path: Path) -> None:
-    subprocess.run(
-        [sys.executable, str(ROOT / "scripts" / "gen_protos.py"), "--out", str(tmp_path)], check=True
-    )
+    subprocess.run([sys.executable, str(ROOT / "scripts" / "gen_protos.py"), "--out", str(tmp_path)], check=True)
     fresh = tmp_path / "drvs" / "v1"
     committed = ROOT / "src" / "drvs" / "v1"
     names = sorted(p.name for p in fresh.iterdir())

@@ -201,13 +201,9 @@ async def test_routing_uses_positive_area_overlap(channel: aio.Channel) -> None:
     stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
     # A box that only touches cam1's field of view at its rightmost point: zero area, not routed.
     edge = max(xs)
-    touching = geometry_pb2.Region(
-        box=geometry_pb2.Box(x_lower=edge, y_lower=0, x_upper=edge + 1, y_upper=10)
-    )
+    touching = geometry_pb2.Region(box=geometry_pb2.Box(x_lower=edge, y_lower=0, x_upper=edge + 1, y_upper=10))
     reply = await stub.DetectObjects(detect_message(region=touching))
     assert list(reply.camera_ids) == []
-    inside = geometry_pb2.Region(
-        box=geometry_pb2.Box(x_lower=edge - 0.5, y_lower=0, x_upper=edge + 1, y_upper=10)
-    )
+    inside = geometry_pb2.Region(box=geometry_pb2.Box(x_lower=edge - 0.5, y_lower=0, x_upper=edge + 1, y_upper=10))
     reply = await stub.DetectObjects(detect_message(region=inside, request_id="req-2"))
     assert list(reply.camera_ids) == ["cam1"]
