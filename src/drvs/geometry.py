@@ -32,7 +32,7 @@ _MIN_AREA_M2 = 1e-9
 def _finite(value: float, name: str) -> float:
     try:
         v = float(value)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InvalidArgument(f"{name}: {value!r} is not a number") from None
     if not math.isfinite(v):
         raise InvalidArgument(f"{name}: {v} is not finite")
@@ -84,7 +84,7 @@ class Homography:
     def from_values(cls, values: ArrayLike, name: str = "homography") -> Homography:
         try:
             m = np.asarray(values, dtype=np.float64)
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise InvalidArgument(f"{name}: expected 9 numbers (3x3 row-major)") from None
         if m.size != 9:
             raise InvalidArgument(f"{name}: expected 9 numbers (3x3 row-major), got {m.size}")

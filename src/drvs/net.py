@@ -30,7 +30,7 @@ def parse_address(address: str, name: str = "address", *, allow_port_zero: bool 
         host, sep, port_text = address.rpartition(":")
         if not sep or not host:
             raise InvalidArgument(f"{name}: {address[:80]!r} is not host:port")
-        if not _HOST_RE.match(host):
+        if not _HOST_RE.fullmatch(host):
             raise InvalidArgument(f"{name}: {host[:80]!r} is not a valid host name or IPv4 address")
     if not (port_text.isascii() and port_text.isdigit()):
         raise InvalidArgument(f"{name}: port {port_text[:20]!r} is not a number")

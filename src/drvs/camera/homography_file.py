@@ -17,6 +17,8 @@ def load_homography(path: str | Path) -> Homography:
         text = p.read_text()
     except OSError as exc:
         raise InvalidArgument(f"homography file {p}: {exc.strerror or exc}") from None
+    except UnicodeDecodeError:
+        raise InvalidArgument(f"homography file {p}: not a text file (expected JSON or YAML)") from None
     try:
         data = yaml.safe_load(text)  # YAML is a superset of JSON
     except yaml.YAMLError as exc:

@@ -1,0 +1,279 @@
+"""Wire messages <-> domain objects: round trips, and request validation naming the bad field."""
+
+from __future__ import annotations
+
+import itertools
+import math
+
+import pytest
+from shapely.geometry import Point, Polygon
+
+from drvs.convert import (
+    homography_from_pb,
+    homography_to_pb,
+    region_from_pb,
+    region_to_pb,
+    report_from_pb,
+    report_to_pb,
+    request_from_pb,
+    request_to_pb,
+)
+from drvs.errors import InvalidArgument
+from drvs.geometry import box_region, homography_from_pose, polygon_coords, polygon_region
+from drvs.model import MAX_RATE_HZ, ContinuousMode, Detection, DetectionReport, DetectionRequest, PixelBox
+from drvs.v1 import detection_pb2, geometry_pb2, registry_pb2
+
+YELLOW = "hsv_014110130035225200"
+GREEN = "hsv_040080080080255255"
+
+
+def request(region: Polygon, continuous: ContinuousMode | None = None) -> DetectionRequest:
+    return DetectionRequest(
+        request_id="req-1",
+        robot_id="robot.7",
+        filter_def=YELLOW,
+        region=region,
+        callback_address="10.0.0.5:50070",
+        continuous=continuous or ContinuousMode(),
+    )
+
+
+def valid_message() -> detection_pb2.DetectionRequest:
+    return detection_pb2.DetectionRequest(
+        request_id="req-1",
+        robot_id="robot.7",
+        filter_def=YELLOW,
+        region=geometry_pb2.Region(box=geometry_pb2.Box(x_lower=-1.0, y_lower=0.0, x_upper=2.0, y_upper=3.5)),
+        callback_address="127.0.0.1:50070",
+    )
+
+
+def detection(x: float, y: float, filter_def: str = YELLOW) -> Detection:
+    outline = Point(x, y).buffer(0.25, quad_segs=4)
+    return Detection(
+        outline=outline,
+        bounds=outline.bounds,
+        centroid=outline.centroid,
+        ground_contact=Point(x, y - 0.25),
+        pixel_box=PixelBox(181, 194, 57, 34),
+        area_m2=float(outline.area),
+        area_px=1456.0,
+        score=0.875,
+        filter_def=filter_def,
+        camera_id="cam1",
+        capture_time=1_700_000_000.123456,
+    )
+
+
+# --- requests --------------------------------------------------------------------------------------
+
+
+def test_box_request_round_trips_as_a_box() -> None:
+    req = request(box_region(-1.0, 0.5, 2.0, 3.5), ContinuousMode(10.0, 2.5))
+    msg = request_to_pb(req)
+    assert msg.region.WhichOneof("shape") == "box"
+    b = msg.region.box
+    assert (b.x_lower, b.y_lower, b.x_upper, b.y_upper) == (-1.0, 0.5, 2.0, 3.5)
+    back = request_from_pb(detection_pb2.DetectionRequest.FromString(msg.SerializeToString()))
+    assert back.request_id == "req-1"
+    assert back.robot_id == "robot.7"
+    assert back.filter_def == YELLOW
+    assert back.callback_address == "10.0.0.5:50070"
+    assert back.continuous == ContinuousMode(10.0, 2.5)
+    assert back.region.equals(req.region)
+    assert back.region.bounds == (-1.0, 0.5, 2.0, 3.5)
+    assert request_to_pb(back) == msg
+
+
+def test_polygon_request_round_trips_as_a_polygon() -> None:
+    points = [(0.0, 0.0), (4.0, 0.0), (4.0, 3.0), (2.0, 5.0), (0.0, 3.0)]
+    req = request(polygon_region(points))
+    msg = request_to_pb(req)
+    assert msg.region.WhichOneof("shape") == "polygon"
+    assert [(p.x, p.y) for p in msg.region.polygon.points] == points
+    back = request_from_pb(detection_pb2.DetectionRequest.FromString(msg.SerializeToString()))
+    assert back.region.equals(req.region)
+    assert polygon_coords(back.region) == points
+    assert back.continuous.single_shot
+    assert request_to_pb(back) == msg
+
+
+def test_region_round_trip() -> None:
+    tri = polygon_region([(0.0, 0.0), (1.0, 0.0), (0.0, 1.0)])
+    assert region_from_pb(region_to_pb(tri)).equals(tri)
+    rect = box_region(3.0, 4.0, 5.0, 6.0)
+    assert region_to_pb(rect).WhichOneof("shape") == "box"
+    assert region_from_pb(region_to_pb(rect)).equals(rect)
+
+
+def _with(**changes: object) -> detection_pb2.DetectionRequest:
+    msg = valid_message()
+    for key, value in changes.items():
+        if key == "region":
+            msg.ClearField("region")
+            if value is not None:
+                assert isinstance(value, geometry_pb2.Region)
+                msg.region.CopyFrom(value)
+        elif key in ("rate_hz", "duration_s"):
+            setattr(msg.continuous, key, value)
+        else:
+            setattr(msg, key, value)
+    return msg
+
+
+def test_valid_message_is_accepted() -> None:
+    req = request_from_pb(valid_message())
+    assert req.region.bounds == (-1.0, 0.0, 2.0, 3.5)
+    assert req.kind == "hsv"
+
+
+@pytest.mark.parametrize(
+    ("changes", "message"),
+    [
+        ({"region": None}, r"^region: missing"),
+        ({"region": geometry_pb2.Region()}, r"^region: missing"),
+        (
+            {"region": geometry_pb2.Region(box=geometry_pb2.Box(x_lower=2.0, x_upper=1.0, y_upper=1.0))},
+            r"^region\.box: x_lower 2 must be less than x_upper 1",
+        ),
+        (
+            {"region": geometry_pb2.Region(box=geometry_pb2.Box(x_lower=math.nan, x_upper=1.0, y_upper=1.0))},
+            r"^region\.box\.x_lower: nan is not finite",
+        ),
+        (
+            {
+                "region": geometry_pb2.Region(
+                    polygon=geometry_pb2.Polygon(points=[geometry_pb2.Point2(x=0, y=0), geometry_pb2.Point2(x=1, y=1)])
+                )
+            },
+            r"^region\.polygon: needs at least 3",
+        ),
+        ({"callback_address": "robot"}, r"^callback_address: 'robot' is not host:port"),
+        ({"callback_address": ""}, r"^callback_address: empty"),
+        ({"callback_address": "robot:0"}, r"^callback_address: port 0 is out of range"),
+        ({"callback_address": "bad host:50070"}, r"^callback_address: 'bad host' is not a valid host"),
+        ({"rate_hz": 10.0}, r"^continuous: rate_hz and duration_s must both be > 0"),
+        ({"duration_s": 5.0}, r"^continuous: rate_hz and duration_s must both be > 0"),
+        ({"rate_hz": -1.0, "duration_s": 1.0}, r"^continuous\.rate_hz: -1\.0 must be a finite number >= 0"),
+        ({"rate_hz": math.nan, "duration_s": 1.0}, r"^continuous\.rate_hz: nan must be a finite number"),
+        ({"rate_hz": math.inf, "duration_s": 1.0}, r"^continuous\.rate_hz: inf must be a finite number"),
+        ({"rate_hz": 1e9, "duration_s": 1.0}, r"^continuous\.rate_hz: 1e\+09 exceeds the limit of 100"),
+        ({"rate_hz": 1.0, "duration_s": 1e5}, r"^continuous\.duration_s: 100000 exceeds the limit of 3600"),
+        ({"rate_hz": 1.0, "duration_s": -2.0}, r"^continuous\.duration_s: -2\.0 must be a finite number"),
+        ({"request_id": ""}, r"^request_id: empty"),
+        ({"request_id": "req 1"}, r"^request_id: 'req 1' may hold only"),
+        ({"request_id": "r" * 129}, r"^request_id: longer than 128"),
+        ({"robot_id": "robot/7"}, r"^robot_id: 'robot/7' may hold only"),
+        ({"filter_def": ""}, r"^filter_def: empty"),
+        ({"filter_def": "hsv_180110130035225200"}, r"^filter_def: H low = 180"),
+        ({"filter_def": "rgb_1"}, r"^filter_def: unknown detector kind"),
+    ],
+)
+def test_request_from_pb_names_the_bad_field(changes: dict[str, object], message: str) -> None:
+    with pytest.raises(InvalidArgument, match=message):
+        request_from_pb(_with(**changes))
+
+
+def test_empty_request_id_allowed_when_not_required() -> None:
+    # The server fills in the request id when the robot leaves it empty.
+    req = request_from_pb(_with(request_id=""), require_request_id=False)
+    assert req.request_id == ""
+    # ... but a malformed one is still refused.
+    with pytest.raises(InvalidArgument, match=r"^request_id: "):
+        request_from_pb(_with(request_id="a b"), require_request_id=False)
+
+
+def test_rate_at_the_limit_is_accepted() -> None:
+    req = request_from_pb(_with(rate_hz=MAX_RATE_HZ, duration_s=1.0))
+    assert req.continuous == ContinuousMode(MAX_RATE_HZ, 1.0)
+
+
+# --- reports ---------------------------------------------------------------------------------------
+
+
+def test_report_round_trip_with_detections() -> None:
+    report = DetectionReport(
+        request_id="req-1",
+        camera_id="cam1",
+        capture_time=1_700_000_000.123456,
+        sequence=3,
+        final=True,
+        detections=(detection(-1.0, 4.0), detection(1.5, 3.0, GREEN)),
+    )
+    msg = report_to_pb(report)
+    assert msg.capture_time.seconds == 1_700_000_000
+    assert abs(msg.capture_time.nanos - 123_456_000) < 1000
+    back = report_from_pb(detection_pb2.DetectionReport.FromString(msg.SerializeToString()))
+    assert back.request_id == "req-1"
+    assert back.camera_id == "cam1"
+    assert back.sequence == 3
+    assert back.final is True
+    assert back.error == ""
+    assert abs(back.capture_time - report.capture_time) < 1e-6
+    assert len(back.detections) == 2
+    for got, sent in zip(back.detections, report.detections, strict=True):
+        assert got.outline.equals(sent.outline)
+        assert polygon_coords(got.outline) == polygon_coords(sent.outline)
+        assert got.bounds == sent.bounds
+        assert got.centroid.equals(sent.centroid)
+        assert got.ground_contact.equals(sent.ground_contact)
+        assert got.pixel_box == sent.pixel_box
+        assert got.area_m2 == sent.area_m2
+        assert got.area_px == sent.area_px
+        assert got.score == sent.score
+        assert got.filter_def == sent.filter_def
+        # Camera and capture time travel once per report and are copied into each detection.
+        assert got.camera_id == "cam1"
+        assert got.capture_time == back.capture_time
+
+
+def test_report_without_capture_time_or_detections() -> None:
+    report = DetectionReport(
+        request_id="req-2", camera_id="cam9", capture_time=0.0, sequence=0, final=True, error="camera unreachable"
+    )
+    msg = report_to_pb(report)
+    assert not msg.HasField("capture_time")
+    back = report_from_pb(msg)
+    assert back == report
+
+
+def test_homography_round_trip() -> None:
+    h = homography_from_pose((1.0, 2.0, 3.0), 45.0, 35.0, 70.0, (800, 600))
+    msg = registry_pb2.Homography.FromString(homography_to_pb(h).SerializeToString())
+    assert len(msg.m) == 9
+    assert homography_from_pb(msg).to_list() == h.to_list()
+    with pytest.raises(InvalidArgument, match=r"^homography: expected 9 numbers"):
+        homography_from_pb(registry_pb2.Homography(m=[1.0, 2.0]))
+
+
+# --- continuous mode -------------------------------------------------------------------------------
+
+
+def test_single_shot_report_times() -> None:
+    mode = ContinuousMode()
+    assert mode.single_shot
+    assert mode.report_times() == [0.0]
+
+
+def test_ten_hertz_for_one_second() -> None:
+    times = ContinuousMode(10.0, 1.0).report_times()
+    assert len(times) == 11
+    assert times[0] == 0.0
+    assert times[-1] == 1.0
+    assert all(abs(b - a - 0.1) < 1e-12 for a, b in itertools.pairwise(times))
+
+
+@pytest.mark.parametrize(
+    ("rate", "duration", "count", "last"),
+    [
+        (1.0, 5.0, 6, 5.0),
+        (3.0, 1.0, 4, 1.0),
+        (2.0, 1.25, 3, 1.0),
+        (100.0, 3600.0, 360_001, 3600.0),
+    ],
+)
+def test_report_times_count_and_last(rate: float, duration: float, count: int, last: float) -> None:
+    times = ContinuousMode(rate, duration).report_times()
+    assert len(times) == count
+    assert abs(times[-1] - last) < 1e-9
+    assert times[-1] <= duration + 1e-9
