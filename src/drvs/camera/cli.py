@@ -9,7 +9,7 @@ import logging
 from drvs._cli import env, setup_logging, shutdown_event
 from drvs.camera.homography_file import load_homography
 from drvs.camera.node import CameraNode
-from drvs.camera.source import VideoSource
+from drvs.camera.source import FrameSource, VideoSource
 from drvs.detection import DEFAULT_MIN_AREA_PX
 from drvs.errors import DrvsError
 from drvs.geometry import DEFAULT_MAX_RANGE_M
@@ -24,7 +24,11 @@ ENV_CAMERA_ADVERTISE = "DRVS_CAMERA_ADVERTISE"
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="drvs-camera", description="Run a DRVS camera node.")
     p.add_argument("--id", required=True, help="camera id, unique in the building")
-    p.add_argument("--source", required=True, help="device index (0), video file path, or stream URL")
+    p.add_argument(
+        "--source",
+        required=True,
+        help="device index (0), video file path, stream URL, or sim://HOST:PORT (simulated world)",
+    )
     p.add_argument(
         "--homography",
         required=True,
@@ -59,6 +63,15 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def make_source(spec: str, camera_id: str, *, loop_file: bool = True) -> FrameSource:
+    """A sim://HOST:PORT source renders the simulated world; anything else goes to OpenCV."""
+    if spec.startswith("sim://"):
+        from drvs.sim.source import SimSource
+
+        return SimSource(spec, camera_id)
+    return VideoSource(spec, loop_file=loop_file)
+
+
 async def run(node: CameraNode) -> int:
     stop = shutdown_event()
     try:
@@ -83,7 +96,7 @@ def main(argv: list[str] | None = None) -> int:
         homography = load_homography(args.homography)
         node = CameraNode(
             args.id,
-            VideoSource(args.source, loop_file=not args.no_loop),
+            make_source(args.source, args.id, loop_file=not args.no_loop),
             homography,
             args.server,
             listen=args.listen,

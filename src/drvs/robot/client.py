@@ -18,6 +18,7 @@ from drvs import _grpc
 from drvs.convert import polygon_from_pb, region_to_pb, report_from_pb, request_to_pb
 from drvs.errors import DrvsError, InvalidArgument
 from drvs.geometry import box_region, polygon_region
+from drvs.meter import CountingRelay
 from drvs.model import ContinuousMode, Detection, DetectionReport, DetectionRequest
 from drvs.net import format_address, local_ip_towards, parse_address
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
@@ -162,6 +163,7 @@ class DrvsClient:
         robot_id: str = "",
         listen: str | None = None,
         advertise: str | None = None,
+        meter: bool = False,
     ) -> None:
         parse_address(server, "server")
         self.server = server
@@ -176,9 +178,22 @@ class DrvsClient:
         self._listener: aio.Server | None = None
         self._subscriptions: dict[str, Subscription] = {}
         self.reports_received = 0
+        # With meter=True, both of the robot's connections pass through counting relays, so
+        # wire_bytes() reports the real bytes its sockets carried.
+        self._meter = meter
+        self._relays: list[CountingRelay] = []
+
+    def wire_bytes(self) -> tuple[int, int]:
+        """(received, sent) bytes on the robot's sockets; needs meter=True."""
+        if not self._relays:
+            raise DrvsError("wire_bytes() needs DrvsClient(meter=True)")
+        callback, server = self._relays
+        return callback.to_target + server.from_target, callback.from_target + server.to_target
 
     @property
     def callback_address(self) -> str:
+        if self._meter and self._relays:
+            return format_address("127.0.0.1", self._relays[0].port)
         if self._advertise:
             return self._advertise
         host = self.listen.rpartition(":")[0].strip("[]")
@@ -192,7 +207,16 @@ class DrvsClient:
         self.port = _grpc.bind(listener, self.listen)
         await listener.start()
         self._listener = listener
-        self._channel = _grpc.insecure_channel(self.server)
+        server_address = self.server
+        if self._meter:
+            callback_relay = CountingRelay(self.listen.rpartition(":")[0].strip("[]"), self.port)
+            host, port = parse_address(self.server, "server")
+            server_relay = CountingRelay(host, port)
+            await callback_relay.start()
+            await server_relay.start()
+            self._relays = [callback_relay, server_relay]
+            server_address = format_address("127.0.0.1", server_relay.port)
+        self._channel = _grpc.insecure_channel(server_address)
         self._detect = detection_pb2_grpc.DetectObjectBoundaryStub(self._channel)
         self._registry = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
         log.debug("robot %r listening for reports on %s", self.robot_id, self.callback_address)
@@ -206,6 +230,8 @@ class DrvsClient:
         if self._channel is not None:
             await self._channel.close()
             self._channel = None
+        for relay in self._relays:
+            await relay.close()
 
     async def __aenter__(self) -> DrvsClient:
         await self.start()

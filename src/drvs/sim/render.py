@@ -1,0 +1,111 @@
+"""Render a simulated camera's frames: the floor plan and its objects seen through the camera's
+pinhole model (pose -> homography, OpenCV warp), the robot's marker, lighting and sensor noise."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from shapely.geometry import Point, Polygon
+
+from drvs.geometry import FieldOfView
+from drvs.sim.scenario import CameraDef, Scenario
+
+FLOOR_BGR = (128, 132, 136)
+WALL_BGR = (72, 72, 72)
+BEYOND_BGR = (205, 200, 196)  # above the horizon and outside the building
+TEXTURE_PX_PER_M = 100.0
+_NOISE_BANK = 8
+_SHIFT = 4
+
+
+class CameraRenderer:
+    """Everything static is warped once; each frame adds the robot, lighting and noise."""
+
+    def __init__(self, scenario: Scenario, camera: CameraDef, seed: int = 0) -> None:
+        self.scenario = scenario
+        self.camera = camera
+        self.size = camera.resolution
+        self.homography = camera.homography
+        self._to_image = self.homography.inverse()
+        width, height = self.size
+        fov = FieldOfView.compute(self.homography, self.size, max_range_m=1000.0)
+        self._fov_floor = fov.floor
+        texture, world_to_texture = _floor_texture(scenario)
+        image_to_texture = world_to_texture @ self.homography.matrix
+        static = cv2.warpPerspective(
+            texture,
+            image_to_texture,
+            (width, height),
+            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+            borderMode=cv2.BORDER_CONSTANT,
+            borderValue=BEYOND_BGR,
+        )
+        # Above the horizon the warp would show the floor behind the camera: paint it as distance.
+        mask = np.zeros((height, width), dtype=np.uint8)
+        ring = np.round(np.asarray(fov.image.exterior.coords)[:-1] * (1 << _SHIFT)).astype(np.int32)
+        cv2.fillPoly(mask, [ring], 255, shift=_SHIFT)
+        static[mask == 0] = BEYOND_BGR
+        # Uneven lighting across the image (a window on one side), fixed per camera.
+        rng = np.random.default_rng([seed, _stable_hash(camera.id)])
+        swing = scenario.render.lighting
+        ramp = 1.0 + swing * np.linspace(-0.5, 0.5, width, dtype=np.float32) * rng.choice([-1.0, 1.0])
+        self._static = np.clip(static.astype(np.float32) * ramp[None, :, None], 0, 255).astype(np.uint8)
+        self._phase = float(rng.uniform(0, 2 * math.pi))
+        sigma = scenario.render.noise_sigma
+        self._noise_up: list[NDArray[np.uint8]] = []
+        self._noise_down: list[NDArray[np.uint8]] = []
+        for _ in range(_NOISE_BANK if sigma > 0 else 0):
+            n = rng.normal(0.0, sigma, (height, width, 3))
+            self._noise_up.append(np.clip(n, 0, 255).astype(np.uint8))
+            self._noise_down.append(np.clip(-n, 0, 255).astype(np.uint8))
+        self._frame_index = 0
+
+    def render(self, robot_xy: tuple[float, float] | None, t: float) -> NDArray[np.uint8]:
+        """A BGR frame at time t (s) with the robot's marker at robot_xy (None: no robot)."""
+        image = self._static.copy()
+        if robot_xy is not None:
+            marker = Point(robot_xy).buffer(self.scenario.robot.radius, quad_segs=16)
+            self._fill(image, marker, self.scenario.robot.color.bgr)
+        gain = 1.0 + self.scenario.render.lighting * math.sin(2 * math.pi * t / 7.0 + self._phase)
+        image = cv2.convertScaleAbs(image, alpha=gain)
+        if self._noise_up:
+            i = self._frame_index % len(self._noise_up)
+            image = cv2.subtract(cv2.add(image, self._noise_up[i]), self._noise_down[i])
+        self._frame_index += 1
+        return np.asarray(image, dtype=np.uint8)
+
+    def _fill(self, image: NDArray[np.uint8], shape: Polygon, bgr: tuple[int, int, int]) -> None:
+        visible = shape.intersection(self._fov_floor)
+        for piece in getattr(visible, "geoms", [visible]):
+            if isinstance(piece, Polygon) and not piece.is_empty:
+                pts = self._to_image.apply(np.asarray(piece.exterior.coords)[:-1])
+                cv2.fillPoly(image, [np.round(pts * (1 << _SHIFT)).astype(np.int32)], bgr, shift=_SHIFT)
+
+
+def _floor_texture(scenario: Scenario) -> tuple[NDArray[np.uint8], NDArray[np.float64]]:
+    """A top-down image of the floor plan and objects, and the world -> texture pixel matrix."""
+    x0, y0, x1, y1 = scenario.bounds
+    s = TEXTURE_PX_PER_M
+    width, height = math.ceil((x1 - x0) * s), math.ceil((y1 - y0) * s)
+    world_to_texture = np.array([[s, 0.0, -x0 * s], [0.0, -s, y1 * s], [0.0, 0.0, 1.0]])
+    texture = np.empty((height, width, 3), dtype=np.uint8)
+    texture[:] = FLOOR_BGR
+
+    def fill(poly: Polygon, bgr: tuple[int, int, int]) -> None:
+        pts = np.asarray(poly.exterior.coords)[:-1]
+        px = pts @ world_to_texture[:2, :2].T + world_to_texture[:2, 2]
+        cv2.fillPoly(texture, [np.round(px * (1 << _SHIFT)).astype(np.int32)], bgr, shift=_SHIFT)
+
+    for wall in scenario.walls:
+        fill(wall, WALL_BGR)
+    for obj in scenario.objects:
+        if obj.color is not None:
+            fill(obj.shape, obj.color.bgr)
+    return texture, world_to_texture
+
+
+def _stable_hash(text: str) -> int:
+    return sum((i + 1) * ord(c) for i, c in enumerate(text)) % (2**31)

@@ -1,0 +1,113 @@
+"""A camera node frame source that renders the simulated world (`drvs-camera --source sim://HOST:PORT`)."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import threading
+import time
+from typing import Any
+
+import grpc
+
+from drvs import _grpc
+from drvs.detection import Frame
+from drvs.errors import FailedPrecondition
+from drvs.sim.render import CameraRenderer
+from drvs.sim.scenario import parse_scenario
+from drvs.v1 import sim_pb2, sim_pb2_grpc
+
+log = logging.getLogger("drvs.sim.source")
+SCHEME = "sim://"
+
+
+class SimSource:
+    """Renders this camera's view of the world at its frame rate, and at once whenever the robot moves."""
+
+    def __init__(self, spec: str, camera_id: str) -> None:
+        self.world = spec[len(SCHEME) :] if spec.startswith(SCHEME) else spec
+        self.camera_id = camera_id
+        self.description = f"{SCHEME}{self.world} ({camera_id})"
+        self._lock = threading.Condition()
+        self._latest: Frame | None = None
+        self._first = threading.Event()
+        self._stop = threading.Event()
+        self._robot: tuple[float, float] | None = None
+        self._robot_version = -1
+        self._threads: list[threading.Thread] = []
+        self._channel: grpc.Channel | None = None
+        self._watch: Any = None
+        self.error: str | None = None
+
+    def start(self) -> None:
+        self._channel = grpc.insecure_channel(self.world, options=_grpc.CHANNEL_OPTIONS)
+        stub = sim_pb2_grpc.SimulatedWorldStub(self._channel)
+        try:
+            scene = stub.GetScene(sim_pb2.GetSceneRequest(), timeout=10, wait_for_ready=True)
+        except grpc.RpcError as exc:
+            raise OSError(f"source {self.description}: simulated world unreachable: {exc.details()}") from None
+        scenario = parse_scenario(scene.scenario_yaml, f"world {self.world}")
+        self.renderer = CameraRenderer(scenario, scenario.camera(self.camera_id), seed=scene.seed)
+        self.fps = scenario.camera(self.camera_id).fps
+        self._watch = stub.WatchRobot(sim_pb2.WatchRobotRequest())
+        self._threads = [
+            threading.Thread(target=self._follow_robot, name="sim-watch", daemon=True),
+            threading.Thread(target=self._render_loop, name="sim-render", daemon=True),
+        ]
+        for t in self._threads:
+            t.start()
+        log.info("source %s: rendering %dx%d at %g fps", self.description, *self.renderer.size, self.fps)
+
+    def stop(self) -> None:
+        self._stop.set()
+        if self._watch is not None:
+            self._watch.cancel()
+        with self._lock:
+            self._lock.notify_all()
+        for t in self._threads:
+            t.join(timeout=5)
+        if self._channel is not None:
+            self._channel.close()
+
+    def latest(self) -> Frame | None:
+        with self._lock:
+            return self._latest
+
+    async def wait_first_frame(self, timeout_s: float) -> Frame:
+        if not await asyncio.to_thread(self._first.wait, timeout_s):
+            raise FailedPrecondition(f"source {self.description}: no frame within {timeout_s:g} s")
+        frame = self.latest()
+        assert frame is not None
+        return frame
+
+    def _follow_robot(self) -> None:
+        try:
+            for pose in self._watch:
+                with self._lock:
+                    self._robot = (pose.x, pose.y)
+                    self._robot_version = pose.version
+                    self._lock.notify_all()
+        except grpc.RpcError as exc:
+            if not self._stop.is_set():
+                self.error = f"world stream ended: {exc.code().name}"
+                log.warning("source %s: %s", self.description, self.error)
+
+    def _render_loop(self) -> None:
+        period = 1.0 / self.fps
+        start = time.monotonic()
+        sequence = 0
+        rendered_version = -2
+        while not self._stop.is_set():
+            with self._lock:
+                if self._robot_version == rendered_version:
+                    self._lock.wait(period)  # a new frame at the frame rate, or at once when the robot moves
+                robot, version = self._robot, self._robot_version
+            if self._stop.is_set():
+                return
+            image = self.renderer.render(robot, time.monotonic() - start)
+            sequence += 1
+            frame = Frame(image=image, capture_time=time.time(), sequence=sequence)
+            with self._lock:
+                self._latest = frame
+            rendered_version = version
+            self._first.set()

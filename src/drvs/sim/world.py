@@ -1,0 +1,220 @@
+"""The simulated world: robot pose, bumper contacts and docking, served over gRPC."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import logging
+import math
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Any
+
+import shapely
+from grpc import aio
+from shapely import STRtree
+from shapely.geometry import Point, Polygon, box
+
+from drvs import _grpc
+from drvs._cli import setup_logging, shutdown_event
+from drvs.convert import polygon_to_pb
+from drvs.errors import DrvsError, InvalidArgument
+from drvs.health import add_health_and_reflection, mark_serving
+from drvs.net import format_address, parse_address
+from drvs.sim.scenario import Scenario, load_scenario
+from drvs.v1 import sim_pb2, sim_pb2_grpc
+
+log = logging.getLogger("drvs.sim.world")
+
+SERVICE_NAMES = (sim_pb2.DESCRIPTOR.services_by_name["SimulatedWorld"].full_name,)
+#: Moves are checked for contact every this many metres.
+CONTACT_STEP_M = 0.01
+#: The robot docks when its centre is this close to a charging station's centre.
+DOCK_REACH_M = 0.3
+
+
+@dataclass(frozen=True)
+class Pose:
+    x: float
+    y: float
+    theta: float = 0.0
+    version: int = 0
+
+
+class WorldState:
+    """The truth: where the robot is and what it would touch. Pure logic."""
+
+    def __init__(self, scenario: Scenario) -> None:
+        self.scenario = scenario
+        sx, sy = scenario.robot.start
+        self.pose = Pose(sx, sy, 0.0, 0)
+        self.radius = scenario.robot.radius
+        outside = box(*scenario.bounds).buffer(50.0, join_style="mitre").difference(box(*scenario.bounds))
+        self.solids: list[Polygon] = [*scenario.walls, *(o.shape for o in scenario.obstacles), outside]
+        self._tree = STRtree(self.solids)
+        self.collisions = 0
+        self.distance_m = 0.0
+
+    def touching(self, x: float, y: float) -> Polygon | None:
+        disc = Point(x, y).buffer(self.radius, quad_segs=16)
+        hits = self._tree.query(disc, predicate="intersects")
+        return self.solids[int(min(hits))] if len(hits) else None
+
+    def move(self, x: float, y: float, theta: float) -> tuple[Pose, Polygon | None]:
+        """Drive in a straight line towards (x, y); stop just before the first contact."""
+        if not all(math.isfinite(v) for v in (x, y, theta)):
+            raise InvalidArgument("pose: x, y and theta must be finite")
+        start = self.pose
+        length = math.hypot(x - start.x, y - start.y)
+        if length > 5.0:
+            raise InvalidArgument(f"pose: a move of {length:.2f} m is longer than the 5 m a bumper check covers")
+        steps = max(1, math.ceil(length / CONTACT_STEP_M))
+        reached = (start.x, start.y)
+        contact: Polygon | None = None
+        for i in range(1, steps + 1):
+            t = i / steps
+            px, py = start.x + t * (x - start.x), start.y + t * (y - start.y)
+            contact = self.touching(px, py)
+            if contact is not None:
+                break
+            reached = (px, py)
+        self.distance_m += math.hypot(reached[0] - start.x, reached[1] - start.y)
+        if contact is not None:
+            self.collisions += 1
+        self.pose = Pose(reached[0], reached[1], theta, start.version + 1)
+        return self.pose, contact
+
+    def dock(self) -> bool:
+        centre = Point(self.pose.x, self.pose.y)
+        return any(s.shape.centroid.distance(centre) <= DOCK_REACH_M for s in self.scenario.charging_stations)
+
+
+class WorldServer:
+    """SimulatedWorld over gRPC: start(), stop(), `async with`."""
+
+    def __init__(self, scenario: Scenario, listen: str = "127.0.0.1:0", seed: int = 0) -> None:
+        self.state = WorldState(scenario)
+        self.listen = listen
+        self.seed = seed
+        self.port = 0
+        self._server: aio.Server | None = None
+        self._health: Any = None
+        self._changed = asyncio.Condition()
+        self._stopping = False
+
+    @property
+    def address(self) -> str:
+        return format_address(self.listen.rpartition(":")[0].strip("[]"), self.port)
+
+    async def start(self) -> None:
+        server = _grpc.new_server()
+        sim_pb2_grpc.add_SimulatedWorldServicer_to_server(_Servicer(self), server)
+        self._health = add_health_and_reflection(server, SERVICE_NAMES)
+        self.port = _grpc.bind(server, self.listen)
+        await server.start()
+        self._server = server
+        await mark_serving(self._health, SERVICE_NAMES)
+        log.info("sim world %r listening on %s", self.state.scenario.name, self.address)
+
+    async def stop(self, grace: float = 1.0) -> None:
+        if self._server is None or self._stopping:
+            return
+        self._stopping = True
+        async with self._changed:
+            self._changed.notify_all()
+        await self._health.enter_graceful_shutdown()
+        await self._server.stop(grace)
+
+    async def __aenter__(self) -> WorldServer:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.stop()
+
+    async def moved(self) -> None:
+        async with self._changed:
+            self._changed.notify_all()
+
+    async def watch(self) -> AsyncIterator[Pose]:
+        last = -1
+
+        def changed() -> bool:
+            return self.state.pose.version != last or self._stopping
+
+        while not self._stopping:
+            async with self._changed:
+                await self._changed.wait_for(changed)
+            if self._stopping:
+                return
+            pose = self.state.pose
+            last = pose.version
+            yield pose
+
+
+def pose_to_pb(p: Pose) -> sim_pb2.RobotPose:
+    return sim_pb2.RobotPose(x=p.x, y=p.y, theta=p.theta, version=p.version)
+
+
+class _Servicer(sim_pb2_grpc.SimulatedWorldServicer):
+    def __init__(self, world: WorldServer) -> None:
+        self._w = world
+
+    @_grpc.servicer_method
+    async def GetScene(self, request: sim_pb2.GetSceneRequest, context: aio.ServicerContext[Any, Any]) -> sim_pb2.Scene:
+        return sim_pb2.Scene(scenario_yaml=self._w.state.scenario.source_text, seed=self._w.seed)
+
+    @_grpc.servicer_method
+    async def Move(self, request: sim_pb2.MoveRequest, context: aio.ServicerContext[Any, Any]) -> sim_pb2.MoveReply:
+        pose, contact = self._w.state.move(request.pose.x, request.pose.y, request.pose.theta)
+        await self._w.moved()
+        reply = sim_pb2.MoveReply(pose=pose_to_pb(pose), collided=contact is not None)
+        if contact is not None:
+            clipped = contact.intersection(box(*self._w.state.scenario.bounds))
+            shape = clipped if isinstance(clipped, Polygon) and not clipped.is_empty else contact
+            reply.contact.CopyFrom(
+                polygon_to_pb(shapely.orient_polygons(shape) if hasattr(shapely, "orient_polygons") else shape)
+            )
+            log.info("robot touched an obstacle at (%.2f, %.2f)", pose.x, pose.y)
+        return reply
+
+    async def WatchRobot(
+        self, request: sim_pb2.WatchRobotRequest, context: aio.ServicerContext[Any, Any]
+    ) -> AsyncIterator[sim_pb2.RobotPose]:
+        async for pose in self._w.watch():
+            yield pose_to_pb(pose)
+
+    @_grpc.servicer_method
+    async def Dock(self, request: sim_pb2.DockRequest, context: aio.ServicerContext[Any, Any]) -> sim_pb2.DockReply:
+        return sim_pb2.DockReply(docked=self._w.state.dock())
+
+
+async def serve_world(scenario_path: str | None, listen: str, seed: int) -> int:
+    stop = shutdown_event()
+    world = WorldServer(load_scenario(scenario_path), listen, seed)
+    await world.start()
+    try:
+        await stop.wait()
+    finally:
+        await world.stop()
+    return 0
+
+
+def add_world_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--scenario", default=None, help="scenario YAML (default: the built-in office)")
+    p.add_argument("--listen", default="127.0.0.1:0", help="HOST:PORT (default %(default)s)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--log-level", default=None)
+
+
+def world_main(args: argparse.Namespace) -> int:
+    setup_logging(args.log_level)
+    try:
+        parse_address(args.listen, "--listen", allow_port_zero=True)
+        return asyncio.run(serve_world(args.scenario, args.listen, args.seed))
+    except DrvsError as exc:
+        log.error("%s", exc)
+        return 2
