@@ -1,0 +1,173 @@
+"""drvs-office: the simulated office. A world, a DRVS server, camera nodes and a robot, each its
+own process on loopback, run a mission; the run leaves result.json and map.png."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import re
+import sys
+import time
+from pathlib import Path
+from typing import Any, TextIO
+
+from drvs.camera.homography_file import save_homography
+from drvs.errors import DrvsError
+from drvs.launch import ManagedProcess, start_camera, start_server
+from drvs.sim.cli import PROGRESS_PREFIX
+from drvs.sim.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
+
+WORLD_READY = re.compile(r"sim world .* listening on (\S+)")
+
+
+def sim_process(name: str, *args: str, echo: TextIO | None = None) -> ManagedProcess:
+    script = Path(sys.executable).parent / "drvs-sim"
+    argv = [str(script)] if script.exists() else [sys.executable, "-m", "drvs.sim.cli"]
+    return ManagedProcess(name, [*argv, *args], echo=echo)
+
+
+class Progress:
+    def __init__(self, quiet: bool, stream: TextIO) -> None:
+        self.quiet = quiet
+        self.stream = stream
+        self.tty = stream.isatty()
+        self._last_print = 0.0
+
+    def show(self, p: dict[str, Any]) -> None:
+        if self.quiet:
+            return
+        line = (
+            f"t={p['t']:5.1f}s  robot at ({p['x']:6.2f}, {p['y']:6.2f})  "
+            f"detections {p['detections']:2d}  re-plans {p['replans']:2d}  collisions {p['collisions']}"
+        )
+        if self.tty:
+            print("\r" + line, end="", file=self.stream, flush=True)
+        elif time.monotonic() - self._last_print >= 2.0:
+            self._last_print = time.monotonic()
+            print(line, file=self.stream, flush=True)
+
+    def done(self) -> None:
+        if self.tty and not self.quiet:
+            print(file=self.stream)
+
+
+async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path: Path, out: Path) -> int:
+    echo = sys.stderr if args.verbose else None
+
+    def say(text: str) -> None:
+        if not args.quiet:
+            print(text, flush=True)
+
+    procs: list[ManagedProcess] = []
+    progress = Progress(args.quiet, sys.stdout)
+    try:
+        world = await sim_process(
+            "world", "world", "--scenario", str(scenario_path), "--seed", str(args.seed), echo=echo
+        ).start()
+        procs.append(world)
+        world_address = (await world.wait_for_line(WORLD_READY)).group(1)
+        say(f"world      {scenario.name!r} on {world_address}")
+        robot_args = ["robot", "--world", world_address, "--out", str(out), "--max-time", str(args.max_time)]
+        if args.no_drvs:
+            robot_args.append("--no-drvs")
+            say("DRVS       off: the paper's baseline, the robot learns obstacles by touching them")
+        else:
+            server, server_address = await start_server(echo=echo)
+            procs.append(server)
+            say(f"server     drvs-server on {server_address}")
+            cams_dir = out / "cameras"
+            cams_dir.mkdir(parents=True, exist_ok=True)
+            for cam in scenario.cameras:
+                hfile = cams_dir / f"{cam.id}.homography.yaml"
+                save_homography(hfile, cam.homography, image_size=list(cam.resolution))
+                proc = await start_camera(
+                    cam.id, f"sim://{world_address}", hfile, server_address, "--max-range", str(cam.max_range_m),
+                    echo=echo,
+                )  # fmt: skip
+                procs.append(proc)
+                say(f"camera     {cam.id} registered ({cam.field_of_view.floor.area:.1f} m² of floor)")
+            robot_args += ["--server", server_address]
+        robot = await sim_process("robot", *robot_args, echo=echo).start()
+        procs.append(robot)
+        say(f"robot      mission {scenario.mission} from {list(scenario.robot.start)}")
+        seen = 0
+        while robot.returncode is None:
+            try:
+                await robot.wait_for_line(re.compile("^" + PROGRESS_PREFIX), timeout=args.max_time + 30, start=seen)
+            except RuntimeError:
+                break  # the robot exited
+            for line in robot.lines[seen:]:
+                if line.startswith(PROGRESS_PREFIX):
+                    progress.show(json.loads(line[len(PROGRESS_PREFIX) :]))
+            seen = len(robot.lines)
+        code = await robot.wait(timeout=30)
+        progress.done()
+        if code not in (0, 1):
+            print(f"drvs-office: the robot failed (exit {code}):\n" + "\n".join(robot.lines[-15:]), file=sys.stderr)
+    finally:
+        for proc in reversed(procs):
+            await proc.stop()
+    result_file = out / "result.json"
+    if not result_file.exists():
+        return 2
+    result = json.loads(result_file.read_text())
+    from drvs.sim.report import draw_map
+
+    draw_map(scenario, result, out / "map.png", seed=args.seed)
+    summarise(result, out, quiet=args.quiet)
+    return code
+
+
+def summarise(result: dict[str, Any], out: Path, quiet: bool) -> None:
+    if quiet:
+        print(out / "result.json")
+        return
+    print()
+    print(f"mission          {result['mission']} {'with DRVS' if result['drvs'] else 'without DRVS (baseline)'}")
+    print(f"reached goal     {'yes' if result['reached_goal'] else 'NO'}")
+    if result["mission"] == "find_charging_station":
+        print(f"charging station {result['charging_station']} (candidates {result['candidates']})")
+    print(f"collisions       {result['collisions']}")
+    print(f"re-plans         {result['replans']}")
+    print(f"detections used  {len(result['detections'])}")
+    loc = result["localisation"]
+    if loc["fixes"]:
+        print(f"localisation     {loc['fixes']} DRVS fixes, mean error {loc['mean_error_m'] * 100:.1f} cm")
+    print(f"bytes to robot   {result['bytes_to_robot']:,} (wire bytes)")
+    print(f"robot CPU        {result['robot_cpu_s']:.2f} s over {result['elapsed_s']:.1f} s")
+    if result.get("failure"):
+        print(f"failure          {result['failure']}")
+    print(f"results          {out / 'result.json'}, {out / 'map.png'}")
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="drvs-office", description=__doc__.splitlines()[0])
+    parser.add_argument("--scenario", type=Path, default=None, help="scenario YAML (default: the paper's office)")
+    parser.add_argument(
+        "--mission", choices=["navigate", "find_charging_station"], help="override the scenario's mission"
+    )
+    parser.add_argument("--out", type=Path, default=None, help="output folder (default: a new drvs-out-* folder)")
+    parser.add_argument("--seed", type=int, default=0, help="seed for sensor noise and lighting (default 0)")
+    parser.add_argument("--no-drvs", action="store_true", help="the paper's baseline (Fig. 5): no DRVS")
+    parser.add_argument("--max-time", type=float, default=120.0, help="give the mission up after this many seconds")
+    parser.add_argument("--quiet", "--headless", action="store_true", help="no progress; print only the result path")
+    parser.add_argument("--verbose", action="store_true", help="show every process's log")
+    args = parser.parse_args(argv)
+    scenario_path = args.scenario or DEFAULT_SCENARIO
+    out = args.out or Path(time.strftime("drvs-out-%Y%m%d-%H%M%S"))
+    try:
+        scenario = load_scenario(scenario_path)
+        if args.mission and args.mission != scenario.mission:
+            # The world, cameras and robot all read the scenario: give them the overridden one.
+            out.mkdir(parents=True, exist_ok=True)
+            scenario_path = out / "scenario.yaml"
+            scenario_path.write_text(re.sub(r"(?m)^mission:.*$", f"mission: {args.mission}", scenario.source_text))
+            scenario = load_scenario(scenario_path)
+    except DrvsError as exc:
+        print(f"drvs-office: {exc}", file=sys.stderr)
+        return 2
+    out.mkdir(parents=True, exist_ok=True)
+    if not args.quiet:
+        print(f"drvs-office: {scenario.name}, mission {scenario.mission}; results go to {out}/")
+    return asyncio.run(run_office(args, scenario, scenario_path, out))

@@ -1,0 +1,102 @@
+"""map.png: the floor plan, fields of view, detections, planned and driven paths (the paper's
+Figs. 5-8), and one frame from each camera with its detections drawn."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import cv2
+import matplotlib
+
+matplotlib.use("Agg")
+import matplotlib.pyplot as plt
+import numpy as np
+from matplotlib.patches import Polygon as MplPolygon
+from shapely.geometry import Polygon
+
+from drvs.sim.render import CameraRenderer
+from drvs.sim.scenario import Scenario
+
+
+def _patch(poly: Polygon, **kw: Any) -> MplPolygon:
+    return MplPolygon(np.asarray(poly.exterior.coords), closed=True, **kw)
+
+
+def draw_map(scenario: Scenario, result: dict[str, Any], path: Path, seed: int = 0) -> Path:
+    cams = scenario.cameras
+    fig = plt.figure(figsize=(14, 7 + 3.2 * math.ceil(len(cams) / 3)), dpi=90)
+    grid = fig.add_gridspec(1 + math.ceil(len(cams) / 3), 3, height_ratios=[2.2] + [1] * math.ceil(len(cams) / 3))
+    ax = fig.add_subplot(grid[0, :])
+    x0, y0, x1, y1 = scenario.bounds
+    ax.set_xlim(x0 - 0.3, x1 + 0.3)
+    ax.set_ylim(y0 - 0.3, y1 + 0.3)
+    ax.set_aspect("equal")
+    ax.add_patch(MplPolygon([(x0, y0), (x1, y0), (x1, y1), (x0, y1)], closed=True, fill=False, edgecolor="black"))
+    for wall in scenario.walls:
+        ax.add_patch(_patch(wall, facecolor="0.55", edgecolor="0.3"))
+    for cam in cams:
+        fov = cam.field_of_view.floor
+        ax.add_patch(_patch(fov, facecolor="tab:cyan", alpha=0.12, edgecolor="tab:cyan", lw=1))
+        cx, cy, _ = cam.position
+        yaw = math.radians(cam.yaw_deg)
+        ax.annotate("", xy=(cx + 0.8 * math.cos(yaw), cy + 0.8 * math.sin(yaw)), xytext=(cx, cy),
+                    arrowprops={"arrowstyle": "->", "lw": 2})  # fmt: skip
+        ax.plot([cx], [cy], "ks", ms=8)
+        ax.text(cx, cy - 0.45 if cy > y0 + 1 else cy + 0.3, cam.id, fontsize=8, ha="center")
+    for obj in scenario.objects:
+        if obj.color is None:
+            ax.add_patch(_patch(obj.shape, fill=False, edgecolor="tab:purple", ls=":", lw=1.5))
+            continue
+        b, g, r = obj.color.bgr
+        ax.add_patch(_patch(obj.shape, facecolor=(r / 255, g / 255, b / 255), alpha=0.45, edgecolor="none"))
+    for d in result.get("detections", []):
+        ax.add_patch(MplPolygon(d["outline"], closed=True, fill=False, edgecolor="red", lw=1.4))
+    for c in result.get("contacts", []):
+        centre = np.mean(np.asarray(c), axis=0)
+        ax.plot([centre[0]], [centre[1]], "rx", ms=12, mew=3)
+    plans = result.get("planned_paths", [])
+    for i, plan in enumerate(plans):
+        p = np.asarray(plan)
+        if len(p):
+            last = i == len(plans) - 1
+            ax.plot(p[:, 0], p[:, 1], "--", color="tab:orange", lw=1.6 if last else 0.8, alpha=1.0 if last else 0.5)
+    driven = np.asarray(result.get("path", []))
+    if len(driven):
+        ax.plot(driven[:, 0], driven[:, 1], "-", color="tab:blue", lw=2.5, label="driven")
+        ax.plot([driven[0, 0]], [driven[0, 1]], "go", ms=9, label="start")
+    if scenario.robot.goal:
+        ax.plot([scenario.robot.goal[0]], [scenario.robot.goal[1]], "r*", ms=14, label="goal")
+    if result.get("charging_station"):
+        sx, sy = result["charging_station"]
+        ax.plot([sx], [sy], "P", color="tab:purple", ms=13, label="station found")
+    ax.plot([], [], "--", color="tab:orange", label="planned (last bold)")
+    ax.plot([], [], "-", color="red", label="DRVS detections")
+    ax.plot([], [], "rx", label="collision")
+    ax.legend(loc="upper left", fontsize=8, ncol=3, framealpha=0.9)
+    mode = "with DRVS" if result.get("drvs") else "without DRVS (baseline)"
+    outcome = "reached goal" if result.get("reached_goal") else "did not reach goal"
+    ax.set_title(
+        f"{scenario.name}: {result.get('mission')} {mode}: {outcome}, "
+        f"{result.get('collisions', 0)} collision(s), {result.get('replans', 0)} re-plan(s)"
+    )
+    ax.set_xlabel("x (m)")
+    ax.set_ylabel("y (m)")
+
+    final = tuple(result["path"][-1]) if result.get("path") else scenario.robot.start
+    for i, cam in enumerate(cams):
+        sub = fig.add_subplot(grid[1 + i // 3, i % 3])
+        frame = CameraRenderer(scenario, cam, seed=seed).render(final, 0.0)
+        to_image = cam.homography.inverse()
+        for d in result.get("detections", []):
+            if d["camera_id"] == cam.id:
+                pts = to_image.apply(np.asarray(d["outline"]))
+                cv2.polylines(frame, [np.round(pts).astype(np.int32)], True, (0, 0, 255), 2)
+        sub.imshow(cv2.cvtColor(frame, cv2.COLOR_BGR2RGB))
+        sub.set_title(cam.id, fontsize=9)
+        sub.axis("off")
+    fig.tight_layout()
+    fig.savefig(path)
+    plt.close(fig)
+    return path

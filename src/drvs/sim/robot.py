@@ -1,0 +1,367 @@
+"""The simulated robot: the paper's Algorithm 1 over DRVS, or its baseline without DRVS.
+
+The robot knows the floor plan, its own pose (odometry) and which colours obstacles and charging
+station markers have. Everything else it learns from DRVS, or, in the baseline, by touching it.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+import time
+from collections.abc import Callable, Sequence
+from pathlib import Path
+from typing import Any
+
+import grpc
+from shapely.geometry import LineString, Point, Polygon, box
+
+from drvs import _grpc
+from drvs.convert import polygon_from_pb
+from drvs.model import Detection
+from drvs.robot import DrvsClient
+from drvs.sim.planner import NoPath, OccupancyGrid, plan_path
+from drvs.sim.scenario import Scenario
+from drvs.v1 import sim_pb2, sim_pb2_grpc
+
+log = logging.getLogger("drvs.sim.robot")
+
+GRID_RESOLUTION_M = 0.1
+#: Clearance kept beyond the robot's radius: detections are a few cm off, and cells are 10 cm.
+SAFETY_MARGIN_M = 0.1
+#: How far either side of the planned path the robot asks DRVS to look for obstacles.
+LOOK_AHEAD_M = 1.5
+TICK_S = 0.1
+OBSTACLE_RATE_HZ = 2.0
+SELF_RATE_HZ = 5.0
+#: A green and a yellow marker this close together are a charging-station candidate.
+STATION_PAIR_MAX_M = 0.5
+#: Detections of obstacle colours this close to a station candidate's marker are the marker.
+MARKER_MATCH_M = 0.25
+
+
+class MissionFailed(Exception):
+    pass
+
+
+class SimRobot:
+    def __init__(
+        self,
+        scenario: Scenario,
+        world: sim_pb2_grpc.SimulatedWorldStub,
+        drvs: DrvsClient | None,
+        *,
+        progress: Callable[[dict[str, Any]], None] = lambda p: None,
+        max_time_s: float = 120.0,
+    ) -> None:
+        self.scenario = scenario
+        self.world = world
+        self.drvs = drvs
+        self.progress = progress
+        self.max_time_s = max_time_s
+        robot = scenario.robot
+        self.inflate = robot.radius + SAFETY_MARGIN_M
+        self.grid = OccupancyGrid(scenario.bounds, GRID_RESOLUTION_M)
+        for wall in scenario.walls:
+            self.grid.add_polygon(wall, self.inflate)
+        self.pose = robot.start
+        self.path_driven: list[tuple[float, float]] = [robot.start]
+        self.plans: list[list[tuple[float, float]]] = []
+        self.replans = 0
+        self.collisions = 0
+        self.detections_used: list[Detection] = []
+        self.known_obstacles: list[Polygon] = []
+        self.contacts: list[Polygon] = []
+        self.localisation_errors: list[float] = []
+        self.ignore_near: list[tuple[float, float]] = []  # station markers: landmarks, not obstacles
+        self._map_changed = False
+        self._started = time.monotonic()
+        self._last_progress = 0.0
+        # The paper's robot knows the obstacle colour model (yellow), not where obstacles are.
+        self.obstacle_filters = sorted({o.color.filter_def for o in scenario.obstacles if o.color is not None})
+
+    # --- map --------------------------------------------------------------------------------
+
+    def mark(self, outline: Polygon) -> bool:
+        """The pessimistic union: every detection is occupied. True when the map changed."""
+        changed = self.grid.add_polygon(outline, self.inflate)
+        if changed:
+            self.known_obstacles.append(outline)
+            self._map_changed = True
+        return changed
+
+    def use_detections(self, detections: Sequence[Detection]) -> None:
+        for d in detections:
+            if any(d.centroid.distance(Point(p)) < MARKER_MATCH_M for p in self.ignore_near):
+                continue
+            if self.mark(d.outline):
+                self.detections_used.append(d)
+
+    def corridor(self, path: Sequence[tuple[float, float]]) -> Polygon:
+        line = LineString(path) if len(path) > 1 else Point(path[0])
+        region = line.buffer(LOOK_AHEAD_M).intersection(box(*self.scenario.bounds))
+        return region if isinstance(region, Polygon) else region.convex_hull
+
+    # --- DRVS -------------------------------------------------------------------------------
+
+    async def look(self, filters: Sequence[str], region: Polygon) -> list[Detection]:
+        assert self.drvs is not None
+        results = await asyncio.gather(*(self.drvs.detect(f, region, timeout_s=5.0) for f in filters))
+        found: list[Detection] = []
+        for result in results:
+            if result.missing_cameras:
+                log.warning("no answer from %s", ", ".join(sorted(result.missing_cameras)))
+            found.extend(result.detections)
+        return found
+
+    async def watch_obstacles(self, region: Polygon) -> None:
+        """Algorithm 1's callback: obstacles stream in while the robot drives."""
+        assert self.drvs is not None
+        subs = [
+            await self.drvs.subscribe(f, region, rate_hz=OBSTACLE_RATE_HZ, duration_s=self.max_time_s)
+            for f in self.obstacle_filters
+        ]
+        try:
+            await asyncio.gather(*(self._consume(s) for s in subs))
+        finally:
+            for s in subs:
+                s.close()
+
+    async def _consume(self, sub: Any) -> None:
+        async for report in sub:
+            self.use_detections(report.detections)
+
+    async def watch_self(self) -> None:
+        """Localise: the cameras that see the robot's own marker report where it is."""
+        assert self.drvs is not None
+        sub = await self.drvs.subscribe(
+            self.scenario.robot.color.filter_def,
+            box(*self.scenario.bounds),
+            rate_hz=SELF_RATE_HZ,
+            duration_s=self.max_time_s,
+        )
+        try:
+            async for report in sub:
+                if report.detections:
+                    near = min(report.detections, key=lambda d: d.centroid.distance(Point(self.pose)))
+                    self.localisation_errors.append(near.centroid.distance(Point(self.pose)))
+        finally:
+            sub.close()
+
+    # --- driving ----------------------------------------------------------------------------
+
+    def plan(self, goal: tuple[float, float]) -> list[tuple[float, float]]:
+        path = plan_path(self.grid, self.pose, goal)
+        self.plans.append(path)
+        return path
+
+    async def go_to(self, goal: tuple[float, float], *, look: bool) -> bool:
+        """Drive to goal, re-planning whenever the map changes; False if it cannot be reached."""
+        try:
+            path = self.plan(goal)
+        except NoPath:
+            return False
+        watcher: asyncio.Task[None] | None = None
+        if look and self.drvs is not None:
+            for _ in range(3):  # look along the plan until the plan stops changing
+                self._map_changed = False
+                self.use_detections(await self.look(self.obstacle_filters, self.corridor(path)))
+                if not self._map_changed:
+                    break
+                path = self.plan(goal)
+                self.replans += 1
+            self._map_changed = False
+        try:
+            while True:
+                if look and self.drvs is not None and watcher is None:
+                    watcher = asyncio.get_running_loop().create_task(self.watch_obstacles(self.corridor(path)))
+                if self._map_changed:
+                    self._map_changed = False
+                    try:
+                        path = self.plan(goal)
+                    except NoPath:
+                        return False
+                    self.replans += 1
+                    if watcher is not None:  # look along the new plan
+                        watcher.cancel()
+                        with contextlib.suppress(asyncio.CancelledError):
+                            await watcher
+                        watcher = None
+                    continue
+                if math.dist(self.pose, goal) < 0.05 or len(path) < 2:
+                    return math.dist(self.pose, goal) < 0.3
+                if time.monotonic() - self._started > self.max_time_s:
+                    raise MissionFailed(f"out of time after {self.max_time_s:g} s")
+                await self.step_towards(path)
+        finally:
+            if watcher is not None:
+                watcher.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await watcher
+
+    async def step_towards(self, path: list[tuple[float, float]]) -> None:
+        target = path[1]
+        distance = math.dist(self.pose, target)
+        step = min(self.scenario.robot.speed_mps * TICK_S, distance)
+        x = self.pose[0] + (target[0] - self.pose[0]) * step / distance if distance else target[0]
+        y = self.pose[1] + (target[1] - self.pose[1]) * step / distance if distance else target[1]
+        heading = math.atan2(target[1] - self.pose[1], target[0] - self.pose[0])
+        tick = asyncio.get_running_loop().create_task(asyncio.sleep(TICK_S))
+        reply = await self.world.Move(sim_pb2.MoveRequest(pose=sim_pb2.RobotPose(x=x, y=y, theta=heading)))
+        self.pose = (reply.pose.x, reply.pose.y)
+        self.path_driven.append(self.pose)
+        if reply.collided:
+            self.collisions += 1
+            contact = polygon_from_pb(reply.contact, "contact")
+            self.contacts.append(contact)
+            log.info("collision at (%.2f, %.2f)", *self.pose)
+            self.mark(contact)
+        elif math.dist(self.pose, target) < 1e-6:
+            path.pop(0)
+        path[0] = self.pose
+        self.report_progress()
+        await tick  # drive in real time, so the cameras see the robot move
+
+    def report_progress(self, force: bool = False) -> None:
+        now = time.monotonic()
+        if force or now - self._last_progress >= 0.25:
+            self._last_progress = now
+            self.progress(
+                {
+                    "t": round(now - self._started, 2),
+                    "x": round(self.pose[0], 3),
+                    "y": round(self.pose[1], 3),
+                    "replans": self.replans,
+                    "collisions": self.collisions,
+                    "detections": len(self.detections_used),
+                }
+            )
+
+    # --- missions ---------------------------------------------------------------------------
+
+    async def navigate(self) -> dict[str, Any]:
+        goal = self.scenario.robot.goal
+        assert goal is not None
+        localiser = None
+        if self.drvs is not None:
+            localiser = asyncio.get_running_loop().create_task(self.watch_self())
+        try:
+            reached = await self.go_to(goal, look=self.drvs is not None)
+        finally:
+            if localiser is not None:
+                localiser.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await localiser
+        return {"reached_goal": reached, "charging_station": None, "candidates": []}
+
+    async def find_charging_station(self) -> dict[str, Any]:
+        if self.drvs is None:
+            raise MissionFailed("find_charging_station needs DRVS: the markers are only seen by cameras")
+        colors = self.scenario.colors
+        green, yellow = colors["green"].filter_def, colors["yellow"].filter_def
+        greens = await self.look([green], box(*self.scenario.bounds))
+        candidates: list[tuple[float, float]] = []
+        used: list[Detection] = []
+        for g in greens:
+            gx, gy = g.centroid.x, g.centroid.y
+            yellows = await self.look([yellow], box(gx - 0.5, gy - 0.5, gx + 0.5, gy + 0.5))
+            for y in yellows:
+                if g.centroid.distance(y.centroid) <= STATION_PAIR_MAX_M:
+                    candidates.append(((gx + y.centroid.x) / 2, (gy + y.centroid.y) / 2))
+                    used.extend([g, y])
+                    self.ignore_near.extend([(gx, gy), (y.centroid.x, y.centroid.y)])
+        self.detections_used.extend(used)
+        candidates.sort(key=lambda c: math.dist(c, self.pose))
+        log.info("%d green marker(s), %d station candidate(s)", len(greens), len(candidates))
+        for candidate in candidates:
+            if not await self.go_to(candidate, look=True):
+                continue
+            docked = await self.world.Dock(sim_pb2.DockRequest())
+            if docked.docked:
+                return {
+                    "reached_goal": True,
+                    "charging_station": [round(candidate[0], 4), round(candidate[1], 4)],
+                    "candidates": [[round(c[0], 4), round(c[1], 4)] for c in candidates],
+                }
+        return {
+            "reached_goal": False,
+            "charging_station": None,
+            "candidates": [[round(c[0], 4), round(c[1], 4)] for c in candidates],
+        }
+
+
+def detection_record(d: Detection) -> dict[str, Any]:
+    return {
+        "filter_def": d.filter_def,
+        "camera_id": d.camera_id,
+        "bounds": [round(v, 4) for v in d.bounds],
+        "centroid": [round(d.centroid.x, 4), round(d.centroid.y, 4)],
+        "outline": [[round(x, 4), round(y, 4)] for x, y in list(d.outline.exterior.coords)[:-1]],
+    }
+
+
+async def run_robot(
+    world_address: str,
+    server_address: str | None,
+    out_dir: Path,
+    *,
+    progress: Callable[[dict[str, Any]], None],
+    max_time_s: float = 120.0,
+) -> dict[str, Any]:
+    from drvs.sim.scenario import parse_scenario
+
+    cpu_start = time.process_time()
+    async with _grpc.insecure_channel(world_address) as channel:
+        world = sim_pb2_grpc.SimulatedWorldStub(channel)
+        scene = await world.GetScene(sim_pb2.GetSceneRequest(), timeout=10, wait_for_ready=True)
+        scenario = parse_scenario(scene.scenario_yaml, f"world {world_address}")
+        client = DrvsClient(server_address, robot_id="sim-robot", meter=True) if server_address else None
+        if client is not None:
+            await client.start()
+        try:
+            robot = SimRobot(scenario, world, client, progress=progress, max_time_s=max_time_s)
+            mission = getattr(robot, scenario.mission)
+            try:
+                outcome = await mission()
+                failure = None
+            except (MissionFailed, NoPath, grpc.RpcError) as exc:
+                outcome = {"reached_goal": False, "charging_station": None, "candidates": []}
+                failure = str(exc)
+            robot.report_progress(force=True)
+            received = client.wire_bytes()[0] if client is not None else 0
+        finally:
+            if client is not None:
+                await client.close()
+    errors = robot.localisation_errors
+    result: dict[str, Any] = {
+        "scenario": scenario.name,
+        "mission": scenario.mission,
+        "drvs": client is not None,
+        **outcome,
+        "collisions": robot.collisions,
+        "replans": robot.replans,
+        "path": [[round(x, 4), round(y, 4)] for x, y in robot.path_driven],
+        "planned_paths": [[[round(x, 3), round(y, 3)] for x, y in p] for p in robot.plans],
+        "detections": [detection_record(d) for d in robot.detections_used],
+        "contacts": [[[round(x, 4), round(y, 4)] for x, y in list(c.exterior.coords)[:-1]] for c in robot.contacts],
+        "localisation": {
+            "fixes": len(errors),
+            "mean_error_m": round(sum(errors) / len(errors), 4) if errors else None,
+            "max_error_m": round(max(errors), 4) if errors else None,
+        },
+        "bytes_to_robot": received,
+        "robot_cpu_s": round(time.process_time() - cpu_start, 3),
+        "elapsed_s": round(time.monotonic() - robot._started, 2),
+    }
+    if failure:
+        result["failure"] = failure
+    await asyncio.to_thread(write_result, out_dir, result)
+    return result
+
+
+def write_result(out_dir: Path, result: dict[str, Any]) -> None:
+    out_dir.mkdir(parents=True, exist_ok=True)
+    (out_dir / "result.json").write_text(json.dumps(result, indent=1) + "\n")

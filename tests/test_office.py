@@ -1,0 +1,101 @@
+"""drvs-office end to end: world, server, cameras and robot as processes, both missions, both modes."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import cv2
+from shapely.geometry import LineString, Polygon, box
+
+from drvs.launch import ManagedProcess
+from drvs.sim.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
+
+SMALL_ROOM = Path(__file__).parent / "scenarios" / "small_room.yaml"
+
+
+async def run_office(out: Path, *args: str) -> tuple[int, dict[str, Any], str]:
+    proc = await ManagedProcess.entry_point("office", "drvs-office", "--out", str(out), "--quiet", *args).start()
+    code = await proc.wait(timeout=150)
+    result_file = out / "result.json"
+    result = json.loads(result_file.read_text()) if result_file.exists() else {}
+    return code, result, proc.output()
+
+
+def solids(s: Scenario) -> list[Polygon]:
+    outside = box(*s.bounds).buffer(10, join_style="mitre").difference(box(*s.bounds))
+    return [*s.walls, *(o.shape for o in s.obstacles), outside]
+
+
+def clearance(path: list[list[float]], shapes: list[Polygon]) -> float:
+    line = LineString(path)
+    return min(line.distance(shape) for shape in shapes)
+
+
+def check_map(out: Path) -> None:
+    image = cv2.imread(str(out / "map.png"))
+    assert image is not None and image.shape[0] > 400 and image.shape[1] > 800
+
+
+async def test_navigate_with_drvs_avoids_the_unknown_obstacle(tmp_path: Path) -> None:
+    code, result, log = await run_office(tmp_path, "--scenario", str(SMALL_ROOM))
+    assert code == 0, log
+    scenario = load_scenario(SMALL_ROOM)
+    assert result["mission"] == "navigate" and result["drvs"] is True
+    assert result["reached_goal"] is True and result["collisions"] == 0
+    assert clearance(result["path"], solids(scenario)) >= scenario.robot.radius - 1e-6
+    assert result["path"][0] == list(scenario.robot.start)
+    goal = scenario.robot.goal
+    assert goal is not None and LineString(result["path"][-2:]).distance(box(*goal, *goal)) < 0.05
+    # Every yellow patch is marked (the paper's pessimistic union), the yellow marker too; each
+    # detection lies within 10 cm of the true object it is nearest to, and the obstacle is among them.
+    yellow_truth = [o.shape.centroid for o in scenario.objects if o.color and o.color.name == "yellow"]
+    obstacle = scenario.obstacles[0].shape.centroid
+    errors = {}
+    for d in result["detections"]:
+        assert d["filter_def"] == scenario.colors["yellow"].filter_def and d["camera_id"] == "overhead"
+        seen = Polygon(d["outline"]).centroid
+        nearest = min(yellow_truth, key=seen.distance)
+        errors[(nearest.x, nearest.y)] = seen.distance(nearest)
+    assert (obstacle.x, obstacle.y) in errors, "the obstacle was not detected"
+    assert max(errors.values()) < 0.10, errors
+    assert result["replans"] >= 1  # the straight line was planned first, then the obstacle seen
+    assert result["localisation"]["fixes"] > 0 and result["localisation"]["mean_error_m"] < 0.10
+    assert result["bytes_to_robot"] > 0 and result["robot_cpu_s"] > 0
+    check_map(tmp_path)
+
+
+async def test_navigate_without_drvs_collides_and_replans(tmp_path: Path) -> None:
+    code, result, log = await run_office(tmp_path, "--scenario", str(SMALL_ROOM), "--no-drvs")
+    assert code == 0, log
+    assert result["drvs"] is False and result["detections"] == [] and result["bytes_to_robot"] == 0
+    assert result["collisions"] >= 1 and result["replans"] >= 1 and result["reached_goal"] is True
+    check_map(tmp_path)
+
+
+async def test_charging_station_is_the_true_one(tmp_path: Path) -> None:
+    code, result, log = await run_office(tmp_path, "--scenario", str(SMALL_ROOM), "--mission", "find_charging_station")
+    assert code == 0, log
+    scenario = load_scenario(SMALL_ROOM)
+    station = scenario.charging_stations[0].shape.centroid
+    assert result["charging_station"] is not None
+    assert station.distance(box(*result["charging_station"], *result["charging_station"])) < 0.10
+    assert len(result["candidates"]) == 1  # neither the lone green nor the far-apart pair
+    assert result["collisions"] == 0
+    check_map(tmp_path)
+
+
+async def test_default_office_station_mission(tmp_path: Path) -> None:
+    code, result, log = await run_office(tmp_path, "--mission", "find_charging_station")
+    assert code == 0, log
+    station = load_scenario(DEFAULT_SCENARIO).charging_stations[0].shape.centroid
+    assert station.distance(box(*result["charging_station"], *result["charging_station"])) < 0.10
+
+
+async def test_bad_scenario_is_refused_naming_the_key(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(SMALL_ROOM.read_text().replace("yaw_deg: 90", "yaw_degrees: 90"))
+    code, result, log = await run_office(tmp_path / "out", "--scenario", str(bad))
+    assert code == 2 and result == {}
+    assert "cameras[0].yaw_degrees: unknown key" in log
