@@ -30,7 +30,7 @@ def solids(s: Scenario) -> list[Polygon]:
 
 def clearance(path: list[list[float]], shapes: list[Polygon]) -> float:
     line = LineString(path)
-    return min(line.distance(shape) for shape in shapes)
+    return float(min(line.distance(shape) for shape in shapes))
 
 
 def check_map(out: Path) -> None:

@@ -33,7 +33,7 @@ def _finite(value: float, name: str) -> float:
     try:
         v = float(value)
     except (TypeError, ValueError, OverflowError):
-        raise InvalidArgument(f"{name}: {value!r} is not a number") from None
+        raise InvalidArgument(f"{name}: {str(value)[:40]!r} is not a number") from None
     if not math.isfinite(v):
         raise InvalidArgument(f"{name}: {v} is not finite")
     if abs(v) > MAX_COORDINATE_M:
