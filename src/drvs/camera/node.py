@@ -12,12 +12,12 @@ import grpc
 from grpc import aio
 
 from drvs import _grpc
+from drvs._service import Endpoint
 from drvs.callback import CallbackSender
 from drvs.convert import homography_to_pb, request_from_pb
 from drvs.detection import DEFAULT_MIN_AREA_PX, FrameAnalysis, HsvDetector
 from drvs.errors import DrvsError, FailedPrecondition, InvalidArgument, ResourceExhausted
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
-from drvs.health import add_health_and_reflection, mark_serving
 from drvs.model import DetectionReport, DetectionRequest, check_id
 from drvs.net import format_address, local_ip_towards, parse_address
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
@@ -68,17 +68,19 @@ class CameraNode:
         self.max_frame_age_s = max_frame_age_s
         self.detector: HsvDetector | None = None
         self.field_of_view: FieldOfView | None = None
-        self.port = 0
         self.registered = asyncio.Event()
         self.requests_served = 0
-        self._server: aio.Server | None = None
-        self._health: Any = None
+        self._endpoint = Endpoint(listen, SERVICE_NAMES, self._add_servicers)
         self._channel: aio.Channel | None = None
         self._registrar: asyncio.Task[None] | None = None
         self._jobs: set[asyncio.Task[None]] = set()
         self._callbacks = CallbackSender()
         self._analysis: FrameAnalysis | None = None
         self._stopped = False
+
+    @property
+    def port(self) -> int:
+        return self._endpoint.port
 
     @property
     def address(self) -> str:
@@ -89,6 +91,9 @@ class CameraNode:
         if host in ("0.0.0.0", "::", ""):
             host = local_ip_towards(self.server_address)
         return format_address(host, self.port)
+
+    def _add_servicers(self, server: aio.Server) -> None:
+        detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(_ServerFacing(self), server)
 
     async def start(self) -> None:
         self.source.start()
@@ -109,15 +114,8 @@ class CameraNode:
             *image_size,
             self.field_of_view.floor.area,
         )
-        server = _grpc.new_server()
-        detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(_ServerFacing(self), server)
-        self._health = add_health_and_reflection(server, SERVICE_NAMES)
-        self.port = _grpc.bind(server, self.listen)
-        await server.start()
-        self._server = server
-        await mark_serving(self._health, SERVICE_NAMES)
-        bound = format_address(self.listen.rpartition(":")[0].strip("[]"), self.port)
-        log.info("camera %s listening on %s (advertised as %s)", self.camera_id, bound, self.address)
+        await self._endpoint.start()
+        log.info("camera %s listening on %s (advertised as %s)", self.camera_id, self._endpoint.address, self.address)
         self._channel = _grpc.insecure_channel(self.server_address)
         self._registrar = asyncio.get_running_loop().create_task(self._keep_registered(image_size))
 
@@ -135,10 +133,7 @@ class CameraNode:
                 log.info("camera %s deregistered", self.camera_id)
             except grpc.RpcError as exc:
                 log.warning("camera %s: deregistration failed: %s", self.camera_id, _details(exc))
-        if self._health is not None:
-            await self._health.enter_graceful_shutdown()
-        if self._server is not None:
-            await self._server.stop(grace)
+        await self._endpoint.stop(grace)
         for job in list(self._jobs):
             job.cancel()
         await asyncio.gather(*self._jobs, return_exceptions=True)
@@ -149,8 +144,7 @@ class CameraNode:
         log.info("camera %s stopped", self.camera_id)
 
     async def wait_for_termination(self) -> None:
-        assert self._server is not None
-        await self._server.wait_for_termination()
+        await self._endpoint.wait_for_termination()
 
     async def __aenter__(self) -> CameraNode:
         await self.start()

@@ -14,6 +14,7 @@ from grpc import aio
 from shapely.geometry import Polygon
 
 from drvs import _grpc
+from drvs._service import Endpoint
 from drvs.callback import CallbackSender
 from drvs.convert import (
     homography_from_pb,
@@ -23,9 +24,7 @@ from drvs.convert import (
 )
 from drvs.errors import InvalidArgument
 from drvs.geometry import DEFAULT_MAX_RANGE_M
-from drvs.health import add_health_and_reflection, mark_serving
 from drvs.model import DetectionReport, DetectionRequest, check_id
-from drvs.net import format_address
 from drvs.registry import DEFAULT_LEASE_TTL_S, CameraEntry, Registry
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
 
@@ -64,9 +63,7 @@ class DrvsServer:
         self.registry = Registry(lease_ttl_s)
         self.forward_timeout_s = forward_timeout_s
         self.default_max_range_m = default_max_range_m
-        self.port = 0
-        self._server: aio.Server | None = None
-        self._health: Any = None
+        self._endpoint = Endpoint(listen, SERVICE_NAMES, self._add_servicers)
         self._links: dict[str, _CameraLink] = {}
         # Cameras whose last forward failed: skipped until their next heartbeat proves them alive.
         self._unreachable: set[str] = set()
@@ -76,30 +73,29 @@ class DrvsServer:
         self._stopped = False
 
     @property
-    def address(self) -> str:
-        host = self.listen.rpartition(":")[0].strip("[]")
-        return format_address(host, self.port)
+    def port(self) -> int:
+        return self._endpoint.port
 
-    async def start(self) -> None:
-        server = _grpc.new_server()
+    @property
+    def address(self) -> str:
+        return self._endpoint.address
+
+    def _add_servicers(self, server: aio.Server) -> None:
         detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(_RobotFacing(self), server)
         registry_pb2_grpc.add_RegisterVisionServiceServicer_to_server(_Registration(self), server)
-        self._health = add_health_and_reflection(server, SERVICE_NAMES)
-        self.port = _grpc.bind(server, self.listen)
-        await server.start()
-        self._server = server
-        await mark_serving(self._health, SERVICE_NAMES)
+
+    async def start(self) -> None:
+        await self._endpoint.start()
         self._sweeper = asyncio.get_running_loop().create_task(self._sweep_leases())
         log.info("drvs-server listening on %s (lease %.1f s)", self.address, self.registry.lease_ttl_s)
 
     async def stop(self, grace: float = 2.0) -> None:
-        if self._stopped or self._server is None:
+        if self._stopped or not self._endpoint.started:
             return
         self._stopped = True
-        await self._health.enter_graceful_shutdown()
         if self._sweeper is not None:
             self._sweeper.cancel()
-        await self._server.stop(grace)
+        await self._endpoint.stop(grace)
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
@@ -109,8 +105,7 @@ class DrvsServer:
         log.info("drvs-server stopped")
 
     async def wait_for_termination(self) -> None:
-        assert self._server is not None
-        await self._server.wait_for_termination()
+        await self._endpoint.wait_for_termination()
 
     async def __aenter__(self) -> DrvsServer:
         await self.start()

@@ -18,10 +18,10 @@ from shapely.geometry import Point, Polygon, box
 
 from drvs import _grpc
 from drvs._cli import setup_logging, shutdown_event
+from drvs._service import Endpoint
 from drvs.convert import polygon_to_pb
 from drvs.errors import DrvsError, InvalidArgument
-from drvs.health import add_health_and_reflection, mark_serving
-from drvs.net import format_address, parse_address
+from drvs.net import parse_address
 from drvs.sim.scenario import Scenario, load_scenario
 from drvs.v1 import sim_pb2, sim_pb2_grpc
 
@@ -95,36 +95,30 @@ class WorldServer:
 
     def __init__(self, scenario: Scenario, listen: str = "127.0.0.1:0", seed: int = 0) -> None:
         self.state = WorldState(scenario)
-        self.listen = listen
         self.seed = seed
-        self.port = 0
-        self._server: aio.Server | None = None
-        self._health: Any = None
+        self._endpoint = Endpoint(
+            listen,
+            SERVICE_NAMES,
+            lambda server: sim_pb2_grpc.add_SimulatedWorldServicer_to_server(_Servicer(self), server),
+        )
         self._changed = asyncio.Condition()
         self._stopping = False
 
     @property
     def address(self) -> str:
-        return format_address(self.listen.rpartition(":")[0].strip("[]"), self.port)
+        return self._endpoint.address
 
     async def start(self) -> None:
-        server = _grpc.new_server()
-        sim_pb2_grpc.add_SimulatedWorldServicer_to_server(_Servicer(self), server)
-        self._health = add_health_and_reflection(server, SERVICE_NAMES)
-        self.port = _grpc.bind(server, self.listen)
-        await server.start()
-        self._server = server
-        await mark_serving(self._health, SERVICE_NAMES)
+        await self._endpoint.start()
         log.info("sim world %r listening on %s", self.state.scenario.name, self.address)
 
     async def stop(self, grace: float = 1.0) -> None:
-        if self._server is None or self._stopping:
+        if not self._endpoint.started or self._stopping:
             return
         self._stopping = True
         async with self._changed:
             self._changed.notify_all()
-        await self._health.enter_graceful_shutdown()
-        await self._server.stop(grace)
+        await self._endpoint.stop(grace)
 
     async def __aenter__(self) -> WorldServer:
         await self.start()

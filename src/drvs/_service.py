@@ -1,0 +1,56 @@
+"""The part of every role's lifecycle that is the same: a grpc.aio server bound to an address,
+with health checking and reflection, started and stopped gracefully."""
+
+from __future__ import annotations
+
+from collections.abc import Callable, Sequence
+from typing import Any
+
+from grpc import aio
+
+from drvs import _grpc
+from drvs.health import add_health_and_reflection, mark_serving
+from drvs.net import format_address
+
+
+class Endpoint:
+    """Binds `listen` (port 0 picks a free port), serves what `add_servicers` adds; stop() is idempotent."""
+
+    def __init__(self, listen: str, service_names: Sequence[str], add_servicers: Callable[[aio.Server], None]) -> None:
+        self.listen = listen
+        self.service_names = tuple(service_names)
+        self._add_servicers = add_servicers
+        self.port = 0
+        self._server: aio.Server | None = None
+        self._health: Any = None
+        self._stopped = False
+
+    @property
+    def address(self) -> str:
+        """The bound address: the listen host with the real port."""
+        return format_address(self.listen.rpartition(":")[0].strip("[]"), self.port)
+
+    @property
+    def started(self) -> bool:
+        return self._server is not None
+
+    async def start(self) -> None:
+        server = _grpc.new_server()
+        self._add_servicers(server)
+        self._health = add_health_and_reflection(server, self.service_names)
+        self.port = _grpc.bind(server, self.listen)
+        await server.start()
+        self._server = server
+        await mark_serving(self._health, self.service_names)
+
+    async def stop(self, grace: float) -> None:
+        """Report NOT_SERVING first, so health checkers stop sending, then let calls finish."""
+        if self._server is None or self._stopped:
+            return
+        self._stopped = True
+        await self._health.enter_graceful_shutdown()
+        await self._server.stop(grace)
+
+    async def wait_for_termination(self) -> None:
+        assert self._server is not None
+        await self._server.wait_for_termination()
