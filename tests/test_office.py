@@ -99,3 +99,14 @@ async def test_bad_scenario_is_refused_naming_the_key(tmp_path: Path) -> None:
     code, result, log = await run_office(tmp_path / "out", "--scenario", str(bad))
     assert code == 2 and result == {}
     assert "cameras[0].yaw_degrees: unknown key" in log
+
+
+async def test_same_seed_same_run(tmp_path: Path) -> None:
+    runs = []
+    for name in ("a", "b"):
+        code, result, log = await run_office(tmp_path / name, "--scenario", str(SMALL_ROOM), "--seed", "7")
+        assert code == 0, log
+        runs.append(result)
+    a, b = runs
+    assert a["path"] == b["path"] and a["planned_paths"] == b["planned_paths"]
+    assert a["detections"] == b["detections"] and a["replans"] == b["replans"]

@@ -22,7 +22,11 @@ _SHIFT = 4
 
 
 class CameraRenderer:
-    """Everything static is warped once; each frame adds the robot, lighting and noise."""
+    """Everything static is warped once; each frame adds the robot, lighting and noise.
+
+    A frame is a pure function of (seed, camera, robot pose version): the same seed gives the
+    same pixels for the same world state, whatever the timing of the processes.
+    """
 
     def __init__(self, scenario: Scenario, camera: CameraDef, seed: int = 0) -> None:
         self.scenario = scenario
@@ -61,20 +65,21 @@ class CameraRenderer:
             n = rng.normal(0.0, sigma, (height, width, 3))
             self._noise_up.append(np.clip(n, 0, 255).astype(np.uint8))
             self._noise_down.append(np.clip(-n, 0, 255).astype(np.uint8))
-        self._frame_index = 0
 
-    def render(self, robot_xy: tuple[float, float] | None, t: float) -> NDArray[np.uint8]:
-        """A BGR frame at time t (s) with the robot's marker at robot_xy (None: no robot)."""
+    def render(self, robot_xy: tuple[float, float] | None, version: int) -> NDArray[np.uint8]:
+        """A BGR frame of world state `version` with the robot's marker at robot_xy (None: no robot).
+
+        Lighting drifts and the sensor noise changes as the world state advances.
+        """
         image = self._static.copy()
         if robot_xy is not None:
             marker = Point(robot_xy).buffer(self.scenario.robot.radius, quad_segs=16)
             self._fill(image, marker, self.scenario.robot.color.bgr)
-        gain = 1.0 + self.scenario.render.lighting * math.sin(2 * math.pi * t / 7.0 + self._phase)
+        gain = 1.0 + self.scenario.render.lighting * math.sin(2 * math.pi * version / 70.0 + self._phase)
         image = cv2.convertScaleAbs(image, alpha=gain)
         if self._noise_up:
-            i = self._frame_index % len(self._noise_up)
+            i = (version * 5) % len(self._noise_up)
             image = cv2.subtract(cv2.add(image, self._noise_up[i]), self._noise_down[i])
-        self._frame_index += 1
         return np.asarray(image, dtype=np.uint8)
 
     def _fill(self, image: NDArray[np.uint8], shape: Polygon, bgr: tuple[int, int, int]) -> None:

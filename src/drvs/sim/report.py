@@ -87,7 +87,7 @@ def draw_map(scenario: Scenario, result: dict[str, Any], path: Path, seed: int =
     final = tuple(result["path"][-1]) if result.get("path") else scenario.robot.start
     for i, cam in enumerate(cams):
         sub = fig.add_subplot(grid[1 + i // 3, i % 3])
-        frame = CameraRenderer(scenario, cam, seed=seed).render(final, 0.0)
+        frame = CameraRenderer(scenario, cam, seed=seed).render(final, len(result.get("path", [])))
         to_image = cam.homography.inverse()
         for d in result.get("detections", []):
             if d["camera_id"] == cam.id:

@@ -41,6 +41,9 @@ SELF_RATE_HZ = 5.0
 STATION_PAIR_MAX_M = 0.5
 #: Detections of obstacle colours this close to a station candidate's marker are the marker.
 MARKER_MATCH_M = 0.25
+#: A detection inside a known obstacle grown by this much is the same obstacle seen again (sensor
+#: noise moves outlines by millimetres); it does not change the map or force a re-plan.
+SAME_OBSTACLE_M = 0.05
 
 
 class MissionFailed(Exception):
@@ -87,6 +90,8 @@ class SimRobot:
 
     def mark(self, outline: Polygon) -> bool:
         """The pessimistic union: every detection is occupied. True when the map changed."""
+        if any(known.buffer(SAME_OBSTACLE_M).contains(outline) for known in self.known_obstacles):
+            return False
         changed = self.grid.add_polygon(outline, self.inflate)
         if changed:
             self.known_obstacles.append(outline)
@@ -345,7 +350,9 @@ async def run_robot(
         "replans": robot.replans,
         "path": [[round(x, 4), round(y, 4)] for x, y in robot.path_driven],
         "planned_paths": [[[round(x, 3), round(y, 3)] for x, y in p] for p in robot.plans],
-        "detections": [detection_record(d) for d in robot.detections_used],
+        "detections": sorted(
+            (detection_record(d) for d in robot.detections_used), key=lambda r: (r["camera_id"], r["centroid"])
+        ),
         "contacts": [[[round(x, 4), round(y, 4)] for x, y in list(c.exterior.coords)[:-1]] for c in robot.contacts],
         "localisation": {
             "fixes": len(errors),

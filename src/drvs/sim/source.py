@@ -22,7 +22,10 @@ SCHEME = "sim://"
 
 
 class SimSource:
-    """Renders this camera's view of the world at its frame rate, and at once whenever the robot moves."""
+    """Renders this camera's view of the world at its frame rate, and at once whenever the robot moves.
+
+    Frames carry real capture times; their pixels depend only on the world's state.
+    """
 
     def __init__(self, spec: str, camera_id: str) -> None:
         self.world = spec[len(SCHEME) :] if spec.startswith(SCHEME) else spec
@@ -94,7 +97,6 @@ class SimSource:
 
     def _render_loop(self) -> None:
         period = 1.0 / self.fps
-        start = time.monotonic()
         sequence = 0
         rendered_version = -2
         while not self._stop.is_set():
@@ -104,7 +106,7 @@ class SimSource:
                 robot, version = self._robot, self._robot_version
             if self._stop.is_set():
                 return
-            image = self.renderer.render(robot, time.monotonic() - start)
+            image = self.renderer.render(robot, max(version, 0))
             sequence += 1
             frame = Frame(image=image, capture_time=time.time(), sequence=sequence)
             with self._lock:
