@@ -1,11 +1,16 @@
-"""Sending detection reports into a robot's CallbackCoordinates listener."""
+"""Sending detection reports to robots' CallbackCoordinates listeners.
+
+One long-lived stream per robot address carries the reports of every request to that robot, so
+a report costs one message on an open stream, not a call. The robot answers on the same stream
+with the requests it no longer wants.
+"""
 
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from collections import OrderedDict
-from types import TracebackType
 from typing import Any
 
 import grpc
@@ -19,113 +24,123 @@ from drvs.v1 import detection_pb2_grpc
 
 log = logging.getLogger(__name__)
 
-#: Channels to robots are kept for reuse; the least recently used idle ones are closed past this.
-MAX_CACHED_CHANNELS = 64
+#: Robot links kept at once; the least recently used idle one is closed past this.
+MAX_LINKS = 64
+#: A link unused this long is closed (the robot may have gone for good).
+IDLE_CLOSE_S = 30.0
+#: A write that cannot complete in this time (the robot stopped reading) breaks the link.
+WRITE_TIMEOUT_S = 5.0
+#: Cancelled request ids remembered per link.
+MAX_CANCELLED = 4096
 
 
-class ReportStream:
-    """One client-streaming call carrying the reports of one request to one robot."""
+class RobotLink:
+    """The open report stream to one robot."""
 
-    def __init__(self, call: Any, address: str, release: Any) -> None:
-        self._call = call
-        self._address = address
-        self._release = release
-        self.sent = 0
-        self.cancelled = False
+    def __init__(self, address: str) -> None:
+        self.address = address
+        self._channel = _grpc.insecure_channel(address)
+        self._call: Any = detection_pb2_grpc.CallbackCoordinatesStub(self._channel).ReportDetections()
+        self._write_lock = asyncio.Lock()
+        self._cancelled: OrderedDict[str, None] = OrderedDict()
+        self._reader = asyncio.get_running_loop().create_task(self._read_controls())
+        self.broken: str | None = None
+        self.last_used = asyncio.get_running_loop().time()
+        self.sending = 0
+
+    def cancelled(self, request_id: str) -> bool:
+        return request_id in self._cancelled
+
+    async def _read_controls(self) -> None:
+        try:
+            async for control in self._call:
+                for request_id in control.cancelled_request_ids:
+                    self._cancelled[request_id] = None
+                    while len(self._cancelled) > MAX_CANCELLED:
+                        self._cancelled.popitem(last=False)
+            self.broken = "the robot closed the stream"
+        except grpc.RpcError as exc:
+            self.broken = _details(exc)
+        except asyncio.CancelledError:
+            self.broken = "closed"
+            raise
 
     async def send(self, report: DetectionReport) -> bool:
-        """Send one report; False when the robot no longer wants them (the stream ended)."""
-        if self.cancelled or self._call.done():
-            await self._check_finished()
+        """Send one report; False when the robot no longer wants this request's reports."""
+        if self.cancelled(report.request_id):
             return False
+        if self.broken:
+            raise Unavailable(f"callback {self.address}: {self.broken}")
+        self.sending += 1
         try:
-            await self._call.write(report_to_pb(report))
-        except asyncio.InvalidStateError:
-            await self._check_finished()
-            return False
-        except grpc.RpcError as exc:
-            raise _grpc.from_rpc_error(exc, f"callback {self._address}") from None
-        self.sent += 1
+            async with self._write_lock:
+                await asyncio.wait_for(self._call.write(report_to_pb(report)), WRITE_TIMEOUT_S)
+        except asyncio.TimeoutError:
+            self.broken = f"robot did not take a report within {WRITE_TIMEOUT_S:g} s"
+            self._call.cancel()
+            raise Unavailable(f"callback {self.address}: {self.broken}") from None
+        except (grpc.RpcError, asyncio.InvalidStateError) as exc:
+            await asyncio.sleep(0)  # let the reader record why the stream ended
+            self.broken = self.broken or _details(exc)
+            raise Unavailable(f"callback {self.address}: {self.broken}") from None
+        finally:
+            self.sending -= 1
+            self.last_used = asyncio.get_running_loop().time()
         return True
 
-    async def _check_finished(self) -> None:
-        try:
-            ack = await self._call
-        except grpc.RpcError as exc:
-            raise _grpc.from_rpc_error(exc, f"callback {self._address}") from None
-        self.cancelled = True
-        if not ack.cancelled:
-            raise Unavailable(f"callback {self._address}: stream ended early")
-
     async def close(self) -> None:
-        try:
+        with contextlib.suppress(Exception):
             if not self._call.done():
-                await self._call.done_writing()
-            ack = await self._call
-            self.cancelled = self.cancelled or ack.cancelled
-        except grpc.RpcError as exc:
-            raise _grpc.from_rpc_error(exc, f"callback {self._address}") from None
-        finally:
-            self._release()
-
-    def abort(self) -> None:
+                await asyncio.wait_for(self._call.done_writing(), 1.0)
         self._call.cancel()
-        self._release()
+        self._reader.cancel()
+        await asyncio.gather(self._reader, return_exceptions=True)
+        await self._channel.close()
 
-    async def __aenter__(self) -> ReportStream:
-        return self
 
-    async def __aexit__(
-        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        if et is None:
-            await self.close()
-        else:
-            self.abort()
+def _details(exc: BaseException) -> str:
+    if isinstance(exc, aio.AioRpcError):
+        return f"{exc.code().name} {exc.details()}"
+    return str(exc) or type(exc).__name__
 
 
 class CallbackSender:
-    """Reuses one channel per robot callback address; bounded, least recently used idle ones closed."""
+    """Keeps one RobotLink per robot address: bounded in number, idle ones closed."""
 
-    def __init__(self, max_channels: int = MAX_CACHED_CHANNELS) -> None:
-        self._max = max_channels
-        self._channels: OrderedDict[str, aio.Channel] = OrderedDict()
-        self._in_use: dict[str, int] = {}
+    def __init__(self, max_links: int = MAX_LINKS, idle_close_s: float = IDLE_CLOSE_S) -> None:
+        self._max = max_links
+        self._idle_close_s = idle_close_s
+        self._links: OrderedDict[str, RobotLink] = OrderedDict()
+        self._closing: set[asyncio.Task[None]] = set()
 
-    def open(self, address: str, timeout_s: float) -> ReportStream:
-        channel = self._channels.get(address)
-        if channel is None:
-            channel = _grpc.insecure_channel(address)
-            self._channels[address] = channel
-        self._channels.move_to_end(address)
-        self._in_use[address] = self._in_use.get(address, 0) + 1
-        stub = detection_pb2_grpc.CallbackCoordinatesStub(channel)
-        call = stub.ReportDetections(timeout=timeout_s, wait_for_ready=False)
-        released = False
+    def link(self, address: str) -> RobotLink:
+        link = self._links.get(address)
+        if link is None or link.broken:
+            if link is not None:
+                self._close_later(link)
+            link = RobotLink(address)
+            self._links[address] = link
+        self._links.move_to_end(address)
+        self._evict()
+        return link
 
-        def release() -> None:
-            nonlocal released
-            if not released:
-                released = True
-                self._in_use[address] -= 1
-                if self._in_use[address] == 0:
-                    del self._in_use[address]
-                self._evict()
-
-        return ReportStream(call, address, release)
-
-    async def send_one(self, address: str, report: DetectionReport, timeout_s: float) -> None:
-        async with self.open(address, timeout_s) as stream:
-            await stream.send(report)
+    async def send(self, address: str, report: DetectionReport) -> bool:
+        return await self.link(address).send(report)
 
     def _evict(self) -> None:
-        while len(self._channels) > self._max:
-            idle = next((a for a in self._channels if a not in self._in_use), None)
-            if idle is None:
-                return
-            channel = self._channels.pop(idle)
-            asyncio.get_running_loop().create_task(channel.close())
+        now = asyncio.get_running_loop().time()
+        for address, link in list(self._links.items()):
+            too_many = len(self._links) > self._max
+            idle = now - link.last_used > self._idle_close_s
+            if (too_many or idle) and not link.sending:
+                del self._links[address]
+                self._close_later(link)
+
+    def _close_later(self, link: RobotLink) -> None:
+        task = asyncio.get_running_loop().create_task(link.close())
+        self._closing.add(task)
+        task.add_done_callback(self._closing.discard)
 
     async def close(self) -> None:
-        channels, self._channels = list(self._channels.values()), OrderedDict()
-        await asyncio.gather(*(c.close() for c in channels), return_exceptions=True)
+        links, self._links = list(self._links.values()), OrderedDict()
+        await asyncio.gather(*(link.close() for link in links), *self._closing, return_exceptions=True)

@@ -23,6 +23,10 @@ from drvs.model import Detection, PixelBox
 
 #: Blobs smaller than this many pixels are noise.
 DEFAULT_MIN_AREA_PX = 30.0
+#: Outlines are simplified (Douglas-Peucker) to within this many pixels before they are mapped:
+#: a contour lists every boundary pixel, and reports would carry ten times the points for
+#: no information the image resolution supports.
+OUTLINE_TOLERANCE_PX = 1.0
 
 
 @dataclass(frozen=True)
@@ -133,7 +137,8 @@ class HsvDetector:
         hits = int(np.count_nonzero(cv2.bitwise_and(blob, raw_mask[y : y + h, x : x + w])))
         score = hits / inside if inside else 0.0
 
-        pts = contour.reshape(-1, 2).astype(np.float64)
+        simplified = cv2.approxPolyDP(contour, OUTLINE_TOLERANCE_PX, True)
+        pts = (simplified if len(simplified) >= 3 else contour).reshape(-1, 2).astype(np.float64)
         if len(pts) < 3:
             return None
         floor_pts = self.homography.apply(pts)

@@ -59,6 +59,11 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--min-area", type=float, default=DEFAULT_MIN_AREA_PX, metavar="PX", help="smallest blob, pixels")
     p.add_argument("--no-loop", action="store_true", help="play a video file once instead of looping it")
+    p.add_argument(
+        "--serve-frames",
+        action="store_true",
+        help="also stream whole frames (FrameStream service): the no-DRVS baseline, for benchmarks",
+    )
     p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING (env DRVS_LOG_LEVEL)")
     return p
 
@@ -103,6 +108,7 @@ def main(argv: list[str] | None = None) -> int:
             advertise=args.advertise,
             max_range_m=args.max_range,
             min_area_px=args.min_area,
+            serve_frames=args.serve_frames,
         )
     except DrvsError as exc:
         parser.error(str(exc))

@@ -4,12 +4,17 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
 import time
+from collections.abc import AsyncIterator
 from types import TracebackType
 from typing import Any
 
+import cv2
 import grpc
+import numpy as np
 from grpc import aio
+from numpy.typing import NDArray
 
 from drvs import _grpc
 from drvs._service import Endpoint
@@ -20,19 +25,20 @@ from drvs.errors import DrvsError, FailedPrecondition, InvalidArgument, Resource
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
 from drvs.model import DetectionReport, DetectionRequest, check_id
 from drvs.net import format_address, local_ip_towards, parse_address
-from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
+from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc, stream_pb2, stream_pb2_grpc
 
 from .source import FrameSource
 
 log = logging.getLogger("drvs.camera")
 
 SERVICE_NAMES = (detection_pb2.DESCRIPTOR.services_by_name["DetectObjectBoundary"].full_name,)
+FRAME_STREAM_SERVICE = stream_pb2.DESCRIPTOR.services_by_name["FrameStream"].full_name
+#: How often a frame stream looks for a newer frame.
+FRAME_POLL_S = 0.005
 #: A frame older than this is not used for detection: the camera says so instead.
 DEFAULT_MAX_FRAME_AGE_S = 2.0
 #: Concurrent requests a node serves at once; more are refused with RESOURCE_EXHAUSTED.
 MAX_ACTIVE_REQUESTS = 512
-#: How long a robot's callback may take beyond the request's own duration.
-CALLBACK_SLACK_S = 10.0
 
 
 class CameraNode:
@@ -51,6 +57,7 @@ class CameraNode:
         min_area_px: float = DEFAULT_MIN_AREA_PX,
         first_frame_timeout_s: float = 15.0,
         max_frame_age_s: float = DEFAULT_MAX_FRAME_AGE_S,
+        serve_frames: bool = False,
     ) -> None:
         self.camera_id = check_id(camera_id, "camera_id")
         self.source = source
@@ -70,7 +77,9 @@ class CameraNode:
         self.field_of_view: FieldOfView | None = None
         self.registered = asyncio.Event()
         self.requests_served = 0
-        self._endpoint = Endpoint(listen, SERVICE_NAMES, self._add_servicers)
+        self.serve_frames = serve_frames
+        names = (*SERVICE_NAMES, FRAME_STREAM_SERVICE) if serve_frames else SERVICE_NAMES
+        self._endpoint = Endpoint(listen, names, self._add_servicers)
         self._channel: aio.Channel | None = None
         self._registrar: asyncio.Task[None] | None = None
         self._jobs: set[asyncio.Task[None]] = set()
@@ -94,6 +103,8 @@ class CameraNode:
 
     def _add_servicers(self, server: aio.Server) -> None:
         detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(_ServerFacing(self), server)
+        if self.serve_frames:
+            stream_pb2_grpc.add_FrameStreamServicer_to_server(_FrameStreaming(self), server)
 
     async def start(self) -> None:
         self.source.start()
@@ -242,7 +253,6 @@ class CameraNode:
     async def _serve(self, request: DetectionRequest) -> None:
         loop = asyncio.get_running_loop()
         offsets = request.continuous.report_times()
-        stream = self._callbacks.open(request.callback_address, offsets[-1] + CALLBACK_SLACK_S)
         start = loop.time()
         try:
             for sequence, offset in enumerate(offsets):
@@ -250,16 +260,11 @@ class CameraNode:
                 if delay > 0:
                     await asyncio.sleep(delay)
                 report = await self._look(request, sequence, final=sequence == len(offsets) - 1)
-                if not await stream.send(report):
+                if not await self._callbacks.send(request.callback_address, report):
                     log.info("camera %s: request %s cancelled by the robot", self.camera_id, request.request_id)
-                    break
-            await stream.close()
+                    return
         except DrvsError as exc:
             log.warning("camera %s: request %s: %s", self.camera_id, request.request_id, exc)
-            stream.abort()
-        except BaseException:
-            stream.abort()
-            raise
 
     async def _look(self, request: DetectionRequest, sequence: int, final: bool) -> DetectionReport:
         frame = self.source.latest()
@@ -309,3 +314,53 @@ class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         request = request_from_pb(message, require_request_id=True)
         self._node.accept(request)
         return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=[self._node.camera_id])
+
+
+def encode_frame(image: NDArray[np.uint8], encoding: int, quality: int) -> bytes:
+    if encoding == stream_pb2.FRAME_ENCODING_RAW_BGR:
+        return image.tobytes()
+    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
+    if not ok:
+        raise RuntimeError("JPEG encoding failed")
+    return bytes(buf)
+
+
+class _FrameStreaming(stream_pb2_grpc.FrameStreamServicer):
+    """The baseline DRVS replaces: every frame to the client (only with --serve-frames)."""
+
+    def __init__(self, node: CameraNode) -> None:
+        self._node = node
+
+    async def StreamFrames(
+        self, request: stream_pb2.StreamFramesRequest, context: aio.ServicerContext[Any, Any]
+    ) -> AsyncIterator[stream_pb2.VideoFrame]:
+        encodings = (stream_pb2.FRAME_ENCODING_RAW_BGR, stream_pb2.FRAME_ENCODING_JPEG)
+        if request.encoding not in encodings:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "encoding: must be RAW_BGR or JPEG")
+        quality = request.jpeg_quality or 80
+        if not 1 <= quality <= 100:
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "jpeg_quality: must be 1-100")
+        if not (math.isfinite(request.max_fps) and 0 <= request.max_fps <= 1000):
+            await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "max_fps: must be 0-1000")
+        period = 1.0 / request.max_fps if request.max_fps else 0.0
+        loop = asyncio.get_running_loop()
+        last_sequence = -1
+        next_at = loop.time()
+        while True:
+            frame = self._node.source.latest()
+            if frame is None or frame.sequence == last_sequence or loop.time() < next_at:
+                await asyncio.sleep(FRAME_POLL_S)
+                continue
+            last_sequence = frame.sequence
+            next_at = max(next_at + period, loop.time()) if period else 0.0
+            data = await asyncio.to_thread(encode_frame, frame.image, request.encoding, quality)
+            msg = stream_pb2.VideoFrame(
+                camera_id=self._node.camera_id,
+                sequence=frame.sequence,
+                width=frame.size[0],
+                height=frame.size[1],
+                encoding=request.encoding,
+                data=data,
+            )
+            msg.capture_time.FromNanoseconds(round(frame.capture_time * 1e9))
+            yield msg

@@ -178,6 +178,7 @@ class DrvsClient:
         self._listener: aio.Server | None = None
         self._subscriptions: dict[str, Subscription] = {}
         self.reports_received = 0
+        self._closing = asyncio.Event()
         # With meter=True, both of the robot's connections pass through counting relays, so
         # wire_bytes() reports the real bytes its sockets carried.
         self._meter = meter
@@ -222,6 +223,7 @@ class DrvsClient:
         log.debug("robot %r listening for reports on %s", self.robot_id, self.callback_address)
 
     async def close(self) -> None:
+        self._closing.set()
         for sub in list(self._subscriptions.values()):
             sub.close()
         if self._listener is not None:
@@ -322,13 +324,28 @@ class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):
         self,
         request_iterator: AsyncIterator[detection_pb2.DetectionReport],
         context: aio.ServicerContext[Any, Any],
-    ) -> detection_pb2.ReportAck:
-        received = 0
-        async for message in request_iterator:
-            sub = self._client._subscriptions.get(message.request_id)
-            if sub is None or not await sub._deliver(report_from_pb(message)):
-                # Unknown or closed request: tell the camera to stop streaming.
-                return detection_pb2.ReportAck(received=received, cancelled=True)
-            received += 1
-            self._client.reports_received += 1
-        return detection_pb2.ReportAck(received=received)
+    ) -> None:
+        """One camera's stream of reports, for any of this robot's requests, for as long as it lasts.
+
+        Reads race the client's closing, so a closing robot ends each stream itself (the camera
+        sees a normal end) instead of leaving gRPC to cancel it.
+        """
+        closing = asyncio.ensure_future(self._client._closing.wait())
+        try:
+            while True:
+                read = asyncio.ensure_future(context.read())
+                await asyncio.wait({read, closing}, return_when=asyncio.FIRST_COMPLETED)
+                if not read.done():
+                    read.cancel()
+                    return
+                message = read.result()
+                if message is aio.EOF:
+                    return
+                sub = self._client._subscriptions.get(message.request_id)
+                if sub is None or not await sub._deliver(report_from_pb(message)):
+                    # Unknown or closed request: tell the camera to stop sending its reports.
+                    await context.write(detection_pb2.ReportControl(cancelled_request_ids=[message.request_id]))
+                    continue
+                self._client.reports_received += 1
+        finally:
+            closing.cancel()

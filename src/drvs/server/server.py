@@ -174,7 +174,7 @@ class DrvsServer:
             error=reason,
         )
         try:
-            await self._callbacks.send_one(request.callback_address, report, self.forward_timeout_s)
+            await self._callbacks.send(request.callback_address, report)
         except Exception as exc:
             log.warning("request %s: could not tell the robot: %s", request.request_id, exc)
 

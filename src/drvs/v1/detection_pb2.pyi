@@ -82,10 +82,8 @@ class DetectionReport(_message.Message):
     error: str
     def __init__(self, request_id: _Optional[str] = ..., camera_id: _Optional[str] = ..., capture_time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., sequence: _Optional[int] = ..., final: bool = ..., detections: _Optional[_Iterable[_Union[Detection, _Mapping]]] = ..., error: _Optional[str] = ...) -> None: ...
 
-class ReportAck(_message.Message):
-    __slots__ = ("received", "cancelled")
-    RECEIVED_FIELD_NUMBER: _ClassVar[int]
-    CANCELLED_FIELD_NUMBER: _ClassVar[int]
-    received: int
-    cancelled: bool
-    def __init__(self, received: _Optional[int] = ..., cancelled: bool = ...) -> None: ...
+class ReportControl(_message.Message):
+    __slots__ = ("cancelled_request_ids",)
+    CANCELLED_REQUEST_IDS_FIELD_NUMBER: _ClassVar[int]
+    cancelled_request_ids: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, cancelled_request_ids: _Optional[_Iterable[str]] = ...) -> None: ...

@@ -101,7 +101,9 @@ class DetectObjectBoundary(object):
 
 
 class CallbackCoordinatesStub(object):
-    """Served by the robot's listener; camera nodes stream the reports of one request into it.
+    """Served by the robot's listener. A camera node (or the server, answering for a camera) opens
+    one stream to a robot and keeps it while it has reports to send: the reports of every request
+    flow on it, so a report costs a message, not a call.
     """
 
     def __init__(self, channel):
@@ -110,15 +112,17 @@ class CallbackCoordinatesStub(object):
         Args:
             channel: A grpc.Channel.
         """
-        self.ReportDetections = channel.stream_unary(
+        self.ReportDetections = channel.stream_stream(
                 '/drvs.v1.CallbackCoordinates/ReportDetections',
                 request_serializer=drvs_dot_v1_dot_detection__pb2.DetectionReport.SerializeToString,
-                response_deserializer=drvs_dot_v1_dot_detection__pb2.ReportAck.FromString,
+                response_deserializer=drvs_dot_v1_dot_detection__pb2.ReportControl.FromString,
                 _registered_method=True)
 
 
 class CallbackCoordinatesServicer(object):
-    """Served by the robot's listener; camera nodes stream the reports of one request into it.
+    """Served by the robot's listener. A camera node (or the server, answering for a camera) opens
+    one stream to a robot and keeps it while it has reports to send: the reports of every request
+    flow on it, so a report costs a message, not a call.
     """
 
     def ReportDetections(self, request_iterator, context):
@@ -130,10 +134,10 @@ class CallbackCoordinatesServicer(object):
 
 def add_CallbackCoordinatesServicer_to_server(servicer, server):
     rpc_method_handlers = {
-            'ReportDetections': grpc.stream_unary_rpc_method_handler(
+            'ReportDetections': grpc.stream_stream_rpc_method_handler(
                     servicer.ReportDetections,
                     request_deserializer=drvs_dot_v1_dot_detection__pb2.DetectionReport.FromString,
-                    response_serializer=drvs_dot_v1_dot_detection__pb2.ReportAck.SerializeToString,
+                    response_serializer=drvs_dot_v1_dot_detection__pb2.ReportControl.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -144,7 +148,9 @@ def add_CallbackCoordinatesServicer_to_server(servicer, server):
 
  # This class is part of an EXPERIMENTAL API.
 class CallbackCoordinates(object):
-    """Served by the robot's listener; camera nodes stream the reports of one request into it.
+    """Served by the robot's listener. A camera node (or the server, answering for a camera) opens
+    one stream to a robot and keeps it while it has reports to send: the reports of every request
+    flow on it, so a report costs a message, not a call.
     """
 
     @staticmethod
@@ -158,12 +164,12 @@ class CallbackCoordinates(object):
             wait_for_ready=None,
             timeout=None,
             metadata=None):
-        return grpc.experimental.stream_unary(
+        return grpc.experimental.stream_stream(
             request_iterator,
             target,
             '/drvs.v1.CallbackCoordinates/ReportDetections',
             drvs_dot_v1_dot_detection__pb2.DetectionReport.SerializeToString,
-            drvs_dot_v1_dot_detection__pb2.ReportAck.FromString,
+            drvs_dot_v1_dot_detection__pb2.ReportControl.FromString,
             options,
             channel_credentials,
             insecure,
