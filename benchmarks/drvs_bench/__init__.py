@@ -1,0 +1,1 @@
+"""DRVS benchmarks: reproducible measurements that write JSON and PNG (run with drvs-bench)."""

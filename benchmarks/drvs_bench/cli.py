@@ -1,0 +1,47 @@
+"""drvs-bench: `paper` (the paper's comparison), `robot` (the paper benchmark's robot process)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import sys
+import time
+from pathlib import Path
+
+from .workload import add_workload_arguments, workload_main
+
+
+def paper_main(args: argparse.Namespace) -> int:
+    from .paper import run_paper
+
+    requests = args.requests or (150 if args.quick else 1500)
+    out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
+    result = asyncio.run(run_paper(out, requests, args.rate))
+    summary = {k: v for k, v in result.items() if "ratio" in k}
+    for mode, data in result["modes"].items():
+        summary[f"{mode}_bytes_per_s"] = round(data["bytes_per_s"])
+        summary[f"{mode}_cpu_s"] = round(data["cpu_s"], 3)
+    print(json.dumps(summary, indent=1))
+    print(f"written: {out / 'paper.json'}, {out / 'bandwidth.png'}, {out / 'cpu.png'}")
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="drvs-bench", description="DRVS benchmarks: JSON and PNG into --out.")
+    sub = parser.add_subparsers(dest="bench", required=True)
+    p = sub.add_parser("paper", help="the paper's robot CPU and network comparison (Exp. C, D)")
+    p.add_argument("--quick", action="store_true", help="150 requests instead of 1500: a smoke run")
+    p.add_argument("--requests", type=int, default=0, help="override the number of requests")
+    p.add_argument("--rate", type=float, default=30.0, help="requests per second (default 30)")
+    p.add_argument("--out", type=Path, default=None)
+    p.set_defaults(func=paper_main)
+    r = sub.add_parser("robot", help="(internal) the paper benchmark's robot process")
+    add_workload_arguments(r)
+    r.set_defaults(func=workload_main)
+    args = parser.parse_args(argv)
+    return int(args.func(args))
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,167 @@
+"""drvs-bench paper: the paper's Exp. C and D side by side in one run.
+
+The robot, a process of its own, either asks DRVS (1500 single-shot requests at 30 Hz) or has
+both cameras stream every frame (raw, or JPEG at quality 80) and detects on board. Counting TCP
+relays in front of the robot measure the bytes its sockets carry; /proc gives its CPU time.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import re
+import sys
+import tempfile
+from pathlib import Path
+from typing import Any
+
+from drvs.launch import ManagedProcess, start_camera, start_server
+from drvs.meter import CountingRelay
+
+from .common import CpuSampler, machine, record_scene
+
+BUCKET_S = 0.1
+MODES = ("drvs", "raw", "jpeg")
+
+
+def bench_process(name: str, *args: str) -> ManagedProcess:
+    script = Path(sys.executable).parent / "drvs-bench"
+    argv = [str(script)] if script.exists() else [sys.executable, "-m", "drvs_bench.cli"]
+    return ManagedProcess(name, [*argv, *args])
+
+
+async def run_mode(
+    mode: str, server: str, cameras: dict[str, tuple[str, Path]], requests: int, rate: float
+) -> dict[str, Any]:
+    relays: list[CountingRelay] = []
+    args = ["robot", "--mode", mode, "--requests", str(requests), "--rate", str(rate)]
+    callback_relay: CountingRelay | None = None
+    if mode == "drvs":
+        host, port = server.rsplit(":", 1)
+        server_relay = CountingRelay(host, int(port), bucket_s=BUCKET_S)
+        callback_relay = CountingRelay(bucket_s=BUCKET_S)  # target: the robot's listener, once it is up
+        relays = [server_relay, callback_relay]
+        for r in relays:
+            await r.start()
+        args += ["--server", f"127.0.0.1:{server_relay.port}", "--advertise", f"127.0.0.1:{callback_relay.port}"]
+    else:
+        for address, hfile in cameras.values():
+            host, port = address.rsplit(":", 1)
+            relay = CountingRelay(host, int(port), bucket_s=BUCKET_S)
+            await relay.start()
+            relays.append(relay)
+            args += ["--camera", f"127.0.0.1:{relay.port}", "--homography", str(hfile)]
+    robot = await bench_process(f"robot-{mode}", *args).start()
+    sampler = CpuSampler(robot.pid, BUCKET_S)
+    sampler.start()
+    try:
+        ready = await robot.wait_for_line(r"^READY (\d+)", timeout=60)
+        if callback_relay is not None:
+            callback_relay.set_target("127.0.0.1", int(ready.group(1)))
+        done = await robot.wait_for_line(r"^DONE (.*)", timeout=requests / rate + 120)
+        outcome = json.loads(done.group(1))
+        assert await robot.wait(timeout=30) == 0, robot.output()
+    finally:
+        await sampler.stop()
+        await robot.stop()
+        for r in relays:
+            await r.close()
+    timeline: dict[int, int] = {}
+    for r in relays:
+        for k, v in r.timeline.items():
+            timeline[k] = timeline.get(k, 0) + v
+    total = sum(r.total for r in relays)
+    return {
+        **outcome,
+        "bytes": total,
+        "bytes_per_s": total / outcome["wall_s"],
+        "bytes_timeline": [timeline.get(k, 0) for k in range(max(timeline, default=-1) + 1)],
+        "cpu_load_timeline": [round(load, 4) for _, load in sampler.load()],
+    }
+
+
+async def run_paper(out: Path, requests: int, rate: float) -> dict[str, Any]:
+    procs: list[ManagedProcess] = []
+    with tempfile.TemporaryDirectory(prefix="drvs-bench-") as tmp:
+        scene = record_scene(Path(tmp))
+        try:
+            server, address = await start_server()
+            procs.append(server)
+            cameras: dict[str, tuple[str, Path]] = {}
+            for camera_id, rec in scene.items():
+                cam = await start_camera(
+                    camera_id, rec.video, rec.homography_file, address, "--max-range", "6", "--serve-frames"
+                )
+                procs.append(cam)
+                listening = next(re.search(r"listening on (\S+)", line) for line in cam.lines if "listening on" in line)
+                assert listening is not None
+                cameras[camera_id] = (listening.group(1), rec.homography_file)
+            modes = {}
+            for mode in MODES:
+                print(f"drvs-bench paper: {mode} ...", file=sys.stderr, flush=True)
+                modes[mode] = await run_mode(mode, address, cameras, requests, rate)
+        finally:
+            for proc in reversed(procs):
+                await proc.stop()
+    drvs = modes["drvs"]
+    result = {
+        "benchmark": "paper",
+        "requests": requests,
+        "rate_hz": rate,
+        "cameras": len(scene),
+        "frame": "640x480 BGR, 20 fps",
+        "modes": modes,
+        "bandwidth_ratio_raw": modes["raw"]["bytes_per_s"] / drvs["bytes_per_s"],
+        "bandwidth_ratio_jpeg": modes["jpeg"]["bytes_per_s"] / drvs["bytes_per_s"],
+        "robot_cpu_ratio": (modes["raw"]["cpu_s"] / modes["raw"]["wall_s"]) / (drvs["cpu_s"] / drvs["wall_s"]),
+        "robot_cpu_ratio_jpeg": (modes["jpeg"]["cpu_s"] / modes["jpeg"]["wall_s"]) / (drvs["cpu_s"] / drvs["wall_s"]),
+        "machine": machine(),
+    }
+    await asyncio.to_thread(write_outputs, result, out)
+    return result
+
+
+def write_outputs(result: dict[str, Any], out: Path) -> None:
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "paper.json").write_text(json.dumps(result, indent=1) + "\n")
+    plot(result, out)
+
+
+def plot(result: dict[str, Any], out: Path) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    labels = {"drvs": "DRVS", "raw": "raw frame stream", "jpeg": "JPEG q80 frame stream"}
+    fig, ax = plt.subplots(figsize=(9, 4.5), dpi=100)
+    for mode, data in result["modes"].items():
+        series = data["bytes_timeline"]
+        ax.plot([i * BUCKET_S for i in range(len(series))], [max(v, 1) for v in series], label=labels[mode], lw=1)
+    ax.set_yscale("log")
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel(f"bytes to and from the robot per {BUCKET_S:g} s")
+    ax.set_title(
+        f"Robot network traffic (paper Fig. 10): raw/DRVS x{result['bandwidth_ratio_raw']:.0f}, "
+        f"JPEG/DRVS x{result['bandwidth_ratio_jpeg']:.0f}"
+    )
+    ax.legend()
+    ax.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out / "bandwidth.png")
+    plt.close(fig)
+
+    fig, ax = plt.subplots(figsize=(9, 4.5), dpi=100)
+    for mode, data in result["modes"].items():
+        series = data["cpu_load_timeline"]
+        windows = [series[max(0, i - 4) : i + 1] for i in range(len(series))]
+        smooth = [sum(w) / len(w) for w in windows]
+        ax.plot([i * BUCKET_S for i in range(len(smooth))], [100 * v for v in smooth], label=labels[mode], lw=1)
+    ax.set_xlabel("time (s)")
+    ax.set_ylabel("robot process CPU (% of one core, 0.5 s mean)")
+    ax.set_title(f"Robot CPU load (paper Fig. 9): onboard raw / DRVS x{result['robot_cpu_ratio']:.1f}")
+    ax.legend()
+    ax.grid(True, alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out / "cpu.png")
+    plt.close(fig)
