@@ -144,3 +144,16 @@ async def test_unreachable_server_fails_fast_with_a_clear_error() -> None:
     async with DrvsClient("127.0.0.1:1") as robot:
         with pytest.raises(Unavailable, match=re.escape("127.0.0.1:1")):
             await robot.detect(YELLOW, CAM1_REGION, timeout_s=1)
+
+
+async def test_boxes_only_reports_keep_positions_and_drop_outlines(office: Office) -> None:
+    async with DrvsClient(office.address) as robot:
+        full = await robot.detect(YELLOW, CAM1_REGION, timeout_s=10)
+        boxes = await robot.detect(YELLOW, CAM1_REGION, timeout_s=10, outlines=False)
+    assert len(boxes.detections) == len(full.detections) == 2
+    for d in boxes.detections:
+        assert d.outline.is_empty
+        assert nearest(YELLOW, d.centroid.x, d.centroid.y)[1] < 0.03
+    # Two requests may see two different (noisy) frames: the same boxes to within a centimetre.
+    for a, b in zip(sorted(d.bounds for d in boxes.detections), sorted(d.bounds for d in full.detections), strict=True):
+        assert max(abs(u - v) for u, v in zip(a, b, strict=True)) < 0.01

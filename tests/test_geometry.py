@@ -121,7 +121,7 @@ def test_from_values_accepts_flat_or_3x3_and_normalises_scale() -> None:
         ([[1, 0, 0], [0, 1, 0], [1, 0, 0]], r"homography: singular"),
         ([[1, 2, 3], [4, 5, 6], [7, 8, 9]], r"homography: singular"),
         ([1.0] * 9, r"homography: singular"),
-        (np.diag([1.0, 1.0, 1e-13]), r"homography: singular"),
+        (np.diag([1.0, 1.0, 1e-16]), r"homography: singular"),
     ],
 )
 def test_from_values_rejects_bad_matrices(values: object, message: str) -> None:
@@ -303,3 +303,18 @@ def test_polygon_region_accepts_closed_or_open_rings() -> None:
 def test_polygon_region_rejects(points: list[tuple[float, ...]], message: str) -> None:
     with pytest.raises(InvalidArgument, match=message):
         polygon_region(points)
+
+
+def test_cameras_far_from_the_origin_are_valid() -> None:
+    # A floor plan whose origin is a kilometre (or a hundred) away is still a floor plan.
+    near = FieldOfView.compute(homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480)), (640, 480), 6.0)
+    for x in (990.0, 1.0e4, 1.0e5):
+        far = FieldOfView.compute(homography_from_pose((x, x, 3.0), 90.0, 40.0, 60.0, (640, 480)), (640, 480), 6.0)
+        assert far.floor.area == pytest.approx(near.floor.area, rel=1e-6)
+        assert far.floor.bounds[0] == pytest.approx(near.floor.bounds[0] + x, abs=1e-6)
+
+
+def test_field_of_view_beyond_the_coordinate_limit_is_refused() -> None:
+    # Invertible, but it maps the image about 1e13 m away.
+    with pytest.raises(InvalidArgument, match=r"field_of_view: the field of view lies beyond"):
+        FieldOfView.compute(Homography.from_values(np.diag([1.0, -1.0, 1e-13])), (640, 480), 1e4)

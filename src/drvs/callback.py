@@ -65,7 +65,7 @@ class RobotLink:
             self.broken = "closed"
             raise
 
-    async def send(self, report: DetectionReport) -> bool:
+    async def send(self, report: DetectionReport, outlines: bool = True) -> bool:
         """Send one report; False when the robot no longer wants this request's reports."""
         if self.cancelled(report.request_id):
             return False
@@ -74,7 +74,7 @@ class RobotLink:
         self.sending += 1
         try:
             async with self._write_lock:
-                await asyncio.wait_for(self._call.write(report_to_pb(report)), WRITE_TIMEOUT_S)
+                await asyncio.wait_for(self._call.write(report_to_pb(report, outlines)), WRITE_TIMEOUT_S)
         except asyncio.TimeoutError:
             self.broken = f"robot did not take a report within {WRITE_TIMEOUT_S:g} s"
             self._call.cancel()
@@ -124,8 +124,8 @@ class CallbackSender:
         self._evict()
         return link
 
-    async def send(self, address: str, report: DetectionReport) -> bool:
-        return await self.link(address).send(report)
+    async def send(self, address: str, report: DetectionReport, outlines: bool = True) -> bool:
+        return await self.link(address).send(report, outlines)
 
     def _evict(self) -> None:
         now = asyncio.get_running_loop().time()

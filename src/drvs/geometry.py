@@ -27,6 +27,7 @@ DEFAULT_MAX_RANGE_M = 15.0
 #: dropped: near the horizon one pixel spans metres and detections are meaningless.
 HORIZON_MARGIN = 0.05
 _MIN_AREA_M2 = 1e-9
+MAX_CONDITION = 1e15
 
 
 def _finite(value: float, name: str) -> float:
@@ -95,9 +96,12 @@ class Homography:
         if scale == 0.0:
             raise InvalidArgument(f"{name}: all zeros")
         m = m / scale
-        det = float(np.linalg.det(m))
-        if abs(det) < 1e-12 or np.linalg.cond(m) > 1e12:
-            raise InvalidArgument(f"{name}: singular (determinant {det:.3g}); it cannot map an image to a floor")
+        # Singular or numerically so. The condition number is scale-invariant, but it grows with the
+        # distance of the camera from the world origin (about 1e14 at the 1e6 m coordinate limit),
+        # so the limit sits near float64 precision rather than at a small determinant.
+        cond = float(np.linalg.cond(m))
+        if not math.isfinite(cond) or cond > MAX_CONDITION:
+            raise InvalidArgument(f"{name}: singular (condition number {cond:.3g}); it cannot map an image to a floor")
         return cls(m)
 
     def inverse(self) -> Homography:
@@ -178,8 +182,13 @@ class FieldOfView:
         floor = _largest_polygon(floor)
         if floor is None or floor.area <= _MIN_AREA_M2:
             raise InvalidArgument(f"{name}: the camera sees no floor (empty field of view)")
-        if not np.all(np.isfinite(np.asarray(floor.exterior.coords))):
+        coords = np.asarray(floor.exterior.coords)
+        if not np.all(np.isfinite(coords)):
             raise InvalidArgument(f"{name}: field of view is not finite")
+        if np.max(np.abs(coords)) > MAX_COORDINATE_M:
+            raise InvalidArgument(
+                f"{name}: the field of view lies beyond ±{MAX_COORDINATE_M:g} m; check the homography"
+            )
         # The image polygon that maps into the clipped floor polygon (for masking detections).
         image_clip = Polygon(homography.inverse().apply(np.asarray(floor.exterior.coords)[:-1]))
         if not image_clip.is_valid:

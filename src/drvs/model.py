@@ -98,6 +98,7 @@ class DetectionRequest:
     region: Polygon
     callback_address: str
     continuous: ContinuousMode = field(default_factory=ContinuousMode)
+    omit_outlines: bool = False
 
     def validate(self, *, require_request_id: bool = True) -> None:
         """Everything but the region, which is validated when it is built."""

@@ -260,7 +260,7 @@ class CameraNode:
                 if delay > 0:
                     await asyncio.sleep(delay)
                 report = await self._look(request, sequence, final=sequence == len(offsets) - 1)
-                if not await self._callbacks.send(request.callback_address, report):
+                if not await self._callbacks.send(request.callback_address, report, not request.omit_outlines):
                     log.info("camera %s: request %s cancelled by the robot", self.camera_id, request.request_id)
                     return
         except DrvsError as exc:

@@ -46,7 +46,9 @@ def detection_json(d: Detection) -> dict[str, Any]:
         "centroid": [round(d.centroid.x, 4), round(d.centroid.y, 4)],
         "ground_contact": [round(d.ground_contact.x, 4), round(d.ground_contact.y, 4)],
         "bounds": [round(v, 4) for v in d.bounds],
-        "outline": [[round(x, 4), round(y, 4)] for x, y in list(d.outline.exterior.coords)[:-1]],
+        "outline": []
+        if d.outline.is_empty
+        else [[round(x, 4), round(y, 4)] for x, y in list(d.outline.exterior.coords)[:-1]],
         "area_m2": round(d.area_m2, 5),
         "area_px": d.area_px,
         "pixel_box": [d.pixel_box.x, d.pixel_box.y, d.pixel_box.width, d.pixel_box.height],
@@ -86,7 +88,12 @@ async def detect(args: argparse.Namespace) -> int:
     region = parse_roi(args)
     async with DrvsClient(args.server, robot_id=args.robot_id, listen=args.listen, advertise=args.advertise) as client:
         sub = await client.subscribe(
-            args.filter, region, rate_hz=args.rate, duration_s=args.duration, timeout_s=args.timeout
+            args.filter,
+            region,
+            rate_hz=args.rate,
+            duration_s=args.duration,
+            timeout_s=args.timeout,
+            outlines=not args.no_outlines,
         )
         if not args.json:
             print(f"request {sub.request_id}: dispatched to {', '.join(sub.camera_ids) or 'no camera'}")
@@ -156,6 +163,7 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="S",
         help="wait this long beyond the duration",
     )
+    d.add_argument("--no-outlines", action="store_true", help="bounds, centroid, ground contact only (fewer bytes)")
     d.add_argument("--listen", default=None, help="HOST:PORT for the callback listener (default: ephemeral)")
     d.add_argument("--advertise", default=None, help="HOST:PORT cameras should call back, if not --listen")
     d.set_defaults(func=detect)

@@ -254,8 +254,12 @@ class DrvsClient:
         timeout_s: float = DEFAULT_TIMEOUT_S,
         request_id: str | None = None,
         rpc_timeout_s: float = 5.0,
+        outlines: bool = True,
     ) -> Subscription:
-        """Send a request; iterate the returned Subscription for its reports."""
+        """Send a request; iterate the returned Subscription for its reports.
+
+        outlines=False asks for bounds, centroid and ground contact only (an empty outline).
+        """
         if self._channel is None:
             raise DrvsError("DrvsClient is not started; use `async with DrvsClient(...)` or await start()")
         request = DetectionRequest(
@@ -265,6 +269,7 @@ class DrvsClient:
             region=as_region(region),
             callback_address=self.callback_address,
             continuous=ContinuousMode(float(rate_hz), float(duration_s)),
+            omit_outlines=not outlines,
         )
         request.validate()
         if request.request_id in self._subscriptions:
@@ -288,9 +293,12 @@ class DrvsClient:
         rate_hz: float = 0.0,
         duration_s: float = 0.0,
         timeout_s: float = DEFAULT_TIMEOUT_S,
+        outlines: bool = True,
     ) -> DetectionResult:
         """Send a request and collect every report until each camera is done or the timeout passes."""
-        sub = await self.subscribe(filter_def, region, rate_hz=rate_hz, duration_s=duration_s, timeout_s=timeout_s)
+        sub = await self.subscribe(
+            filter_def, region, rate_hz=rate_hz, duration_s=duration_s, timeout_s=timeout_s, outlines=outlines
+        )
         return await sub.collect()
 
     async def cameras(self, region: RegionLike | None = None, *, rpc_timeout_s: float = 5.0) -> list[CameraInfo]:

@@ -37,7 +37,7 @@ class CameraRenderer:
         width, height = self.size
         fov = FieldOfView.compute(self.homography, self.size, max_range_m=1000.0)
         self._fov_floor = fov.floor
-        texture, world_to_texture = _floor_texture(scenario)
+        texture, world_to_texture = _floor_texture(scenario, seed)
         image_to_texture = world_to_texture @ self.homography.matrix
         static = cv2.warpPerspective(
             texture,
@@ -90,14 +90,27 @@ class CameraRenderer:
                 cv2.fillPoly(image, [np.round(pts * (1 << _SHIFT)).astype(np.int32)], bgr, shift=_SHIFT)
 
 
-def _floor_texture(scenario: Scenario) -> tuple[NDArray[np.uint8], NDArray[np.float64]]:
-    """A top-down image of the floor plan and objects, and the world -> texture pixel matrix."""
+def _floor_texture(scenario: Scenario, seed: int = 0) -> tuple[NDArray[np.uint8], NDArray[np.float64]]:
+    """A top-down image of the floor plan and objects, and the world -> texture pixel matrix.
+
+    The floor gets a colourless carpet-like texture (noise at several scales): real floors are not
+    flat colour, and a flat floor would make compressed video unrealistically small.
+    """
     x0, y0, x1, y1 = scenario.bounds
     s = TEXTURE_PX_PER_M
     width, height = math.ceil((x1 - x0) * s), math.ceil((y1 - y0) * s)
     world_to_texture = np.array([[s, 0.0, -x0 * s], [0.0, -s, y1 * s], [0.0, 0.0, 1.0]])
     texture = np.empty((height, width, 3), dtype=np.uint8)
     texture[:] = FLOOR_BGR
+    amplitude = scenario.render.floor_texture
+    if amplitude > 0:
+        rng = np.random.default_rng([seed, 7])
+        grain = np.zeros((height, width), dtype=np.float32)
+        for cell, weight in ((2, 0.6), (8, 0.3), (40, 0.4)):
+            coarse = rng.normal(0.0, 1.0, (max(2, height // cell), max(2, width // cell))).astype(np.float32)
+            grain += weight * cv2.resize(coarse, (width, height), interpolation=cv2.INTER_LINEAR)
+        shaded = texture.astype(np.float32) + amplitude * grain[:, :, None]
+        texture = np.clip(shaded, 0, 255).astype(np.uint8)
 
     def fill(poly: Polygon, bgr: tuple[int, int, int]) -> None:
         pts = np.asarray(poly.exterior.coords)[:-1]

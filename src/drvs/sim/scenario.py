@@ -81,6 +81,7 @@ class RobotDef:
 class RenderDef:
     noise_sigma: float = 3.0
     lighting: float = 0.08  # relative brightness swing over time and across the image
+    floor_texture: float = 10.0  # grey levels of carpet-like texture on the floor (colourless)
 
 
 @dataclass(frozen=True)
@@ -239,10 +240,11 @@ def _build(root: _Obj, text: str) -> Scenario:
 
     render_raw = root.take("render", {})
     rend = _Obj(render_raw, "render")
-    rend.check_keys(["noise_sigma", "lighting"])
+    rend.check_keys(["noise_sigma", "lighting", "floor_texture"])
     render = RenderDef(
         noise_sigma=_number(rend.take("noise_sigma", 3.0), "render.noise_sigma", 0, 50),
         lighting=_number(rend.take("lighting", 0.08), "render.lighting", 0, 0.5),
+        floor_texture=_number(rend.take("floor_texture", 10.0), "render.floor_texture", 0, 40),
     )
     return Scenario(
         name=name.strip(),

@@ -19,20 +19,22 @@ class ContinuousMode(_message.Message):
     def __init__(self, rate_hz: _Optional[float] = ..., duration_s: _Optional[float] = ...) -> None: ...
 
 class DetectionRequest(_message.Message):
-    __slots__ = ("request_id", "robot_id", "filter_def", "region", "callback_address", "continuous")
+    __slots__ = ("request_id", "robot_id", "filter_def", "region", "callback_address", "continuous", "omit_outlines")
     REQUEST_ID_FIELD_NUMBER: _ClassVar[int]
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     FILTER_DEF_FIELD_NUMBER: _ClassVar[int]
     REGION_FIELD_NUMBER: _ClassVar[int]
     CALLBACK_ADDRESS_FIELD_NUMBER: _ClassVar[int]
     CONTINUOUS_FIELD_NUMBER: _ClassVar[int]
+    OMIT_OUTLINES_FIELD_NUMBER: _ClassVar[int]
     request_id: str
     robot_id: str
     filter_def: str
     region: _geometry_pb2.Region
     callback_address: str
     continuous: ContinuousMode
-    def __init__(self, request_id: _Optional[str] = ..., robot_id: _Optional[str] = ..., filter_def: _Optional[str] = ..., region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., callback_address: _Optional[str] = ..., continuous: _Optional[_Union[ContinuousMode, _Mapping]] = ...) -> None: ...
+    omit_outlines: bool
+    def __init__(self, request_id: _Optional[str] = ..., robot_id: _Optional[str] = ..., filter_def: _Optional[str] = ..., region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., callback_address: _Optional[str] = ..., continuous: _Optional[_Union[ContinuousMode, _Mapping]] = ..., omit_outlines: bool = ...) -> None: ...
 
 class DetectionReply(_message.Message):
     __slots__ = ("request_id", "camera_ids")

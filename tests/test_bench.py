@@ -1,0 +1,29 @@
+"""A smoke run of the benchmarks: they run end to end and write what they promise (no timing asserted)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import cv2
+
+from drvs.launch import ManagedProcess
+
+
+async def test_paper_benchmark_smoke(tmp_path: Path) -> None:
+    proc = ManagedProcess.entry_point("bench", "drvs-bench", "paper", "--requests", "15", "--out", str(tmp_path))
+    await proc.start()
+    assert await proc.wait(timeout=240) == 0, proc.output()
+    result = json.loads((tmp_path / "paper.json").read_text())
+    assert set(result["modes"]) == {"drvs", "drvs_boxes", "raw", "jpeg"}
+    for mode in result["modes"].values():
+        assert mode["bytes"] > 0 and mode["cpu_s"] > 0 and mode["bytes_timeline"]
+    boxes = result["modes"]["drvs_boxes"]
+    assert boxes["requests"] == 15 and boxes["missing_finals"] == 0 and boxes["reports"] == 30
+    assert boxes["detections"] == 45  # three objects seen by two cameras, every request
+    assert result["modes"]["raw"]["frames"] > 0 and result["modes"]["raw"]["detections"] > 0
+    for key in ("bandwidth_ratio_raw", "bandwidth_ratio_jpeg", "robot_cpu_ratio"):
+        assert result[key] > 1, key  # streaming video always costs the robot more than DRVS
+    for png in ("bandwidth.png", "cpu.png"):
+        image = cv2.imread(str(tmp_path / png))
+        assert image is not None and image.shape[0] > 200
