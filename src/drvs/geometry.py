@@ -10,7 +10,6 @@ import math
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import shapely
 from numpy.typing import ArrayLike, NDArray
@@ -108,11 +107,15 @@ class Homography:
         return Homography(np.asarray(np.linalg.inv(self.matrix), dtype=np.float64))
 
     def apply(self, points: ArrayLike) -> NDArray[np.float64]:
-        """Map an (N, 2) array of points; returns (N, 2)."""
-        pts = np.asarray(points, dtype=np.float64).reshape(-1, 1, 2)
-        if pts.shape[0] == 0:
-            return np.zeros((0, 2), dtype=np.float64)
-        return np.asarray(cv2.perspectiveTransform(pts, self.matrix), dtype=np.float64).reshape(-1, 2)
+        """Map an (N, 2) array of points; returns (N, 2). A point on the horizon maps to inf.
+
+        Not cv2.perspectiveTransform: it silently maps points whose scale is below its epsilon
+        to (0, 0), which would put such detections at the world origin.
+        """
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+        mapped = pts @ self.matrix[:, :2].T + self.matrix[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            return mapped[:, :2] / mapped[:, 2:3]
 
     def projective_scale(self, points: ArrayLike) -> NDArray[np.float64]:
         """The third homogeneous coordinate w of each mapped point (0 on the horizon)."""
@@ -173,6 +176,10 @@ class FieldOfView:
         else:
             near_px = corners[int(np.argmax(sign * homography.projective_scale(corners)))].reshape(1, 2)
         near = Point(homography.apply(near_px)[0])
+        if not (math.isfinite(near.x) and math.isfinite(near.y)) or max(abs(near.x), abs(near.y)) > MAX_COORDINATE_M:
+            raise InvalidArgument(
+                f"{name}: the field of view lies beyond ±{MAX_COORDINATE_M:g} m; check the homography"
+            )
         ring = np.asarray(image_poly.exterior.coords)[:-1]
         floor_pts = homography.apply(ring)
         floor = Polygon(floor_pts)
