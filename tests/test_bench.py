@@ -27,3 +27,22 @@ async def test_paper_benchmark_smoke(tmp_path: Path) -> None:
     for png in ("bandwidth.png", "cpu.png"):
         image = cv2.imread(str(tmp_path / png))
         assert image is not None and image.shape[0] > 200
+
+
+async def test_service_benchmark_smoke(tmp_path: Path) -> None:
+    proc = ManagedProcess.entry_point("bench", "drvs-bench", "service", "--quick", "--out", str(tmp_path))
+    await proc.start()
+    assert await proc.wait(timeout=400) == 0, proc.output()
+    result = json.loads((tmp_path / "service.json").read_text())
+    for key in (
+        "latency_p50_over_floor",
+        "routing_over_echo",
+        "lookup_10k_over_100",
+        "camera_cpu_200_over_20",
+        "server_peak_rss_bytes_2000_cameras",
+        "camera_peak_rss_bytes",
+        "robot_client_peak_rss_bytes",
+    ):
+        assert result[key] > 0, key
+    assert result["latency"]["30"]["missing"] == 0 and result["routing"]["errors"] == 0
+    assert cv2.imread(str(tmp_path / "latency.png")) is not None

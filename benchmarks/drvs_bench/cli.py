@@ -9,6 +9,7 @@ import sys
 import time
 from pathlib import Path
 
+from .helpers import add_helper_parsers
 from .workload import add_workload_arguments, workload_main
 
 
@@ -27,6 +28,17 @@ def paper_main(args: argparse.Namespace) -> int:
     return 0
 
 
+def service_main(args: argparse.Namespace) -> int:
+    from .service import run_service
+
+    out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
+    result = asyncio.run(run_service(out, args.quick))
+    keys = [k for k in result if k.endswith(("_over_floor", "_over_echo", "_over_100", "_over_20")) or "rss" in k]
+    print(json.dumps({k: result[k] for k in keys}, indent=1))
+    print(f"written: {out / 'service.json'}, {out / 'latency.png'}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="drvs-bench", description="DRVS benchmarks: JSON and PNG into --out.")
     sub = parser.add_subparsers(dest="bench", required=True)
@@ -36,6 +48,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--rate", type=float, default=30.0, help="requests per second (default 30)")
     p.add_argument("--out", type=Path, default=None)
     p.set_defaults(func=paper_main)
+    s = sub.add_parser("service", help="DRVS's own latency, routing throughput, lookup scaling, CPU and memory")
+    s.add_argument("--quick", action="store_true", help="a smoke run of under a minute")
+    s.add_argument("--out", type=Path, default=None)
+    s.set_defaults(func=service_main)
+    add_helper_parsers(sub)
     r = sub.add_parser("robot", help="(internal) the paper benchmark's robot process")
     add_workload_arguments(r)
     r.set_defaults(func=workload_main)

@@ -9,29 +9,32 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from drvs.filters import HsvRange
-from drvs.geometry import homography_from_pose
-from drvs.sim.scene import FloorPatch, RecordedCamera, record_camera
+from drvs.camera.homography_file import save_homography
+from drvs.sim.render import CameraRenderer
+from drvs.sim.scenario import load_scenario
+from drvs.sim.scene import RecordedCamera, write_video
 
 YELLOW = "hsv_014110130035225200"
 IMAGE_SIZE = (640, 480)
 FPS = 20.0
-#: Two cameras 20 m apart, as in the tests; the region covers both.
-CAMERA_POSES = {"cam1": (0.0, 0.0, 3.0), "cam2": (20.0, 0.0, 3.0)}
+SCENE = Path(__file__).parent / "scene.yaml"
+#: Covers cam1's and cam2's fields of view (the paper benchmark's two cameras).
 BOTH_REGION = (-6.0, 0.0, 26.0, 10.0)
-OBJECTS = [((-1.0, 4.0), 0.25), ((1.5, 3.0), 0.20), ((19.0, 4.5), 0.30)]
+#: Covers all three cameras' fields of view.
+ALL_REGION = (-6.0, 0.0, 46.0, 10.0)
 _TICK = os.sysconf("SC_CLK_TCK")
 
 
-def record_scene(directory: Path, noise_sigma: float = 2.0) -> dict[str, RecordedCamera]:
-    """Two 640x480 20 fps cameras watching yellow objects on a floor (2 s of video, looped)."""
-    patches = [FloorPatch.disc(c, r, HsvRange.parse(YELLOW).centre_bgr()) for c, r in OBJECTS]
+def record_scene(directory: Path, cameras: int = 2, frames: int = 40) -> dict[str, RecordedCamera]:
+    """The first `cameras` cameras of scene.yaml rendered (textured floor, noise, lighting) to looping videos."""
+    scenario = load_scenario(SCENE)
     out = {}
-    for seed, (camera_id, position) in enumerate(CAMERA_POSES.items()):
-        h = homography_from_pose(position, 90.0, 40.0, 60.0, IMAGE_SIZE)
-        out[camera_id] = record_camera(
-            directory, camera_id, h, IMAGE_SIZE, patches, frames=40, fps=FPS, noise_sigma=noise_sigma, seed=seed
-        )
+    for seed, cam in enumerate(scenario.cameras[:cameras]):
+        renderer = CameraRenderer(scenario, cam, seed=seed)
+        video = write_video(directory / f"{cam.id}.avi", (renderer.render(None, v) for v in range(frames)), cam.fps)
+        hfile = directory / f"{cam.id}.homography.yaml"
+        save_homography(hfile, cam.homography)
+        out[cam.id] = RecordedCamera(cam.id, video, hfile, cam.homography)
     return out
 
 

@@ -36,7 +36,7 @@ async def drvs_mode(args: argparse.Namespace) -> dict[str, object]:
 
         async def one(i: int) -> None:
             nonlocal reports, detections, missing
-            result = await client.detect(YELLOW, BOTH_REGION, timeout_s=5.0)
+            result = await client.detect(YELLOW, BOTH_REGION, timeout_s=5.0, outlines=not args.no_outlines)
             reports += len(result.reports)
             detections += len(result.detections)
             missing += len(result.missing_cameras)
@@ -115,5 +115,6 @@ def add_workload_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--advertise", help="callback address cameras should call (drvs mode)")
     p.add_argument("--camera", action="append", default=[], help="camera HOST:PORT to stream from (raw/jpeg)")
     p.add_argument("--homography", action="append", type=Path, default=[], help="each camera's homography file")
+    p.add_argument("--no-outlines", action="store_true", help="drvs mode: ask for boxes only, as the paper's DRVS")
     p.add_argument("--requests", type=int, default=1500)
     p.add_argument("--rate", type=float, default=30.0)
