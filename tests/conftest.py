@@ -68,7 +68,10 @@ class Office:
 
     async def start_camera(self, camera_id: str) -> ManagedProcess:
         rec = self.recorded[camera_id]
-        proc = await start_camera(camera_id, rec.video, rec.homography_file, self.address, "--max-range", MAX_RANGE)
+        # DEBUG: the tests read which requests each camera received from its log.
+        proc = await start_camera(
+            camera_id, rec.video, rec.homography_file, self.address, "--max-range", MAX_RANGE, "--log-level", "DEBUG"
+        )
         self.cameras[camera_id] = proc
         return proc
 

@@ -235,16 +235,17 @@ class CameraNode:
             raise InvalidArgument(f"filter_def: camera {self.camera_id} does not run detector {request.kind!r}")
         if len(self._jobs) >= MAX_ACTIVE_REQUESTS:
             raise ResourceExhausted(f"camera {self.camera_id}: {len(self._jobs)} requests active; try later")
-        log.info(
-            "camera %s: request %s from robot %r: %s, %s",
-            self.camera_id,
-            request.request_id,
-            request.robot_id,
-            request.filter_def,
-            "single shot"
-            if request.continuous.single_shot
-            else f"{request.continuous.rate_hz:g} Hz for {request.continuous.duration_s:g} s",
-        )
+        if log.isEnabledFor(logging.DEBUG):
+            log.debug(
+                "camera %s: request %s from robot %r: %s, %s",
+                self.camera_id,
+                request.request_id,
+                request.robot_id,
+                request.filter_def,
+                "single shot"
+                if request.continuous.single_shot
+                else f"{request.continuous.rate_hz:g} Hz for {request.continuous.duration_s:g} s",
+            )
         self.requests_served += 1
         job = asyncio.get_running_loop().create_task(self._serve(request))
         self._jobs.add(job)
@@ -261,7 +262,7 @@ class CameraNode:
                     await asyncio.sleep(delay)
                 report = await self._look(request, sequence, final=sequence == len(offsets) - 1)
                 if not await self._callbacks.send(request.callback_address, report, not request.omit_outlines):
-                    log.info("camera %s: request %s cancelled by the robot", self.camera_id, request.request_id)
+                    log.debug("camera %s: request %s cancelled by the robot", self.camera_id, request.request_id)
                     return
         except DrvsError as exc:
             log.warning("camera %s: request %s: %s", self.camera_id, request.request_id, exc)

@@ -127,7 +127,7 @@ class DrvsServer:
         cameras = self.route(request)
         for camera in cameras:
             self._spawn(self._forward(camera, request, message))
-        log.info(
+        log.debug(
             "request %s from robot %r (%s): dispatched to %s",
             request.request_id,
             request.robot_id,
