@@ -186,7 +186,13 @@ async def rtt(args: argparse.Namespace) -> None:
         for _ in range(50):
             await stub.DetectObjects(msg, timeout=10)
         times = []
-        for _ in range(args.calls):
+        loop = asyncio.get_running_loop()
+        start = loop.time()
+        for i in range(args.calls):
+            if args.rate:
+                delay = start + i / args.rate - loop.time()
+                if delay > 0:
+                    await asyncio.sleep(delay)
             t0 = time.perf_counter()
             await stub.DetectObjects(msg, timeout=10)
             times.append((time.perf_counter() - t0) * 1000)
@@ -218,4 +224,5 @@ def add_helper_parsers(sub: Any) -> None:
     rt = sub.add_parser("rtt", help="(internal) bare unary round trips")
     rt.add_argument("--target", required=True)
     rt.add_argument("--calls", type=int, default=500)
+    rt.add_argument("--rate", type=float, default=0.0, help="calls a second (0: back to back)")
     rt.set_defaults(func=lambda args: asyncio.run(rtt(args)) or 0)
