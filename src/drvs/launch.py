@@ -12,6 +12,8 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TextIO
 
+#: Longest output line read whole (a benchmark's result line can be large); longer ones are cut.
+MAX_LINE_BYTES = 16 * 1024 * 1024
 SERVER_READY = re.compile(r"drvs-server listening on (\S+)")
 CAMERA_REGISTERED = r"camera {id} (?:re-)?registered with"
 
@@ -65,6 +67,7 @@ class ManagedProcess:
             stdout=asyncio.subprocess.PIPE,
             stderr=asyncio.subprocess.STDOUT,
             env=env,
+            limit=MAX_LINE_BYTES,
         )
         self._reader = asyncio.get_running_loop().create_task(self._read())
         return self
@@ -72,7 +75,10 @@ class ManagedProcess:
     async def _read(self) -> None:
         assert self.process is not None and self.process.stdout is not None
         while True:
-            raw = await self.process.stdout.readline()
+            try:
+                raw = await self.process.stdout.readline()
+            except ValueError:  # a line longer than MAX_LINE_BYTES: keep what fits, skip the rest
+                raw = await self.process.stdout.read(MAX_LINE_BYTES) + b"\n"
             async with self._changed:
                 if not raw:
                     self._eof = True
