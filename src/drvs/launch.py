@@ -12,7 +12,7 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import TextIO
 
-#: Longest output line read whole (a benchmark's result line can be large); longer ones are cut.
+#: Longest output line read (a benchmark's result line can be large); a longer one is dropped.
 MAX_LINE_BYTES = 16 * 1024 * 1024
 SERVER_READY = re.compile(r"drvs-server listening on (\S+)")
 CAMERA_REGISTERED = r"camera {id} (?:re-)?registered with"
@@ -77,8 +77,8 @@ class ManagedProcess:
         while True:
             try:
                 raw = await self.process.stdout.readline()
-            except ValueError:  # a line longer than MAX_LINE_BYTES: keep what fits, skip the rest
-                raw = await self.process.stdout.read(MAX_LINE_BYTES) + b"\n"
+            except ValueError:  # longer than MAX_LINE_BYTES: asyncio has dropped it
+                raw = b"<drvs.launch: an output line longer than MAX_LINE_BYTES was dropped>\n"
             async with self._changed:
                 if not raw:
                     self._eof = True
