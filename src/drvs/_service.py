@@ -4,13 +4,35 @@ with health checking and reflection, started and stopped gracefully."""
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from typing import Any
+from types import TracebackType
+from typing import Any, TypeVar
 
 from grpc import aio
 
 from drvs import _grpc
 from drvs.health import add_health_and_reflection, mark_serving
 from drvs.net import format_address
+
+_L = TypeVar("_L", bound="Lifecycle")
+
+
+class Lifecycle:
+    """`async with` for every role object: start() on entry, stop() on exit."""
+
+    async def start(self) -> None:
+        raise NotImplementedError
+
+    async def stop(self, grace: float = 2.0) -> None:
+        raise NotImplementedError
+
+    async def __aenter__(self: _L) -> _L:
+        await self.start()
+        return self
+
+    async def __aexit__(
+        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.stop()
 
 
 class Endpoint:

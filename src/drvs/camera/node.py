@@ -7,7 +7,6 @@ import logging
 import math
 import time
 from collections.abc import AsyncIterator
-from types import TracebackType
 from typing import Any
 
 import cv2
@@ -17,7 +16,7 @@ from grpc import aio
 from numpy.typing import NDArray
 
 from drvs import _grpc
-from drvs._service import Endpoint
+from drvs._service import Endpoint, Lifecycle
 from drvs.callback import CallbackSender
 from drvs.convert import homography_to_pb, request_from_pb
 from drvs.detection import DEFAULT_MIN_AREA_PX, FrameAnalysis, HsvDetector
@@ -41,7 +40,7 @@ DEFAULT_MAX_FRAME_AGE_S = 2.0
 MAX_ACTIVE_REQUESTS = 512
 
 
-class CameraNode:
+class CameraNode(Lifecycle):
     """A camera node as an object: start(), stop(grace), `async with`."""
 
     def __init__(
@@ -156,15 +155,6 @@ class CameraNode:
 
     async def wait_for_termination(self) -> None:
         await self._endpoint.wait_for_termination()
-
-    async def __aenter__(self) -> CameraNode:
-        await self.start()
-        return self
-
-    async def __aexit__(
-        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        await self.stop()
 
     # --- registration: soft state ------------------------------------------------------------
 

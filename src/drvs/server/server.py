@@ -6,7 +6,6 @@ import asyncio
 import logging
 import time
 import uuid
-from types import TracebackType
 from typing import Any
 
 import grpc
@@ -14,7 +13,7 @@ from grpc import aio
 from shapely.geometry import Polygon
 
 from drvs import _grpc
-from drvs._service import Endpoint
+from drvs._service import Endpoint, Lifecycle
 from drvs.callback import CallbackSender
 from drvs.convert import (
     homography_from_pb,
@@ -48,7 +47,7 @@ class _CameraLink:
         self.stub = detection_pb2_grpc.DetectObjectBoundaryStub(self.channel)
 
 
-class DrvsServer:
+class DrvsServer(Lifecycle):
     """The server role as an object: start(), stop(grace), `async with`; port 0 picks a free port."""
 
     def __init__(
@@ -106,15 +105,6 @@ class DrvsServer:
 
     async def wait_for_termination(self) -> None:
         await self._endpoint.wait_for_termination()
-
-    async def __aenter__(self) -> DrvsServer:
-        await self.start()
-        return self
-
-    async def __aexit__(
-        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        await self.stop()
 
     # --- routing ---------------------------------------------------------------------------
 

@@ -8,7 +8,6 @@ import logging
 import math
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
-from types import TracebackType
 from typing import Any
 
 import shapely
@@ -18,7 +17,7 @@ from shapely.geometry import Point, Polygon, box
 
 from drvs import _grpc
 from drvs._cli import setup_logging, shutdown_event
-from drvs._service import Endpoint
+from drvs._service import Endpoint, Lifecycle
 from drvs.convert import polygon_to_pb
 from drvs.errors import DrvsError, InvalidArgument
 from drvs.net import parse_address
@@ -90,7 +89,7 @@ class WorldState:
         return any(s.shape.centroid.distance(centre) <= DOCK_REACH_M for s in self.scenario.charging_stations)
 
 
-class WorldServer:
+class WorldServer(Lifecycle):
     """SimulatedWorld over gRPC: start(), stop(), `async with`."""
 
     def __init__(self, scenario: Scenario, listen: str = "127.0.0.1:0", seed: int = 0) -> None:
@@ -119,15 +118,6 @@ class WorldServer:
         async with self._changed:
             self._changed.notify_all()
         await self._endpoint.stop(grace)
-
-    async def __aenter__(self) -> WorldServer:
-        await self.start()
-        return self
-
-    async def __aexit__(
-        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        await self.stop()
 
     async def moved(self) -> None:
         async with self._changed:
