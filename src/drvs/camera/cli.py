@@ -5,14 +5,19 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import sys
+
+import cv2
+import numpy as np
 
 from drvs._cli import env, setup_logging, shutdown_event
+from drvs.camera.calibration import fit_homography, load_points, save_calibration
 from drvs.camera.homography_file import load_homography
 from drvs.camera.node import CameraNode
 from drvs.camera.source import FrameSource, VideoSource
-from drvs.detection import DEFAULT_MIN_AREA_PX
+from drvs.detection import DEFAULT_MIN_AREA_PX, Frame
 from drvs.errors import DrvsError
-from drvs.geometry import DEFAULT_MAX_RANGE_M
+from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, polygon_coords
 
 log = logging.getLogger("drvs.camera")
 
@@ -22,7 +27,10 @@ ENV_CAMERA_ADVERTISE = "DRVS_CAMERA_ADVERTISE"
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="drvs-camera", description="Run a DRVS camera node.")
+    p = argparse.ArgumentParser(
+        prog="drvs-camera",
+        description="Run a DRVS camera node. Also: drvs-camera snapshot | calibrate | fov (each with --help).",
+    )
     p.add_argument("--id", required=True, help="camera id, unique in the building")
     p.add_argument(
         "--source",
@@ -93,7 +101,127 @@ async def run(node: CameraNode) -> int:
     return 0
 
 
+SUBCOMMANDS = ("run", "snapshot", "calibrate", "fov")
+
+
+def parse_size(text: str, name: str = "--image-size") -> tuple[int, int]:
+    parts = text.lower().replace("x", ",").split(",")
+    if len(parts) != 2 or not all(p.strip().isdigit() for p in parts):
+        raise DrvsError(f"{name}: expected W,H in pixels, e.g. 640,480; got {text!r}")
+    w, h = (int(p) for p in parts)
+    if not (0 < w <= 100_000 and 0 < h <= 100_000):
+        raise DrvsError(f"{name}: {w}x{h} is not a real image size")
+    return w, h
+
+
+async def grab_one(spec: str, timeout_s: float) -> Frame:
+    source = VideoSource(spec, loop_file=False)
+    source.start()
+    try:
+        return await source.wait_first_frame(timeout_s)
+    finally:
+        await asyncio.to_thread(source.stop)
+
+
+def snapshot_main(argv: list[str]) -> int:
+    p = argparse.ArgumentParser(prog="drvs-camera snapshot", description="Save one frame, to pick floor points in.")
+    p.add_argument("--source", required=True, help="device index, video file or stream URL")
+    p.add_argument("--out", required=True, help="PNG file to write")
+    p.add_argument("--timeout", type=float, default=15.0, help="seconds to wait for a frame")
+    args = p.parse_args(argv)
+    setup_logging("WARNING")
+    try:
+        frame = asyncio.run(grab_one(args.source, args.timeout))
+    except (DrvsError, OSError) as exc:
+        print(f"drvs-camera snapshot: {exc}", file=sys.stderr)
+        return 1
+    if not cv2.imwrite(args.out, frame.image):
+        print(f"drvs-camera snapshot: cannot write {args.out}", file=sys.stderr)
+        return 1
+    print(f"{args.out}: {frame.size[0]}x{frame.size[1]} from {args.source}")
+    return 0
+
+
+def calibrate_main(argv: list[str]) -> int:
+    p = argparse.ArgumentParser(
+        prog="drvs-camera calibrate",
+        description="Fit the image->floor homography from >= 4 measured points (RANSAC); print each point's error.",
+    )
+    p.add_argument("--points", required=True, help="YAML/JSON: [{image: [u, v], world: [x, y]}, ...]")
+    p.add_argument("--image-size", required=True, help="W,H of the camera's images, e.g. 640,480")
+    p.add_argument("--out", required=True, help="homography file to write (for --homography)")
+    args = p.parse_args(argv)
+    try:
+        size = parse_size(args.image_size)
+        calibration = fit_homography(load_points(args.points), size)
+        save_calibration(args.out, calibration, size)
+    except DrvsError as exc:
+        print(f"drvs-camera calibrate: {exc}", file=sys.stderr)
+        return 2
+    print(f"{'#':>3} {'image (px)':>18} {'world (m)':>20} {'error':>10}")
+    for i, (c, err, ok) in enumerate(zip(calibration.points, calibration.errors_m, calibration.inliers, strict=True)):
+        image = f"({c.image[0]:.1f}, {c.image[1]:.1f})"
+        world = f"({c.world[0]:.3f}, {c.world[1]:.3f})"
+        note = "" if ok else "  outlier, not used"
+        print(f"{i:>3} {image:>18} {world:>20} {err * 1000:>7.1f} mm{note}")
+    used = sum(calibration.inliers)
+    print(
+        f"rms error {calibration.rms_error_m * 1000:.1f} mm, max {calibration.max_error_m * 1000:.1f} mm "
+        f"over {used} of {len(calibration.points)} points; wrote {args.out}"
+    )
+    return 0
+
+
+def fov_main(argv: list[str]) -> int:
+    p = argparse.ArgumentParser(
+        prog="drvs-camera fov", description="Print the floor a camera sees, and draw it over a snapshot."
+    )
+    p.add_argument("--homography", required=True, metavar="FILE")
+    p.add_argument("--image-size", help="W,H (or give --source)")
+    p.add_argument("--source", help="take a frame from this source: its size, and a picture to draw on")
+    p.add_argument("--max-range", type=float, default=DEFAULT_MAX_RANGE_M, metavar="M")
+    p.add_argument("--out", default="fov.png", help="picture with the field of view drawn (with --source)")
+    args = p.parse_args(argv)
+    setup_logging("WARNING")
+    try:
+        homography = load_homography(args.homography)
+        frame = asyncio.run(grab_one(args.source, 15.0)) if args.source else None
+        if frame is not None:
+            size = frame.size
+        elif args.image_size:
+            size = parse_size(args.image_size)
+        else:
+            raise DrvsError("give --image-size W,H or --source SRC")
+        fov = FieldOfView.compute(homography, size, args.max_range)
+    except (DrvsError, OSError) as exc:
+        print(f"drvs-camera fov: {exc}", file=sys.stderr)
+        return 2
+    x0, y0, x1, y1 = fov.floor.bounds
+    print(f"field of view: {fov.floor.area:.2f} m² within x {x0:.2f}..{x1:.2f}, y {y0:.2f}..{y1:.2f} (metres)")
+    print("floor polygon: " + ", ".join(f"({x:.3f}, {y:.3f})" for x, y in polygon_coords(fov.floor)))
+    if frame is not None:
+        picture = frame.image.copy()
+        ring = np.round(np.asarray(fov.image.exterior.coords)).astype(np.int32)
+        shade = picture.copy()
+        cv2.fillPoly(shade, [ring], (0, 200, 0))
+        picture = np.asarray(cv2.addWeighted(shade, 0.25, picture, 0.75, 0), dtype=np.uint8)
+        cv2.polylines(picture, [ring], True, (0, 255, 0), 2)
+        for u, v in np.asarray(fov.image.exterior.coords)[:-1]:
+            x, y = homography.apply([[u, v]])[0]
+            cv2.putText(
+                picture, f"({x:.1f},{y:.1f})", (int(u) + 4, int(v) - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 255, 0), 1
+            )
+        cv2.imwrite(args.out, picture)
+        print(f"drawn over a frame of {args.source}: {args.out}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv and argv[0] in SUBCOMMANDS[1:]:
+        return {"snapshot": snapshot_main, "calibrate": calibrate_main, "fov": fov_main}[argv[0]](argv[1:])
+    if argv and argv[0] == "run":
+        argv = argv[1:]
     parser = build_parser()
     args = parser.parse_args(argv)
     setup_logging(args.log_level)
