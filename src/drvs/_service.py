@@ -8,6 +8,7 @@ from types import TracebackType
 from typing import Any, TypeVar
 
 from grpc import aio
+from grpc_health.v1 import health_pb2
 
 from drvs import _grpc
 from drvs.health import add_health_and_reflection, mark_serving
@@ -64,6 +65,12 @@ class Endpoint:
         await server.start()
         self._server = server
         await mark_serving(self._health, self.service_names)
+
+    async def set_serving(self, serving: bool) -> None:
+        """What the health service answers for every service of this endpoint."""
+        status = health_pb2.HealthCheckResponse.SERVING if serving else health_pb2.HealthCheckResponse.NOT_SERVING
+        for name in ("", *self.service_names):
+            await self._health.set(name, status)
 
     async def stop(self, grace: float) -> None:
         """Report NOT_SERVING first, so health checkers stop sending, then let calls finish."""

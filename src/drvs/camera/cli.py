@@ -5,74 +5,68 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import os
 import sys
 
 import cv2
 import numpy as np
 
-from drvs._cli import env, setup_logging, shutdown_event
+from drvs._cli import setup_logging, shutdown_event
 from drvs.camera.calibration import fit_homography, load_points, save_calibration
+from drvs.camera.config import DEFAULT_LISTEN, DEFAULT_SERVER, ENVIRONMENT, load_config
 from drvs.camera.homography_file import load_homography
 from drvs.camera.node import CameraNode
 from drvs.camera.source import FrameSource, VideoSource
-from drvs.detection import DEFAULT_MIN_AREA_PX, Frame
+from drvs.detection import Frame
 from drvs.errors import DrvsError
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, polygon_coords
 
 log = logging.getLogger("drvs.camera")
 
-ENV_SERVER = "DRVS_SERVER"
-ENV_CAMERA_LISTEN = "DRVS_CAMERA_LISTEN"
-ENV_CAMERA_ADVERTISE = "DRVS_CAMERA_ADVERTISE"
-
 
 def build_parser() -> argparse.ArgumentParser:
+    """Flags default to None so the config knows which were given (flag > env > file > default)."""
+    e = ENVIRONMENT
     p = argparse.ArgumentParser(
         prog="drvs-camera",
         description="Run a DRVS camera node. Also: drvs-camera snapshot | calibrate | fov (each with --help).",
+        epilog="Every setting can also come from a DRVS_* environment variable or a --config YAML file whose keys "
+        "are the setting names: " + ", ".join(f"{k} ({v})" for k, v in e.items()) + ".",
     )
-    p.add_argument("--id", required=True, help="camera id, unique in the building")
-    p.add_argument(
-        "--source",
-        required=True,
-        help="device index (0), video file path, stream URL, or sim://HOST:PORT (simulated world)",
-    )
+    p.add_argument("--config", metavar="FILE", help="YAML file of settings (flags and environment override it)")
+    p.add_argument("--id", help=f"camera id, unique in the building ({e['id']})")
+    p.add_argument("--source", help=f"device index (0), video file, stream URL, or sim://HOST:PORT ({e['source']})")
     p.add_argument(
         "--homography",
-        required=True,
         metavar="FILE",
-        help="JSON/YAML file whose 'homography' is the 3x3 image->floor matrix",
+        help=f"JSON/YAML file whose 'homography' is the 3x3 image->floor matrix ({e['homography']})",
     )
+    p.add_argument("--server", help=f"DRVS server HOST:PORT (default {DEFAULT_SERVER}; {e['server']})")
     p.add_argument(
-        "--server",
-        default=env(ENV_SERVER, "127.0.0.1:50051"),
-        help=f"DRVS server HOST:PORT (env {ENV_SERVER})",
+        "--listen", help=f"HOST:PORT to serve on; port 0 picks a free one (default {DEFAULT_LISTEN}; {e['listen']})"
     )
+    p.add_argument("--advertise", help=f"HOST:PORT the server should dial, if not --listen ({e['advertise']})")
     p.add_argument(
-        "--listen",
-        default=env(ENV_CAMERA_LISTEN, "127.0.0.1:0"),
-        help=f"HOST:PORT to serve on; port 0 picks a free one (env {ENV_CAMERA_LISTEN}; default %(default)s)",
+        "--max-range", dest="max_range_m", type=float, metavar="M", help="field-of-view range, metres (default 15)"
     )
+    p.add_argument("--min-area", dest="min_area_px", type=float, metavar="PX", help="smallest blob, pixels")
     p.add_argument(
-        "--advertise",
-        default=env(ENV_CAMERA_ADVERTISE),
-        help=f"HOST:PORT the server should dial, when it differs from --listen (env {ENV_CAMERA_ADVERTISE})",
-    )
-    p.add_argument(
-        "--max-range",
+        "--max-frame-age",
+        dest="max_frame_age_s",
         type=float,
-        default=DEFAULT_MAX_RANGE_M,
-        metavar="M",
-        help="field-of-view range, metres",
+        metavar="S",
+        help="older frames are not used; the node reports NOT_SERVING while it has none (default 2)",
     )
-    p.add_argument("--min-area", type=float, default=DEFAULT_MIN_AREA_PX, metavar="PX", help="smallest blob, pixels")
-    p.add_argument("--no-loop", action="store_true", help="play a video file once instead of looping it")
+    p.add_argument(
+        "--no-loop", dest="loop", action="store_const", const=False, help="play a video file once, do not loop it"
+    )
     p.add_argument(
         "--serve-frames",
-        action="store_true",
+        action="store_const",
+        const=True,
         help="also stream whole frames (FrameStream service): the no-DRVS baseline, for benchmarks",
     )
-    p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING (env DRVS_LOG_LEVEL)")
+    p.add_argument("--log-level", help=f"DEBUG, INFO, WARNING ({e['log_level']})")
     return p
 
 
@@ -224,19 +218,23 @@ def main(argv: list[str] | None = None) -> int:
         argv = argv[1:]
     parser = build_parser()
     args = parser.parse_args(argv)
-    setup_logging(args.log_level)
     try:
-        homography = load_homography(args.homography)
+        config = load_config(vars(args), os.environ, args.config)
+    except DrvsError as exc:
+        parser.error(str(exc))
+    setup_logging(config.log_level)
+    try:
         node = CameraNode(
-            args.id,
-            make_source(args.source, args.id, loop_file=not args.no_loop),
-            homography,
-            args.server,
-            listen=args.listen,
-            advertise=args.advertise,
-            max_range_m=args.max_range,
-            min_area_px=args.min_area,
-            serve_frames=args.serve_frames,
+            config.id,
+            make_source(config.source, config.id, loop_file=config.loop),
+            load_homography(config.homography),
+            config.server,
+            listen=config.listen,
+            advertise=config.advertise,
+            max_range_m=config.max_range_m,
+            min_area_px=config.min_area_px,
+            max_frame_age_s=config.max_frame_age_s,
+            serve_frames=config.serve_frames,
         )
     except DrvsError as exc:
         parser.error(str(exc))

@@ -81,6 +81,8 @@ class CameraNode(Lifecycle):
         self._endpoint = Endpoint(listen, names, self._add_servicers)
         self._channel: aio.Channel | None = None
         self._registrar: asyncio.Task[None] | None = None
+        self._watchdog: asyncio.Task[None] | None = None
+        self.has_fresh_frame = True
         self._jobs: set[asyncio.Task[None]] = set()
         self._callbacks = CallbackSender()
         self._analysis: FrameAnalysis | None = None
@@ -128,14 +130,16 @@ class CameraNode(Lifecycle):
         log.info("camera %s listening on %s (advertised as %s)", self.camera_id, self._endpoint.address, self.address)
         self._channel = _grpc.insecure_channel(self.server_address)
         self._registrar = asyncio.get_running_loop().create_task(self._keep_registered(image_size))
+        self._watchdog = asyncio.get_running_loop().create_task(self._watch_frames())
 
     async def stop(self, grace: float = 2.0) -> None:
         if self._stopped:
             return
         self._stopped = True
-        if self._registrar is not None:
-            self._registrar.cancel()
-            await asyncio.gather(self._registrar, return_exceptions=True)
+        for task in (self._registrar, self._watchdog):
+            if task is not None:
+                task.cancel()
+                await asyncio.gather(task, return_exceptions=True)
         if self.registered.is_set() and self._channel is not None:
             try:
                 stub = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
@@ -155,6 +159,29 @@ class CameraNode(Lifecycle):
 
     async def wait_for_termination(self) -> None:
         await self._endpoint.wait_for_termination()
+
+    def frame_is_fresh(self) -> bool:
+        frame = self.source.latest()
+        return frame is not None and time.time() - frame.capture_time <= self.max_frame_age_s
+
+    async def _watch_frames(self) -> None:
+        """Health follows the frames: NOT_SERVING while none is fresh. Registration is kept, so
+        the camera does not flap in and out of routing while its source reconnects."""
+        while True:
+            await asyncio.sleep(min(0.5, self.max_frame_age_s / 2))
+            fresh = self.frame_is_fresh()
+            if fresh != self.has_fresh_frame:
+                self.has_fresh_frame = fresh
+                await self._endpoint.set_serving(fresh)
+                if fresh:
+                    log.info("camera %s: frames again from %s; SERVING", self.camera_id, self.source.description)
+                else:
+                    log.warning(
+                        "camera %s: no frame newer than %.1f s from %s; NOT_SERVING until frames come back",
+                        self.camera_id,
+                        self.max_frame_age_s,
+                        self.source.description,
+                    )
 
     # --- registration: soft state ------------------------------------------------------------
 

@@ -1,0 +1,144 @@
+"""A camera node's configuration: one typed model, loaded once at start.
+
+Precedence for every setting: command-line flag > DRVS_* environment variable > config file >
+default. Unknown keys and bad values are errors that name the key and where it came from.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+from drvs.detection import DEFAULT_MIN_AREA_PX
+from drvs.errors import InvalidArgument
+from drvs.geometry import DEFAULT_MAX_RANGE_M
+from drvs.model import check_id
+from drvs.net import parse_address
+
+DEFAULT_SERVER = "127.0.0.1:50051"
+DEFAULT_LISTEN = "127.0.0.1:0"
+DEFAULT_MAX_FRAME_AGE_S = 2.0
+
+#: Every environment variable a camera node reads, by setting.
+ENVIRONMENT = {
+    "id": "DRVS_CAMERA_ID",
+    "source": "DRVS_CAMERA_SOURCE",
+    "homography": "DRVS_CAMERA_HOMOGRAPHY",
+    "server": "DRVS_SERVER",
+    "listen": "DRVS_CAMERA_LISTEN",
+    "advertise": "DRVS_CAMERA_ADVERTISE",
+    "max_range_m": "DRVS_CAMERA_MAX_RANGE",
+    "min_area_px": "DRVS_CAMERA_MIN_AREA",
+    "max_frame_age_s": "DRVS_CAMERA_MAX_FRAME_AGE",
+    "loop": "DRVS_CAMERA_LOOP",
+    "serve_frames": "DRVS_CAMERA_SERVE_FRAMES",
+    "log_level": "DRVS_LOG_LEVEL",
+}
+
+
+@dataclass(frozen=True)
+class CameraConfig:
+    id: str
+    source: str
+    homography: Path
+    server: str = DEFAULT_SERVER
+    listen: str = DEFAULT_LISTEN
+    advertise: str | None = None
+    max_range_m: float = DEFAULT_MAX_RANGE_M
+    min_area_px: float = DEFAULT_MIN_AREA_PX
+    max_frame_age_s: float = DEFAULT_MAX_FRAME_AGE_S
+    loop: bool = True
+    serve_frames: bool = False
+    log_level: str | None = None
+
+
+_FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max_range_m": "--max-range",
+          "min_area_px": "--min-area", "max_frame_age_s": "--max-frame-age", "loop": "--no-loop",
+          "serve_frames": "--serve-frames", "log_level": "--log-level", "server": "--server",
+          "listen": "--listen", "advertise": "--advertise"}  # fmt: skip
+
+
+def load_config(
+    flags: Mapping[str, Any], environ: Mapping[str, str], config_file: str | Path | None = None
+) -> CameraConfig:
+    """Merge flags (None = not given), environment and file; validate everything once."""
+    file_values: dict[str, Any] = {}
+    base = Path(".")
+    if config_file is not None:
+        path = Path(config_file)
+        try:
+            data = yaml.safe_load(path.read_text())
+        except OSError as exc:
+            raise InvalidArgument(f"config {path}: {exc.strerror or exc}") from None
+        except (yaml.YAMLError, UnicodeDecodeError) as exc:
+            raise InvalidArgument(f"config {path}: not YAML ({exc})") from None
+        data = {} if data is None else data
+        if not isinstance(data, dict):
+            raise InvalidArgument(f"config {path}: expected a mapping of settings")
+        known = [f.name for f in fields(CameraConfig)]
+        for key in data:
+            if key not in known:
+                raise InvalidArgument(f"config {path}: {key}: unknown key (expected one of: {', '.join(known)})")
+        file_values = {k: (v, f"config {path}") for k, v in data.items()}
+        base = path.parent
+    values: dict[str, Any] = {}
+    for f in fields(CameraConfig):
+        name = f.name
+        if flags.get(name) is not None:
+            raw, origin = flags[name], _FLAGS[name]
+        elif environ.get(ENVIRONMENT[name], "") != "":
+            raw, origin = environ[ENVIRONMENT[name]], ENVIRONMENT[name]
+        elif name in file_values:
+            raw, origin = file_values[name]
+        else:
+            continue
+        values[name] = _convert(name, raw, origin, base if origin.startswith("config") else Path("."))
+    for required in ("id", "source", "homography"):
+        if required not in values:
+            raise InvalidArgument(
+                f"{required}: missing; give {_FLAGS[required]}, {ENVIRONMENT[required]} "
+                f"or {required}: in a --config file"
+            )
+    return CameraConfig(**values)
+
+
+def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
+    where = f"{name} (from {origin})"
+    try:
+        if name in ("max_range_m", "min_area_px", "max_frame_age_s"):
+            value = float(raw) if not isinstance(raw, bool) else math.nan
+            limits = {"max_range_m": (0.1, 1000.0), "min_area_px": (1.0, 1e7), "max_frame_age_s": (0.05, 3600.0)}[name]
+            if not (math.isfinite(value) and limits[0] <= value <= limits[1]):
+                raise InvalidArgument(f"{where}: {raw!r} must be a number from {limits[0]:g} to {limits[1]:g}")
+            return value
+        if name in ("loop", "serve_frames"):
+            if isinstance(raw, bool):
+                return raw
+            text = str(raw).strip().lower()
+            if text in ("1", "true", "yes", "on"):
+                return True
+            if text in ("0", "false", "no", "off"):
+                return False
+            raise InvalidArgument(f"{where}: {raw!r} is not true or false")
+        if not isinstance(raw, (str, int)) or isinstance(raw, bool):
+            raise InvalidArgument(f"{where}: expected a string, got {type(raw).__name__}")
+        text = str(raw)
+        if name == "id":
+            return check_id(text, where)
+        if name in ("server", "advertise"):
+            parse_address(text, where)
+        elif name == "listen":
+            parse_address(text, where, allow_port_zero=True)
+        elif name == "homography":
+            path = Path(text)
+            return path if path.is_absolute() else base / path
+        elif name == "source" and not text.strip():
+            raise InvalidArgument(f"{where}: empty")
+        return text
+    except ValueError:
+        raise InvalidArgument(f"{where}: {raw!r} is not a number") from None

@@ -1,0 +1,124 @@
+"""The camera node's config (flag > env > file > default), and its health following its frames."""
+
+from __future__ import annotations
+
+import re
+import shutil
+from pathlib import Path
+
+import pytest
+import yaml
+from grpc import aio
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+from drvs.camera.config import DEFAULT_SERVER, load_config
+from drvs.errors import InvalidArgument
+from drvs.launch import CAMERA_REGISTERED, ManagedProcess
+from drvs.robot import DrvsClient
+
+from .conftest import CAM1_REGION, YELLOW, Office
+
+NO_FLAGS: dict[str, object] = {}
+
+
+def write(path: Path, data: dict[str, object]) -> Path:
+    path.write_text(yaml.safe_dump(data))
+    return path
+
+
+def test_precedence_flag_env_file_default(tmp_path: Path) -> None:
+    cfg = write(tmp_path / "cam.yaml", {"id": "from-file", "source": "0", "homography": "h.yaml", "max_range_m": 7})
+    c = load_config(NO_FLAGS, {}, cfg)
+    assert (c.id, c.max_range_m, c.server) == ("from-file", 7.0, DEFAULT_SERVER)
+    assert c.homography == tmp_path / "h.yaml"  # relative to the config file
+    c = load_config(NO_FLAGS, {"DRVS_CAMERA_ID": "from-env", "DRVS_CAMERA_MAX_RANGE": "9"}, cfg)
+    assert (c.id, c.max_range_m) == ("from-env", 9.0)
+    c = load_config({"id": "from-flag", "max_range_m": 3.0}, {"DRVS_CAMERA_ID": "from-env"}, cfg)
+    assert (c.id, c.max_range_m) == ("from-flag", 3.0)
+    c = load_config({"loop": False}, {"DRVS_CAMERA_SERVE_FRAMES": "yes"}, cfg)
+    assert c.loop is False and c.serve_frames is True
+
+
+@pytest.mark.parametrize(
+    ("data", "environ", "message"),
+    [
+        ({"id": "a", "source": "0", "homography": "h", "max_rang_m": 3}, {}, r"max_rang_m: unknown key"),
+        ({"source": "0", "homography": "h"}, {}, r"id: missing; give --id, DRVS_CAMERA_ID or id: in a --config file"),
+        ({"id": "a", "source": "0", "homography": "h", "max_range_m": -1}, {}, r"max_range_m \(from config .*\): -1"),
+        (
+            {"id": "a", "source": "0", "homography": "h"},
+            {"DRVS_CAMERA_MIN_AREA": "big"},
+            r"min_area_px \(from DRVS_CAMERA_MIN_AREA\)",
+        ),
+        ({"id": "a b", "source": "0", "homography": "h"}, {}, r"id \(from config .*\): 'a b' may hold only"),
+        ({"id": "a", "source": "0", "homography": "h", "server": "nowhere"}, {}, r"server \(from config .*\)"),
+        (
+            {"id": "a", "source": "0", "homography": "h", "loop": "maybe"},
+            {},
+            r"loop \(from config .*\): 'maybe' is not true or false",
+        ),
+    ],
+)
+def test_bad_config_names_the_key_and_its_origin(
+    tmp_path: Path, data: dict[str, object], environ: dict[str, str], message: str
+) -> None:
+    with pytest.raises(InvalidArgument, match=message):
+        load_config(NO_FLAGS, environ, write(tmp_path / "cam.yaml", data))
+
+
+async def test_node_runs_from_a_config_file(tmp_path: Path, office: Office) -> None:
+    rec = office.recorded["cam1"]
+    cfg = write(
+        tmp_path / "cam.yaml",
+        {"id": "cfgcam", "source": str(rec.video), "homography": str(rec.homography_file),
+         "server": office.address, "max_range_m": 6},
+    )  # fmt: skip
+    proc = await ManagedProcess.entry_point("cfgcam", "drvs-camera", "--config", str(cfg)).start()
+    try:
+        await proc.wait_for_line(CAMERA_REGISTERED.format(id="cfgcam"), timeout=30)
+        async with DrvsClient(office.address) as robot:
+            assert "cfgcam" in [c.camera_id for c in await robot.cameras()]
+    finally:
+        assert await proc.stop() == 0
+
+
+async def health(address: str) -> int:
+    async with aio.insecure_channel(address) as channel:
+        reply = await health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(service=""), timeout=5)
+        return int(reply.status)
+
+
+async def test_source_that_disappears_and_comes_back(tmp_path: Path, office: Office) -> None:
+    rec = office.recorded["cam1"]
+    video = tmp_path / "live.avi"
+    shutil.copy(rec.video, video)
+    proc = ManagedProcess.entry_point(
+        "flaky", "drvs-camera", "--id", "flaky", "--source", str(video), "--homography", str(rec.homography_file),
+        "--server", office.address, "--max-range", "6", "--max-frame-age", "0.5",
+    )  # fmt: skip
+    await proc.start()
+    try:
+        await proc.wait_for_line(CAMERA_REGISTERED.format(id="flaky"), timeout=30)
+        address = re.search(r"listening on (\S+)", proc.output())
+        assert address is not None
+        assert await health(address.group(1)) == health_pb2.HealthCheckResponse.SERVING
+
+        video.unlink()  # the camera goes away: the file ends and cannot be reopened
+        await proc.wait_for_line(r"NOT_SERVING until frames come back", timeout=15)
+        assert await health(address.group(1)) == health_pb2.HealthCheckResponse.NOT_SERVING
+        async with DrvsClient(office.address) as robot:
+            result = await robot.detect(YELLOW, CAM1_REGION, timeout_s=10)
+            flaky = [r for r in result.reports if r.camera_id == "flaky"]
+            assert flaky and "no fresh frame" in flaky[0].error  # it says so rather than guess
+
+            shutil.copy(rec.video, video)  # and comes back
+            await proc.wait_for_line(r"frames again from .*; SERVING", timeout=15)
+            assert await health(address.group(1)) == health_pb2.HealthCheckResponse.SERVING
+            result = await robot.detect(YELLOW, CAM1_REGION, timeout_s=10)
+            flaky = [r for r in result.reports if r.camera_id == "flaky"]
+            assert flaky and not flaky[0].error and len(flaky[0].detections) == 2
+        # It stayed registered throughout: no flapping in and out of routing.
+        assert "re-registered" not in proc.output()
+        assert "flaky left routing" not in office.server.output()
+    finally:
+        assert await proc.stop() == 0
