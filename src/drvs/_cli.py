@@ -33,3 +33,16 @@ def shutdown_event() -> asyncio.Event:
     for sig in (signal.SIGINT, signal.SIGTERM):
         loop.add_signal_handler(sig, event.set)
     return event
+
+
+def join_negative_values(argv: list[str], options: tuple[str, ...]) -> list[str]:
+    """Let `--roi -50,0,750,900` work: argparse would read a value starting with '-' as an option."""
+    out: list[str] = []
+    it = iter(argv)
+    for arg in it:
+        if arg in options:
+            value = next(it, None)
+            out.append(arg if value is None else f"{arg}={value}")
+        else:
+            out.append(arg)
+    return out

@@ -11,7 +11,8 @@ import sys
 import cv2
 import numpy as np
 
-from drvs._cli import setup_logging, shutdown_event
+from drvs._cli import join_negative_values, setup_logging, shutdown_event
+from drvs.camera.aruco import DEFAULT_DICTIONARY, BoardSpec, board_image, find_correspondences
 from drvs.camera.calibration import fit_homography, load_points, save_calibration
 from drvs.camera.config import DEFAULT_LISTEN, DEFAULT_SERVER, ENVIRONMENT, load_config
 from drvs.camera.homography_file import load_homography
@@ -95,7 +96,7 @@ async def run(node: CameraNode) -> int:
     return 0
 
 
-SUBCOMMANDS = ("run", "snapshot", "calibrate", "fov")
+SUBCOMMANDS = ("run", "snapshot", "calibrate", "calibrate-aruco", "aruco-board", "fov")
 
 
 def parse_size(text: str, name: str = "--image-size") -> tuple[int, int]:
@@ -133,6 +134,68 @@ def snapshot_main(argv: list[str]) -> int:
         print(f"drvs-camera snapshot: cannot write {args.out}", file=sys.stderr)
         return 1
     print(f"{args.out}: {frame.size[0]}x{frame.size[1]} from {args.source}")
+    return 0
+
+
+def add_board_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--board", required=True, help="COLSxROWS:MARKER_M:GAP_M, e.g. 6x4:0.2:0.05")
+    p.add_argument("--board-origin", default="0,0", help="X,Y of the board's top-left corner (as read), metres")
+    p.add_argument("--board-yaw", type=float, default=0.0, help="direction of its top edge, degrees CCW from +x")
+    p.add_argument("--dictionary", default=DEFAULT_DICTIONARY, help="OpenCV ArUco dictionary (default %(default)s)")
+
+
+def board_spec(args: argparse.Namespace) -> BoardSpec:
+    try:
+        x, y = (float(v) for v in args.board_origin.split(","))
+    except ValueError:
+        raise DrvsError(f"--board-origin: {args.board_origin!r} is not X,Y") from None
+    return BoardSpec.parse(args.board, (x, y), args.board_yaw, args.dictionary)
+
+
+def calibrate_aruco_main(argv: list[str]) -> int:
+    p = argparse.ArgumentParser(
+        prog="drvs-camera calibrate-aruco",
+        description="Calibrate from an ArUco grid board lying face up on the floor at a known place.",
+    )
+    p.add_argument("--source", required=True, help="device index, video file, stream URL, or an image file")
+    add_board_arguments(p)
+    p.add_argument("--out", required=True, help="homography file to write (for --homography)")
+    args = p.parse_args(argv)
+    setup_logging("WARNING")
+    try:
+        spec = board_spec(args)
+        still = cv2.imread(args.source) if args.source.lower().endswith((".png", ".jpg", ".jpeg", ".bmp")) else None
+        image = still if still is not None else asyncio.run(grab_one(args.source, 15.0)).image
+        size = (int(image.shape[1]), int(image.shape[0]))
+        points = find_correspondences(np.asarray(image, dtype=np.uint8), spec)
+        calibration = fit_homography(points, size)
+        save_calibration(args.out, calibration, size)
+    except (DrvsError, OSError) as exc:
+        print(f"drvs-camera calibrate-aruco: {exc}", file=sys.stderr)
+        return 2
+    used = sum(calibration.inliers)
+    print(
+        f"{len(points) // 4} markers, {len(points)} corners ({used} used): rms error "
+        f"{calibration.rms_error_m * 1000:.1f} mm, max {calibration.max_error_m * 1000:.1f} mm on the board; "
+        f"wrote {args.out}"
+    )
+    print("the error grows away from the board: check it with drvs-camera fov, or lay the board in several places")
+    return 0
+
+
+def aruco_board_main(argv: list[str]) -> int:
+    p = argparse.ArgumentParser(prog="drvs-camera aruco-board", description="Write the board image to print.")
+    add_board_arguments(p)
+    p.add_argument("--out", required=True, help="PNG to write")
+    p.add_argument("--px-per-m", type=float, default=2000.0)
+    args = p.parse_args(argv)
+    try:
+        spec = board_spec(args)
+    except DrvsError as exc:
+        print(f"drvs-camera aruco-board: {exc}", file=sys.stderr)
+        return 2
+    cv2.imwrite(args.out, board_image(spec, args.px_per_m))
+    print(f"{args.out}: print it so that each marker measures {spec.marker_m * 100:g} cm")
     return 0
 
 
@@ -211,9 +274,16 @@ def fov_main(argv: list[str]) -> int:
 
 
 def main(argv: list[str] | None = None) -> int:
-    argv = sys.argv[1:] if argv is None else argv
+    argv = join_negative_values(sys.argv[1:] if argv is None else argv, ("--board-origin",))
     if argv and argv[0] in SUBCOMMANDS[1:]:
-        return {"snapshot": snapshot_main, "calibrate": calibrate_main, "fov": fov_main}[argv[0]](argv[1:])
+        commands = {
+            "snapshot": snapshot_main,
+            "calibrate": calibrate_main,
+            "calibrate-aruco": calibrate_aruco_main,
+            "aruco-board": aruco_board_main,
+            "fov": fov_main,
+        }
+        return commands[argv[0]](argv[1:])
     if argv and argv[0] == "run":
         argv = argv[1:]
     parser = build_parser()

@@ -8,7 +8,7 @@ import json
 import sys
 from typing import Any
 
-from drvs._cli import env, setup_logging
+from drvs._cli import env, join_negative_values, setup_logging
 from drvs.errors import DrvsError, InvalidArgument
 from drvs.model import Detection, DetectionReport
 from drvs.robot.client import DEFAULT_TIMEOUT_S, DrvsClient, RegionLike
@@ -174,21 +174,10 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-def join_negative_values(argv: list[str]) -> list[str]:
-    """Let `--roi -50,0,750,900` work: argparse would read the negative number as an option."""
-    out: list[str] = []
-    it = iter(argv)
-    for arg in it:
-        if arg in ("--roi", "--polygon"):
-            value = next(it, None)
-            out.append(arg if value is None else f"{arg}={value}")
-        else:
-            out.append(arg)
-    return out
-
-
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(join_negative_values(sys.argv[1:] if argv is None else argv))
+    args = build_parser().parse_args(
+        join_negative_values(sys.argv[1:] if argv is None else argv, ("--roi", "--polygon"))
+    )
     setup_logging(args.log_level)
     try:
         return int(asyncio.run(args.func(args)))
