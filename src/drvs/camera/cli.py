@@ -265,9 +265,10 @@ def fov_main(argv: list[str]) -> int:
         cv2.polylines(picture, [ring], True, (0, 255, 0), 2)
         for u, v in np.asarray(fov.image.exterior.coords)[:-1]:
             x, y = homography.apply([[u, v]])[0]
-            cv2.putText(
-                picture, f"({x:.1f},{y:.1f})", (int(u) + 4, int(v) - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 255, 0), 1
-            )
+            label = f"({x:.1f},{y:.1f})"
+            (text_w, text_h), _ = cv2.getTextSize(label, cv2.FONT_HERSHEY_SIMPLEX, 0.45, 1)
+            at = (int(min(max(u + 4, 2), size[0] - text_w - 2)), int(min(max(v - 4, text_h + 2), size[1] - 4)))
+            cv2.putText(picture, label, at, cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 255, 0), 1)
         cv2.imwrite(args.out, picture)
         print(f"drawn over a frame of {args.source}: {args.out}")
     return 0

@@ -33,7 +33,7 @@ class FrameSource(Protocol):
 
 
 def parse_source(spec: str) -> int | str:
-    """A device index ("0"), or a file path or stream URL, as OpenCV VideoCapture takes them."""
+    """A device index ("0"), a file or device path (/dev/video0), or a stream URL, as VideoCapture takes them."""
     spec = spec.strip()
     if not spec:
         raise ValueError("source: empty")
@@ -63,8 +63,10 @@ class VideoSource:
         self._opened_once = False
 
     def start(self) -> None:
-        if isinstance(self.source, str) and "://" not in self.source and not self.is_file:
-            raise FileNotFoundError(f"source: {self.source!r} is neither a device index, a file nor a URL")
+        if isinstance(self.source, str) and "://" not in self.source and not os.path.exists(self.source):
+            raise FileNotFoundError(
+                f"source: {self.source!r} is neither a device index, an existing file or device path, nor a URL"
+            )
         self._thread = threading.Thread(target=self._run, name=f"grabber:{self.description}", daemon=True)
         self._thread.start()
 
