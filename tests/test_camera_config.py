@@ -122,3 +122,46 @@ async def test_source_that_disappears_and_comes_back(tmp_path: Path, office: Off
         assert "flaky left routing" not in office.server.output()
     finally:
         assert await proc.stop() == 0
+
+
+def test_capture_detector_and_heartbeat_settings(tmp_path: Path) -> None:
+    cfg = write(
+        tmp_path / "cam.yaml",
+        {"id": "a", "source": "0", "homography": "h", "resolution": [1280, 720], "fps": 15, "detectors": ["hsv"],
+         "heartbeat_s": 2},
+    )  # fmt: skip
+    c = load_config(NO_FLAGS, {}, cfg)
+    assert (c.resolution, c.fps, c.detectors, c.heartbeat_s) == ((1280, 720), 15.0, ("hsv",), 2.0)
+    c = load_config({"resolution": "640x480"}, {"DRVS_CAMERA_DETECTORS": "hsv"}, cfg)
+    assert c.resolution == (640, 480) and c.detectors == ("hsv",)
+    with pytest.raises(InvalidArgument, match=r"detectors \(from config .*\): .*must be some of hsv"):
+        load_config(
+            NO_FLAGS,
+            {},
+            write(tmp_path / "b.yaml", {"id": "a", "source": "0", "homography": "h", "detectors": ["yolo"]}),
+        )
+    with pytest.raises(InvalidArgument, match=r"resolution \(from --resolution\): 1x1 is not a camera resolution"):
+        load_config({"resolution": "1,1"}, {}, cfg)
+
+
+def test_heartbeat_never_outlives_the_lease(tmp_path: Path) -> None:
+    from drvs.camera.node import CameraNode
+    from drvs.camera.source import VideoSource
+    from drvs.geometry import homography_from_pose
+
+    h = homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
+    node = CameraNode("a", VideoSource("0"), h, "127.0.0.1:1", heartbeat_s=2.0)
+    assert node._heartbeat_interval(10.0) == 2.0
+    assert node._heartbeat_interval(3.0) == 1.5  # at most half the lease
+    assert CameraNode("b", VideoSource("0"), h, "127.0.0.1:1")._heartbeat_interval(9.0) == 3.0
+
+
+async def test_a_source_of_another_size_is_refused(office: Office) -> None:
+    rec = office.recorded["cam1"]
+    proc = ManagedProcess.entry_point(
+        "small", "drvs-camera", "--id", "small", "--source", str(rec.video), "--homography", str(rec.homography_file),
+        "--server", office.address, "--resolution", "320,240",
+    )  # fmt: skip
+    await proc.start()
+    assert await proc.wait(timeout=30) != 0
+    assert "the source gives 640x480, not the configured 320x240" in proc.output()

@@ -67,17 +67,32 @@ def build_parser() -> argparse.ArgumentParser:
         const=True,
         help="also stream whole frames (FrameStream service): the no-DRVS baseline, for benchmarks",
     )
+    p.add_argument(
+        "--resolution", help=f"W,H to ask of a device or stream; another size is refused ({e['resolution']})"
+    )
+    p.add_argument("--fps", type=float, help=f"frame rate to ask of a device or stream ({e['fps']})")
+    p.add_argument("--detectors", help=f"detector kinds to run, comma-separated (default hsv; {e['detectors']})")
+    p.add_argument(
+        "--heartbeat", dest="heartbeat_s", type=float, metavar="S", help="heartbeat interval (default: lease / 3)"
+    )
     p.add_argument("--log-level", help=f"DEBUG, INFO, WARNING ({e['log_level']})")
     return p
 
 
-def make_source(spec: str, camera_id: str, *, loop_file: bool = True) -> FrameSource:
+def make_source(
+    spec: str,
+    camera_id: str,
+    *,
+    loop_file: bool = True,
+    resolution: tuple[int, int] | None = None,
+    fps: float | None = None,
+) -> FrameSource:
     """A sim://HOST:PORT source renders the simulated world; anything else goes to OpenCV."""
     if spec.startswith("sim://"):
         from drvs.sim.source import SimSource
 
         return SimSource(spec, camera_id)
-    return VideoSource(spec, loop_file=loop_file)
+    return VideoSource(spec, loop_file=loop_file, resolution=resolution, fps=fps)
 
 
 async def run(node: CameraNode) -> int:
@@ -297,7 +312,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         node = CameraNode(
             config.id,
-            make_source(config.source, config.id, loop_file=config.loop),
+            make_source(config.source, config.id, loop_file=config.loop, resolution=config.resolution, fps=config.fps),
             load_homography(config.homography),
             config.server,
             listen=config.listen,
@@ -306,6 +321,9 @@ def main(argv: list[str] | None = None) -> int:
             min_area_px=config.min_area_px,
             max_frame_age_s=config.max_frame_age_s,
             serve_frames=config.serve_frames,
+            resolution=config.resolution,
+            detectors=config.detectors,
+            heartbeat_s=config.heartbeat_s,
         )
     except DrvsError as exc:
         parser.error(str(exc))

@@ -16,6 +16,7 @@ import yaml
 
 from drvs.detection import DEFAULT_MIN_AREA_PX
 from drvs.errors import InvalidArgument
+from drvs.filters import DETECTOR_KINDS
 from drvs.geometry import DEFAULT_MAX_RANGE_M
 from drvs.model import check_id
 from drvs.net import parse_address
@@ -37,6 +38,10 @@ ENVIRONMENT = {
     "max_frame_age_s": "DRVS_CAMERA_MAX_FRAME_AGE",
     "loop": "DRVS_CAMERA_LOOP",
     "serve_frames": "DRVS_CAMERA_SERVE_FRAMES",
+    "resolution": "DRVS_CAMERA_RESOLUTION",
+    "fps": "DRVS_CAMERA_FPS",
+    "detectors": "DRVS_CAMERA_DETECTORS",
+    "heartbeat_s": "DRVS_CAMERA_HEARTBEAT",
     "log_level": "DRVS_LOG_LEVEL",
 }
 
@@ -54,13 +59,21 @@ class CameraConfig:
     max_frame_age_s: float = DEFAULT_MAX_FRAME_AGE_S
     loop: bool = True
     serve_frames: bool = False
+    #: Asked of a device or stream; a source that gives another size is refused (the homography
+    #: belongs to one image size).
+    resolution: tuple[int, int] | None = None
+    fps: float | None = None
+    detectors: tuple[str, ...] = DETECTOR_KINDS
+    #: Heartbeat interval; by default a third of the lease the server grants.
+    heartbeat_s: float | None = None
     log_level: str | None = None
 
 
 _FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max_range_m": "--max-range",
           "min_area_px": "--min-area", "max_frame_age_s": "--max-frame-age", "loop": "--no-loop",
           "serve_frames": "--serve-frames", "log_level": "--log-level", "server": "--server",
-          "listen": "--listen", "advertise": "--advertise"}  # fmt: skip
+          "listen": "--listen", "advertise": "--advertise", "resolution": "--resolution", "fps": "--fps",
+          "detectors": "--detectors", "heartbeat_s": "--heartbeat"}  # fmt: skip
 
 
 def load_config(
@@ -110,9 +123,30 @@ def load_config(
 def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
     where = f"{name} (from {origin})"
     try:
-        if name in ("max_range_m", "min_area_px", "max_frame_age_s"):
+        if name == "resolution":
+            parts = raw if isinstance(raw, list) else str(raw).lower().replace("x", ",").split(",")
+            if len(parts) != 2:
+                raise InvalidArgument(f"{where}: {raw!r} is not W,H")
+            w, h = (int(p) for p in parts)
+            if not (16 <= w <= 16384 and 16 <= h <= 16384):
+                raise InvalidArgument(f"{where}: {w}x{h} is not a camera resolution")
+            return (w, h)
+        if name == "detectors":
+            kinds = raw if isinstance(raw, list) else str(raw).split(",")
+            kinds = [str(k).strip() for k in kinds if str(k).strip()]
+            unknown = [k for k in kinds if k not in DETECTOR_KINDS]
+            if not kinds or unknown:
+                raise InvalidArgument(f"{where}: {raw!r}: detectors must be some of {', '.join(DETECTOR_KINDS)}")
+            return tuple(kinds)
+        if name in ("max_range_m", "min_area_px", "max_frame_age_s", "fps", "heartbeat_s"):
             value = float(raw) if not isinstance(raw, bool) else math.nan
-            limits = {"max_range_m": (0.1, 1000.0), "min_area_px": (1.0, 1e7), "max_frame_age_s": (0.05, 3600.0)}[name]
+            limits = {
+                "max_range_m": (0.1, 1000.0),
+                "min_area_px": (1.0, 1e7),
+                "max_frame_age_s": (0.05, 3600.0),
+                "fps": (0.1, 1000.0),
+                "heartbeat_s": (0.05, 3600.0),
+            }[name]
             if not (math.isfinite(value) and limits[0] <= value <= limits[1]):
                 raise InvalidArgument(f"{where}: {raw!r} must be a number from {limits[0]:g} to {limits[1]:g}")
             return value

@@ -57,7 +57,13 @@ class CameraNode(Lifecycle):
         first_frame_timeout_s: float = 15.0,
         max_frame_age_s: float = DEFAULT_MAX_FRAME_AGE_S,
         serve_frames: bool = False,
+        resolution: tuple[int, int] | None = None,
+        detectors: tuple[str, ...] = ("hsv",),
+        heartbeat_s: float | None = None,
     ) -> None:
+        self.resolution = resolution
+        self.detectors = detectors
+        self.heartbeat_s = heartbeat_s
         self.camera_id = check_id(camera_id, "camera_id")
         self.source = source
         self.homography = homography
@@ -111,6 +117,11 @@ class CameraNode(Lifecycle):
         self.source.start()
         frame = await self.source.wait_first_frame(self.first_frame_timeout_s)
         image_size = frame.size
+        if self.resolution is not None and image_size != self.resolution:
+            raise InvalidArgument(
+                f"resolution: the source gives {image_size[0]}x{image_size[1]}, not the configured "
+                f"{self.resolution[0]}x{self.resolution[1]}; the homography belongs to one image size"
+            )
         self.field_of_view = FieldOfView.compute(self.homography, image_size, self.max_range_m)
         self.detector = HsvDetector(
             self.homography,
@@ -185,6 +196,11 @@ class CameraNode(Lifecycle):
 
     # --- registration: soft state ------------------------------------------------------------
 
+    def _heartbeat_interval(self, lease_ttl_s: float) -> float:
+        """The configured interval, but never so long that the lease runs out between beats."""
+        interval = lease_ttl_s / 3 if self.heartbeat_s is None else min(self.heartbeat_s, lease_ttl_s / 2)
+        return max(0.05, interval)
+
     async def _keep_registered(self, image_size: tuple[int, int]) -> None:
         assert self._channel is not None
         stub = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
@@ -195,7 +211,7 @@ class CameraNode(Lifecycle):
             image_width=image_size[0],
             image_height=image_size[1],
             max_range_m=self.max_range_m,
-            detector_kinds=[HsvDetector.kind],
+            detector_kinds=list(self.detectors),
         )
         interval = 1.0
         backoff = 0.2
@@ -206,7 +222,7 @@ class CameraNode(Lifecycle):
                 if not registered:
                     reply = await stub.Register(register, timeout=5.0)
                     registered = True
-                    interval = max(0.1, reply.lease_ttl_s / 3)
+                    interval = self._heartbeat_interval(reply.lease_ttl_s)
                     log.info(
                         "camera %s %s with %s: lease %.1f s, field of view %.1f m²",
                         self.camera_id,
@@ -221,7 +237,7 @@ class CameraNode(Lifecycle):
                     reply_hb = await stub.Heartbeat(
                         registry_pb2.HeartbeatRequest(camera_id=self.camera_id), timeout=interval
                     )
-                    interval = max(0.1, reply_hb.lease_ttl_s / 3)
+                    interval = self._heartbeat_interval(reply_hb.lease_ttl_s)
                 backoff = 0.2
                 await asyncio.sleep(interval)
             except grpc.RpcError as exc:
@@ -248,7 +264,7 @@ class CameraNode(Lifecycle):
     # --- serving requests --------------------------------------------------------------------
 
     def accept(self, request: DetectionRequest) -> None:
-        if request.kind != HsvDetector.kind:
+        if request.kind not in self.detectors:
             raise InvalidArgument(f"filter_def: camera {self.camera_id} does not run detector {request.kind!r}")
         if len(self._jobs) >= MAX_ACTIVE_REQUESTS:
             raise ResourceExhausted(f"camera {self.camera_id}: {len(self._jobs)} requests active; try later")

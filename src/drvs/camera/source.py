@@ -47,7 +47,17 @@ class VideoSource:
     delivers, and reopened with backoff when it drops.
     """
 
-    def __init__(self, spec: str, *, loop_file: bool = True, reconnect_max_s: float = 5.0) -> None:
+    def __init__(
+        self,
+        spec: str,
+        *,
+        loop_file: bool = True,
+        reconnect_max_s: float = 5.0,
+        resolution: tuple[int, int] | None = None,
+        fps: float | None = None,
+    ) -> None:
+        self.resolution = resolution
+        self.fps = fps
         self.source = parse_source(spec)
         self.description = str(spec)
         self.is_file = isinstance(self.source, str) and os.path.isfile(self.source)
@@ -94,6 +104,12 @@ class VideoSource:
         if not cap.isOpened():
             cap.release()
             return None
+        if not self.is_file:  # a device or stream: ask for the configured mode (it may not grant it)
+            if self.resolution is not None:
+                cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.resolution[0])
+                cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.resolution[1])
+            if self.fps is not None:
+                cap.set(cv2.CAP_PROP_FPS, self.fps)
         if self._opened_once:
             log.debug("source %s reopened", self.description)
         else:
