@@ -207,3 +207,31 @@ async def test_routing_uses_positive_area_overlap(channel: aio.Channel) -> None:
     inside = geometry_pb2.Region(box=geometry_pb2.Box(x_lower=edge - 0.5, y_lower=0, x_upper=edge + 1, y_upper=10))
     reply = await stub.DetectObjects(detect_message(region=inside, request_id="req-2"))
     assert list(reply.camera_ids) == ["cam1"]
+
+
+async def test_reports_go_only_to_the_requesting_robot(channel: aio.Channel) -> None:
+    stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
+    with pytest.raises(aio.AioRpcError) as err:
+        await stub.DetectObjects(detect_message(callback_address="10.1.2.3:9"))
+    assert err.value.code() == grpc.StatusCode.PERMISSION_DENIED
+    assert "callback_address: 10.1.2.3 is not the requesting robot's address (127.0.0.1)" in (err.value.details() or "")
+    # The robot's own address, by number or by name, is fine.
+    await stub.DetectObjects(detect_message(callback_address="127.0.0.1:9", request_id="own"))
+    await stub.DetectObjects(detect_message(callback_address="localhost:9", request_id="own-name"))
+
+
+async def test_allowed_callback_networks() -> None:
+    async with DrvsServer("127.0.0.1:0", allow_callback=["10.0.0.0/8"]) as srv, aio.insecure_channel(srv.address) as ch:
+        stub = detection_pb2_grpc.DetectObjectBoundaryStub(ch)
+        await stub.DetectObjects(detect_message(callback_address="10.1.2.3:9"))
+        with pytest.raises(aio.AioRpcError) as err:
+            await stub.DetectObjects(detect_message(callback_address="192.0.2.7:9", request_id="r2"))
+        assert err.value.code() == grpc.StatusCode.PERMISSION_DENIED
+
+
+def test_peer_addresses_parse() -> None:
+    from drvs.server.policy import peer_ip
+
+    assert str(peer_ip("ipv4:127.0.0.1:5000")) == "127.0.0.1"
+    assert str(peer_ip("ipv6:[::1]:5000")) == "::1"
+    assert peer_ip("unix:/tmp/sock") is None and peer_ip("ipv4:garbage") is None

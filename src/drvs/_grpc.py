@@ -21,6 +21,7 @@ _TO_STATUS: dict[type[errors.DrvsError], grpc.StatusCode] = {
     errors.DeadlineExceeded: grpc.StatusCode.DEADLINE_EXCEEDED,
     errors.FailedPrecondition: grpc.StatusCode.FAILED_PRECONDITION,
     errors.ResourceExhausted: grpc.StatusCode.RESOURCE_EXHAUSTED,
+    errors.PermissionDenied: grpc.StatusCode.PERMISSION_DENIED,
 }
 _FROM_STATUS = {code: cls for cls, code in _TO_STATUS.items()}
 

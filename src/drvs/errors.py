@@ -29,3 +29,7 @@ class FailedPrecondition(DrvsError):
 
 class ResourceExhausted(DrvsError):
     """A bound was hit (too many concurrent requests); retry later."""
+
+
+class PermissionDenied(DrvsError):
+    """The caller may not do this (e.g. send reports to somebody else's address)."""

@@ -10,6 +10,7 @@ from drvs._cli import env, setup_logging, shutdown_event
 from drvs.errors import DrvsError
 from drvs.net import parse_address
 from drvs.registry import DEFAULT_LEASE_TTL_S
+from drvs.server.policy import CallbackPolicy
 from drvs.server.server import DEFAULT_FORWARD_TIMEOUT_S, DEFAULT_LISTEN, DrvsServer
 
 log = logging.getLogger("drvs.server")
@@ -39,13 +40,30 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SECONDS",
         help="how long a camera may take to accept a forwarded request (default %(default)s)",
     )
+    p.add_argument(
+        "--allow-callback",
+        action="append",
+        default=[],
+        metavar="CIDR",
+        help="also let robots have reports sent to hosts in this network (repeatable); by default only to "
+        "the requesting robot's own address",
+    )
+    p.add_argument(
+        "--allow-any-callback", action="store_true", help="send reports wherever a request says (trusted networks only)"
+    )
     p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING (env DRVS_LOG_LEVEL)")
     return p
 
 
 async def serve(args: argparse.Namespace) -> None:
     stop = shutdown_event()
-    server = DrvsServer(args.listen, lease_ttl_s=args.lease_ttl, forward_timeout_s=args.forward_timeout)
+    server = DrvsServer(
+        args.listen,
+        lease_ttl_s=args.lease_ttl,
+        forward_timeout_s=args.forward_timeout,
+        allow_callback=args.allow_callback,
+        allow_any_callback=args.allow_any_callback,
+    )
     await server.start()
     try:
         await stop.wait()
@@ -61,6 +79,7 @@ def main(argv: list[str] | None = None) -> int:
         parse_address(args.listen, "--listen", allow_port_zero=True)
         if not 0 < args.lease_ttl <= 3600:
             raise DrvsError(f"--lease-ttl: {args.lease_ttl} must be in (0, 3600]")
+        CallbackPolicy(args.allow_callback)  # refuses a malformed network now, not after start
         if not 0 < args.forward_timeout <= 60:
             raise DrvsError(f"--forward-timeout: {args.forward_timeout} must be in (0, 60]")
     except DrvsError as exc:

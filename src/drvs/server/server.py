@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import asyncio
+import dataclasses
 import logging
 import time
 import uuid
+from collections.abc import Iterable
 from typing import Any
 
 import grpc
@@ -25,6 +27,7 @@ from drvs.errors import InvalidArgument
 from drvs.geometry import DEFAULT_MAX_RANGE_M
 from drvs.model import DetectionReport, DetectionRequest, check_id
 from drvs.registry import DEFAULT_LEASE_TTL_S, CameraEntry, Registry
+from drvs.server.policy import CallbackPolicy, peer_ip
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
 
 log = logging.getLogger("drvs.server")
@@ -57,7 +60,10 @@ class DrvsServer(Lifecycle):
         lease_ttl_s: float = DEFAULT_LEASE_TTL_S,
         forward_timeout_s: float = DEFAULT_FORWARD_TIMEOUT_S,
         default_max_range_m: float = DEFAULT_MAX_RANGE_M,
+        allow_callback: Iterable[str] = (),
+        allow_any_callback: bool = False,
     ) -> None:
+        self.callback_policy = CallbackPolicy(allow_callback, allow_any_callback)
         self.listen = listen
         self.registry = Registry(lease_ttl_s)
         self.forward_timeout_s = forward_timeout_s
@@ -192,15 +198,9 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         self, message: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
     ) -> detection_pb2.DetectionReply:
         request = request_from_pb(message, require_request_id=False)
+        await self._s.callback_policy.check(request.callback_address, peer_ip(context.peer()))
         if not request.request_id:
-            request = DetectionRequest(
-                request_id=uuid.uuid4().hex,
-                robot_id=request.robot_id,
-                filter_def=request.filter_def,
-                region=request.region,
-                callback_address=request.callback_address,
-                continuous=request.continuous,
-            )
+            request = dataclasses.replace(request, request_id=uuid.uuid4().hex)
             forwarded = detection_pb2.DetectionRequest()
             forwarded.CopyFrom(message)
             forwarded.request_id = request.request_id
