@@ -17,6 +17,7 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
+from drvs._files import read_yaml
 from drvs.errors import InvalidArgument
 from drvs.geometry import FieldOfView, Homography
 
@@ -52,12 +53,7 @@ class Calibration:
 def load_points(path: str | Path) -> list[Correspondence]:
     """YAML or JSON: [{image: [u, v], world: [x, y]}, ...]."""
     p = Path(path)
-    try:
-        data = yaml.safe_load(p.read_text())
-    except OSError as exc:
-        raise InvalidArgument(f"points file {p}: {exc.strerror or exc}") from None
-    except (yaml.YAMLError, UnicodeDecodeError) as exc:
-        raise InvalidArgument(f"points file {p}: not JSON or YAML ({exc})") from None
+    data = read_yaml(p, "points file")
     if not isinstance(data, list):
         raise InvalidArgument(f"points file {p}: expected a list of {{image: [u, v], world: [x, y]}}")
     points = []

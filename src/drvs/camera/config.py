@@ -12,8 +12,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
-import yaml
-
+from drvs._files import read_yaml
 from drvs.detection import DEFAULT_MIN_AREA_PX
 from drvs.errors import InvalidArgument
 from drvs.filters import DETECTOR_KINDS
@@ -84,12 +83,7 @@ def load_config(
     base = Path(".")
     if config_file is not None:
         path = Path(config_file)
-        try:
-            data = yaml.safe_load(path.read_text())
-        except OSError as exc:
-            raise InvalidArgument(f"config {path}: {exc.strerror or exc}") from None
-        except (yaml.YAMLError, UnicodeDecodeError) as exc:
-            raise InvalidArgument(f"config {path}: not YAML ({exc})") from None
+        data = read_yaml(path, "config")
         data = {} if data is None else data
         if not isinstance(data, dict):
             raise InvalidArgument(f"config {path}: expected a mapping of settings")

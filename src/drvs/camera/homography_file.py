@@ -6,6 +6,7 @@ from pathlib import Path
 
 import yaml
 
+from drvs._files import read_yaml
 from drvs.errors import InvalidArgument
 from drvs.geometry import Homography
 
@@ -13,16 +14,7 @@ from drvs.geometry import Homography
 def load_homography(path: str | Path) -> Homography:
     """The file's `homography` key: a 3x3 matrix (rows) or 9 numbers, row-major, image -> floor."""
     p = Path(path)
-    try:
-        text = p.read_text()
-    except OSError as exc:
-        raise InvalidArgument(f"homography file {p}: {exc.strerror or exc}") from None
-    except UnicodeDecodeError:
-        raise InvalidArgument(f"homography file {p}: not a text file (expected JSON or YAML)") from None
-    try:
-        data = yaml.safe_load(text)  # YAML is a superset of JSON
-    except yaml.YAMLError as exc:
-        raise InvalidArgument(f"homography file {p}: not JSON or YAML ({exc})") from None
+    data = read_yaml(p, "homography file")
     if not isinstance(data, dict) or "homography" not in data:
         raise InvalidArgument(f"homography file {p}: no 'homography' key")
     value = data["homography"]
