@@ -27,9 +27,7 @@ MODES = ("drvs", "drvs_boxes", "raw", "jpeg")
 
 
 def bench_process(name: str, *args: str) -> ManagedProcess:
-    script = Path(sys.executable).parent / "drvs-bench"
-    argv = [str(script)] if script.exists() else [sys.executable, "-m", "drvs_bench.cli"]
-    return ManagedProcess(name, [*argv, *args])
+    return ManagedProcess.entry_point(name, "drvs-bench", *args)
 
 
 async def run_mode(

@@ -45,6 +45,9 @@ class ManagedProcess:
             "drvs-server": "drvs.server.cli",
             "drvs-camera": "drvs.camera.cli",
             "drvs-robot": "drvs.robot.cli",
+            "drvs-sim": "drvs.sim.cli",
+            "drvs-office": "drvs.sim.office",
+            "drvs-bench": "drvs_bench.cli",
         }[command]
         code = f"import sys; from {module} import main; sys.exit(main())"
         return cls(name, [sys.executable, "-c", code, *args], **kwargs)  # type: ignore[arg-type]

@@ -22,9 +22,7 @@ WORLD_READY = re.compile(r"sim world .* listening on (\S+)")
 
 
 def sim_process(name: str, *args: str, echo: TextIO | None = None) -> ManagedProcess:
-    script = Path(sys.executable).parent / "drvs-sim"
-    argv = [str(script)] if script.exists() else [sys.executable, "-m", "drvs.sim.cli"]
-    return ManagedProcess(name, [*argv, *args], echo=echo)
+    return ManagedProcess.entry_point(name, "drvs-sim", *args, echo=echo)
 
 
 class Progress:
