@@ -18,6 +18,7 @@ from numpy.typing import NDArray
 from drvs.camera.calibration import Correspondence
 from drvs.errors import InvalidArgument
 from drvs.geometry import Homography
+from drvs.sim.scene import fill_polygon
 
 DEFAULT_DICTIONARY = "DICT_4X4_50"
 
@@ -118,7 +119,7 @@ def render_board_view(
     x0, y0 = pts.min(axis=0) - pad
     x1, y1 = pts.max(axis=0) + pad
     paper = to_image.apply(spec.to_world(np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])))
-    cv2.fillPoly(image, [np.round(paper * 16).astype(np.int32)], 255, shift=4)
+    fill_polygon(image, paper, 255)
     src = np.array([[0, 0], [marker_px, 0], [marker_px, marker_px], [0, marker_px]], dtype=np.float32)
     for marker_id, points in zip(np.asarray(board.getIds()).ravel(), board.getObjPoints(), strict=True):
         marker = cv2.aruco.generateImageMarker(board.getDictionary(), int(marker_id), marker_px)

@@ -12,13 +12,13 @@ from shapely.geometry import Point, Polygon
 
 from drvs.geometry import FieldOfView
 from drvs.sim.scenario import CameraDef, Scenario
+from drvs.sim.scene import fill_floor_shape, fill_polygon
 
 FLOOR_BGR = (128, 132, 136)
 WALL_BGR = (72, 72, 72)
 BEYOND_BGR = (205, 200, 196)  # above the horizon and outside the building
 TEXTURE_PX_PER_M = 100.0
 _NOISE_BANK = 8
-_SHIFT = 4
 
 
 class CameraRenderer:
@@ -49,8 +49,7 @@ class CameraRenderer:
         )
         # Above the horizon the warp would show the floor behind the camera: paint it as distance.
         mask = np.zeros((height, width), dtype=np.uint8)
-        ring = np.round(np.asarray(fov.image.exterior.coords)[:-1] * (1 << _SHIFT)).astype(np.int32)
-        cv2.fillPoly(mask, [ring], 255, shift=_SHIFT)
+        fill_polygon(mask, np.asarray(fov.image.exterior.coords)[:-1], 255)
         static[mask == 0] = BEYOND_BGR
         # Uneven lighting across the image (a window on one side), fixed per camera.
         rng = np.random.default_rng([seed, _stable_hash(camera.id)])
@@ -74,20 +73,13 @@ class CameraRenderer:
         image = self._static.copy()
         if robot_xy is not None:
             marker = Point(robot_xy).buffer(self.scenario.robot.radius, quad_segs=16)
-            self._fill(image, marker, self.scenario.robot.color.bgr)
+            fill_floor_shape(image, marker, self._to_image, self._fov_floor, self.scenario.robot.color.bgr)
         gain = 1.0 + self.scenario.render.lighting * math.sin(2 * math.pi * version / 70.0 + self._phase)
         image = cv2.convertScaleAbs(image, alpha=gain)
         if self._noise_up:
             i = (version * 5) % len(self._noise_up)
             image = cv2.subtract(cv2.add(image, self._noise_up[i]), self._noise_down[i])
         return np.asarray(image, dtype=np.uint8)
-
-    def _fill(self, image: NDArray[np.uint8], shape: Polygon, bgr: tuple[int, int, int]) -> None:
-        visible = shape.intersection(self._fov_floor)
-        for piece in getattr(visible, "geoms", [visible]):
-            if isinstance(piece, Polygon) and not piece.is_empty:
-                pts = self._to_image.apply(np.asarray(piece.exterior.coords)[:-1])
-                cv2.fillPoly(image, [np.round(pts * (1 << _SHIFT)).astype(np.int32)], bgr, shift=_SHIFT)
 
 
 def _floor_texture(scenario: Scenario, seed: int = 0) -> tuple[NDArray[np.uint8], NDArray[np.float64]]:
@@ -114,8 +106,7 @@ def _floor_texture(scenario: Scenario, seed: int = 0) -> tuple[NDArray[np.uint8]
 
     def fill(poly: Polygon, bgr: tuple[int, int, int]) -> None:
         pts = np.asarray(poly.exterior.coords)[:-1]
-        px = pts @ world_to_texture[:2, :2].T + world_to_texture[:2, 2]
-        cv2.fillPoly(texture, [np.round(px * (1 << _SHIFT)).astype(np.int32)], bgr, shift=_SHIFT)
+        fill_polygon(texture, pts @ world_to_texture[:2, :2].T + world_to_texture[:2, 2], bgr)
 
     for wall in scenario.walls:
         fill(wall, WALL_BGR)

@@ -51,13 +51,10 @@ def render_view(
     fov = FieldOfView.compute(homography, image_size, max_range_m=1000.0)
     image = np.empty((height, width, 3), dtype=np.uint8)
     image[:] = wall_bgr
-    _fill(image, np.asarray(fov.image.exterior.coords)[:-1], floor_bgr)
+    fill_polygon(image, np.asarray(fov.image.exterior.coords)[:-1], floor_bgr)
     to_image = homography.inverse()
     for patch in patches:
-        visible = patch.shape.intersection(fov.floor)
-        for piece in getattr(visible, "geoms", [visible]):
-            if isinstance(piece, Polygon) and not piece.is_empty:
-                _fill(image, to_image.apply(np.asarray(piece.exterior.coords)[:-1]), patch.bgr)
+        fill_floor_shape(image, patch.shape, to_image, fov.floor, patch.bgr)
     if noise_sigma > 0:
         gen = rng if rng is not None else np.random.default_rng(0)
         noisy = image.astype(np.float32) + gen.normal(0.0, noise_sigma, image.shape).astype(np.float32)
@@ -65,9 +62,25 @@ def render_view(
     return image
 
 
-def _fill(image: NDArray[np.uint8], points: NDArray[np.float64], bgr: tuple[int, int, int]) -> None:
+def fill_polygon(image: NDArray[np.uint8], points: NDArray[np.float64], color: int | tuple[int, int, int]) -> None:
+    """Fill a polygon given in (fractional) pixels, to 1/16 pixel."""
     pts = np.round(points * (1 << _SHIFT)).astype(np.int32)
-    cv2.fillPoly(image, [pts], bgr, lineType=cv2.LINE_8, shift=_SHIFT)
+    cv2.fillPoly(image, [pts], color, lineType=cv2.LINE_8, shift=_SHIFT)
+
+
+def fill_floor_shape(
+    image: NDArray[np.uint8],
+    shape: Polygon,
+    to_image: Homography,
+    visible_floor: Polygon,
+    color: int | tuple[int, int, int],
+) -> None:
+    """Fill the part of a floor shape the camera sees: clipped to its view first, since points
+    behind the camera have no image."""
+    visible = shape.intersection(visible_floor)
+    for piece in getattr(visible, "geoms", [visible]):
+        if isinstance(piece, Polygon) and not piece.is_empty:
+            fill_polygon(image, to_image.apply(np.asarray(piece.exterior.coords)[:-1]), color)
 
 
 def write_video(path: str | Path, frames: Iterable[NDArray[np.uint8]], fps: float = 20.0) -> Path:
