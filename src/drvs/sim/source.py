@@ -99,6 +99,7 @@ class SimSource:
         period = 1.0 / self.fps
         sequence = 0
         rendered_version = -2
+        image = None
         while not self._stop.is_set():
             with self._lock:
                 if self._robot_version == rendered_version:
@@ -106,7 +107,8 @@ class SimSource:
                 robot, version = self._robot, self._robot_version
             if self._stop.is_set():
                 return
-            image = self.renderer.render(robot, max(version, 0))
+            if image is None or version != rendered_version:  # pixels depend only on the world state
+                image = self.renderer.render(robot, max(version, 0))
             sequence += 1
             frame = Frame(image=image, capture_time=time.time(), sequence=sequence)
             with self._lock:
