@@ -12,7 +12,7 @@ from grpc_health.v1 import health_pb2
 
 from drvs import _grpc
 from drvs.health import add_health_and_reflection, mark_serving
-from drvs.net import format_address
+from drvs.net import format_address, host_of
 
 _L = TypeVar("_L", bound="Lifecycle")
 
@@ -51,7 +51,7 @@ class Endpoint:
     @property
     def address(self) -> str:
         """The bound address: the listen host with the real port."""
-        return format_address(self.listen.rpartition(":")[0].strip("[]"), self.port)
+        return format_address(host_of(self.listen), self.port)
 
     @property
     def started(self) -> bool:

@@ -58,3 +58,17 @@ def local_ip_towards(address: str) -> str:
             return str(s.getsockname()[0])
     except OSError:
         return "127.0.0.1"
+
+
+def host_of(listen: str) -> str:
+    """The host part of a listen address (port 0 allowed)."""
+    return parse_address(listen, "listen", allow_port_zero=True)[0]
+
+
+def dialable_address(listen: str, port: int, peer: str) -> str:
+    """What others should dial for a listener bound to `listen` on `port`: a wildcard host
+    (0.0.0.0, ::) becomes the local IP this host uses to reach `peer`."""
+    host = host_of(listen)
+    if host in ("0.0.0.0", "::"):
+        host = local_ip_towards(peer)
+    return format_address(host, port)

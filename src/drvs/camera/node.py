@@ -23,7 +23,7 @@ from drvs.detection import DEFAULT_MIN_AREA_PX, FrameAnalysis, HsvDetector
 from drvs.errors import DrvsError, FailedPrecondition, InvalidArgument, ResourceExhausted
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
 from drvs.model import DetectionReport, DetectionRequest, check_id
-from drvs.net import format_address, local_ip_towards, parse_address
+from drvs.net import dialable_address, parse_address
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc, stream_pb2, stream_pb2_grpc
 
 from .source import FrameSource
@@ -81,7 +81,6 @@ class CameraNode(Lifecycle):
         self.detector: HsvDetector | None = None
         self.field_of_view: FieldOfView | None = None
         self.registered = asyncio.Event()
-        self.requests_served = 0
         self.serve_frames = serve_frames
         names = (*SERVICE_NAMES, FRAME_STREAM_SERVICE) if serve_frames else SERVICE_NAMES
         self._endpoint = Endpoint(listen, names, self._add_servicers)
@@ -103,10 +102,7 @@ class CameraNode(Lifecycle):
         """The address the server is told to dial."""
         if self.advertise:
             return self.advertise
-        host = self.listen.rpartition(":")[0].strip("[]")
-        if host in ("0.0.0.0", "::", ""):
-            host = local_ip_towards(self.server_address)
-        return format_address(host, self.port)
+        return dialable_address(self.listen, self.port, self.server_address)
 
     def _add_servicers(self, server: aio.Server) -> None:
         detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(_ServerFacing(self), server)
@@ -279,7 +275,6 @@ class CameraNode(Lifecycle):
                 if request.continuous.single_shot
                 else f"{request.continuous.rate_hz:g} Hz for {request.continuous.duration_s:g} s",
             )
-        self.requests_served += 1
         job = asyncio.get_running_loop().create_task(self._serve(request))
         self._jobs.add(job)
         job.add_done_callback(self._jobs.discard)

@@ -20,7 +20,7 @@ from drvs.errors import DrvsError, InvalidArgument
 from drvs.geometry import box_region, polygon_region
 from drvs.meter import CountingRelay
 from drvs.model import ContinuousMode, Detection, DetectionReport, DetectionRequest
-from drvs.net import format_address, local_ip_towards, parse_address
+from drvs.net import dialable_address, format_address, host_of, local_ip_towards, parse_address
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
 
 log = logging.getLogger("drvs.robot")
@@ -197,10 +197,7 @@ class DrvsClient:
             return format_address("127.0.0.1", self._relays[0].port)
         if self._advertise:
             return self._advertise
-        host = self.listen.rpartition(":")[0].strip("[]")
-        if host in ("0.0.0.0", "::"):
-            host = local_ip_towards(self.server)
-        return format_address(host, self.port)
+        return dialable_address(self.listen, self.port, self.server)
 
     async def start(self) -> None:
         listener = _grpc.new_server()
@@ -210,7 +207,7 @@ class DrvsClient:
         self._listener = listener
         server_address = self.server
         if self._meter:
-            callback_relay = CountingRelay(self.listen.rpartition(":")[0].strip("[]"), self.port)
+            callback_relay = CountingRelay(host_of(self.listen), self.port)
             host, port = parse_address(self.server, "server")
             server_relay = CountingRelay(host, port)
             await callback_relay.start()
@@ -244,6 +241,10 @@ class DrvsClient:
     ) -> None:
         await self.close()
 
+    def _require_started(self) -> None:
+        if self._channel is None:
+            raise DrvsError("DrvsClient is not started; use `async with DrvsClient(...)` or await start()")
+
     async def subscribe(
         self,
         filter_def: str,
@@ -260,8 +261,7 @@ class DrvsClient:
 
         outlines=False asks for bounds, centroid and ground contact only (an empty outline).
         """
-        if self._channel is None:
-            raise DrvsError("DrvsClient is not started; use `async with DrvsClient(...)` or await start()")
+        self._require_started()
         request = DetectionRequest(
             request_id=request_id or uuid.uuid4().hex,
             robot_id=self.robot_id,
@@ -303,8 +303,7 @@ class DrvsClient:
 
     async def cameras(self, region: RegionLike | None = None, *, rpc_timeout_s: float = 5.0) -> list[CameraInfo]:
         """The cameras the server routes to (optionally only those that see `region`)."""
-        if self._channel is None:
-            raise DrvsError("DrvsClient is not started")
+        self._require_started()
         msg = registry_pb2.ListCamerasRequest()
         if region is not None:
             msg.region.CopyFrom(region_to_pb(as_region(region)))

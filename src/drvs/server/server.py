@@ -64,7 +64,6 @@ class DrvsServer(Lifecycle):
         allow_any_callback: bool = False,
     ) -> None:
         self.callback_policy = CallbackPolicy(allow_callback, allow_any_callback)
-        self.listen = listen
         self.registry = Registry(lease_ttl_s)
         self.forward_timeout_s = forward_timeout_s
         self.default_max_range_m = default_max_range_m

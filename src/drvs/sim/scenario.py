@@ -13,7 +13,6 @@ from typing import Any
 
 import cv2
 import numpy as np
-import shapely
 import yaml
 from shapely.geometry import Point, Polygon, box
 
@@ -385,7 +384,3 @@ def _robot(
         color=colors[cname],
         speed_mps=_number(obj.take("speed_mps", 1.0), "robot.speed_mps", 0.05, 10),
     )
-
-
-def walls_union(scenario: Scenario) -> Polygon:
-    return shapely.union_all(list(scenario.walls)) if scenario.walls else Polygon()
