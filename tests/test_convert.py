@@ -2,13 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 
+import numpy as np
 import pytest
 from shapely.geometry import Point, Polygon
 
 from drvs.convert import (
+    detection_from_pb,
+    detection_to_pb,
     homography_from_pb,
     homography_to_pb,
     region_from_pb,
@@ -198,12 +202,12 @@ def test_report_round_trip_with_detections() -> None:
         capture_time=1_700_000_000.123456,
         sequence=3,
         final=True,
-        detections=(detection(-1.0, 4.0), detection(1.5, 3.0, GREEN)),
+        detections=(detection(-1.0, 4.0), detection(1.5, 3.0)),
     )
     msg = report_to_pb(report)
     assert msg.capture_time.seconds == 1_700_000_000
     assert abs(msg.capture_time.nanos - 123_456_000) < 1000
-    back = report_from_pb(detection_pb2.DetectionReport.FromString(msg.SerializeToString()))
+    back = report_from_pb(detection_pb2.DetectionReport.FromString(msg.SerializeToString()), YELLOW)
     assert back.request_id == "req-1"
     assert back.camera_id == "cam1"
     assert back.sequence == 3
@@ -211,20 +215,44 @@ def test_report_round_trip_with_detections() -> None:
     assert back.error == ""
     assert abs(back.capture_time - report.capture_time) < 1e-6
     assert len(back.detections) == 2
+    # Floor values travel as 32-bit floats: within a micrometre at these distances.
+    um = 1e-6
     for got, sent in zip(back.detections, report.detections, strict=True):
-        assert got.outline.equals(sent.outline)
-        assert polygon_coords(got.outline) == polygon_coords(sent.outline)
-        assert got.bounds == sent.bounds
-        assert got.centroid.equals(sent.centroid)
-        assert got.ground_contact.equals(sent.ground_contact)
+        assert got.outline.equals_exact(sent.outline, um)
+        assert np.allclose(got.bounds, sent.bounds, atol=um)
+        assert got.centroid.equals_exact(sent.centroid, um)
+        assert got.ground_contact.equals_exact(sent.ground_contact, um)
         assert got.pixel_box == sent.pixel_box
-        assert got.area_m2 == sent.area_m2
+        assert got.area_m2 == pytest.approx(sent.area_m2, rel=1e-6)
         assert got.area_px == sent.area_px
         assert got.score == sent.score
-        assert got.filter_def == sent.filter_def
+        # The filter travels once, in the request; the robot fills it in.
+        assert got.filter_def == YELLOW
         # Camera and capture time travel once per report and are copied into each detection.
         assert got.camera_id == "cam1"
         assert got.capture_time == back.capture_time
+
+
+def test_boxes_only_detection_carries_bounds_centroid_and_contact_only() -> None:
+    sent = detection(2.0, 1.0)
+    full = detection_to_pb(sent)
+    box = detection_to_pb(sent, outline=False)
+    assert box.ByteSize() < full.ByteSize() / 3
+    assert not box.outline_xy and not box.HasField("pixel_box")
+    assert box.area_m2 == box.area_px == box.score == 0.0
+    got = detection_from_pb(box, "cam1", 0.0, GREEN)
+    assert got.outline.is_empty
+    assert np.allclose(got.bounds, sent.bounds, atol=1e-6)
+    assert got.centroid.equals_exact(sent.centroid, 1e-6)
+    assert got.ground_contact.equals_exact(sent.ground_contact, 1e-6)
+    assert got.filter_def == GREEN
+
+
+def test_single_shot_request_sends_no_continuous_field() -> None:
+    req = request_from_pb(_with())
+    assert not request_to_pb(req).HasField("continuous")
+    cont = dataclasses.replace(req, continuous=ContinuousMode(5.0, 2.0))
+    assert request_from_pb(request_to_pb(cont)).continuous == ContinuousMode(5.0, 2.0)
 
 
 def test_report_without_capture_time_or_detections() -> None:
@@ -233,7 +261,7 @@ def test_report_without_capture_time_or_detections() -> None:
     )
     msg = report_to_pb(report)
     assert not msg.HasField("capture_time")
-    back = report_from_pb(msg)
+    back = report_from_pb(msg, YELLOW)
     assert back == report
 
 

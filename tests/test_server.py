@@ -187,6 +187,43 @@ async def test_bad_detection_request_is_invalid_argument(
     assert len(server.registry) == 1
 
 
+async def test_streamed_requests_are_answered_in_order_and_a_refusal_does_not_end_the_stream(
+    channel: aio.Channel, server: DrvsServer
+) -> None:
+    await registry_pb2_grpc.RegisterVisionServiceStub(channel).Register(register_message())
+    call = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
+    bad_region = geometry_pb2.Region(box=geometry_pb2.Box(x_lower=float("nan"), x_upper=1, y_upper=1))
+    sent = [
+        detect_message(request_id="s1"),
+        detect_message(request_id="s2", region=bad_region),
+        detect_message(request_id="s3", callback_address="10.1.2.3:9"),
+        detect_message(request_id=""),
+        # Identity given once: an empty robot_id and callback_address repeat the previous request's.
+        detect_message(request_id="s5", robot_id="", callback_address=""),
+    ]
+    for message in sent:
+        await call.write(message)
+    await call.done_writing()
+    replies = [reply async for reply in call]
+    assert [r.request_id for r in replies] == ["s1", "s2", "s3", "", "s5"]
+    assert list(replies[0].camera_ids) == ["cam1"] and not replies[0].HasField("error")
+    assert replies[1].error.code == "INVALID_ARGUMENT" and "x_lower" in replies[1].error.message
+    assert replies[2].error.code == "PERMISSION_DENIED" and "callback_address" in replies[2].error.message
+    assert replies[3].error.code == "INVALID_ARGUMENT" and "request_id" in replies[3].error.message
+    # Accepted (cam1 itself may be skipped by now: nothing listens at its address, so s1's forward failed).
+    assert not replies[4].HasField("error")
+    assert await call.code() == grpc.StatusCode.OK
+    assert len(server.registry) == 1
+
+
+async def test_streamed_request_without_any_callback_is_refused(channel: aio.Channel) -> None:
+    call = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
+    await call.write(detect_message(request_id="s1", callback_address=""))
+    await call.done_writing()
+    replies = [reply async for reply in call]
+    assert replies[0].error.code == "INVALID_ARGUMENT" and "callback_address" in replies[0].error.message
+
+
 async def test_server_fills_an_empty_request_id(channel: aio.Channel) -> None:
     stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
     reply = await stub.DetectObjects(detect_message(request_id=""))

@@ -34,11 +34,15 @@ CHANNEL_OPTIONS: list[tuple[str, Any]] = [
     ("grpc.initial_reconnect_backoff_ms", 200),
     ("grpc.max_reconnect_backoff_ms", 2000),
     ("grpc.min_reconnect_backoff_ms", 200),
+    # DRVS messages are small: bandwidth-delay probing cost a PING and its ack per burst of them
+    # (a tenth of a robot's bytes) and gained nothing.
+    ("grpc.http2.bdp_probe", 0),
 ]
 SERVER_OPTIONS: list[tuple[str, Any]] = [
     ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
     ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
     ("grpc.so_reuseport", 0),
+    ("grpc.http2.bdp_probe", 0),
 ]
 
 T = TypeVar("T")
@@ -58,6 +62,12 @@ def from_rpc_error(exc: grpc.RpcError, what: str) -> errors.DrvsError:
     details = exc.details() if hasattr(exc, "details") else str(exc)
     cls = _FROM_STATUS.get(code, errors.DrvsError)
     return cls(f"{what}: {details or code.name}")
+
+
+def error_from_code(code_name: str, message: str) -> errors.DrvsError:
+    """The domain error for a status code sent by name (a refused request on a stream)."""
+    code = grpc.StatusCode.__members__.get(code_name, grpc.StatusCode.UNKNOWN)
+    return _FROM_STATUS.get(code, errors.DrvsError)(message or code_name)
 
 
 def servicer_method(method: Handler[T]) -> Handler[T]:

@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
-from shapely.geometry import Point, Polygon
+import numpy as np
+import shapely
+from shapely.geometry import Polygon
 
 from drvs.errors import InvalidArgument
 from drvs.geometry import Homography, box_region, polygon_coords, polygon_region
@@ -43,7 +45,9 @@ def request_to_pb(req: DetectionRequest) -> detection_pb2.DetectionRequest:
         filter_def=req.filter_def,
         region=region_to_pb(req.region),
         callback_address=req.callback_address,
-        continuous=detection_pb2.ContinuousMode(rate_hz=req.continuous.rate_hz, duration_s=req.continuous.duration_s),
+        continuous=None
+        if req.continuous.single_shot
+        else detection_pb2.ContinuousMode(rate_hz=req.continuous.rate_hz, duration_s=req.continuous.duration_s),
         omit_outlines=req.omit_outlines,
     )
 
@@ -68,20 +72,19 @@ def _missing_region() -> Polygon:
 
 
 def detection_to_pb(d: Detection, outline: bool = True) -> detection_pb2.Detection:
+    """outline=False: the paper's bounding box, with centroid and ground contact, and nothing else."""
     x0, y0, x1, y1 = d.bounds
-    return detection_pb2.Detection(
-        outline=polygon_to_pb(d.outline) if outline else None,
-        bounds=geometry_pb2.Box(x_lower=x0, y_lower=y0, x_upper=x1, y_upper=y1),
-        centroid=geometry_pb2.Point2(x=d.centroid.x, y=d.centroid.y),
-        ground_contact=geometry_pb2.Point2(x=d.ground_contact.x, y=d.ground_contact.y),
-        pixel_box=geometry_pb2.PixelBox(
-            x=d.pixel_box.x, y=d.pixel_box.y, width=d.pixel_box.width, height=d.pixel_box.height
-        ),
-        area_m2=d.area_m2,
-        area_px=d.area_px,
-        score=d.score,
-        filter_def=d.filter_def,
+    msg = detection_pb2.Detection(
+        bounds=geometry_pb2.FloorBox(x_lower=x0, y_lower=y0, x_upper=x1, y_upper=y1),
+        centroid=geometry_pb2.FloorPoint(x=d.centroid.x, y=d.centroid.y),
+        ground_contact=geometry_pb2.FloorPoint(x=d.ground_contact.x, y=d.ground_contact.y),
     )
+    if outline:
+        msg.outline_xy.extend(v for xy in polygon_coords(d.outline) for v in xy)
+        msg.pixel_box.x, msg.pixel_box.y = d.pixel_box.x, d.pixel_box.y
+        msg.pixel_box.width, msg.pixel_box.height = d.pixel_box.width, d.pixel_box.height
+        msg.area_m2, msg.area_px, msg.score = d.area_m2, d.area_px, d.score
+    return msg
 
 
 #: Shapely geometries are immutable: one empty outline serves every boxes-only detection
@@ -89,19 +92,23 @@ def detection_to_pb(d: Detection, outline: bool = True) -> detection_pb2.Detecti
 _NO_OUTLINE = Polygon()
 
 
-def detection_from_pb(msg: detection_pb2.Detection, camera_id: str, capture_time: float) -> Detection:
+def detection_from_pb(msg: detection_pb2.Detection, camera_id: str, capture_time: float, filter_def: str) -> Detection:
+    """`filter_def` is the request's: detections do not repeat it on the wire."""
     b = msg.bounds
-    outline = Polygon([(p.x, p.y) for p in msg.outline.points]) if len(msg.outline.points) >= 3 else _NO_OUTLINE
+    xy = msg.outline_xy
+    outline = Polygon(np.asarray(xy, dtype=float).reshape(-1, 2)) if len(xy) >= 6 else _NO_OUTLINE
+    # One vectorised call for both points: shapely's per-object constructor costs more than the rest.
+    centroid, contact = shapely.points([(msg.centroid.x, msg.centroid.y), (msg.ground_contact.x, msg.ground_contact.y)])
     return Detection(
         outline=outline,
         bounds=(b.x_lower, b.y_lower, b.x_upper, b.y_upper),
-        centroid=Point(msg.centroid.x, msg.centroid.y),
-        ground_contact=Point(msg.ground_contact.x, msg.ground_contact.y),
+        centroid=centroid,
+        ground_contact=contact,
         pixel_box=PixelBox(msg.pixel_box.x, msg.pixel_box.y, msg.pixel_box.width, msg.pixel_box.height),
         area_m2=msg.area_m2,
         area_px=msg.area_px,
         score=msg.score,
-        filter_def=msg.filter_def,
+        filter_def=filter_def,
         camera_id=camera_id,
         capture_time=capture_time,
     )
@@ -121,7 +128,8 @@ def report_to_pb(r: DetectionReport, outlines: bool = True) -> detection_pb2.Det
     return msg
 
 
-def report_from_pb(msg: detection_pb2.DetectionReport) -> DetectionReport:
+def report_from_pb(msg: detection_pb2.DetectionReport, filter_def: str) -> DetectionReport:
+    """`filter_def`: the filter the report's request asked for."""
     capture_time = msg.capture_time.ToNanoseconds() / 1e9 if msg.HasField("capture_time") else 0.0
     return DetectionReport(
         request_id=msg.request_id,
@@ -129,7 +137,7 @@ def report_from_pb(msg: detection_pb2.DetectionReport) -> DetectionReport:
         capture_time=capture_time,
         sequence=msg.sequence,
         final=msg.final,
-        detections=tuple(detection_from_pb(d, msg.camera_id, capture_time) for d in msg.detections),
+        detections=tuple(detection_from_pb(d, msg.camera_id, capture_time, filter_def) for d in msg.detections),
         error=msg.error,
     )
 

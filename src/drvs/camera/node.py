@@ -24,6 +24,7 @@ from drvs.errors import DrvsError, FailedPrecondition, InvalidArgument, Resource
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
 from drvs.model import DetectionReport, DetectionRequest, check_id
 from drvs.net import dialable_address, parse_address
+from drvs.request_stream import serve_request_stream
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc, stream_pb2, stream_pb2_grpc
 
 from .source import FrameSource
@@ -334,15 +335,26 @@ class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
     def __init__(self, node: CameraNode) -> None:
         self._node = node
 
-    @_grpc.servicer_method
-    async def DetectObjects(
-        self, message: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
-    ) -> detection_pb2.DetectionReply:
+    async def _answer(self, message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
         if self._node.detector is None:
             raise FailedPrecondition(f"camera {self._node.camera_id} is not started")
         request = request_from_pb(message, require_request_id=True)
         self._node.accept(request)
         return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=[self._node.camera_id])
+
+    @_grpc.servicer_method
+    async def DetectObjects(
+        self, message: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
+    ) -> detection_pb2.DetectionReply:
+        return await self._answer(message)
+
+    async def DetectStream(
+        self,
+        request_iterator: AsyncIterator[detection_pb2.DetectionRequest],
+        context: aio.ServicerContext[Any, Any],
+    ) -> AsyncIterator[detection_pb2.DetectionReply]:
+        async for reply in serve_request_stream(request_iterator, self._answer, f"camera {self._node.camera_id}"):
+            yield reply
 
 
 def encode_frame(image: NDArray[np.uint8], encoding: int, quality: int) -> bytes:

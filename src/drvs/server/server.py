@@ -7,10 +7,9 @@ import dataclasses
 import logging
 import time
 import uuid
-from collections.abc import Iterable
+from collections.abc import AsyncIterator, Iterable
 from typing import Any
 
-import grpc
 from grpc import aio
 from shapely.geometry import Polygon
 
@@ -23,11 +22,12 @@ from drvs.convert import (
     region_from_pb,
     request_from_pb,
 )
-from drvs.errors import InvalidArgument
+from drvs.errors import DeadlineExceeded, DrvsError, InvalidArgument, Unavailable
 from drvs.geometry import DEFAULT_MAX_RANGE_M
 from drvs.model import DetectionReport, DetectionRequest, check_id
 from drvs.registry import DEFAULT_LEASE_TTL_S, CameraEntry, Registry
-from drvs.server.policy import CallbackPolicy, peer_ip
+from drvs.request_stream import RequestStream, serve_request_stream
+from drvs.server.policy import CallbackPolicy, IPAddress, peer_ip
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
 
 log = logging.getLogger("drvs.server")
@@ -47,7 +47,13 @@ class _CameraLink:
     def __init__(self, address: str) -> None:
         self.address = address
         self.channel = _grpc.insecure_channel(address)
-        self.stub = detection_pb2_grpc.DetectObjectBoundaryStub(self.channel)
+        self.requests = RequestStream(
+            detection_pb2_grpc.DetectObjectBoundaryStub(self.channel), f"camera at {address}", elide_identity=False
+        )
+
+    async def close(self) -> None:
+        await self.requests.close()
+        await self.channel.close()
 
 
 class DrvsServer(Lifecycle):
@@ -103,7 +109,7 @@ class DrvsServer(Lifecycle):
         for task in list(self._tasks):
             task.cancel()
         await asyncio.gather(*self._tasks, return_exceptions=True)
-        await asyncio.gather(*(link.channel.close() for link in self._links.values()), return_exceptions=True)
+        await asyncio.gather(*(link.close() for link in self._links.values()), return_exceptions=True)
         self._links.clear()
         await self._callbacks.close()
         log.info("drvs-server stopped")
@@ -140,7 +146,7 @@ class DrvsServer(Lifecycle):
         link = self._links.get(camera.camera_id)
         if link is None or link.address != camera.address:
             if link is not None:
-                self._spawn(link.channel.close())
+                self._spawn(link.close())
             link = _CameraLink(camera.address)
             self._links[camera.camera_id] = link
         return link
@@ -150,14 +156,13 @@ class DrvsServer(Lifecycle):
     ) -> None:
         link = self._link(camera)
         try:
-            await link.stub.DetectObjects(message, timeout=self.forward_timeout_s)
+            await link.requests.request(message, self.forward_timeout_s)
             return
-        except grpc.RpcError as exc:
-            code = exc.code() if isinstance(exc, aio.AioRpcError) else grpc.StatusCode.UNKNOWN
-            details = exc.details() if isinstance(exc, aio.AioRpcError) else str(exc)
-            reason = f"camera {camera.camera_id} did not accept the request: {code.name} {details}"
+        except DrvsError as exc:
+            reason = f"camera {camera.camera_id} did not accept the request: {_grpc.status_of(exc).name} {exc}"
+            unreachable = isinstance(exc, (Unavailable, DeadlineExceeded))
         log.warning("request %s: %s", request.request_id, reason)
-        if code in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
+        if unreachable:
             self._unreachable.add(camera.camera_id)
         # Answer for the camera, so the robot knows it will not report and need not wait for it.
         report = DetectionReport(
@@ -177,7 +182,7 @@ class DrvsServer(Lifecycle):
         self._unreachable.discard(camera_id)
         link = self._links.pop(camera_id, None)
         if link is not None:
-            self._spawn(link.channel.close())
+            self._spawn(link.close())
 
     async def _sweep_leases(self) -> None:
         period = min(1.0, self.registry.lease_ttl_s / 4)
@@ -192,20 +197,41 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
     def __init__(self, server: DrvsServer) -> None:
         self._s = server
 
+    async def _answer(
+        self, message: detection_pb2.DetectionRequest, peer: IPAddress | None, allowed: set[str]
+    ) -> detection_pb2.DetectionReply:
+        """Validate, check the callback (once per address per call), dispatch, reply at once."""
+        request = request_from_pb(message, require_request_id=False)
+        if request.callback_address not in allowed:
+            await self._s.callback_policy.check(request.callback_address, peer)
+            allowed.add(request.callback_address)
+        if not request.request_id:
+            request = dataclasses.replace(request, request_id=uuid.uuid4().hex)
+            message.request_id = request.request_id
+        camera_ids = self._s.dispatch(request, message)
+        return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=camera_ids)
+
     @_grpc.servicer_method
     async def DetectObjects(
         self, message: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
     ) -> detection_pb2.DetectionReply:
-        request = request_from_pb(message, require_request_id=False)
-        await self._s.callback_policy.check(request.callback_address, peer_ip(context.peer()))
-        if not request.request_id:
-            request = dataclasses.replace(request, request_id=uuid.uuid4().hex)
-            forwarded = detection_pb2.DetectionRequest()
-            forwarded.CopyFrom(message)
-            forwarded.request_id = request.request_id
-            message = forwarded
-        camera_ids = self._s.dispatch(request, message)
-        return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=camera_ids)
+        return await self._answer(message, peer_ip(context.peer()), set())
+
+    async def DetectStream(
+        self,
+        request_iterator: AsyncIterator[detection_pb2.DetectionRequest],
+        context: aio.ServicerContext[Any, Any],
+    ) -> AsyncIterator[detection_pb2.DetectionReply]:
+        peer = peer_ip(context.peer())
+        allowed: set[str] = set()
+
+        async def answer(message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
+            if not message.request_id:
+                raise InvalidArgument("request_id: empty; a streamed request needs its own id")
+            return await self._answer(message, peer, allowed)
+
+        async for reply in serve_request_stream(request_iterator, answer, "drvs-server"):
+            yield reply
 
 
 class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):

@@ -36,17 +36,27 @@ class DetectionRequest(_message.Message):
     omit_outlines: bool
     def __init__(self, request_id: _Optional[str] = ..., robot_id: _Optional[str] = ..., filter_def: _Optional[str] = ..., region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., callback_address: _Optional[str] = ..., continuous: _Optional[_Union[ContinuousMode, _Mapping]] = ..., omit_outlines: bool = ...) -> None: ...
 
+class RequestError(_message.Message):
+    __slots__ = ("code", "message")
+    CODE_FIELD_NUMBER: _ClassVar[int]
+    MESSAGE_FIELD_NUMBER: _ClassVar[int]
+    code: str
+    message: str
+    def __init__(self, code: _Optional[str] = ..., message: _Optional[str] = ...) -> None: ...
+
 class DetectionReply(_message.Message):
-    __slots__ = ("request_id", "camera_ids")
+    __slots__ = ("request_id", "camera_ids", "error")
     REQUEST_ID_FIELD_NUMBER: _ClassVar[int]
     CAMERA_IDS_FIELD_NUMBER: _ClassVar[int]
+    ERROR_FIELD_NUMBER: _ClassVar[int]
     request_id: str
     camera_ids: _containers.RepeatedScalarFieldContainer[str]
-    def __init__(self, request_id: _Optional[str] = ..., camera_ids: _Optional[_Iterable[str]] = ...) -> None: ...
+    error: RequestError
+    def __init__(self, request_id: _Optional[str] = ..., camera_ids: _Optional[_Iterable[str]] = ..., error: _Optional[_Union[RequestError, _Mapping]] = ...) -> None: ...
 
 class Detection(_message.Message):
-    __slots__ = ("outline", "bounds", "centroid", "ground_contact", "pixel_box", "area_m2", "area_px", "score", "filter_def")
-    OUTLINE_FIELD_NUMBER: _ClassVar[int]
+    __slots__ = ("outline_xy", "bounds", "centroid", "ground_contact", "pixel_box", "area_m2", "area_px", "score")
+    OUTLINE_XY_FIELD_NUMBER: _ClassVar[int]
     BOUNDS_FIELD_NUMBER: _ClassVar[int]
     CENTROID_FIELD_NUMBER: _ClassVar[int]
     GROUND_CONTACT_FIELD_NUMBER: _ClassVar[int]
@@ -54,17 +64,15 @@ class Detection(_message.Message):
     AREA_M2_FIELD_NUMBER: _ClassVar[int]
     AREA_PX_FIELD_NUMBER: _ClassVar[int]
     SCORE_FIELD_NUMBER: _ClassVar[int]
-    FILTER_DEF_FIELD_NUMBER: _ClassVar[int]
-    outline: _geometry_pb2.Polygon
-    bounds: _geometry_pb2.Box
-    centroid: _geometry_pb2.Point2
-    ground_contact: _geometry_pb2.Point2
+    outline_xy: _containers.RepeatedScalarFieldContainer[float]
+    bounds: _geometry_pb2.FloorBox
+    centroid: _geometry_pb2.FloorPoint
+    ground_contact: _geometry_pb2.FloorPoint
     pixel_box: _geometry_pb2.PixelBox
     area_m2: float
     area_px: float
     score: float
-    filter_def: str
-    def __init__(self, outline: _Optional[_Union[_geometry_pb2.Polygon, _Mapping]] = ..., bounds: _Optional[_Union[_geometry_pb2.Box, _Mapping]] = ..., centroid: _Optional[_Union[_geometry_pb2.Point2, _Mapping]] = ..., ground_contact: _Optional[_Union[_geometry_pb2.Point2, _Mapping]] = ..., pixel_box: _Optional[_Union[_geometry_pb2.PixelBox, _Mapping]] = ..., area_m2: _Optional[float] = ..., area_px: _Optional[float] = ..., score: _Optional[float] = ..., filter_def: _Optional[str] = ...) -> None: ...
+    def __init__(self, outline_xy: _Optional[_Iterable[float]] = ..., bounds: _Optional[_Union[_geometry_pb2.FloorBox, _Mapping]] = ..., centroid: _Optional[_Union[_geometry_pb2.FloorPoint, _Mapping]] = ..., ground_contact: _Optional[_Union[_geometry_pb2.FloorPoint, _Mapping]] = ..., pixel_box: _Optional[_Union[_geometry_pb2.PixelBox, _Mapping]] = ..., area_m2: _Optional[float] = ..., area_px: _Optional[float] = ..., score: _Optional[float] = ...) -> None: ...
 
 class DetectionReport(_message.Message):
     __slots__ = ("request_id", "camera_id", "capture_time", "sequence", "final", "detections", "error")

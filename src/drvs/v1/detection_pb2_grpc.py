@@ -40,6 +40,11 @@ class DetectObjectBoundaryStub(object):
                 request_serializer=drvs_dot_v1_dot_detection__pb2.DetectionRequest.SerializeToString,
                 response_deserializer=drvs_dot_v1_dot_detection__pb2.DetectionReply.FromString,
                 _registered_method=True)
+        self.DetectStream = channel.stream_stream(
+                '/drvs.v1.DetectObjectBoundary/DetectStream',
+                request_serializer=drvs_dot_v1_dot_detection__pb2.DetectionRequest.SerializeToString,
+                response_deserializer=drvs_dot_v1_dot_detection__pb2.DetectionReply.FromString,
+                _registered_method=True)
 
 
 class DetectObjectBoundaryServicer(object):
@@ -47,7 +52,18 @@ class DetectObjectBoundaryServicer(object):
     """
 
     def DetectObjects(self, request, context):
-        """Missing associated documentation comment in .proto file."""
+        """One request, one reply.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
+    def DetectStream(self, request_iterator, context):
+        """Many requests on one long-lived call, each answered by a reply carrying its request_id, in
+        order. A refused request gets a reply with error set; the stream goes on. This is how the
+        client and the server send requests: a request costs one message, not a call's headers,
+        trailers and round of call set-up.
+        """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
@@ -57,6 +73,11 @@ def add_DetectObjectBoundaryServicer_to_server(servicer, server):
     rpc_method_handlers = {
             'DetectObjects': grpc.unary_unary_rpc_method_handler(
                     servicer.DetectObjects,
+                    request_deserializer=drvs_dot_v1_dot_detection__pb2.DetectionRequest.FromString,
+                    response_serializer=drvs_dot_v1_dot_detection__pb2.DetectionReply.SerializeToString,
+            ),
+            'DetectStream': grpc.stream_stream_rpc_method_handler(
+                    servicer.DetectStream,
                     request_deserializer=drvs_dot_v1_dot_detection__pb2.DetectionRequest.FromString,
                     response_serializer=drvs_dot_v1_dot_detection__pb2.DetectionReply.SerializeToString,
             ),
@@ -87,6 +108,33 @@ class DetectObjectBoundary(object):
             request,
             target,
             '/drvs.v1.DetectObjectBoundary/DetectObjects',
+            drvs_dot_v1_dot_detection__pb2.DetectionRequest.SerializeToString,
+            drvs_dot_v1_dot_detection__pb2.DetectionReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def DetectStream(request_iterator,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.stream_stream(
+            request_iterator,
+            target,
+            '/drvs.v1.DetectObjectBoundary/DetectStream',
             drvs_dot_v1_dot_detection__pb2.DetectionRequest.SerializeToString,
             drvs_dot_v1_dot_detection__pb2.DetectionReply.FromString,
             options,

@@ -40,6 +40,26 @@ class Region(_message.Message):
     polygon: Polygon
     def __init__(self, box: _Optional[_Union[Box, _Mapping]] = ..., polygon: _Optional[_Union[Polygon, _Mapping]] = ...) -> None: ...
 
+class FloorPoint(_message.Message):
+    __slots__ = ("x", "y")
+    X_FIELD_NUMBER: _ClassVar[int]
+    Y_FIELD_NUMBER: _ClassVar[int]
+    x: float
+    y: float
+    def __init__(self, x: _Optional[float] = ..., y: _Optional[float] = ...) -> None: ...
+
+class FloorBox(_message.Message):
+    __slots__ = ("x_lower", "y_lower", "x_upper", "y_upper")
+    X_LOWER_FIELD_NUMBER: _ClassVar[int]
+    Y_LOWER_FIELD_NUMBER: _ClassVar[int]
+    X_UPPER_FIELD_NUMBER: _ClassVar[int]
+    Y_UPPER_FIELD_NUMBER: _ClassVar[int]
+    x_lower: float
+    y_lower: float
+    x_upper: float
+    y_upper: float
+    def __init__(self, x_lower: _Optional[float] = ..., y_lower: _Optional[float] = ..., x_upper: _Optional[float] = ..., y_upper: _Optional[float] = ...) -> None: ...
+
 class PixelBox(_message.Message):
     __slots__ = ("x", "y", "width", "height")
     X_FIELD_NUMBER: _ClassVar[int]

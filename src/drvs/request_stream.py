@@ -1,0 +1,157 @@
+"""DetectStream: many detection requests on one long-lived call, each answered by a reply.
+
+A unary call pays for its headers, trailers and call set-up on every request; on the stream a
+request is one message. Both hops use it: the robot client to the server, the server to each
+camera. Replies carry the request_id they answer; a refused request gets a reply with `error`
+set and the stream goes on.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+from collections.abc import AsyncIterator, Awaitable, Callable
+
+import grpc
+from grpc import aio
+
+from drvs import _grpc, errors
+from drvs.v1 import detection_pb2, detection_pb2_grpc
+
+log = logging.getLogger(__name__)
+
+Reply = detection_pb2.DetectionReply
+Request = detection_pb2.DetectionRequest
+
+
+class RequestStream:
+    """The sending side: `await request(message, timeout_s)` returns the peer's reply or raises the
+    DrvsError it stands for. The call is opened on first use and reopened after it ends (a peer that
+    restarted), so a request during an outage fails fast with Unavailable and the next one retries.
+
+    elide_identity=True sends robot_id and callback_address only when they change (the receiver
+    fills them in from the previous request); only for senders whose messages are their own to edit.
+    """
+
+    def __init__(self, stub: detection_pb2_grpc.DetectObjectBoundaryStub, peer: str, *, elide_identity: bool) -> None:
+        self._stub = stub
+        self._peer = peer
+        self._elide = elide_identity
+        self._call: aio.StreamStreamCall[Request, Reply] | None = None
+        self._reader: asyncio.Task[None] | None = None
+        self._pending: dict[str, asyncio.Future[Reply]] = {}
+        self._write_lock = asyncio.Lock()
+        self._last_identity = ("", "")
+
+    def _open(self) -> aio.StreamStreamCall[Request, Reply]:
+        call: aio.StreamStreamCall[Request, Reply] = self._stub.DetectStream()
+        self._call = call
+        self._last_identity = ("", "")
+        self._reader = asyncio.get_running_loop().create_task(self._read(call))
+        return call
+
+    async def _read(self, call: aio.StreamStreamCall[Request, Reply]) -> None:
+        failure: errors.DrvsError
+        try:
+            async for reply in call:
+                future = self._pending.pop(reply.request_id, None)
+                if future is not None and not future.done():
+                    future.set_result(reply)
+            failure = errors.Unavailable(f"{self._peer}: the request stream ended")
+        except grpc.RpcError as exc:
+            failure = _grpc.from_rpc_error(exc, self._peer)
+        except asyncio.CancelledError:
+            failure = errors.Unavailable(f"{self._peer}: the request stream was closed")
+        if self._call is call:
+            self._call = None
+        for future in self._pending.values():
+            if not future.done():
+                future.set_exception(failure)
+        self._pending.clear()
+
+    async def request(self, message: Request, timeout_s: float) -> Reply:
+        if not message.request_id:
+            raise errors.InvalidArgument("request_id: empty; a streamed request needs its own id")
+        if message.request_id in self._pending:
+            raise errors.InvalidArgument(f"request_id: {message.request_id!r} is already waiting for a reply")
+        loop = asyncio.get_running_loop()
+        future: asyncio.Future[Reply] = loop.create_future()
+        self._pending[message.request_id] = future
+        timer = loop.call_later(timeout_s, _expire, future, self._peer, timeout_s)
+        try:
+            async with self._write_lock:
+                call = self._call or self._open()
+                if self._elide:
+                    identity = (message.robot_id, message.callback_address)
+                    if identity == self._last_identity:
+                        message.robot_id = message.callback_address = ""
+                    self._last_identity = identity
+                try:
+                    await call.write(message)
+                except (grpc.RpcError, asyncio.InvalidStateError) as exc:
+                    if self._call is call:
+                        self._call = None
+                    if isinstance(exc, grpc.RpcError):
+                        raise _grpc.from_rpc_error(exc, self._peer) from None
+                    raise errors.Unavailable(f"{self._peer}: the request stream ended") from None
+            reply = await future
+        finally:
+            timer.cancel()
+            self._pending.pop(message.request_id, None)
+        if reply.HasField("error"):
+            raise _grpc.error_from_code(reply.error.code, reply.error.message)
+        return reply
+
+    async def close(self) -> None:
+        call, reader = self._call, self._reader
+        self._call = None
+        if call is not None:
+            call.cancel()
+        if reader is not None:
+            reader.cancel()
+            await asyncio.gather(reader, return_exceptions=True)
+
+
+def _expire(future: asyncio.Future[Reply], peer: str, timeout_s: float) -> None:
+    if not future.done():
+        future.set_exception(errors.DeadlineExceeded(f"{peer}: no reply within {timeout_s:g} s"))
+
+
+class StreamIdentity:
+    """The receiving side of elided identity: fills an empty robot_id or callback_address from the
+    previous request on the same stream."""
+
+    def __init__(self) -> None:
+        self.robot_id = ""
+        self.callback_address = ""
+
+    def fill(self, message: Request) -> None:
+        if message.robot_id:
+            self.robot_id = message.robot_id
+        else:
+            message.robot_id = self.robot_id
+        if message.callback_address:
+            self.callback_address = message.callback_address
+        else:
+            message.callback_address = self.callback_address
+
+
+async def serve_request_stream(
+    requests: AsyncIterator[Request], answer: Callable[[Request], Awaitable[Reply]], where: str
+) -> AsyncIterator[Reply]:
+    """The receiving side: answer each request in order; a DrvsError becomes a reply's error and the
+    stream goes on; anything unexpected is logged and answered as INTERNAL."""
+    identity = StreamIdentity()
+    async for message in requests:
+        identity.fill(message)
+        try:
+            yield await answer(message)
+        except errors.DrvsError as exc:
+            yield refusal(message.request_id, _grpc.status_of(exc), str(exc))
+        except Exception:
+            log.exception("%s: request %s failed", where, message.request_id)
+            yield refusal(message.request_id, grpc.StatusCode.INTERNAL, f"{where}: internal error")
+
+
+def refusal(request_id: str, code: grpc.StatusCode, text: str) -> Reply:
+    return Reply(request_id=request_id, error=detection_pb2.RequestError(code=code.name, message=text))
