@@ -9,6 +9,7 @@ import json
 import math
 import os
 import time
+from collections.abc import AsyncIterator
 from typing import Any
 
 import grpc
@@ -34,6 +35,14 @@ class _Ack(detection_pb2_grpc.DetectObjectBoundaryServicer):
         self, request: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
     ) -> detection_pb2.DetectionReply:
         return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=["ack"])
+
+    async def DetectStream(
+        self,
+        request_iterator: AsyncIterator[detection_pb2.DetectionRequest],
+        context: aio.ServicerContext[Any, Any],
+    ) -> AsyncIterator[detection_pb2.DetectionReply]:
+        async for request in request_iterator:
+            yield detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=["ack"])
 
 
 async def ack_server(args: argparse.Namespace) -> None:
@@ -95,14 +104,37 @@ def one_camera_request(i: int, callback: str) -> detection_pb2.DetectionRequest:
     )
 
 
+class _Caller:
+    """One request and its reply, as a unary call or as a message on a DetectStream of its own."""
+
+    def __init__(self, channel: aio.Channel, mode: str) -> None:
+        self._stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
+        self._stream: aio.StreamStreamCall[Any, Any] | None = self._stub.DetectStream() if mode == "stream" else None
+
+    async def __call__(self, message: detection_pb2.DetectionRequest) -> None:
+        if self._stream is None:
+            await self._stub.DetectObjects(message, timeout=10)
+            return
+        await self._stream.write(message)
+        reply = await self._stream.read()
+        if not isinstance(reply, detection_pb2.DetectionReply) or reply.HasField("error"):
+            raise RuntimeError(f"stream refused or ended: {reply}")
+
+    def close(self) -> None:
+        if self._stream is not None:
+            self._stream.cancel()
+
+
 async def load(args: argparse.Namespace) -> None:
-    """As many DetectObjects calls as `concurrency` workers can make in `seconds`."""
+    """As many requests as `concurrency` workers can make in `seconds`; each worker waits for the
+    reply before its next request (unary calls, or its own DetectStream)."""
     async with _grpc.insecure_channel(args.target) as channel:
-        stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
         messages = [one_camera_request(i % args.cameras, args.callback) for i in range(args.cameras)]
-        await stub.DetectObjects(messages[0], timeout=10)
         done = errors = 0
         loop = asyncio.get_running_loop()
+        callers = [_Caller(channel, args.mode) for _ in range(args.concurrency)]
+        for k, caller in enumerate(callers):
+            await caller(with_request_id(messages[0], f"warm{k}"))
         end = loop.time() + args.seconds
 
         async def worker(k: int) -> None:
@@ -110,16 +142,25 @@ async def load(args: argparse.Namespace) -> None:
             i = k
             while loop.time() < end:
                 try:
-                    await stub.DetectObjects(messages[i % len(messages)], timeout=10)
+                    await callers[k](messages[i % len(messages)])
                     done += 1
-                except grpc.RpcError:
+                except (grpc.RpcError, RuntimeError):
                     errors += 1
                 i += args.concurrency
 
         t0 = loop.time()
         await asyncio.gather(*(worker(k) for k in range(args.concurrency)))
         elapsed = loop.time() - t0
+        for caller in callers:
+            caller.close()
         print("DONE " + json.dumps({"calls": done, "errors": errors, "rps": done / elapsed}), flush=True)
+
+
+def with_request_id(message: detection_pb2.DetectionRequest, request_id: str) -> detection_pb2.DetectionRequest:
+    copy = detection_pb2.DetectionRequest()
+    copy.CopyFrom(message)
+    copy.request_id = request_id
+    return copy
 
 
 def percentile(values: list[float], q: float) -> float:
@@ -179,12 +220,13 @@ async def latency(args: argparse.Namespace) -> None:
 
 
 async def rtt(args: argparse.Namespace) -> None:
-    """Median round trip of bare unary calls to an ack server: the transport's floor."""
+    """Median round trip to an ack server, as bare unary calls or as messages on one DetectStream:
+    the transport's floor."""
     async with _grpc.insecure_channel(args.target) as channel:
-        stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
+        call = _Caller(channel, args.mode)
         msg = one_camera_request(0, "127.0.0.1:9")
         for _ in range(50):
-            await stub.DetectObjects(msg, timeout=10)
+            await call(msg)
         times = []
         loop = asyncio.get_running_loop()
         start = loop.time()
@@ -194,8 +236,9 @@ async def rtt(args: argparse.Namespace) -> None:
                 if delay > 0:
                     await asyncio.sleep(delay)
             t0 = time.perf_counter()
-            await stub.DetectObjects(msg, timeout=10)
+            await call(msg)
             times.append((time.perf_counter() - t0) * 1000)
+        call.close()
         print(
             "DONE " + json.dumps({"rtt_ms_p50": percentile(times, 50), "rtt_ms_p90": percentile(times, 90)}), flush=True
         )
@@ -209,20 +252,22 @@ def add_helper_parsers(sub: Any) -> None:
     r.add_argument("--camera-address", required=True)
     r.add_argument("--count", type=int, required=True)
     r.set_defaults(func=lambda args: asyncio.run(register(args)) or 0)
-    lo = sub.add_parser("load", help="(internal) DetectObjects calls as fast as they go")
+    lo = sub.add_parser("load", help="(internal) requests as fast as they go")
     lo.add_argument("--target", required=True)
     lo.add_argument("--callback", default="127.0.0.1:9")
     lo.add_argument("--cameras", type=int, default=1000)
     lo.add_argument("--concurrency", type=int, default=64)
     lo.add_argument("--seconds", type=float, default=5.0)
+    lo.add_argument("--mode", choices=["unary", "stream"], default="stream")
     lo.set_defaults(func=lambda args: asyncio.run(load(args)) or 0)
     la = sub.add_parser("latency", help="(internal) request latency at a fixed rate")
     la.add_argument("--server", required=True)
     la.add_argument("--rate", type=float, required=True)
     la.add_argument("--requests", type=int, required=True)
     la.set_defaults(func=lambda args: asyncio.run(latency(args)) or 0)
-    rt = sub.add_parser("rtt", help="(internal) bare unary round trips")
+    rt = sub.add_parser("rtt", help="(internal) bare round trips")
     rt.add_argument("--target", required=True)
     rt.add_argument("--calls", type=int, default=500)
     rt.add_argument("--rate", type=float, default=0.0, help="calls a second (0: back to back)")
+    rt.add_argument("--mode", choices=["unary", "stream"], default="stream")
     rt.set_defaults(func=lambda args: asyncio.run(rtt(args)) or 0)
