@@ -95,3 +95,7 @@ def machine() -> dict[str, Any]:
         "cpus": os.cpu_count(),
         "processor": platform.processor() or platform.machine(),
     }
+
+
+#: The service benchmarks measure capacity, not policy: the per-robot rate limit is lifted.
+NO_RATE_LIMIT = ("--rate-limit", "1000000")

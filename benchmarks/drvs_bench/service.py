@@ -22,7 +22,7 @@ from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.registry import Registry
 from drvs.robot import DrvsClient
 
-from .common import ALL_REGION, YELLOW, cpu_seconds, machine, peak_rss_bytes, record_scene
+from .common import ALL_REGION, NO_RATE_LIMIT, YELLOW, cpu_seconds, machine, peak_rss_bytes, record_scene
 from .helpers import grid_position, percentile
 from .paper import bench_process
 
@@ -54,7 +54,7 @@ async def measure_latency(quick: bool, out: dict[str, Any]) -> None:
         scene = record_scene(Path(tmp), cameras=3)
         procs: list[ManagedProcess] = []
         try:
-            server, address = await start_server()
+            server, address = await start_server(*NO_RATE_LIMIT)
             procs.append(server)
             for camera_id, rec in scene.items():
                 procs.append(await start_camera(camera_id, rec.video, rec.homography_file, address, "--max-range", "6"))
@@ -135,7 +135,7 @@ async def measure_routing(quick: bool, out: dict[str, Any]) -> None:
     try:
         ack, ack_address = await ack_server()
         procs.append(ack)
-        server, address = await start_server("--lease-ttl", "3600")
+        server, address = await start_server("--lease-ttl", "3600", *NO_RATE_LIMIT)
         procs.append(server)
         await run_helper("register", "register", "--server", address, "--camera-address", ack_address,
                          "--count", str(cameras))  # fmt: skip
@@ -192,7 +192,7 @@ async def measure_camera_cpu(quick: bool, out: dict[str, Any]) -> None:
         rec = record_scene(Path(tmp), cameras=1)["cam1"]
         procs: list[ManagedProcess] = []
         try:
-            server, address = await start_server()
+            server, address = await start_server(*NO_RATE_LIMIT)
             procs.append(server)
             cam = await start_camera("cam1", rec.video, rec.homography_file, address, "--max-range", "6")
             procs.append(cam)

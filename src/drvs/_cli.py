@@ -2,11 +2,18 @@
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import logging
 import os
 import signal
 import sys
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+from drvs.errors import InvalidArgument
+from drvs.security import Security
 
 #: Log level for every role, e.g. DEBUG; --log-level overrides it.
 ENV_LOG_LEVEL = "DRVS_LOG_LEVEL"
@@ -46,3 +53,60 @@ def join_negative_values(argv: list[str], options: tuple[str, ...]) -> list[str]
         else:
             out.append(arg)
     return out
+
+
+#: The security settings every role takes, with their environment variables.
+SECURITY_ENV = {
+    "tls_cert": "DRVS_TLS_CERT",
+    "tls_key": "DRVS_TLS_KEY",
+    "tls_ca": "DRVS_TLS_CA",
+    "tls_client_auth": "DRVS_TLS_CLIENT_AUTH",
+    "token_file": "DRVS_TOKEN_FILE",
+}
+
+
+def add_security_arguments(p: argparse.ArgumentParser, token_help: str) -> None:
+    """--tls-cert/--tls-key/--tls-ca/--tls-client-auth/--token-file; see drvs.security."""
+    g = p.add_argument_group("security (drvs-certs makes a development CA and certificates)")
+    g.add_argument("--tls-cert", metavar="FILE", help="this role's certificate chain, PEM (env DRVS_TLS_CERT)")
+    g.add_argument("--tls-key", metavar="FILE", help="its private key, PEM (env DRVS_TLS_KEY)")
+    g.add_argument("--tls-ca", metavar="FILE", help="the CA that signs the peers' certificates (env DRVS_TLS_CA)")
+    g.add_argument(
+        "--tls-client-auth",
+        action="store_const",
+        const=True,
+        help="mutual TLS: demand a certificate signed by --tls-ca from every caller (env DRVS_TLS_CLIENT_AUTH=1)",
+    )
+    g.add_argument("--token-file", metavar="FILE", help=f"{token_help} (env DRVS_TOKEN_FILE)")
+
+
+def read_token(path: str | Path, what: str = "token_file") -> str:
+    try:
+        token = Path(path).read_text(encoding="utf-8").strip()
+    except (OSError, UnicodeDecodeError) as exc:
+        raise InvalidArgument(f"{what}: cannot read {path}: {exc}") from None
+    if not token:
+        raise InvalidArgument(f"{what}: {path} is empty")
+    return token
+
+
+def security_from(values: Mapping[str, Any], environ: Mapping[str, str] = os.environ) -> Security:
+    """A Security from flag values (None = not given), falling back to the DRVS_* environment."""
+
+    def get(name: str) -> Any:
+        value = values.get(name)
+        if value is None and environ.get(SECURITY_ENV[name], ""):
+            value = environ[SECURITY_ENV[name]]
+        return value
+
+    client_auth = get("tls_client_auth")
+    if isinstance(client_auth, str):
+        client_auth = client_auth.strip().lower() in ("1", "true", "yes", "on")
+    token_file = get("token_file")
+    return Security(
+        tls_cert=Path(get("tls_cert")) if get("tls_cert") else None,
+        tls_key=Path(get("tls_key")) if get("tls_key") else None,
+        tls_ca=Path(get("tls_ca")) if get("tls_ca") else None,
+        require_client_cert=bool(client_auth),
+        token=read_token(token_file) if token_file else "",
+    )

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import functools
 import logging
-from collections.abc import Awaitable, Callable
+from collections.abc import Awaitable, Callable, Sequence
 from typing import Any, TypeVar
 
 import grpc
@@ -22,6 +22,7 @@ _TO_STATUS: dict[type[errors.DrvsError], grpc.StatusCode] = {
     errors.FailedPrecondition: grpc.StatusCode.FAILED_PRECONDITION,
     errors.ResourceExhausted: grpc.StatusCode.RESOURCE_EXHAUSTED,
     errors.PermissionDenied: grpc.StatusCode.PERMISSION_DENIED,
+    errors.Unauthenticated: grpc.StatusCode.UNAUTHENTICATED,
 }
 _FROM_STATUS = {code: cls for cls, code in _TO_STATUS.items()}
 
@@ -37,6 +38,9 @@ CHANNEL_OPTIONS: list[tuple[str, Any]] = [
     # DRVS messages are small: bandwidth-delay probing cost a PING and its ack per burst of them
     # (a tenth of a robot's bytes) and gained nothing.
     ("grpc.http2.bdp_probe", 0),
+    # Every channel its own connection: a robot is one connection to the server (per-robot limits
+    # count connections when there are no credentials), not a share of one pooled by the process.
+    ("grpc.use_local_subchannel_pool", 1),
 ]
 SERVER_OPTIONS: list[tuple[str, Any]] = [
     ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
@@ -93,14 +97,18 @@ def insecure_channel(address: str) -> aio.Channel:
     return aio.insecure_channel(address, options=CHANNEL_OPTIONS)
 
 
-def new_server() -> aio.Server:
-    return aio.server(options=SERVER_OPTIONS)
+def new_server(interceptors: Sequence[aio.ServerInterceptor] = ()) -> aio.Server:
+    return aio.server(options=SERVER_OPTIONS, interceptors=list(interceptors) or None)
 
 
-def bind(server: aio.Server, address: str) -> int:
-    """Bind `address` (port 0 = any free port); returns the bound port or raises OSError."""
+def bind(server: aio.Server, address: str, credentials: grpc.ServerCredentials | None = None) -> int:
+    """Bind `address` (port 0 = any free port), with TLS when given credentials; returns the bound
+    port or raises OSError."""
     try:
-        port = server.add_insecure_port(address)
+        if credentials is None:
+            port = server.add_insecure_port(address)
+        else:
+            port = server.add_secure_port(address, credentials)
     except RuntimeError as exc:
         raise OSError(f"cannot listen on {address}: {exc}") from exc
     if port == 0:

@@ -13,6 +13,7 @@ from grpc_health.v1 import health_pb2
 from drvs import _grpc
 from drvs.health import add_health_and_reflection, mark_serving
 from drvs.net import format_address, host_of
+from drvs.security import Security
 
 _L = TypeVar("_L", bound="Lifecycle")
 
@@ -39,8 +40,18 @@ class Lifecycle:
 class Endpoint:
     """Binds `listen` (port 0 picks a free port), serves what `add_servicers` adds; stop() is idempotent."""
 
-    def __init__(self, listen: str, service_names: Sequence[str], add_servicers: Callable[[aio.Server], None]) -> None:
+    def __init__(
+        self,
+        listen: str,
+        service_names: Sequence[str],
+        add_servicers: Callable[[aio.Server], None],
+        *,
+        security: Security | None = None,
+        interceptors: Sequence[aio.ServerInterceptor] = (),
+    ) -> None:
         self.listen = listen
+        self.security = security or Security()
+        self._interceptors = tuple(interceptors)
         self.service_names = tuple(service_names)
         self._add_servicers = add_servicers
         self.port = 0
@@ -58,10 +69,10 @@ class Endpoint:
         return self._server is not None
 
     async def start(self) -> None:
-        server = _grpc.new_server()
+        server = _grpc.new_server(self._interceptors)
         self._add_servicers(server)
         self._health = add_health_and_reflection(server, self.service_names)
-        self.port = _grpc.bind(server, self.listen)
+        self.port = self.security.bind(server, self.listen)
         await server.start()
         self._server = server
         await mark_serving(self._health, self.service_names)

@@ -16,10 +16,10 @@ from typing import Any
 import grpc
 from grpc import aio
 
-from drvs import _grpc
 from drvs.convert import report_to_pb
 from drvs.errors import Unavailable
 from drvs.model import DetectionReport
+from drvs.security import Security
 from drvs.v1 import detection_pb2_grpc
 
 log = logging.getLogger(__name__)
@@ -37,9 +37,9 @@ MAX_CANCELLED = 4096
 class RobotLink:
     """The open report stream to one robot."""
 
-    def __init__(self, address: str) -> None:
+    def __init__(self, address: str, security: Security) -> None:
         self.address = address
-        self._channel = _grpc.insecure_channel(address)
+        self._channel = security.channel(address)
         self._call: Any = detection_pb2_grpc.CallbackCoordinatesStub(self._channel).ReportDetections()
         self._write_lock = asyncio.Lock()
         self._cancelled: OrderedDict[str, None] = OrderedDict()
@@ -107,7 +107,10 @@ def _details(exc: BaseException) -> str:
 class CallbackSender:
     """Keeps one RobotLink per robot address: bounded in number, idle ones closed."""
 
-    def __init__(self, max_links: int = MAX_LINKS, idle_close_s: float = IDLE_CLOSE_S) -> None:
+    def __init__(
+        self, max_links: int = MAX_LINKS, idle_close_s: float = IDLE_CLOSE_S, security: Security | None = None
+    ) -> None:
+        self._security = security or Security()
         self._max = max_links
         self._idle_close_s = idle_close_s
         self._links: OrderedDict[str, RobotLink] = OrderedDict()
@@ -118,7 +121,7 @@ class CallbackSender:
         if link is None or link.broken:
             if link is not None:
                 self._close_later(link)
-            link = RobotLink(address)
+            link = RobotLink(address, self._security)
             self._links[address] = link
         self._links.move_to_end(address)
         self._evict()

@@ -33,3 +33,7 @@ class ResourceExhausted(DrvsError):
 
 class PermissionDenied(DrvsError):
     """The caller may not do this (e.g. send reports to somebody else's address)."""
+
+
+class Unauthenticated(DrvsError):
+    """The call carried no valid credential (token or certificate) for what it asked."""

@@ -72,3 +72,13 @@ def dialable_address(listen: str, port: int, peer: str) -> str:
     if host in ("0.0.0.0", "::"):
         host = local_ip_towards(peer)
     return format_address(host, port)
+
+
+def is_loopback_host(host: str) -> bool:
+    """True for 127.0.0.0/8, ::1 and localhost: a listener only this machine can reach."""
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False

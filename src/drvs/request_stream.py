@@ -33,8 +33,16 @@ class RequestStream:
     fills them in from the previous request); only for senders whose messages are their own to edit.
     """
 
-    def __init__(self, stub: detection_pb2_grpc.DetectObjectBoundaryStub, peer: str, *, elide_identity: bool) -> None:
+    def __init__(
+        self,
+        stub: detection_pb2_grpc.DetectObjectBoundaryStub,
+        peer: str,
+        *,
+        elide_identity: bool,
+        metadata: tuple[tuple[str, str], ...] = (),
+    ) -> None:
         self._stub = stub
+        self._metadata = metadata
         self._peer = peer
         self._elide = elide_identity
         self._call: aio.StreamStreamCall[Request, Reply] | None = None
@@ -44,7 +52,7 @@ class RequestStream:
         self._last_identity = ("", "")
 
     def _open(self) -> aio.StreamStreamCall[Request, Reply]:
-        call: aio.StreamStreamCall[Request, Reply] = self._stub.DetectStream()
+        call: aio.StreamStreamCall[Request, Reply] = self._stub.DetectStream(metadata=self._metadata or None)
         self._call = call
         self._last_identity = ("", "")
         self._reader = asyncio.get_running_loop().create_task(self._read(call))

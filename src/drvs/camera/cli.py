@@ -11,7 +11,7 @@ import sys
 import cv2
 import numpy as np
 
-from drvs._cli import join_negative_values, setup_logging, shutdown_event
+from drvs._cli import add_security_arguments, join_negative_values, setup_logging, shutdown_event
 from drvs.camera.aruco import DEFAULT_DICTIONARY, BoardSpec, board_image, find_correspondences
 from drvs.camera.calibration import fit_homography, load_points, save_calibration
 from drvs.camera.config import DEFAULT_LISTEN, DEFAULT_SERVER, ENVIRONMENT, load_config
@@ -75,6 +75,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--heartbeat", dest="heartbeat_s", type=float, metavar="S", help="heartbeat interval (default: lease / 3)"
     )
+    add_security_arguments(p, "file holding this camera's registration token")
     p.add_argument("--log-level", help=f"DEBUG, INFO, WARNING ({e['log_level']})")
     return p
 
@@ -324,6 +325,7 @@ def main(argv: list[str] | None = None) -> int:
             resolution=config.resolution,
             detectors=config.detectors,
             heartbeat_s=config.heartbeat_s,
+            security=config.security(),
         )
     except DrvsError as exc:
         parser.error(str(exc))

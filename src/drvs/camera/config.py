@@ -12,6 +12,7 @@ from dataclasses import dataclass, fields
 from pathlib import Path
 from typing import Any
 
+from drvs._cli import SECURITY_ENV, read_token
 from drvs._files import read_yaml
 from drvs.detection import DEFAULT_MIN_AREA_PX
 from drvs.errors import InvalidArgument
@@ -19,6 +20,7 @@ from drvs.filters import DETECTOR_KINDS
 from drvs.geometry import DEFAULT_MAX_RANGE_M
 from drvs.model import check_id
 from drvs.net import parse_address
+from drvs.security import Security
 
 DEFAULT_SERVER = "127.0.0.1:50051"
 DEFAULT_LISTEN = "127.0.0.1:0"
@@ -42,6 +44,7 @@ ENVIRONMENT = {
     "detectors": "DRVS_CAMERA_DETECTORS",
     "heartbeat_s": "DRVS_CAMERA_HEARTBEAT",
     "log_level": "DRVS_LOG_LEVEL",
+    **SECURITY_ENV,
 }
 
 
@@ -66,13 +69,30 @@ class CameraConfig:
     #: Heartbeat interval; by default a third of the lease the server grants.
     heartbeat_s: float | None = None
     log_level: str | None = None
+    #: TLS and the registration token (see drvs.security); paths are relative to the config file.
+    tls_cert: Path | None = None
+    tls_key: Path | None = None
+    tls_ca: Path | None = None
+    tls_client_auth: bool = False
+    token_file: Path | None = None
+
+    def security(self) -> Security:
+        return Security(
+            tls_cert=self.tls_cert,
+            tls_key=self.tls_key,
+            tls_ca=self.tls_ca,
+            require_client_cert=self.tls_client_auth,
+            token=read_token(self.token_file) if self.token_file else "",
+        )
 
 
 _FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max_range_m": "--max-range",
           "min_area_px": "--min-area", "max_frame_age_s": "--max-frame-age", "loop": "--no-loop",
           "serve_frames": "--serve-frames", "log_level": "--log-level", "server": "--server",
           "listen": "--listen", "advertise": "--advertise", "resolution": "--resolution", "fps": "--fps",
-          "detectors": "--detectors", "heartbeat_s": "--heartbeat"}  # fmt: skip
+          "detectors": "--detectors", "heartbeat_s": "--heartbeat", "tls_cert": "--tls-cert",
+          "tls_key": "--tls-key", "tls_ca": "--tls-ca", "tls_client_auth": "--tls-client-auth",
+          "token_file": "--token-file"}  # fmt: skip
 
 
 def load_config(
@@ -144,7 +164,7 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
             if not (math.isfinite(value) and limits[0] <= value <= limits[1]):
                 raise InvalidArgument(f"{where}: {raw!r} must be a number from {limits[0]:g} to {limits[1]:g}")
             return value
-        if name in ("loop", "serve_frames"):
+        if name in ("loop", "serve_frames", "tls_client_auth"):
             if isinstance(raw, bool):
                 return raw
             text = str(raw).strip().lower()
@@ -162,7 +182,7 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
             parse_address(text, where)
         elif name == "listen":
             parse_address(text, where, allow_port_zero=True)
-        elif name == "homography":
+        elif name in ("homography", "tls_cert", "tls_key", "tls_ca", "token_file"):
             path = Path(text)
             return path if path.is_absolute() else base / path
         elif name == "source" and not text.strip():

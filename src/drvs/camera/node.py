@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import hmac
 import logging
 import math
 import time
@@ -25,6 +26,7 @@ from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
 from drvs.model import DetectionReport, DetectionRequest, check_id
 from drvs.net import dialable_address, parse_address
 from drvs.request_stream import serve_request_stream
+from drvs.security import Security, bearer_token
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc, stream_pb2, stream_pb2_grpc
 
 from .source import FrameSource
@@ -61,7 +63,9 @@ class CameraNode(Lifecycle):
         resolution: tuple[int, int] | None = None,
         detectors: tuple[str, ...] = ("hsv",),
         heartbeat_s: float | None = None,
+        security: Security | None = None,
     ) -> None:
+        self.security = security or Security()
         self.resolution = resolution
         self.detectors = detectors
         self.heartbeat_s = heartbeat_s
@@ -84,13 +88,13 @@ class CameraNode(Lifecycle):
         self.registered = asyncio.Event()
         self.serve_frames = serve_frames
         names = (*SERVICE_NAMES, FRAME_STREAM_SERVICE) if serve_frames else SERVICE_NAMES
-        self._endpoint = Endpoint(listen, names, self._add_servicers)
+        self._endpoint = Endpoint(listen, names, self._add_servicers, security=self.security)
         self._channel: aio.Channel | None = None
         self._registrar: asyncio.Task[None] | None = None
         self._watchdog: asyncio.Task[None] | None = None
         self.has_fresh_frame = True
         self._jobs: set[asyncio.Task[None]] = set()
-        self._callbacks = CallbackSender()
+        self._callbacks = CallbackSender(security=self.security)
         self._analysis: FrameAnalysis | None = None
         self._stopped = False
 
@@ -136,7 +140,7 @@ class CameraNode(Lifecycle):
         )
         await self._endpoint.start()
         log.info("camera %s listening on %s (advertised as %s)", self.camera_id, self._endpoint.address, self.address)
-        self._channel = _grpc.insecure_channel(self.server_address)
+        self._channel = self.security.channel(self.server_address)
         self._registrar = asyncio.get_running_loop().create_task(self._keep_registered(image_size))
         self._watchdog = asyncio.get_running_loop().create_task(self._watch_frames())
 
@@ -151,7 +155,11 @@ class CameraNode(Lifecycle):
         if self.registered.is_set() and self._channel is not None:
             try:
                 stub = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
-                await stub.Deregister(registry_pb2.DeregisterRequest(camera_id=self.camera_id), timeout=1.0)
+                await stub.Deregister(
+                    registry_pb2.DeregisterRequest(camera_id=self.camera_id),
+                    timeout=1.0,
+                    metadata=self.security.metadata(),
+                )
                 log.info("camera %s deregistered", self.camera_id)
             except grpc.RpcError as exc:
                 log.warning("camera %s: deregistration failed: %s", self.camera_id, _details(exc))
@@ -217,7 +225,7 @@ class CameraNode(Lifecycle):
         while True:
             try:
                 if not registered:
-                    reply = await stub.Register(register, timeout=5.0)
+                    reply = await stub.Register(register, timeout=5.0, metadata=self.security.metadata())
                     registered = True
                     interval = self._heartbeat_interval(reply.lease_ttl_s)
                     log.info(
@@ -232,7 +240,9 @@ class CameraNode(Lifecycle):
                     self.registered.set()
                 else:
                     reply_hb = await stub.Heartbeat(
-                        registry_pb2.HeartbeatRequest(camera_id=self.camera_id), timeout=interval
+                        registry_pb2.HeartbeatRequest(camera_id=self.camera_id),
+                        timeout=interval,
+                        metadata=self.security.metadata(),
                     )
                     interval = self._heartbeat_interval(reply_hb.lease_ttl_s)
                 backoff = 0.2
@@ -342,10 +352,20 @@ class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         self._node.accept(request)
         return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=[self._node.camera_id])
 
+    async def _check_caller(self, context: aio.ServicerContext[Any, Any]) -> None:
+        """With a token, the camera takes requests only from whoever knows it: the server it
+        registered with (which presents it back), not any host that finds the port."""
+        token = self._node.security.token
+        if token and not hmac.compare_digest(bearer_token(list(context.invocation_metadata() or ())), token):
+            await context.abort(
+                grpc.StatusCode.UNAUTHENTICATED, "requests need this camera's token: send them via the server"
+            )
+
     @_grpc.servicer_method
     async def DetectObjects(
         self, message: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
     ) -> detection_pb2.DetectionReply:
+        await self._check_caller(context)
         return await self._answer(message)
 
     async def DetectStream(
@@ -353,6 +373,7 @@ class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         request_iterator: AsyncIterator[detection_pb2.DetectionRequest],
         context: aio.ServicerContext[Any, Any],
     ) -> AsyncIterator[detection_pb2.DetectionReply]:
+        await self._check_caller(context)
         async for reply in serve_request_stream(request_iterator, self._answer, f"camera {self._node.camera_id}"):
             yield reply
 

@@ -8,7 +8,7 @@ import json
 import sys
 from typing import Any
 
-from drvs._cli import env, join_negative_values, setup_logging
+from drvs._cli import add_security_arguments, env, join_negative_values, security_from, setup_logging
 from drvs.errors import DrvsError, InvalidArgument
 from drvs.model import Detection, DetectionReport
 from drvs.robot.client import DEFAULT_TIMEOUT_S, DrvsClient, RegionLike
@@ -86,7 +86,14 @@ def print_report(r: DetectionReport) -> None:
 
 async def detect(args: argparse.Namespace) -> int:
     region = parse_roi(args)
-    async with DrvsClient(args.server, robot_id=args.robot_id, listen=args.listen, advertise=args.advertise) as client:
+    async with DrvsClient(
+        args.server,
+        robot_id=args.robot_id,
+        listen=args.listen,
+        advertise=args.advertise,
+        security=security_from(vars(args)),
+        retries=args.retries,
+    ) as client:
         sub = await client.subscribe(
             args.filter,
             region,
@@ -114,7 +121,7 @@ async def detect(args: argparse.Namespace) -> int:
 
 async def cameras(args: argparse.Namespace) -> int:
     region = parse_roi(args) if (args.roi or args.polygon) else None
-    async with DrvsClient(args.server, robot_id=args.robot_id) as client:
+    async with DrvsClient(args.server, robot_id=args.robot_id, security=security_from(vars(args))) as client:
         found = await client.cameras(region)
     for c in found:
         if args.json:
@@ -150,6 +157,7 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--robot-id", default="drvs-robot-cli")
         sp.add_argument("--json", action="store_true", help="one JSON object per line")
         sp.add_argument("--log-level", default="WARNING")
+        add_security_arguments(sp, "file holding this robot's client token")
 
     d = sub.add_parser("detect", help="detect objects in a region")
     common(d)
@@ -166,6 +174,9 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--no-outlines", action="store_true", help="bounds, centroid, ground contact only (fewer bytes)")
     d.add_argument("--listen", default=None, help="HOST:PORT for the callback listener (default: ephemeral)")
     d.add_argument("--advertise", default=None, help="HOST:PORT cameras should call back, if not --listen")
+    d.add_argument(
+        "--retries", type=int, default=0, metavar="N", help="send again, with backoff, while the server is unavailable"
+    )
     d.set_defaults(func=detect)
 
     c = sub.add_parser("cameras", help="list the registered cameras (optionally those seeing a region)")

@@ -18,12 +18,13 @@ from shapely.geometry import Polygon
 
 from drvs import _grpc
 from drvs.convert import polygon_from_pb, region_to_pb, report_from_pb, request_to_pb
-from drvs.errors import DrvsError, InvalidArgument
+from drvs.errors import DrvsError, InvalidArgument, Unavailable
 from drvs.geometry import box_region, polygon_region
 from drvs.meter import CountingRelay
 from drvs.model import ContinuousMode, Detection, DetectionReport, DetectionRequest
 from drvs.net import dialable_address, format_address, host_of, local_ip_towards, parse_address
 from drvs.request_stream import RequestStream
+from drvs.security import Security
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
 
 log = logging.getLogger("drvs.robot")
@@ -32,6 +33,8 @@ log = logging.getLogger("drvs.robot")
 DEFAULT_TIMEOUT_S = 5.0
 #: Reports buffered per request before the listener pushes back on cameras.
 MAX_QUEUED_REPORTS = 1024
+#: The longest wait between retries of a request the server could not take.
+MAX_BACKOFF_S = 5.0
 
 RegionLike: TypeAlias = "Polygon | Sequence[float] | Sequence[Sequence[float]]"
 
@@ -196,7 +199,11 @@ class DrvsClient:
         listen: str | None = None,
         advertise: str | None = None,
         meter: bool = False,
+        retries: int = 0,
+        retry_backoff_s: float = 0.2,
+        security: Security | None = None,
     ) -> None:
+        self.security = security or Security()
         parse_address(server, "server")
         self.server = server
         self.robot_id = robot_id
@@ -220,6 +227,12 @@ class DrvsClient:
         # With meter=True, both of the robot's connections pass through counting relays, so
         # wire_bytes() reports the real bytes its sockets carried.
         self._meter = meter
+        # A request the server could not take (Unavailable: down, restarting, unreachable) is sent
+        # again up to `retries` times, after retry_backoff_s, doubling, at most MAX_BACKOFF_S.
+        if retries < 0 or not (0 < retry_backoff_s <= MAX_BACKOFF_S):
+            raise InvalidArgument(f"retries must be >= 0 and retry_backoff_s in (0, {MAX_BACKOFF_S:g}]")
+        self.retries = retries
+        self.retry_backoff_s = retry_backoff_s
         self._relays: list[CountingRelay] = []
 
     def wire_bytes(self) -> tuple[int, int]:
@@ -232,7 +245,7 @@ class DrvsClient:
     @property
     def callback_address(self) -> str:
         if self._meter and self._relays:
-            return format_address("127.0.0.1", self._relays[0].port)
+            return dialable_address(self.listen, self._relays[0].port, self.server)
         if self._advertise:
             return self._advertise
         return dialable_address(self.listen, self.port, self.server)
@@ -240,21 +253,23 @@ class DrvsClient:
     async def start(self) -> None:
         listener = _grpc.new_server()
         detection_pb2_grpc.add_CallbackCoordinatesServicer_to_server(_Listener(self), listener)
-        self.port = _grpc.bind(listener, self.listen)
+        self.port = self.security.bind(listener, self.listen)
         await listener.start()
         self._listener = listener
         server_address = self.server
         if self._meter:
-            callback_relay = CountingRelay(host_of(self.listen), self.port)
+            callback_relay = CountingRelay(host_of(self.listen), self.port, listen_host=host_of(self.listen))
             host, port = parse_address(self.server, "server")
             server_relay = CountingRelay(host, port)
             await callback_relay.start()
             await server_relay.start()
             self._relays = [callback_relay, server_relay]
             server_address = format_address("127.0.0.1", server_relay.port)
-        self._channel = _grpc.insecure_channel(server_address)
+        self._channel = self.security.channel(server_address)
         self._detect = detection_pb2_grpc.DetectObjectBoundaryStub(self._channel)
-        self._requests = RequestStream(self._detect, f"server {self.server}", elide_identity=True)
+        self._requests = RequestStream(
+            self._detect, f"server {self.server}", elide_identity=True, metadata=self.security.metadata()
+        )
         self._registry = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
         log.debug("robot %r listening for reports on %s", self.robot_id, self.callback_address)
 
@@ -325,12 +340,28 @@ class DrvsClient:
         self._subscriptions[request.request_id] = sub
         assert self._requests is not None
         try:
-            reply = await self._requests.request(request_to_pb(request), rpc_timeout_s)
+            reply = await self._send(request, rpc_timeout_s)
         except BaseException:
             sub.close()
             raise
         sub._dispatched(reply.camera_ids)
         return sub
+
+    async def _send(self, request: DetectionRequest, rpc_timeout_s: float) -> detection_pb2.DetectionReply:
+        assert self._requests is not None
+        backoff = self.retry_backoff_s
+        for attempt in itertools.count():
+            try:
+                return await self._requests.request(request_to_pb(request), rpc_timeout_s)
+            except Unavailable:
+                if attempt >= self.retries:
+                    raise
+                log.info(
+                    "server %s unavailable; retrying request %s in %.1f s", self.server, request.request_id, backoff
+                )
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2, MAX_BACKOFF_S)
+        raise AssertionError("unreachable")
 
     async def detect(
         self,
@@ -355,7 +386,7 @@ class DrvsClient:
         if region is not None:
             msg.region.CopyFrom(region_to_pb(as_region(region)))
         try:
-            reply = await self._registry.ListCameras(msg, timeout=rpc_timeout_s)
+            reply = await self._registry.ListCameras(msg, timeout=rpc_timeout_s, metadata=self.security.metadata())
         except grpc.RpcError as exc:
             raise _grpc.from_rpc_error(exc, f"server {self.server}") from None
         return [

@@ -5,12 +5,14 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+from pathlib import Path
 
-from drvs._cli import env, setup_logging, shutdown_event
+from drvs._cli import add_security_arguments, env, security_from, setup_logging, shutdown_event
 from drvs.errors import DrvsError
 from drvs.net import parse_address
 from drvs.registry import DEFAULT_LEASE_TTL_S
-from drvs.server.policy import CallbackPolicy
+from drvs.security import load_tokens
+from drvs.server.policy import DEFAULT_MAX_ACTIVE, DEFAULT_RATE_HZ, CallbackPolicy, RequestLimits
 from drvs.server.server import DEFAULT_FORWARD_TIMEOUT_S, DEFAULT_LISTEN, DrvsServer
 
 log = logging.getLogger("drvs.server")
@@ -51,6 +53,31 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--allow-any-callback", action="store_true", help="send reports wherever a request says (trusted networks only)"
     )
+    p.add_argument(
+        "--camera-tokens",
+        metavar="FILE",
+        help="registration credentials: lines 'NAME TOKEN'; cameras must present one (env DRVS_CAMERA_TOKENS)",
+    )
+    p.add_argument(
+        "--robot-tokens",
+        metavar="FILE",
+        help="client credentials: lines 'NAME TOKEN'; robots must present one (env DRVS_ROBOT_TOKENS)",
+    )
+    p.add_argument(
+        "--rate-limit",
+        type=float,
+        default=DEFAULT_RATE_HZ,
+        metavar="HZ",
+        help="requests a second per robot (its credential, or its connection); burst twice that (default %(default)s)",
+    )
+    p.add_argument(
+        "--max-continuous",
+        type=int,
+        default=DEFAULT_MAX_ACTIVE,
+        metavar="N",
+        help="continuous requests one robot may have running at once (default %(default)s)",
+    )
+    add_security_arguments(p, "unused by the server (it checks tokens, it presents none)")
     p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING (env DRVS_LOG_LEVEL)")
     return p
 
@@ -63,6 +90,10 @@ async def serve(args: argparse.Namespace) -> None:
         forward_timeout_s=args.forward_timeout,
         allow_callback=args.allow_callback,
         allow_any_callback=args.allow_any_callback,
+        security=args.security,
+        camera_tokens=args.camera_token_table,
+        robot_tokens=args.robot_token_table,
+        limits=args.limits,
     )
     await server.start()
     try:
@@ -82,6 +113,13 @@ def main(argv: list[str] | None = None) -> int:
         CallbackPolicy(args.allow_callback)  # refuses a malformed network now, not after start
         if not 0 < args.forward_timeout <= 60:
             raise DrvsError(f"--forward-timeout: {args.forward_timeout} must be in (0, 60]")
+        if not (0 < args.rate_limit <= 1e6 and 1 <= args.max_continuous <= 1e6):
+            raise DrvsError("--rate-limit must be in (0, 1e6] and --max-continuous in [1, 1e6]")
+        args.limits = RequestLimits(args.rate_limit, max(1, round(2 * args.rate_limit)), args.max_continuous)
+        args.security = security_from(vars(args))
+        for role in ("camera", "robot"):
+            path = getattr(args, f"{role}_tokens") or env(f"DRVS_{role.upper()}_TOKENS")
+            setattr(args, f"{role}_token_table", load_tokens(Path(path), f"--{role}-tokens") if path else None)
     except DrvsError as exc:
         parser.error(str(exc))
     setup_logging(args.log_level)

@@ -1,13 +1,16 @@
-"""Who may receive reports: by default only the robot that asked. Pure logic but for DNS."""
+"""Who may receive reports (by default only the robot that asked), and how much a robot may ask.
+Pure logic but for DNS."""
 
 from __future__ import annotations
 
 import asyncio
 import ipaddress
 import socket
-from collections.abc import Iterable
+import time
+from collections import OrderedDict
+from collections.abc import Callable, Iterable
 
-from drvs.errors import InvalidArgument, PermissionDenied
+from drvs.errors import InvalidArgument, PermissionDenied, ResourceExhausted
 from drvs.net import parse_address
 
 IPAddress = ipaddress.IPv4Address | ipaddress.IPv6Address
@@ -70,3 +73,63 @@ async def _resolve(host: str, port: int) -> list[IPAddress]:
     except OSError:
         raise InvalidArgument(f"callback_address: host {host!r} does not resolve") from None
     return [ipaddress.ip_address(str(info[4][0]).split("%")[0]) for info in infos]
+
+
+#: Per robot: requests a second (sustained), the burst above it, and continuous requests running at once.
+DEFAULT_RATE_HZ = 200.0
+DEFAULT_BURST = 400
+DEFAULT_MAX_ACTIVE = 32
+#: Robots whose buckets are kept; the longest idle is dropped past this, so memory stays bounded.
+MAX_TRACKED_ROBOTS = 10_000
+
+
+class RequestLimits:
+    """Per robot (its credential, or without credentials its connection): a token bucket on the
+    request rate, and a cap on continuous requests running at once, so no robot can keep every
+    camera busy or starve the others."""
+
+    def __init__(
+        self,
+        rate_hz: float = DEFAULT_RATE_HZ,
+        burst: int = DEFAULT_BURST,
+        max_active: int = DEFAULT_MAX_ACTIVE,
+        clock: Callable[[], float] = time.monotonic,
+    ) -> None:
+        if not (rate_hz > 0 and burst >= 1 and max_active >= 1):
+            raise InvalidArgument("request limits: rate_hz > 0, burst >= 1 and max_active >= 1")
+        self.rate_hz = rate_hz
+        self.burst = float(burst)
+        self.max_active = max_active
+        self._clock = clock
+        # robot -> (tokens, last refill); robot -> end times of its running continuous requests
+        self._buckets: OrderedDict[str, tuple[float, float]] = OrderedDict()
+        self._active: dict[str, list[float]] = {}
+
+    def admit(self, robot: str, continuous_s: float) -> None:
+        """Count one request, or raise ResourceExhausted naming the limit (nothing is counted then)."""
+        now = self._clock()
+        tokens, last = self._buckets.pop(robot, (self.burst, now))
+        tokens = min(self.burst, tokens + (now - last) * self.rate_hz)
+        active = [end for end in self._active.get(robot, ()) if end > now]
+        try:
+            if tokens < 1.0:
+                raise ResourceExhausted(
+                    f"rate: more than {self.rate_hz:g} requests a second (burst {self.burst:g}); slow down"
+                )
+            if continuous_s > 0 and len(active) >= self.max_active:
+                raise ResourceExhausted(
+                    f"continuous: {len(active)} continuous requests already running (limit {self.max_active}); "
+                    "wait for one to end or cancel one"
+                )
+            tokens -= 1.0
+            if continuous_s > 0:
+                active.append(now + continuous_s)
+        finally:
+            self._buckets[robot] = (tokens, now)
+            if active:
+                self._active[robot] = active
+            else:
+                self._active.pop(robot, None)
+            while len(self._buckets) > MAX_TRACKED_ROBOTS:
+                old, _ = self._buckets.popitem(last=False)
+                self._active.pop(old, None)

@@ -7,7 +7,7 @@ import dataclasses
 import logging
 import time
 import uuid
-from collections.abc import AsyncIterator, Iterable
+from collections.abc import AsyncIterator, Iterable, Mapping
 from typing import Any
 
 from grpc import aio
@@ -22,12 +22,14 @@ from drvs.convert import (
     region_from_pb,
     request_from_pb,
 )
-from drvs.errors import DeadlineExceeded, DrvsError, InvalidArgument, Unavailable
+from drvs.errors import DeadlineExceeded, DrvsError, InvalidArgument, PermissionDenied, Unavailable
 from drvs.geometry import DEFAULT_MAX_RANGE_M
 from drvs.model import DetectionReport, DetectionRequest, check_id
+from drvs.net import host_of, is_loopback_host
 from drvs.registry import DEFAULT_LEASE_TTL_S, CameraEntry, Registry
 from drvs.request_stream import RequestStream, serve_request_stream
-from drvs.server.policy import CallbackPolicy, IPAddress, peer_ip
+from drvs.security import CAMERA, ROBOT, Security, TokenAuthority, TokenInterceptor, bearer_token, caller_identity
+from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits, peer_ip
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
 
 log = logging.getLogger("drvs.server")
@@ -44,11 +46,16 @@ SERVICE_NAMES = (
 class _CameraLink:
     """One reused channel per camera, replaced when the camera registers a new address."""
 
-    def __init__(self, address: str) -> None:
+    def __init__(self, address: str, security: Security, token: str) -> None:
         self.address = address
-        self.channel = _grpc.insecure_channel(address)
+        self.token = token
+        self.channel = security.channel(address)
+        # The server proves itself to a camera with the camera's own registration token.
         self.requests = RequestStream(
-            detection_pb2_grpc.DetectObjectBoundaryStub(self.channel), f"camera at {address}", elide_identity=False
+            detection_pb2_grpc.DetectObjectBoundaryStub(self.channel),
+            f"camera at {address}",
+            elide_identity=False,
+            metadata=security.metadata(token),
         )
 
     async def close(self) -> None:
@@ -68,18 +75,36 @@ class DrvsServer(Lifecycle):
         default_max_range_m: float = DEFAULT_MAX_RANGE_M,
         allow_callback: Iterable[str] = (),
         allow_any_callback: bool = False,
+        security: Security | None = None,
+        camera_tokens: Mapping[str, str] | None = None,
+        robot_tokens: Mapping[str, str] | None = None,
+        limits: RequestLimits | None = None,
     ) -> None:
         self.callback_policy = CallbackPolicy(allow_callback, allow_any_callback)
+        self.security = security or Security()
+        self.tokens = TokenAuthority(camera_tokens, robot_tokens)
+        self.limits = limits or RequestLimits()
+        # camera id -> the identity that registered it (token name or certificate name): another
+        # identity may not re-register, renew or deregister it.
+        self.owners: dict[str, str] = {}
+        # camera id -> the token it registered with, presented back when forwarding to it.
+        self._camera_tokens: dict[str, str] = {}
         self.registry = Registry(lease_ttl_s)
         self.forward_timeout_s = forward_timeout_s
         self.default_max_range_m = default_max_range_m
-        self._endpoint = Endpoint(listen, SERVICE_NAMES, self._add_servicers)
+        self._endpoint = Endpoint(
+            listen,
+            SERVICE_NAMES,
+            self._add_servicers,
+            security=self.security,
+            interceptors=[TokenInterceptor(self.tokens)] if self.tokens.enabled else [],
+        )
         self._links: dict[str, _CameraLink] = {}
         # Cameras whose last forward failed: skipped until their next heartbeat proves them alive.
         self._unreachable: set[str] = set()
         self._tasks: set[asyncio.Task[None]] = set()
         self._sweeper: asyncio.Task[None] | None = None
-        self._callbacks = CallbackSender()
+        self._callbacks = CallbackSender(security=self.security)
         self._stopped = False
 
     @property
@@ -97,7 +122,24 @@ class DrvsServer(Lifecycle):
     async def start(self) -> None:
         await self._endpoint.start()
         self._sweeper = asyncio.get_running_loop().create_task(self._sweep_leases())
+        log.info("security: %s", self.describe_security())
         log.info("drvs-server listening on %s (lease %.1f s)", self.address, self.registry.lease_ttl_s)
+
+    def describe_security(self) -> str:
+        parts = []
+        if self.security.tls:
+            parts.append("mutual TLS" if self.security.require_client_cert else "TLS")
+        for role, table in self.tokens.tables.items():
+            if table is not None:
+                parts.append(f"{len(table)} {role} token(s)")
+        if parts:
+            return ", ".join(parts)
+        if is_loopback_host(host_of(self.address)):
+            return "none (plain TCP, no tokens): serving this host only; configure TLS or tokens to serve others"
+        return (
+            "NONE on a non-loopback address: anyone who can reach "
+            f"{self.address} can register cameras and ask for detections"
+        )
 
     async def stop(self, grace: float = 2.0) -> None:
         if self._stopped or not self._endpoint.started:
@@ -144,10 +186,11 @@ class DrvsServer(Lifecycle):
 
     def _link(self, camera: CameraEntry) -> _CameraLink:
         link = self._links.get(camera.camera_id)
-        if link is None or link.address != camera.address:
+        token = self._camera_tokens.get(camera.camera_id, "")
+        if link is None or link.address != camera.address or link.token != token:
             if link is not None:
                 self._spawn(link.close())
-            link = _CameraLink(camera.address)
+            link = _CameraLink(camera.address, self.security, token)
             self._links[camera.camera_id] = link
         return link
 
@@ -180,6 +223,7 @@ class DrvsServer(Lifecycle):
 
     def _forget(self, camera_id: str) -> None:
         self._unreachable.discard(camera_id)
+        self._camera_tokens.pop(camera_id, None)
         link = self._links.pop(camera_id, None)
         if link is not None:
             self._spawn(link.close())
@@ -197,11 +241,16 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
     def __init__(self, server: DrvsServer) -> None:
         self._s = server
 
+    def _robot(self, context: aio.ServicerContext[Any, Any]) -> str:
+        """Whom limits count against: the robot's credential, or without one its connection."""
+        return caller_identity(context, self._s.tokens, ROBOT) or context.peer()
+
     async def _answer(
-        self, message: detection_pb2.DetectionRequest, peer: IPAddress | None, allowed: set[str]
+        self, message: detection_pb2.DetectionRequest, peer: IPAddress | None, allowed: set[str], robot: str
     ) -> detection_pb2.DetectionReply:
         """Validate, check the callback (once per address per call), dispatch, reply at once."""
         request = request_from_pb(message, require_request_id=False)
+        self._s.limits.admit(robot, request.continuous.duration_s)
         if request.callback_address not in allowed:
             await self._s.callback_policy.check(request.callback_address, peer)
             allowed.add(request.callback_address)
@@ -215,7 +264,7 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
     async def DetectObjects(
         self, message: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
     ) -> detection_pb2.DetectionReply:
-        return await self._answer(message, peer_ip(context.peer()), set())
+        return await self._answer(message, peer_ip(context.peer()), set(), self._robot(context))
 
     async def DetectStream(
         self,
@@ -224,11 +273,12 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
     ) -> AsyncIterator[detection_pb2.DetectionReply]:
         peer = peer_ip(context.peer())
         allowed: set[str] = set()
+        robot = self._robot(context)
 
         async def answer(message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
             if not message.request_id:
                 raise InvalidArgument("request_id: empty; a streamed request needs its own id")
-            return await self._answer(message, peer, allowed)
+            return await self._answer(message, peer, allowed, robot)
 
         async for reply in serve_request_stream(request_iterator, answer, "drvs-server"):
             yield reply
@@ -238,12 +288,22 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
     def __init__(self, server: DrvsServer) -> None:
         self._s = server
 
+    def _owner(self, camera_id: str, context: aio.ServicerContext[Any, Any]) -> str:
+        """The caller's identity, if it may act for `camera_id`: nobody takes over a camera id
+        registered under another credential, or deregisters it."""
+        who = caller_identity(context, self._s.tokens, CAMERA)
+        owner = self._s.owners.get(camera_id)
+        if owner is not None and owner != who:
+            raise PermissionDenied(f"camera_id: {camera_id!r} belongs to another credential")
+        return who
+
     @_grpc.servicer_method
     async def Register(
         self, message: registry_pb2.RegisterRequest, context: aio.ServicerContext[Any, Any]
     ) -> registry_pb2.RegisterReply:
         if not message.HasField("homography"):
             raise InvalidArgument("homography: missing")
+        owner = self._owner(message.camera_id, context)
         max_range = message.max_range_m or self._s.default_max_range_m
         entry = self._s.registry.register(
             camera_id=message.camera_id,
@@ -253,6 +313,10 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
             detector_kinds=set(message.detector_kinds),
             max_range_m=max_range,
         )
+        self._s.owners[entry.camera_id] = owner
+        token = bearer_token(list(context.invocation_metadata() or ()))
+        if token:
+            self._s._camera_tokens[entry.camera_id] = token
         self._s._unreachable.discard(entry.camera_id)
         self._s._link(entry)
         log.info(
@@ -271,6 +335,7 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
         self, message: registry_pb2.HeartbeatRequest, context: aio.ServicerContext[Any, Any]
     ) -> registry_pb2.HeartbeatReply:
         check_id(message.camera_id, "camera_id")
+        self._owner(message.camera_id, context)
         self._s.registry.renew(message.camera_id)
         self._s._unreachable.discard(message.camera_id)
         return registry_pb2.HeartbeatReply(lease_ttl_s=self._s.registry.lease_ttl_s)
@@ -280,7 +345,9 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
         self, message: registry_pb2.DeregisterRequest, context: aio.ServicerContext[Any, Any]
     ) -> registry_pb2.DeregisterReply:
         check_id(message.camera_id, "camera_id")
+        self._owner(message.camera_id, context)
         self._s.registry.remove(message.camera_id)
+        self._s.owners.pop(message.camera_id, None)
         self._s._forget(message.camera_id)
         log.info("camera %s deregistered", message.camera_id)
         return registry_pb2.DeregisterReply()
