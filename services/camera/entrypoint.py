@@ -1,0 +1,68 @@
+"""Camera container entrypoint: `drvs-camera` with the container's flags and DRVS_CAMERA_* settings.
+
+A simulated camera (`--source sim://WORLD`) given no homography gets the one drvs-office gives it:
+derived from the camera's pose in the scenario the world serves (what calibration would measure),
+written to /tmp, with the scenario's max range unless one is set. Then this process becomes
+drvs-camera (exec), which handles SIGTERM itself: it deregisters and stops gracefully.
+"""
+
+from __future__ import annotations
+
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+DRVS_CAMERA = "drvs-camera"
+
+
+def option(argv: list[str], flag: str, env: str) -> str | None:
+    """A setting as drvs-camera would read it: --flag VALUE, --flag=VALUE, or the environment."""
+    for i, arg in enumerate(argv):
+        if arg == flag and i + 1 < len(argv):
+            return argv[i + 1]
+        if arg.startswith(flag + "="):
+            return arg[len(flag) + 1 :]
+    return os.environ.get(env) or None
+
+
+def sim_homography(world: str, camera_id: str) -> tuple[Path, float]:
+    import grpc
+
+    from drvs.camera.homography_file import save_homography
+    from drvs.sim.scenario import parse_scenario
+    from drvs.v1 import sim_pb2, sim_pb2_grpc
+
+    with grpc.insecure_channel(world) as channel:
+        try:
+            scene = sim_pb2_grpc.SimulatedWorldStub(channel).GetScene(
+                sim_pb2.GetSceneRequest(), timeout=60, wait_for_ready=True
+            )
+        except grpc.RpcError as exc:
+            raise SystemExit(f"camera {camera_id}: simulated world {world} unreachable: {exc.details()}") from None
+    cam = parse_scenario(scene.scenario_yaml, f"world {world}").camera(camera_id)
+    path = Path(tempfile.gettempdir()) / f"{camera_id}.homography.yaml"
+    save_homography(path, cam.homography, image_size=list(cam.resolution))
+    return path, cam.max_range_m
+
+
+def main() -> None:
+    argv = sys.argv[1:]
+    subcommand = bool(argv) and not argv[0].startswith("-") and argv[0] != "run"
+    source = option(argv, "--source", "DRVS_CAMERA_SOURCE")
+    given_config = any(a == "--config" or a.startswith("--config=") for a in argv)
+    configured = given_config or option(argv, "--homography", "DRVS_CAMERA_HOMOGRAPHY")
+    if not subcommand and source and source.startswith("sim://") and not configured:
+        camera_id = option(argv, "--id", "DRVS_CAMERA_ID")
+        if not camera_id:
+            raise SystemExit("camera: a sim:// source needs --id (or DRVS_CAMERA_ID): the scenario camera it is")
+        path, max_range_m = sim_homography(source[len("sim://") :], camera_id)
+        print(f"camera {camera_id}: homography from its pose in the world's scenario: {path}", flush=True)
+        argv += ["--homography", str(path)]
+        if not option(argv, "--max-range", "DRVS_CAMERA_MAX_RANGE"):
+            argv += ["--max-range", str(max_range_m)]
+    os.execvp(DRVS_CAMERA, [DRVS_CAMERA, *argv])
+
+
+if __name__ == "__main__":
+    main()
