@@ -74,9 +74,12 @@ async def test_navigate_without_drvs_collides_and_replans(tmp_path: Path) -> Non
     check_map(tmp_path)
 
 
-async def test_charging_station_is_the_true_one(tmp_path: Path) -> None:
-    code, result, log = await run_office(tmp_path, "--scenario", str(SMALL_ROOM), "--mission", "find_charging_station")
+async def test_charging_station_is_the_true_one_over_mutual_tls(tmp_path: Path) -> None:
+    code, result, log = await run_office(
+        tmp_path, "--scenario", str(SMALL_ROOM), "--mission", "find_charging_station", "--tls"
+    )
     assert code == 0, log
+    assert (tmp_path / "certs" / "ca.pem").exists() and result["bytes_to_robot"] > 0
     scenario = load_scenario(SMALL_ROOM)
     station = scenario.charging_stations[0].shape.centroid
     assert result["charging_station"] is not None

@@ -4,7 +4,6 @@ from __future__ import annotations
 
 import argparse
 import asyncio
-import logging
 import os
 import signal
 import sys
@@ -12,6 +11,7 @@ from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
+from drvs import logs
 from drvs.errors import InvalidArgument
 from drvs.security import Security
 
@@ -25,11 +25,13 @@ def env(name: str, default: str | None = None) -> str | None:
     return value if value not in (None, "") else default
 
 
-def setup_logging(level: str | None) -> None:
-    logging.basicConfig(
-        level=(level or env(ENV_LOG_LEVEL, "INFO") or "INFO").upper(),
-        format="%(asctime)s %(name)s %(levelname)s %(message)s",
-        stream=sys.stderr,
+#: text (default) or json: one JSON object per line, with the request id on every hop.
+ENV_LOG_FORMAT = "DRVS_LOG_FORMAT"
+
+
+def setup_logging(level: str | None, fmt: str | None = None) -> None:
+    logs.configure(
+        level or env(ENV_LOG_LEVEL, "INFO") or "INFO", fmt or env(ENV_LOG_FORMAT, "text") or "text", sys.stderr
     )
 
 
@@ -110,3 +112,22 @@ def security_from(values: Mapping[str, Any], environ: Mapping[str, str] = os.env
         require_client_cert=bool(client_auth),
         token=read_token(token_file) if token_file else "",
     )
+
+
+def add_observability_arguments(p: argparse.ArgumentParser, metrics: bool = True) -> None:
+    p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING (env DRVS_LOG_LEVEL)")
+    p.add_argument(
+        "--log-format",
+        choices=logs.FORMATS,
+        default=None,
+        help="text, or json: one object per line with the request id (env DRVS_LOG_FORMAT)",
+    )
+    if metrics:
+        p.add_argument(
+            "--metrics-port",
+            type=int,
+            default=int(env("DRVS_METRICS_PORT", "-1") or -1),
+            metavar="PORT",
+            help="serve Prometheus metrics on http://0.0.0.0:PORT/metrics; 0 picks a free port "
+            "(env DRVS_METRICS_PORT; default off)",
+        )

@@ -16,6 +16,7 @@ from typing import Any
 import grpc
 from grpc import aio
 
+from drvs import metrics
 from drvs.convert import report_to_pb
 from drvs.errors import Unavailable
 from drvs.model import DetectionReport
@@ -73,8 +74,10 @@ class RobotLink:
             raise Unavailable(f"callback {self.address}: {self.broken}")
         self.sending += 1
         try:
+            message = report_to_pb(report, outlines)
             async with self._write_lock:
-                await asyncio.wait_for(self._call.write(report_to_pb(report, outlines)), WRITE_TIMEOUT_S)
+                await asyncio.wait_for(self._call.write(message), WRITE_TIMEOUT_S)
+            metrics.REPORT_BYTES.inc(message.ByteSize())
         except asyncio.TimeoutError:
             self.broken = f"robot did not take a report within {WRITE_TIMEOUT_S:g} s"
             self._call.cancel()

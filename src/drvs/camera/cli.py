@@ -21,6 +21,7 @@ from drvs.camera.source import FrameSource, VideoSource
 from drvs.detection import Frame
 from drvs.errors import DrvsError
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, polygon_coords
+from drvs.metrics import serve_metrics
 
 log = logging.getLogger("drvs.camera")
 
@@ -77,6 +78,8 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_security_arguments(p, "file holding this camera's registration token")
     p.add_argument("--log-level", help=f"DEBUG, INFO, WARNING ({e['log_level']})")
+    p.add_argument("--log-format", help=f"text, or json: one object per line with the request id ({e['log_format']})")
+    p.add_argument("--metrics-port", help=f"Prometheus metrics port; 0 picks one; default off ({e['metrics_port']})")
     return p
 
 
@@ -96,10 +99,11 @@ def make_source(
     return VideoSource(spec, loop_file=loop_file, resolution=resolution, fps=fps)
 
 
-async def run(node: CameraNode) -> int:
+async def run(node: CameraNode, metrics_port: int | None = None) -> int:
     stop = shutdown_event()
     try:
         await node.start()
+        serve_metrics(metrics_port)
     except (DrvsError, OSError) as exc:
         log.error("camera %s cannot start: %s", node.camera_id, exc)
         await node.stop(grace=0)
@@ -309,7 +313,7 @@ def main(argv: list[str] | None = None) -> int:
         config = load_config(vars(args), os.environ, args.config)
     except DrvsError as exc:
         parser.error(str(exc))
-    setup_logging(config.log_level)
+    setup_logging(config.log_level, config.log_format)
     try:
         node = CameraNode(
             config.id,
@@ -329,4 +333,4 @@ def main(argv: list[str] | None = None) -> int:
         )
     except DrvsError as exc:
         parser.error(str(exc))
-    return asyncio.run(run(node))
+    return asyncio.run(run(node, config.metrics_port))

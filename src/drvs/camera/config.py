@@ -18,6 +18,7 @@ from drvs.detection import DEFAULT_MIN_AREA_PX
 from drvs.errors import InvalidArgument
 from drvs.filters import DETECTOR_KINDS
 from drvs.geometry import DEFAULT_MAX_RANGE_M
+from drvs.logs import FORMATS
 from drvs.model import check_id
 from drvs.net import parse_address
 from drvs.security import Security
@@ -44,6 +45,8 @@ ENVIRONMENT = {
     "detectors": "DRVS_CAMERA_DETECTORS",
     "heartbeat_s": "DRVS_CAMERA_HEARTBEAT",
     "log_level": "DRVS_LOG_LEVEL",
+    "log_format": "DRVS_LOG_FORMAT",
+    "metrics_port": "DRVS_METRICS_PORT",
     **SECURITY_ENV,
 }
 
@@ -69,6 +72,10 @@ class CameraConfig:
     #: Heartbeat interval; by default a third of the lease the server grants.
     heartbeat_s: float | None = None
     log_level: str | None = None
+    #: text, or json (one object per line, with the request id).
+    log_format: str | None = None
+    #: Serve Prometheus metrics on this port (0: any free port; None: off).
+    metrics_port: int | None = None
     #: TLS and the registration token (see drvs.security); paths are relative to the config file.
     tls_cert: Path | None = None
     tls_key: Path | None = None
@@ -92,7 +99,7 @@ _FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max
           "listen": "--listen", "advertise": "--advertise", "resolution": "--resolution", "fps": "--fps",
           "detectors": "--detectors", "heartbeat_s": "--heartbeat", "tls_cert": "--tls-cert",
           "tls_key": "--tls-key", "tls_ca": "--tls-ca", "tls_client_auth": "--tls-client-auth",
-          "token_file": "--token-file"}  # fmt: skip
+          "token_file": "--token-file", "log_format": "--log-format", "metrics_port": "--metrics-port"}  # fmt: skip
 
 
 def load_config(
@@ -164,6 +171,15 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
             if not (math.isfinite(value) and limits[0] <= value <= limits[1]):
                 raise InvalidArgument(f"{where}: {raw!r} must be a number from {limits[0]:g} to {limits[1]:g}")
             return value
+        if name == "metrics_port":
+            port = int(raw) if not isinstance(raw, bool) and str(raw).strip().isdecimal() else -1
+            if not 0 <= port <= 65535:
+                raise InvalidArgument(f"{where}: {raw!r} is not a port number (0 picks a free one)")
+            return port
+        if name == "log_format":
+            if str(raw) not in FORMATS:
+                raise InvalidArgument(f"{where}: {raw!r} must be one of {', '.join(FORMATS)}")
+            return str(raw)
         if name in ("loop", "serve_frames", "tls_client_auth"):
             if isinstance(raw, bool):
                 return raw

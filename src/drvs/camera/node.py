@@ -16,7 +16,7 @@ import numpy as np
 from grpc import aio
 from numpy.typing import NDArray
 
-from drvs import _grpc
+from drvs import _grpc, logs, metrics
 from drvs._service import Endpoint, Lifecycle
 from drvs.callback import CallbackSender
 from drvs.convert import homography_to_pb, request_from_pb
@@ -286,7 +286,12 @@ class CameraNode(Lifecycle):
                 if request.continuous.single_shot
                 else f"{request.continuous.rate_hz:g} Hz for {request.continuous.duration_s:g} s",
             )
-        job = asyncio.get_running_loop().create_task(self._serve(request))
+        # The job's task copies this context: everything it logs carries the request id.
+        token = logs.request_id.set(request.request_id)
+        try:
+            job = asyncio.get_running_loop().create_task(self._serve(request))
+        finally:
+            logs.request_id.reset(token)
         self._jobs.add(job)
         job.add_done_callback(self._jobs.discard)
 
@@ -300,9 +305,14 @@ class CameraNode(Lifecycle):
                 if delay > 0:
                     await asyncio.sleep(delay)
                 report = await self._look(request, sequence, final=sequence == len(offsets) - 1)
-                if not await self._callbacks.send(request.callback_address, report, not request.omit_outlines):
+                sending = time.perf_counter()
+                sent = await self._callbacks.send(request.callback_address, report, not request.omit_outlines)
+                metrics.STAGE.labels("report").observe(time.perf_counter() - sending)
+                metrics.REPORTS.labels("sent" if sent else "dropped").inc()
+                if not sent:
                     log.debug("camera %s: request %s cancelled by the robot", self.camera_id, request.request_id)
                     return
+                metrics.DETECTIONS.inc(len(report.detections))
         except DrvsError as exc:
             log.warning("camera %s: request %s: %s", self.camera_id, request.request_id, exc)
 
@@ -324,7 +334,9 @@ class CameraNode(Lifecycle):
             analysis = FrameAnalysis(frame)
             self._analysis = analysis
         assert self.detector is not None
+        started = time.perf_counter()
         detections = await asyncio.to_thread(self.detector.detect, analysis, request.filter_def, request.region)
+        metrics.STAGE.labels("detect").observe(time.perf_counter() - started)
         return DetectionReport(
             request_id=request.request_id,
             camera_id=self.camera_id,

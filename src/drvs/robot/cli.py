@@ -10,6 +10,7 @@ from typing import Any
 
 from drvs._cli import add_security_arguments, env, join_negative_values, security_from, setup_logging
 from drvs.errors import DrvsError, InvalidArgument
+from drvs.logs import FORMATS
 from drvs.model import Detection, DetectionReport
 from drvs.robot.client import DEFAULT_TIMEOUT_S, DrvsClient, RegionLike
 
@@ -157,6 +158,7 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--robot-id", default="drvs-robot-cli")
         sp.add_argument("--json", action="store_true", help="one JSON object per line")
         sp.add_argument("--log-level", default="WARNING")
+        sp.add_argument("--log-format", choices=FORMATS, default=None, help="text or json (env DRVS_LOG_FORMAT)")
         add_security_arguments(sp, "file holding this robot's client token")
 
     d = sub.add_parser("detect", help="detect objects in a region")
@@ -189,7 +191,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(
         join_negative_values(sys.argv[1:] if argv is None else argv, ("--roi", "--polygon"))
     )
-    setup_logging(args.log_level)
+    setup_logging(args.log_level, args.log_format)
     try:
         return int(asyncio.run(args.func(args)))
     except DrvsError as exc:

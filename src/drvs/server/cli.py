@@ -7,8 +7,16 @@ import asyncio
 import logging
 from pathlib import Path
 
-from drvs._cli import add_security_arguments, env, security_from, setup_logging, shutdown_event
+from drvs._cli import (
+    add_observability_arguments,
+    add_security_arguments,
+    env,
+    security_from,
+    setup_logging,
+    shutdown_event,
+)
 from drvs.errors import DrvsError
+from drvs.metrics import serve_metrics
 from drvs.net import parse_address
 from drvs.registry import DEFAULT_LEASE_TTL_S
 from drvs.security import load_tokens
@@ -78,7 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
         help="continuous requests one robot may have running at once (default %(default)s)",
     )
     add_security_arguments(p, "unused by the server (it checks tokens, it presents none)")
-    p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING (env DRVS_LOG_LEVEL)")
+    add_observability_arguments(p)
     return p
 
 
@@ -96,6 +104,7 @@ async def serve(args: argparse.Namespace) -> None:
         limits=args.limits,
     )
     await server.start()
+    serve_metrics(args.metrics_port if args.metrics_port >= 0 else None)
     try:
         await stop.wait()
         log.info("shutting down")
@@ -122,7 +131,7 @@ def main(argv: list[str] | None = None) -> int:
             setattr(args, f"{role}_token_table", load_tokens(Path(path), f"--{role}-tokens") if path else None)
     except DrvsError as exc:
         parser.error(str(exc))
-    setup_logging(args.log_level)
+    setup_logging(args.log_level, args.log_format)
     try:
         asyncio.run(serve(args))
     except OSError as exc:

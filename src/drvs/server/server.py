@@ -13,7 +13,7 @@ from typing import Any
 from grpc import aio
 from shapely.geometry import Polygon
 
-from drvs import _grpc
+from drvs import _grpc, logs, metrics
 from drvs._service import Endpoint, Lifecycle
 from drvs.callback import CallbackSender
 from drvs.convert import (
@@ -198,10 +198,14 @@ class DrvsServer(Lifecycle):
         self, camera: CameraEntry, request: DetectionRequest, message: detection_pb2.DetectionRequest
     ) -> None:
         link = self._link(camera)
+        started = time.perf_counter()
         try:
             await link.requests.request(message, self.forward_timeout_s)
+            metrics.ROUTED.labels("ok").inc()
+            metrics.STAGE.labels("forward").observe(time.perf_counter() - started)
             return
         except DrvsError as exc:
+            metrics.ROUTED.labels("failed").inc()
             reason = f"camera {camera.camera_id} did not accept the request: {_grpc.status_of(exc).name} {exc}"
             unreachable = isinstance(exc, (Unavailable, DeadlineExceeded))
         log.warning("request %s: %s", request.request_id, reason)
@@ -235,6 +239,7 @@ class DrvsServer(Lifecycle):
             for entry in self.registry.expire():
                 log.info("camera %s left routing: lease expired", entry.camera_id)
                 self._forget(entry.camera_id)
+                metrics.CAMERAS.set(len(self.registry))
 
 
 class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
@@ -249,6 +254,22 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         self, message: detection_pb2.DetectionRequest, peer: IPAddress | None, allowed: set[str], robot: str
     ) -> detection_pb2.DetectionReply:
         """Validate, check the callback (once per address per call), dispatch, reply at once."""
+        started = time.perf_counter()
+        token = logs.request_id.set(message.request_id)
+        try:
+            reply = await self._dispatch(message, peer, allowed, robot)
+        except DrvsError:
+            metrics.REQUESTS.labels("refused").inc()
+            raise
+        finally:
+            logs.request_id.reset(token)
+        metrics.REQUESTS.labels("dispatched").inc()
+        metrics.STAGE.labels("route").observe(time.perf_counter() - started)
+        return reply
+
+    async def _dispatch(
+        self, message: detection_pb2.DetectionRequest, peer: IPAddress | None, allowed: set[str], robot: str
+    ) -> detection_pb2.DetectionReply:
         request = request_from_pb(message, require_request_id=False)
         self._s.limits.admit(robot, request.continuous.duration_s)
         if request.callback_address not in allowed:
@@ -257,6 +278,7 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         if not request.request_id:
             request = dataclasses.replace(request, request_id=uuid.uuid4().hex)
             message.request_id = request.request_id
+            logs.request_id.set(request.request_id)
         camera_ids = self._s.dispatch(request, message)
         return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=camera_ids)
 
@@ -314,6 +336,7 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
             max_range_m=max_range,
         )
         self._s.owners[entry.camera_id] = owner
+        metrics.CAMERAS.set(len(self._s.registry))
         token = bearer_token(list(context.invocation_metadata() or ()))
         if token:
             self._s._camera_tokens[entry.camera_id] = token
@@ -349,6 +372,7 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
         self._s.registry.remove(message.camera_id)
         self._s.owners.pop(message.camera_id, None)
         self._s._forget(message.camera_id)
+        metrics.CAMERAS.set(len(self._s.registry))
         log.info("camera %s deregistered", message.camera_id)
         return registry_pb2.DeregisterReply()
 

@@ -9,7 +9,7 @@ import logging
 import sys
 from pathlib import Path
 
-from drvs._cli import setup_logging
+from drvs._cli import add_security_arguments, security_from, setup_logging
 from drvs.errors import DrvsError
 from drvs.sim.world import add_world_arguments, world_main
 
@@ -33,6 +33,7 @@ def robot_main(args: argparse.Namespace) -> int:
                 Path(args.out),
                 progress=progress,
                 max_time_s=args.max_time,
+                security=security_from(vars(args)),
             )
         )
     except DrvsError as exc:
@@ -55,6 +56,7 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--out", default=".", help="folder for result.json")
     r.add_argument("--max-time", type=float, default=120.0, help="give up after this many seconds")
     r.add_argument("--log-level", default=None)
+    add_security_arguments(r, "file holding the robot's client token")
     r.set_defaults(func=robot_main)
     args = parser.parse_args(argv)
     return int(args.func(args))

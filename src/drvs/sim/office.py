@@ -13,6 +13,7 @@ from pathlib import Path
 from typing import Any, TextIO
 
 from drvs.camera.homography_file import save_homography
+from drvs.certs import make_all
 from drvs.errors import DrvsError
 from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.sim.cli import PROGRESS_PREFIX
@@ -71,7 +72,14 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
             robot_args.append("--no-drvs")
             say("DRVS       off: the paper's baseline, the robot learns obstacles by touching them")
         else:
-            server, server_address = await start_server(echo=echo)
+            tls: dict[str, list[str]] = {"server": [], "camera": [], "robot": []}
+            if args.tls:
+                certs = out / "certs"
+                for role, (cert, key) in make_all(certs, list(tls), []).items():
+                    tls[role] = ["--tls-cert", str(cert), "--tls-key", str(key), "--tls-ca", str(certs / "ca.pem"),
+                                 "--tls-client-auth"]  # fmt: skip
+                say(f"TLS        mutual TLS on every hop; certificates from drvs-certs in {certs}")
+            server, server_address = await start_server(*tls["server"], echo=echo)
             procs.append(server)
             say(f"server     drvs-server on {server_address}")
             cams_dir = out / "cameras"
@@ -81,11 +89,11 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
                 save_homography(hfile, cam.homography, image_size=list(cam.resolution))
                 proc = await start_camera(
                     cam.id, f"sim://{world_address}", hfile, server_address, "--max-range", str(cam.max_range_m),
-                    echo=echo,
+                    *tls["camera"], echo=echo,
                 )  # fmt: skip
                 procs.append(proc)
                 say(f"camera     {cam.id} registered ({cam.field_of_view.floor.area:.1f} m² of floor)")
-            robot_args += ["--server", server_address]
+            robot_args += ["--server", server_address, *tls["robot"]]
         robot = await sim_process("robot", *robot_args, echo=echo).start()
         procs.append(robot)
         say(f"robot      mission {scenario.mission} from {list(scenario.robot.start)}")
@@ -148,6 +156,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=None, help="output folder (default: a new drvs-out-* folder)")
     parser.add_argument("--seed", type=int, default=0, help="seed for sensor noise and lighting (default 0)")
     parser.add_argument("--no-drvs", action="store_true", help="the paper's baseline (Fig. 5): no DRVS")
+    parser.add_argument("--tls", action="store_true", help="mutual TLS on every hop, with certificates from drvs-certs")
     parser.add_argument("--max-time", type=float, default=120.0, help="give the mission up after this many seconds")
     parser.add_argument("--quiet", "--headless", action="store_true", help="no progress; print only the result path")
     parser.add_argument("--verbose", action="store_true", help="show every process's log")

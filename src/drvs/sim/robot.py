@@ -23,6 +23,7 @@ from drvs import _grpc
 from drvs.convert import polygon_from_pb
 from drvs.model import Detection
 from drvs.robot import DrvsClient
+from drvs.security import Security
 from drvs.sim.planner import NoPath, OccupancyGrid, plan_path
 from drvs.sim.scenario import Scenario
 from drvs.v1 import sim_pb2, sim_pb2_grpc
@@ -315,6 +316,7 @@ async def run_robot(
     *,
     progress: Callable[[dict[str, Any]], None],
     max_time_s: float = 120.0,
+    security: Security | None = None,
 ) -> dict[str, Any]:
     from drvs.sim.scenario import parse_scenario
 
@@ -323,7 +325,9 @@ async def run_robot(
         world = sim_pb2_grpc.SimulatedWorldStub(channel)
         scene = await world.GetScene(sim_pb2.GetSceneRequest(), timeout=10, wait_for_ready=True)
         scenario = parse_scenario(scene.scenario_yaml, f"world {world_address}")
-        client = DrvsClient(server_address, robot_id="sim-robot", meter=True) if server_address else None
+        client = (
+            DrvsClient(server_address, robot_id="sim-robot", meter=True, security=security) if server_address else None
+        )
         if client is not None:
             await client.start()
         try:

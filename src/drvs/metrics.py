@@ -1,0 +1,43 @@
+"""Prometheus metrics of the server and camera nodes (prometheus-client), served over HTTP with
+--metrics-port. Names are documented in docs/operations.md; every one starts with drvs_."""
+
+from __future__ import annotations
+
+import logging
+
+from prometheus_client import Counter, Gauge, Histogram, start_http_server
+
+log = logging.getLogger(__name__)
+
+#: Request-path stages are milliseconds long; detection can take tens of milliseconds.
+_BUCKETS = (0.0005, 0.001, 0.002, 0.005, 0.01, 0.02, 0.05, 0.1, 0.2, 0.5, 1.0, 2.0, 5.0)
+
+REQUESTS = Counter(
+    "drvs_requests_total", "Detection requests the server answered, by outcome (dispatched or refused)", ["outcome"]
+)
+ROUTED = Counter(
+    "drvs_requests_routed_total", "Forwards of a request to a camera, by outcome (ok or failed)", ["outcome"]
+)
+CAMERAS = Gauge("drvs_cameras_registered", "Cameras in the server's routing table")
+DETECTIONS = Counter("drvs_detections_sent_total", "Detections a camera node sent to robots")
+REPORTS = Counter(
+    "drvs_reports_sent_total", "Reports a camera node sent to robots, by outcome (sent or dropped)", ["outcome"]
+)
+REPORT_BYTES = Counter("drvs_report_bytes_sent_total", "Serialised bytes of the reports a camera node sent")
+STAGE = Histogram(
+    "drvs_stage_seconds",
+    "Time per stage: route (server: validate, check, route, dispatch), forward (server: until the camera "
+    "accepts), detect (camera: one detection on a frame), report (camera: handing one report to the robot's stream)",
+    ["stage"],
+    buckets=_BUCKETS,
+)
+
+
+def serve_metrics(port: int | None, host: str = "0.0.0.0") -> int | None:
+    """Serve /metrics on host:port (0: any free port; None: not at all); returns the bound port."""
+    if port is None:
+        return None
+    server, _thread = start_http_server(port, addr=host)
+    bound = int(server.server_port)
+    log.info("metrics on http://%s:%d/metrics", host, bound)
+    return bound
