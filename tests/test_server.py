@@ -200,18 +200,20 @@ async def test_streamed_requests_are_answered_in_order_and_a_refusal_does_not_en
         detect_message(request_id=""),
         # Identity given once: an empty robot_id and callback_address repeat the previous request's.
         detect_message(request_id="s5", robot_id="", callback_address=""),
+        # The same objects in the same region: filter_def and region repeat too.
+        detect_message(request_id="s6", robot_id="", callback_address="", filter_def="", region=None),
     ]
     for message in sent:
         await call.write(message)
     await call.done_writing()
     replies = [reply async for reply in call]
-    assert [r.request_id for r in replies] == ["s1", "s2", "s3", "", "s5"]
+    assert [r.request_id for r in replies] == ["s1", "s2", "s3", "", "s5", "s6"]
     assert list(replies[0].camera_ids) == ["cam1"] and not replies[0].HasField("error")
     assert replies[1].error.code == "INVALID_ARGUMENT" and "x_lower" in replies[1].error.message
     assert replies[2].error.code == "PERMISSION_DENIED" and "callback_address" in replies[2].error.message
     assert replies[3].error.code == "INVALID_ARGUMENT" and "request_id" in replies[3].error.message
     # Accepted (cam1 itself may be skipped by now: nothing listens at its address, so s1's forward failed).
-    assert not replies[4].HasField("error")
+    assert not replies[4].HasField("error") and not replies[5].HasField("error")
     assert await call.code() == grpc.StatusCode.OK
     assert len(server.registry) == 1
 

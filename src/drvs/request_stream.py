@@ -16,7 +16,7 @@ import grpc
 from grpc import aio
 
 from drvs import _grpc, errors
-from drvs.v1 import detection_pb2, detection_pb2_grpc
+from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
 
 log = logging.getLogger(__name__)
 
@@ -29,8 +29,9 @@ class RequestStream:
     DrvsError it stands for. The call is opened on first use and reopened after it ends (a peer that
     restarted), so a request during an outage fails fast with Unavailable and the next one retries.
 
-    elide_identity=True sends robot_id and callback_address only when they change (the receiver
-    fills them in from the previous request); only for senders whose messages are their own to edit.
+    elide_repeats=True leaves out robot_id, callback_address, filter_def and region when they repeat
+    the previous request on the stream (the receiver fills them back in); only for senders whose
+    messages are their own to edit.
     """
 
     def __init__(
@@ -38,23 +39,23 @@ class RequestStream:
         stub: detection_pb2_grpc.DetectObjectBoundaryStub,
         peer: str,
         *,
-        elide_identity: bool,
+        elide_repeats: bool,
         metadata: tuple[tuple[str, str], ...] = (),
     ) -> None:
         self._stub = stub
         self._metadata = metadata
         self._peer = peer
-        self._elide = elide_identity
+        self._elide = elide_repeats
         self._call: aio.StreamStreamCall[Request, Reply] | None = None
         self._reader: asyncio.Task[None] | None = None
         self._pending: dict[str, asyncio.Future[Reply]] = {}
         self._write_lock = asyncio.Lock()
-        self._last_identity = ("", "")
+        self._sent = StreamContext()
 
     def _open(self) -> aio.StreamStreamCall[Request, Reply]:
         call: aio.StreamStreamCall[Request, Reply] = self._stub.DetectStream(metadata=self._metadata or None)
         self._call = call
-        self._last_identity = ("", "")
+        self._sent = StreamContext()
         self._reader = asyncio.get_running_loop().create_task(self._read(call))
         return call
 
@@ -90,10 +91,7 @@ class RequestStream:
             async with self._write_lock:
                 call = self._call or self._open()
                 if self._elide:
-                    identity = (message.robot_id, message.callback_address)
-                    if identity == self._last_identity:
-                        message.robot_id = message.callback_address = ""
-                    self._last_identity = identity
+                    self._sent.elide(message)
                 try:
                     await call.write(message)
                 except (grpc.RpcError, asyncio.InvalidStateError) as exc:
@@ -125,23 +123,46 @@ def _expire(future: asyncio.Future[Reply], peer: str, timeout_s: float) -> None:
         future.set_exception(errors.DeadlineExceeded(f"{peer}: no reply within {timeout_s:g} s"))
 
 
-class StreamIdentity:
-    """The receiving side of elided identity: fills an empty robot_id or callback_address from the
-    previous request on the same stream."""
+#: Fields a sender may leave out when they repeat the previous request on the same stream: who
+#: asks and where reports go, and, for a robot asking again and again, what and where to look.
+REPEATABLE = ("robot_id", "callback_address", "filter_def")
+
+
+class StreamContext:
+    """The previous request's repeatable fields and region on one stream. The sender elides what
+    repeats; the receiver fills it back in. Both update from every request sent or received,
+    whatever its fate, so their views never part."""
 
     def __init__(self) -> None:
-        self.robot_id = ""
-        self.callback_address = ""
+        self.values = dict.fromkeys(REPEATABLE, "")
+        self.region: geometry_pb2.Region | None = None
+
+    def elide(self, message: Request) -> None:
+        for name in REPEATABLE:
+            value = getattr(message, name)
+            if value and value == self.values[name]:
+                setattr(message, name, "")
+            else:
+                self.values[name] = value
+        if message.HasField("region"):
+            if self.region is not None and message.region == self.region:
+                message.ClearField("region")
+            else:
+                self.region = geometry_pb2.Region()
+                self.region.CopyFrom(message.region)
 
     def fill(self, message: Request) -> None:
-        if message.robot_id:
-            self.robot_id = message.robot_id
-        else:
-            message.robot_id = self.robot_id
-        if message.callback_address:
-            self.callback_address = message.callback_address
-        else:
-            message.callback_address = self.callback_address
+        for name in REPEATABLE:
+            value = getattr(message, name)
+            if value:
+                self.values[name] = value
+            else:
+                setattr(message, name, self.values[name])
+        if message.HasField("region"):
+            self.region = geometry_pb2.Region()
+            self.region.CopyFrom(message.region)
+        elif self.region is not None:
+            message.region.CopyFrom(self.region)
 
 
 async def serve_request_stream(
@@ -149,9 +170,9 @@ async def serve_request_stream(
 ) -> AsyncIterator[Reply]:
     """The receiving side: answer each request in order; a DrvsError becomes a reply's error and the
     stream goes on; anything unexpected is logged and answered as INTERNAL."""
-    identity = StreamIdentity()
+    context = StreamContext()
     async for message in requests:
-        identity.fill(message)
+        context.fill(message)
         try:
             yield await answer(message)
         except errors.DrvsError as exc:

@@ -54,7 +54,7 @@ class _CameraLink:
         self.requests = RequestStream(
             detection_pb2_grpc.DetectObjectBoundaryStub(self.channel),
             f"camera at {address}",
-            elide_identity=False,
+            elide_repeats=False,
             metadata=security.metadata(token),
         )
 
