@@ -10,6 +10,7 @@ from pathlib import Path
 from typing import Any
 
 from drvs.camera.homography_file import save_homography
+from drvs.launch import ManagedProcess
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import load_scenario
 from drvs.sim.scene import RecordedCamera, write_video
@@ -99,3 +100,8 @@ def machine() -> dict[str, Any]:
 
 #: The service benchmarks measure capacity, not policy: the per-robot rate limit is lifted.
 NO_RATE_LIMIT = ("--rate-limit", "1000000")
+
+
+def bench_process(name: str, *args: str) -> ManagedProcess:
+    """One of drvs-bench's own processes (a robot workload, a helper)."""
+    return ManagedProcess.entry_point(name, "drvs-bench", *args)

@@ -230,6 +230,7 @@ async def rtt(args: argparse.Namespace) -> None:
         times = []
         loop = asyncio.get_running_loop()
         start = loop.time()
+        cpu_start = time.process_time()
         for i in range(args.calls):
             if args.rate:
                 delay = start + i / args.rate - loop.time()
@@ -240,7 +241,16 @@ async def rtt(args: argparse.Namespace) -> None:
             times.append((time.perf_counter() - t0) * 1000)
         call.close()
         print(
-            "DONE " + json.dumps({"rtt_ms_p50": percentile(times, 50), "rtt_ms_p90": percentile(times, 90)}), flush=True
+            "DONE "
+            + json.dumps(
+                {
+                    "rtt_ms_p50": percentile(times, 50),
+                    "rtt_ms_p90": percentile(times, 90),
+                    "cpu_s": time.process_time() - cpu_start,
+                    "wall_s": loop.time() - start,
+                }
+            ),
+            flush=True,
         )
 
 
@@ -252,7 +262,7 @@ def add_helper_parsers(sub: Any) -> None:
     r.add_argument("--camera-address", required=True)
     r.add_argument("--count", type=int, required=True)
     r.set_defaults(func=lambda args: asyncio.run(register(args)) or 0)
-    lo = sub.add_parser("load", help="(internal) requests as fast as they go")
+    lo = sub.add_parser("routing-load", help="(internal) requests as fast as they go")
     lo.add_argument("--target", required=True)
     lo.add_argument("--callback", default="127.0.0.1:9")
     lo.add_argument("--cameras", type=int, default=1000)

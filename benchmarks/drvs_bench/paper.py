@@ -18,16 +18,13 @@ from typing import Any
 from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.meter import CountingRelay
 
-from .common import CpuSampler, machine, record_scene
+from .common import CpuSampler, bench_process, machine, record_scene
+from .service import ack_server, run_helper
 
 BUCKET_S = 0.1
 #: drvs: reports with floor outlines (the API's default); drvs_boxes: bounding boxes only, as the
 #: paper's DRVS sent; raw / jpeg: both cameras stream frames, the robot detects on board.
 MODES = ("drvs", "drvs_boxes", "raw", "jpeg")
-
-
-def bench_process(name: str, *args: str) -> ManagedProcess:
-    return ManagedProcess.entry_point(name, "drvs-bench", *args)
 
 
 async def run_mode(
@@ -102,6 +99,15 @@ async def run_paper(out: Path, requests: int, rate: float) -> dict[str, Any]:
             for mode in MODES:
                 print(f"drvs-bench paper: {mode} ...", file=sys.stderr, flush=True)
                 modes[mode] = await run_mode(mode, address, cameras, requests, rate)
+            # The transport's floor for the robot's CPU: a bare grpc.aio process making one round trip
+            # on a long-lived stream per request, at the same rate, to a server that answers at once:
+            # no reports, no DRVS code. No robot that asks over grpc.aio can use less.
+            print("drvs-bench paper: floor ...", file=sys.stderr, flush=True)
+            ack, ack_address = await ack_server()
+            procs.append(ack)
+            floor = await run_helper(
+                "rtt-floor", "rtt", "--target", ack_address, "--calls", str(requests), "--rate", str(rate)
+            )
         finally:
             for proc in reversed(procs):
                 await proc.stop()
@@ -126,6 +132,14 @@ async def run_paper(out: Path, requests: int, rate: float) -> dict[str, Any]:
         "bandwidth_ratio_raw_outlines": modes["raw"]["bytes_per_s"] / outlines["bytes_per_s"],
         "bandwidth_ratio_jpeg_outlines": modes["jpeg"]["bytes_per_s"] / outlines["bytes_per_s"],
         "robot_cpu_ratio_outlines": cpu_rate(modes["raw"]) / cpu_rate(outlines),
+        "robot_cpu_floor": {
+            "cpu_s": floor["cpu_s"],
+            "wall_s": floor["wall_s"],
+            "definition": "a bare grpc.aio client: one request/reply round trip per request on one stream, "
+            "same count and rate, to a server that answers at once; no reports, no DRVS code",
+        },
+        # The best robot_cpu_ratio any grpc.aio robot could reach: raw-frame CPU over the floor's.
+        "robot_cpu_ratio_at_floor": cpu_rate(modes["raw"]) / (floor["cpu_s"] / floor["wall_s"]),
         "machine": machine(),
     }
     await asyncio.to_thread(write_outputs, result, out)
