@@ -22,9 +22,8 @@ from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.registry import Registry
 from drvs.robot import DrvsClient
 
-from .common import ALL_REGION, NO_RATE_LIMIT, YELLOW, cpu_seconds, machine, peak_rss_bytes, record_scene
+from .common import ALL_REGION, NO_RATE_LIMIT, YELLOW, bench_process, cpu_seconds, machine, peak_rss_bytes, record_scene
 from .helpers import grid_position, percentile
-from .paper import bench_process
 
 LATENCY_RATES = (30.0, 60.0, 120.0, 240.0, 480.0)
 
@@ -143,7 +142,7 @@ async def measure_routing(quick: bool, out: dict[str, Any]) -> None:
         for mode in ("stream", "unary"):
             for name, target in (("echo", ack_address), ("routing", address)):
                 rates[f"{name}_{mode}"] = await run_helper(
-                    f"load-{name}-{mode}", "load", "--target", target, "--seconds", seconds, "--mode", mode
+                    f"load-{name}-{mode}", "routing-load", "--target", target, "--seconds", seconds, "--mode", mode
                 )
         out["routing"] = {
             "registered_cameras": cameras,
