@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import re
 from dataclasses import dataclass
 
@@ -21,6 +22,17 @@ DETECTOR_KINDS = ("hsv",)
 
 def validate_filter_def(filter_def: str) -> str:
     """The detector kind of a well-formed filter_def; InvalidArgument says what is wrong."""
+    if isinstance(filter_def, str) and len(filter_def) <= 64:
+        return _validated_kind(filter_def)  # robots ask for the same few objects again and again
+    return _validate(filter_def)
+
+
+@functools.lru_cache(maxsize=1024)
+def _validated_kind(filter_def: str) -> str:
+    return _validate(filter_def)  # lru_cache keeps answers only: a bad filter_def raises every time
+
+
+def _validate(filter_def: str) -> str:
     kind = detector_kind(filter_def)
     if kind == "hsv":
         HsvRange.parse(filter_def)

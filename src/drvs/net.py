@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import ipaddress
 import re
 import socket
@@ -14,6 +15,18 @@ _HOST_RE = re.compile(
 
 
 def parse_address(address: str, name: str = "address", *, allow_port_zero: bool = False) -> tuple[str, int]:
+    """HOST:PORT (a name, IPv4, or [IPv6]) as (host, port); InvalidArgument names `name` otherwise."""
+    if isinstance(address, str) and len(address) <= 300:
+        return _parse_address_cached(address, name, allow_port_zero)  # a stream repeats its addresses
+    return _parse_address(address, name, allow_port_zero=allow_port_zero)
+
+
+@functools.lru_cache(maxsize=4096)
+def _parse_address_cached(address: str, name: str, allow_port_zero: bool) -> tuple[str, int]:
+    return _parse_address(address, name, allow_port_zero=allow_port_zero)
+
+
+def _parse_address(address: str, name: str = "address", *, allow_port_zero: bool = False) -> tuple[str, int]:
     """Split 'host:port' or '[v6]:port'; InvalidArgument names the field when it is malformed."""
     if not isinstance(address, str) or not address:
         raise InvalidArgument(f"{name}: empty; expected host:port")

@@ -307,8 +307,8 @@ class CameraNode(Lifecycle):
                 report = await self._look(request, sequence, final=sequence == len(offsets) - 1)
                 sending = time.perf_counter()
                 sent = await self._callbacks.send(request.callback_address, report, not request.omit_outlines)
-                metrics.STAGE.labels("report").observe(time.perf_counter() - sending)
-                metrics.REPORTS.labels("sent" if sent else "dropped").inc()
+                metrics.STAGE_REPORT.observe(time.perf_counter() - sending)
+                (metrics.REPORTS_SENT if sent else metrics.REPORTS_DROPPED).inc()
                 if not sent:
                     log.debug("camera %s: request %s cancelled by the robot", self.camera_id, request.request_id)
                     return
@@ -336,7 +336,7 @@ class CameraNode(Lifecycle):
         assert self.detector is not None
         started = time.perf_counter()
         detections = await asyncio.to_thread(self.detector.detect, analysis, request.filter_def, request.region)
-        metrics.STAGE.labels("detect").observe(time.perf_counter() - started)
+        metrics.STAGE_DETECT.observe(time.perf_counter() - started)
         return DetectionReport(
             request_id=request.request_id,
             camera_id=self.camera_id,

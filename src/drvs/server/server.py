@@ -201,11 +201,11 @@ class DrvsServer(Lifecycle):
         started = time.perf_counter()
         try:
             await link.requests.request(message, self.forward_timeout_s)
-            metrics.ROUTED.labels("ok").inc()
-            metrics.STAGE.labels("forward").observe(time.perf_counter() - started)
+            metrics.ROUTED_OK.inc()
+            metrics.STAGE_FORWARD.observe(time.perf_counter() - started)
             return
         except DrvsError as exc:
-            metrics.ROUTED.labels("failed").inc()
+            metrics.ROUTED_FAILED.inc()
             reason = f"camera {camera.camera_id} did not accept the request: {_grpc.status_of(exc).name} {exc}"
             unreachable = isinstance(exc, (Unavailable, DeadlineExceeded))
         log.warning("request %s: %s", request.request_id, reason)
@@ -259,12 +259,12 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         try:
             reply = await self._dispatch(message, peer, allowed, robot)
         except DrvsError:
-            metrics.REQUESTS.labels("refused").inc()
+            metrics.REFUSED.inc()
             raise
         finally:
             logs.request_id.reset(token)
-        metrics.REQUESTS.labels("dispatched").inc()
-        metrics.STAGE.labels("route").observe(time.perf_counter() - started)
+        metrics.DISPATCHED.inc()
+        metrics.STAGE_ROUTE.observe(time.perf_counter() - started)
         return reply
 
     async def _dispatch(
