@@ -89,21 +89,28 @@ class RequestStream:
         timer = loop.call_later(timeout_s, _expire, future, self._peer, timeout_s)
         try:
             async with self._write_lock:
-                call = self._call or self._open()
-                if self._elide:
-                    self._sent.elide(message)
-                try:
-                    await call.write(message)
-                except (grpc.RpcError, asyncio.InvalidStateError) as exc:
-                    if self._call is call:
-                        self._call = None
-                    if isinstance(exc, grpc.RpcError):
-                        raise _grpc.from_rpc_error(exc, self._peer) from None
-                    raise errors.Unavailable(f"{self._peer}: the request stream ended") from None
+                # A request whose time ran out while it waited for its turn is not sent: the peer
+                # would work on a request whose sender has already given up on it.
+                if not future.done():
+                    call = self._call or self._open()
+                    if self._elide:
+                        self._sent.elide(message)
+                    try:
+                        await call.write(message)
+                    except (grpc.RpcError, asyncio.InvalidStateError) as exc:
+                        if self._call is call:
+                            self._call = None
+                        if isinstance(exc, grpc.RpcError):
+                            raise _grpc.from_rpc_error(exc, self._peer) from None
+                        raise errors.Unavailable(f"{self._peer}: the request stream ended") from None
             reply = await future
         finally:
             timer.cancel()
             self._pending.pop(message.request_id, None)
+            if future.done() and not future.cancelled():
+                future.exception()  # retrieved: a failure nobody awaited is not an error to log
+            else:
+                future.cancel()
         if reply.HasField("error"):
             raise _grpc.error_from_code(reply.error.code, reply.error.message)
         return reply
