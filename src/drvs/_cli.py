@@ -25,6 +25,17 @@ def env(name: str, default: str | None = None) -> str | None:
     return value if value not in (None, "") else default
 
 
+def env_number(name: str, default: float, *, integer: bool = False) -> float:
+    """A numeric DRVS_* environment variable, or the default; InvalidArgument names the variable."""
+    value = env(name)
+    if value is None:
+        return default
+    try:
+        return int(value) if integer else float(value)
+    except ValueError:
+        raise InvalidArgument(f"{name}: {value!r} is not {'an integer' if integer else 'a number'}") from None
+
+
 #: text (default) or json: one JSON object per line, with the request id on every hop.
 ENV_LOG_FORMAT = "DRVS_LOG_FORMAT"
 
@@ -126,7 +137,7 @@ def add_observability_arguments(p: argparse.ArgumentParser, metrics: bool = True
         p.add_argument(
             "--metrics-port",
             type=int,
-            default=int(env("DRVS_METRICS_PORT", "-1") or -1),
+            default=None,
             metavar="PORT",
             help="serve Prometheus metrics on http://0.0.0.0:PORT/metrics; 0 picks a free port "
             "(env DRVS_METRICS_PORT; default off)",

@@ -10,6 +10,8 @@ certificate's common name) owns the camera ids it registers.
 
 from __future__ import annotations
 
+import asyncio
+import contextlib
 import hmac
 import logging
 from collections.abc import Awaitable, Callable, Mapping, Sequence
@@ -211,6 +213,11 @@ class TokenInterceptor(aio.ServerInterceptor):
 
 def _refusal(handler: grpc.RpcMethodHandler[Any, Any], message: str) -> grpc.RpcMethodHandler[Any, Any]:
     async def deny(request: Any, context: aio.ServicerContext[Any, Any]) -> Any:
+        if handler.request_streaming:
+            # Take the first message before refusing: aborting while the client is still writing it
+            # sometimes reaches the client as INTERNAL "Internal error from Core" instead.
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(anext(aiter(request)), 1.0)
         await context.abort(grpc.StatusCode.UNAUTHENTICATED, message)
 
     kinds = {

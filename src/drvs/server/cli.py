@@ -11,6 +11,7 @@ from drvs._cli import (
     add_observability_arguments,
     add_security_arguments,
     env,
+    env_number,
     security_from,
     setup_logging,
     shutdown_event,
@@ -39,9 +40,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--lease-ttl",
         type=float,
-        default=float(env(ENV_LEASE_TTL, str(DEFAULT_LEASE_TTL_S)) or DEFAULT_LEASE_TTL_S),
+        default=None,
         metavar="SECONDS",
-        help=f"camera lease time-to-live (env {ENV_LEASE_TTL}; default %(default)s)",
+        help=f"camera lease time-to-live (env {ENV_LEASE_TTL}; default {DEFAULT_LEASE_TTL_S:g})",
     )
     p.add_argument(
         "--forward-timeout",
@@ -117,6 +118,8 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     try:
         parse_address(args.listen, "--listen", allow_port_zero=True)
+        if args.lease_ttl is None:
+            args.lease_ttl = env_number(ENV_LEASE_TTL, DEFAULT_LEASE_TTL_S)
         if not 0 < args.lease_ttl <= 3600:
             raise DrvsError(f"--lease-ttl: {args.lease_ttl} must be in (0, 3600]")
         CallbackPolicy(args.allow_callback)  # refuses a malformed network now, not after start
@@ -124,6 +127,10 @@ def main(argv: list[str] | None = None) -> int:
             raise DrvsError(f"--forward-timeout: {args.forward_timeout} must be in (0, 60]")
         if not (0 < args.rate_limit <= 1e6 and 1 <= args.max_continuous <= 1e6):
             raise DrvsError("--rate-limit must be in (0, 1e6] and --max-continuous in [1, 1e6]")
+        if args.metrics_port is None:
+            args.metrics_port = int(env_number("DRVS_METRICS_PORT", -1, integer=True))
+        if args.metrics_port > 65535:
+            raise DrvsError(f"--metrics-port: {args.metrics_port} is not a port number (0 picks a free one)")
         args.limits = RequestLimits(args.rate_limit, max(1, round(2 * args.rate_limit)), args.max_continuous)
         args.security = security_from(vars(args))
         for role in ("camera", "robot"):
