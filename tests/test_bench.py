@@ -46,3 +46,21 @@ async def test_service_benchmark_smoke(tmp_path: Path) -> None:
         assert result[key] > 0, key
     assert result["latency"]["30"]["missing"] == 0 and result["routing"]["errors"] == 0
     assert cv2.imread(str(tmp_path / "latency.png")) is not None
+
+
+async def test_load_benchmark_smoke(tmp_path: Path) -> None:
+    proc = ManagedProcess.entry_point("bench", "drvs-bench", "load", "--quick", "--out", str(tmp_path))
+    await proc.start()
+    assert await proc.wait(timeout=240) == 0, proc.output()
+    result = json.loads((tmp_path / "load.json").read_text())
+    assert (result["robots"], result["workers"], result["cameras"], result["rate_hz"]) == (10, 2, 3, 30)
+    # Ten robots at 30 Hz for a 2 s warm-up and 10 s, every request over all three cameras.
+    assert result["requests"] == 3600 and result["reports_expected"] == 10800
+    assert 0 < result["reports_received"] <= result["reports_expected"]
+    assert result["reports_lost"] == result["reports_expected"] - result["reports_received"]
+    assert 0 < result["latency_p50_ms"] <= result["latency_p99_ms"] <= 1000 * result["report_timeout_s"]
+    for key in ("server_rss_growth", "camera_rss_growth"):
+        assert -0.5 < result[key] < 0.5, key  # a ratio, not bytes
+    assert result["server_rss_start_bytes"] > 10 * 2**20 and len(result["camera_rss_start_bytes"]) == 3
+    assert len(result["timeline"]) == 12 and set(result["targets"]) == {"no_report_lost", "rss_growth_under_10_percent"}
+    assert cv2.imread(str(tmp_path / "load.png")) is not None

@@ -1,4 +1,5 @@
-"""drvs-bench: `paper` (the paper's comparison), `robot` (the paper benchmark's robot process)."""
+"""drvs-bench: `paper` (the paper's comparison), `service` (DRVS's own costs), `load` (many robots at
+once); the rest are the benchmarks' internal processes."""
 
 from __future__ import annotations
 
@@ -10,6 +11,7 @@ import time
 from pathlib import Path
 
 from .helpers import add_helper_parsers
+from .load import add_load_parser
 from .workload import add_workload_arguments, workload_main
 
 
@@ -52,6 +54,7 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--quick", action="store_true", help="a smoke run of under a minute")
     s.add_argument("--out", type=Path, default=None)
     s.set_defaults(func=service_main)
+    add_load_parser(sub)
     add_helper_parsers(sub)
     r = sub.add_parser("robot", help="(internal) the paper benchmark's robot process")
     add_workload_arguments(r)

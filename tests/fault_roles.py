@@ -1,0 +1,212 @@
+"""Stand-in processes for the fault tests, run as `python tests/fault_roles.py ROLE ...` so each is a
+real process on real sockets (not collected by pytest: the name does not start with test_).
+
+slow-camera: a camera node that registers with a DRVS server, keeps its lease, accepts every
+    forwarded request (after --accept-delay) and sends its final report only after --report-delay:
+    a camera whose detection takes seconds. drvs-camera has no option to make detection slow, and
+    no source is slow enough to detect on (even a 100-megapixel frame takes well under a second).
+probe-robot: a DrvsClient that sends one single-shot request every --period seconds and prints one
+    `RESULT {json}` line per request (for the network-namespace test, where the robot must run
+    inside a namespace of its own).
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import contextlib
+import json
+import signal
+import sys
+import time
+from collections.abc import AsyncIterator
+from typing import Any
+
+import grpc
+from grpc import aio
+
+from drvs.errors import DrvsError
+from drvs.geometry import homography_from_pose
+from drvs.robot import DrvsClient
+from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
+
+YELLOW = "hsv_014110130035225200"
+
+
+def _stop_event() -> asyncio.Event:
+    event = asyncio.Event()
+    loop = asyncio.get_running_loop()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        loop.add_signal_handler(sig, event.set)
+    return event
+
+
+class _Reporter:
+    """One report stream per robot address, as a camera node keeps them."""
+
+    def __init__(self) -> None:
+        self._channels: dict[str, aio.Channel] = {}
+        self._calls: dict[str, Any] = {}
+        self._lock = asyncio.Lock()
+
+    async def send(self, address: str, report: detection_pb2.DetectionReport) -> None:
+        async with self._lock:
+            call = self._calls.get(address)
+            if call is None or call.done():
+                channel = self._channels.get(address) or aio.insecure_channel(address)
+                self._channels[address] = channel
+                call = detection_pb2_grpc.CallbackCoordinatesStub(channel).ReportDetections()
+                self._calls[address] = call
+            await asyncio.wait_for(call.write(report), 5.0)
+
+    async def close(self) -> None:
+        for call in self._calls.values():
+            call.cancel()
+        for channel in self._channels.values():
+            await channel.close()
+
+
+class _SlowCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
+    def __init__(self, camera_id: str, accept_delay: float, report_delay: float) -> None:
+        self.camera_id = camera_id
+        self.accept_delay = accept_delay
+        self.report_delay = report_delay
+        self.reporter = _Reporter()
+        self.jobs: set[asyncio.Task[None]] = set()
+        self.callback = ""
+
+    async def _report_later(self, request_id: str, callback: str) -> None:
+        await asyncio.sleep(self.report_delay)  # the "detection" that takes seconds
+        report = detection_pb2.DetectionReport(request_id=request_id, camera_id=self.camera_id, sequence=0, final=True)
+        report.capture_time.FromNanoseconds(time.time_ns())
+        try:
+            await self.reporter.send(callback, report)
+            print(f"REPORTED {request_id}", flush=True)
+        except (grpc.RpcError, asyncio.TimeoutError, asyncio.InvalidStateError) as exc:
+            print(f"REPORT FAILED {request_id}: {exc!r}", flush=True)
+
+    async def _accept(self, message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
+        # The server elides nothing towards cameras, but keep the last callback like a real node would.
+        self.callback = message.callback_address or self.callback
+        print(f"REQUEST {message.request_id}", flush=True)
+        if self.accept_delay:
+            await asyncio.sleep(self.accept_delay)
+        job = asyncio.get_running_loop().create_task(self._report_later(message.request_id, self.callback))
+        self.jobs.add(job)
+        job.add_done_callback(self.jobs.discard)
+        return detection_pb2.DetectionReply(request_id=message.request_id, camera_ids=[self.camera_id])
+
+    async def DetectObjects(
+        self, request: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
+    ) -> detection_pb2.DetectionReply:
+        return await self._accept(request)
+
+    async def DetectStream(
+        self,
+        request_iterator: AsyncIterator[detection_pb2.DetectionRequest],
+        context: aio.ServicerContext[Any, Any],
+    ) -> AsyncIterator[detection_pb2.DetectionReply]:
+        async for message in request_iterator:
+            yield await self._accept(message)
+
+
+async def slow_camera(args: argparse.Namespace) -> None:
+    stop = _stop_event()
+    camera = _SlowCamera(args.id, args.accept_delay, args.report_delay)
+    server = aio.server()
+    detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(camera, server)
+    port = server.add_insecure_port("127.0.0.1:0")
+    await server.start()
+    address = f"127.0.0.1:{port}"
+    print(f"LISTENING {address}", flush=True)
+    h = homography_from_pose((args.x, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
+    register = registry_pb2.RegisterRequest(
+        camera_id=args.id,
+        address=address,
+        homography=registry_pb2.Homography(m=h.to_list()),
+        image_width=640,
+        image_height=480,
+        max_range_m=6.0,
+        detector_kinds=["hsv"],
+    )
+
+    async def keep_registered(channel: aio.Channel) -> None:
+        stub = registry_pb2_grpc.RegisterVisionServiceStub(channel)
+        lease = (await stub.Register(register, timeout=5)).lease_ttl_s
+        print(f"REGISTERED {args.id} lease {lease:g}", flush=True)
+        while True:
+            await asyncio.sleep(lease / 3)
+            try:
+                await stub.Heartbeat(registry_pb2.HeartbeatRequest(camera_id=args.id), timeout=lease / 3)
+            except grpc.RpcError:
+                lease = (await stub.Register(register, timeout=5)).lease_ttl_s
+
+    async with aio.insecure_channel(args.server) as channel:
+        registrar = asyncio.get_running_loop().create_task(keep_registered(channel))
+        await stop.wait()
+        registrar.cancel()
+        await asyncio.gather(registrar, return_exceptions=True)
+        await registry_pb2_grpc.RegisterVisionServiceStub(channel).Deregister(
+            registry_pb2.DeregisterRequest(camera_id=args.id), timeout=2
+        )
+    for job in list(camera.jobs):
+        job.cancel()
+    await asyncio.gather(*camera.jobs, return_exceptions=True)
+    await camera.reporter.close()
+    await server.stop(0.5)
+
+
+async def probe_robot(args: argparse.Namespace) -> None:
+    stop = _stop_event()
+    region = [float(v) for v in args.region.split(",")]
+    async with DrvsClient(args.server, robot_id=args.robot_id, listen=args.listen) as client:
+        print(f"READY {client.callback_address}", flush=True)
+        loop = asyncio.get_running_loop()
+        n = 0
+        while not stop.is_set():
+            n += 1
+            t0 = loop.time()
+            line: dict[str, Any] = {"n": n}
+            try:
+                sub = await client.subscribe(YELLOW, region, timeout_s=args.timeout, rpc_timeout_s=args.timeout)
+                result = await sub.collect()
+                line |= {
+                    "cameras": sorted(result.camera_ids),
+                    "complete": result.complete,
+                    "reported": sorted(result.finished_cameras),
+                    "detections": len(result.detections),
+                    "errors": result.errors,
+                }
+            except DrvsError as exc:
+                line |= {"failed": type(exc).__name__, "message": str(exc)}
+            line["seconds"] = round(loop.time() - t0, 3)
+            print("RESULT " + json.dumps(line), flush=True)
+            with contextlib.suppress(asyncio.TimeoutError):
+                await asyncio.wait_for(stop.wait(), max(0.0, args.period - (loop.time() - t0)))
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="fault_roles")
+    sub = parser.add_subparsers(dest="role", required=True)
+    s = sub.add_parser("slow-camera")
+    s.add_argument("--server", required=True)
+    s.add_argument("--id", default="slow")
+    s.add_argument("--x", type=float, default=40.0, help="camera position along x; it sees x-6..x+6, y 1.5..7.5")
+    s.add_argument("--accept-delay", type=float, default=0.0)
+    s.add_argument("--report-delay", type=float, default=3.0)
+    s.set_defaults(run=slow_camera)
+    p = sub.add_parser("probe-robot")
+    p.add_argument("--server", required=True)
+    p.add_argument("--listen", required=True)
+    p.add_argument("--robot-id", default="probe")
+    p.add_argument("--region", required=True, help="X0,Y0,X1,Y1")
+    p.add_argument("--period", type=float, default=0.3)
+    p.add_argument("--timeout", type=float, default=1.5)
+    p.set_defaults(run=probe_robot)
+    args = parser.parse_args(argv)
+    asyncio.run(args.run(args))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,337 @@
+"""docs/validation.md against the real thing: every row marked ✓ there is sent here to a real server
+(on a real socket) or given to a real drvs-server / drvs-camera process, and must get the status
+and message the table says. The patterns are read from the document, so the two cannot drift."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import re
+from collections.abc import AsyncIterator, Callable
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import grpc
+import pytest
+import pytest_asyncio
+from grpc import aio
+
+from drvs.geometry import homography_from_pose
+from drvs.launch import ManagedProcess
+from drvs.server import DrvsServer
+from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
+
+DOC = Path(__file__).resolve().parents[1] / "docs" / "validation.md"
+YELLOW = "hsv_014110130035225200"
+GOOD_H = homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480)).to_list()
+#: In the document's messages these stand for whatever varies.
+WILDCARDS = re.compile(r"(…|FILE|KEY)")
+
+
+def table_rows() -> list[list[str]]:
+    """The body rows of every table (not the headers), as lists of cells."""
+    lines = DOC.read_text().splitlines()
+    separator = re.compile(r"^\|[-| ]+\|$")
+    rows = []
+    for i, line in enumerate(lines):
+        header = i + 1 < len(lines) and separator.match(lines[i + 1])
+        if line.startswith("|") and not separator.match(line) and not header:
+            rows.append([cell.strip() for cell in line.strip("|").split(" | ")])
+    return rows
+
+
+def quoted(cell: str) -> list[str]:
+    return re.findall(r"`([^`]+)`", cell)
+
+
+def documented(pattern: str, status: str | None = None) -> re.Pattern[str]:
+    """The row giving `pattern` (and `status`, for gRPC rows) must exist; returns it as a regex."""
+    rows = [r for r in table_rows() if any(pattern in quoted(c) for c in r) and (status is None or status in r)]
+    assert rows, f"docs/validation.md has no row with `{pattern}`" + (f" and {status}" if status else "")
+    parts = WILDCARDS.split(pattern)
+    return re.compile("".join(".*" if WILDCARDS.fullmatch(p) else re.escape(p) for p in parts), re.S)
+
+
+def box(x0: float, y0: float, x1: float, y1: float) -> geometry_pb2.Region:
+    return geometry_pb2.Region(box=geometry_pb2.Box(x_lower=x0, y_lower=y0, x_upper=x1, y_upper=y1))
+
+
+def polygon(*points: tuple[float, float]) -> geometry_pb2.Region:
+    return geometry_pb2.Region(polygon=geometry_pb2.Polygon(points=[geometry_pb2.Point2(x=x, y=y) for x, y in points]))
+
+
+def request(**overrides: Any) -> detection_pb2.DetectionRequest:
+    msg = detection_pb2.DetectionRequest(
+        request_id="req-1", robot_id="r", filter_def=YELLOW, region=box(-1, 0, 1, 5), callback_address="127.0.0.1:9"
+    )
+    for key, value in overrides.items():
+        if value is None:
+            msg.ClearField(key)
+        elif isinstance(value, str):
+            setattr(msg, key, value)
+        else:
+            getattr(msg, key).CopyFrom(value)
+    return msg
+
+
+def continuous(rate: float, duration: float) -> detection_pb2.ContinuousMode:
+    return detection_pb2.ContinuousMode(rate_hz=rate, duration_s=duration)
+
+
+def registration(**overrides: Any) -> registry_pb2.RegisterRequest:
+    msg = registry_pb2.RegisterRequest(
+        camera_id="cam1", address="127.0.0.1:9", homography=registry_pb2.Homography(m=GOOD_H),
+        image_width=640, image_height=480, max_range_m=6.0, detector_kinds=["hsv"],
+    )  # fmt: skip
+    for key, value in overrides.items():
+        if key == "m":
+            msg.homography.CopyFrom(registry_pb2.Homography(m=value))
+        elif value is None:
+            msg.ClearField(key)
+        else:
+            setattr(msg, key, value)
+    return msg
+
+
+@dataclass(frozen=True)
+class Case:
+    status: str
+    pattern: str
+    call: Callable[[Any], Any]  # given the channel, returns an awaitable call
+
+
+def detect(**overrides: Any) -> Callable[[Any], Any]:
+    return lambda ch: detection_pb2_grpc.DetectObjectBoundaryStub(ch).DetectObjects(request(**overrides))
+
+
+def register(**overrides: Any) -> Callable[[Any], Any]:
+    return lambda ch: registry_pb2_grpc.RegisterVisionServiceStub(ch).Register(registration(**overrides))
+
+
+BOWTIE = polygon((0, 0), (1, 1), (1, 0), (0, 1))
+PITCHED_UP = homography_from_pose((0, 0, 3), 90, -30, 60, (640, 480)).to_list()
+INVALID, DENIED, NOT_FOUND = "INVALID_ARGUMENT", "PERMISSION_DENIED", "NOT_FOUND"
+
+GRPC_CASES = [
+    Case(INVALID, "request_id: longer than 128 characters", detect(request_id="a" * 129)),
+    Case(INVALID, "robot_id: '…' may hold only letters, digits and - _ . :", detect(robot_id="robot with spaces")),
+    Case(INVALID, "filter_def: empty; expected e.g. 'hsv_014110130035225200'", detect(filter_def="")),
+    Case(INVALID, "filter_def: unknown detector kind in '…'; known kinds: hsv", detect(filter_def="rgb_0141")),
+    Case(
+        INVALID,
+        "filter_def: '…' is not 'hsv_' followed by 18 digits (six zero-padded 3-digit numbers HloSloVloHhiShiVhi)",
+        detect(filter_def="hsv_0141101300352252"),
+    ),
+    Case(INVALID, "filter_def: H low = 200 is out of range 0-179 in '…'", detect(filter_def="hsv_200110130035225200")),
+    Case(INVALID, "filter_def: S low … > S high … in '…'", detect(filter_def="hsv_014210130035100200")),
+    Case(INVALID, "region: missing; give a box or a polygon", detect(region=None)),
+    Case(INVALID, "region.box.x_lower: nan is not finite", detect(region=box(math.nan, 0, 1, 1))),
+    Case(INVALID, "region.box.x_upper: 1e+300 is beyond ±1e+06 m", detect(region=box(0, 0, 1e300, 1))),
+    Case(INVALID, "region.box: x_lower … must be less than x_upper …", detect(region=box(1, 0, 1, 1))),
+    Case(
+        INVALID, "region.polygon.points[…].y: inf is not finite", detect(region=polygon((0, 0), (1, math.inf), (0, 1)))
+    ),
+    Case(INVALID, "region.polygon: needs at least 3 distinct points, got …", detect(region=polygon((0, 0), (1, 1)))),
+    Case(INVALID, "region.polygon: not a simple polygon (Self-intersection[…])", detect(region=BOWTIE)),
+    Case(INVALID, "callback_address: empty; expected host:port", detect(callback_address="")),
+    Case(INVALID, "callback_address: '…' is not host:port", detect(callback_address="no port")),
+    Case(
+        INVALID,
+        "callback_address: '…' is not a valid host name or IPv4 address",
+        detect(callback_address="bad_host:80"),
+    ),
+    Case(INVALID, "callback_address: port … is out of range", detect(callback_address="127.0.0.1:0")),
+    Case(
+        DENIED,
+        "callback_address: … is not the requesting robot's address (…); reports go back only to the robot that "
+        "asks, or to networks the server allows (--allow-callback)",
+        detect(callback_address="10.1.2.3:9"),
+    ),
+    Case(INVALID, "continuous.rate_hz: nan must be a finite number >= 0", detect(continuous=continuous(math.nan, 1))),
+    Case(INVALID, "continuous.rate_hz: … exceeds the limit of 100", detect(continuous=continuous(1000, 1))),
+    Case(INVALID, "continuous.duration_s: … exceeds the limit of 3600", detect(continuous=continuous(1, 1e9))),
+    Case(
+        INVALID,
+        "continuous: rate_hz and duration_s must both be > 0 (continuous) or both 0 (single shot); "
+        "got rate_hz=…, duration_s=…",
+        detect(continuous=continuous(10, 0)),
+    ),
+    Case(
+        "RESOURCE_EXHAUSTED",
+        "SERVER: Received message larger than max (… vs. 4194304)",
+        detect(robot_id="r" * (5 * 2**20)),
+    ),
+    Case(INVALID, "camera_id: empty", register(camera_id="")),
+    Case(INVALID, "address: '…' is not host:port", register(address="nowhere")),
+    Case(INVALID, "homography: missing", register(homography=None)),
+    Case(INVALID, "homography: expected 9 numbers (3x3 row-major), got …", register(m=GOOD_H[:8])),
+    Case(INVALID, "homography: contains NaN or infinite values", register(m=[math.nan] * 9)),
+    Case(INVALID, "homography: all zeros", register(m=[0.0] * 9)),
+    Case(
+        INVALID,
+        "homography: singular (condition number …); it cannot map an image to a floor",
+        register(m=[1, 2, 3, 2, 4, 6, 0, 0, 1]),
+    ),
+    Case(INVALID, "field_of_view: image size …x… is not a real image size", register(image_width=0)),
+    Case(INVALID, "field_of_view: max_range_m … must be in (0, 10000]", register(max_range_m=math.nan)),
+    Case(
+        INVALID,
+        "field_of_view: the whole image is above the horizon; the camera sees no floor "
+        "(is it pitched up, or is the homography mirrored?)",
+        register(m=PITCHED_UP),
+    ),
+    Case(INVALID, "detector_kinds: empty; a camera must run at least one detector", register(detector_kinds=None)),
+    Case(
+        NOT_FOUND,
+        "camera_id: '…' is not registered",
+        lambda ch: registry_pb2_grpc.RegisterVisionServiceStub(ch).Heartbeat(
+            registry_pb2.HeartbeatRequest(camera_id="ghost")
+        ),
+    ),
+    Case(
+        NOT_FOUND,
+        "camera_id: '…' is not registered",
+        lambda ch: registry_pb2_grpc.RegisterVisionServiceStub(ch).Deregister(
+            registry_pb2.DeregisterRequest(camera_id="ghost")
+        ),
+    ),
+    Case(
+        INVALID,
+        "region.box: x_lower … must be less than x_upper …",
+        lambda ch: registry_pb2_grpc.RegisterVisionServiceStub(ch).ListCameras(
+            registry_pb2.ListCamerasRequest(region=box(1, 0, 1, 1))
+        ),
+    ),
+]
+
+
+@pytest_asyncio.fixture
+async def served() -> AsyncIterator[tuple[DrvsServer, aio.Channel]]:
+    async with DrvsServer("127.0.0.1:0", lease_ttl_s=30) as server, aio.insecure_channel(server.address) as ch:
+        await registry_pb2_grpc.RegisterVisionServiceStub(ch).Register(registration(camera_id="keep"))
+        yield server, ch
+
+
+@pytest.mark.parametrize("case", GRPC_CASES, ids=[f"{c.status}:{c.pattern[:40]}" for c in GRPC_CASES])
+async def test_grpc_row(served: tuple[DrvsServer, aio.Channel], case: Case) -> None:
+    server, channel = served
+    regex = documented(case.pattern, case.status)
+    with pytest.raises(aio.AioRpcError) as err:
+        await case.call(channel)
+    assert err.value.code().name == case.status, (err.value.code(), err.value.details())
+    assert regex.fullmatch(err.value.details() or ""), err.value.details()
+    assert [c.camera_id for c in server.registry.cameras()] == ["keep"]  # nothing changed
+
+
+async def test_streamed_request_row(served: tuple[DrvsServer, aio.Channel]) -> None:
+    _, channel = served
+    pattern = "request_id: empty; a streamed request needs its own id"
+    regex = documented(pattern, INVALID)
+    call = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
+    await call.write(request(request_id=""))
+    await call.done_writing()
+    replies = [reply async for reply in call]
+    assert replies[0].error.code == INVALID and regex.fullmatch(replies[0].error.message), replies
+    assert await call.code() == grpc.StatusCode.OK
+
+
+# --- the command lines ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class CliCase:
+    command: str
+    args: tuple[str, ...]
+    pattern: str
+    env: tuple[tuple[str, str], ...] = ()
+
+
+def cli_cases(tmp: Path) -> list[CliCase]:
+    config = tmp / "camera.yaml"
+    config.write_text("id: cam1\nsource: x.avi\nhomography: h.yaml\nzoom: 2\n")
+    camera = ("--id", "cam1", "--source", "x.avi", "--homography", "h.yaml")
+    return [
+        CliCase("drvs-server", ("--listen", "nowhere"), "--listen: '…' is not host:port"),
+        CliCase("drvs-server", ("--lease-ttl", "0"), "--lease-ttl: … must be in (0, 3600]"),
+        CliCase("drvs-server", ("--forward-timeout", "100"), "--forward-timeout: … must be in (0, 60]"),
+        CliCase(
+            "drvs-server",
+            ("--allow-callback", "anywhere"),
+            "--allow-callback: '…' is not an IP network (e.g. 10.0.0.0/8)",
+        ),
+        CliCase(
+            "drvs-server", ("--rate-limit", "0"), "--rate-limit must be in (0, 1e6] and --max-continuous in [1, 1e6]"
+        ),
+        CliCase("drvs-camera", ("--config", str(config)), "config FILE: KEY: unknown key (expected one of: …)"),
+        CliCase(
+            "drvs-camera",
+            ("--source", "x.avi", "--homography", "h.yaml"),
+            "id: missing; give --id, DRVS_CAMERA_ID or id: in a --config file",
+        ),
+        CliCase(
+            "drvs-camera",
+            ("--id", "bad id", "--source", "x.avi", "--homography", "h.yaml"),
+            "id (from --id): 'bad id' may hold only letters, digits and - _ . :",
+        ),
+        CliCase("drvs-camera", (*camera, "--server", "nowhere"), "server (from --server): 'nowhere' is not host:port"),
+        CliCase(
+            "drvs-camera", (*camera, "--max-range", "0"), "max_range_m (from …): … must be a number from 0.1 to 1000"
+        ),
+        CliCase(
+            "drvs-camera",
+            (*camera, "--heartbeat", "0.01"),
+            "heartbeat_s (from …): … must be a number from 0.05 to 3600",
+        ),
+        CliCase(
+            "drvs-camera", (*camera, "--detectors", "rgb"), "detectors (from …): '…': detectors must be some of hsv"
+        ),
+    ]
+
+
+async def run_cli(command: str, args: tuple[str, ...], env: tuple[tuple[str, str], ...] = ()) -> ManagedProcess:
+    environ = {k: v for k, v in os.environ.items() if not k.startswith("DRVS_")} | dict(env)
+    proc = await ManagedProcess.entry_point(command, command, *args, env=environ).start()
+    try:
+        await proc.wait(timeout=30)
+    finally:
+        await proc.stop()
+    return proc
+
+
+async def test_command_line_rows(tmp_path: Path) -> None:
+    cases = cli_cases(tmp_path)
+    procs = await asyncio.gather(*(run_cli(c.command, c.args, c.env) for c in cases))
+    for case, proc in zip(cases, procs, strict=True):
+        regex = documented(case.pattern)
+        assert proc.returncode == 2, (case, proc.output())
+        last = proc.lines[-1] if proc.lines else ""
+        prefix = f"{case.command}: error: "
+        assert last.startswith(prefix) and regex.fullmatch(last[len(prefix) :]), (case.pattern, proc.output())
+
+
+async def test_server_settings_given_as_text_are_validated_too() -> None:
+    """The ✘ rows: these end drvs-server with a traceback instead of a usage error naming the setting."""
+    cases = [
+        (("--listen", "127.0.0.1:0"), (("DRVS_LEASE_TTL", "ten"),), "DRVS_LEASE_TTL"),
+        (("--listen", "127.0.0.1:0"), (("DRVS_METRICS_PORT", "ninety"),), "DRVS_METRICS_PORT"),
+        (("--listen", "127.0.0.1:0", "--metrics-port", "70000"), (), "--metrics-port"),
+    ]
+    procs = await asyncio.gather(*(run_cli("drvs-server", args, env) for args, env, _ in cases))
+    problems = []
+    for (args, env, name), proc in zip(cases, procs, strict=True):
+        if proc.returncode != 2 or "Traceback" in proc.output() or name not in proc.lines[-1]:
+            problems.append(f"{args} {dict(env)}: exit {proc.returncode}, last line {proc.lines[-1]!r}")
+    assert not problems, "\n".join(problems)
+
+
+def test_every_row_marked_checked_is_checked(tmp_path: Path) -> None:
+    checked = {c.pattern for c in GRPC_CASES} | {c.pattern for c in cli_cases(tmp_path)}
+    checked.add("request_id: empty; a streamed request needs its own id")
+    unchecked = [
+        r[0] + " " + r[1]
+        for r in table_rows()
+        if r[-1] == "✓" and not any(p in checked for cell in r[2:-1] for p in quoted(cell))
+    ]
+    assert not unchecked, f"rows marked ✓ but not checked here: {unchecked}"
