@@ -215,6 +215,17 @@ def test_results_are_cached_per_filter_in_the_frame_analysis() -> None:
     assert det.blobs(analysis_of(analysis.frame.image), YELLOW) is not first
 
 
+def test_cached_blobs_are_there_only_once_found_and_select_like_detect() -> None:
+    det = detector(camera())
+    analysis = analysis_of(render(BIG))
+    assert analysis.cached_blobs(YELLOW) is None
+    everything = det.detect(analysis, YELLOW)
+    cached = analysis.cached_blobs(YELLOW)
+    assert cached is not None and list(cached) == everything and analysis.cached_blobs(GREEN) is None
+    for region in (box_region(-10, 0, 0, 20), box_region(0, 0, 10, 20), None):
+        assert det.select(cached, region) == det.detect(analysis, YELLOW, region)
+
+
 def test_frame_of_the_wrong_size_is_refused() -> None:
     det = detector(camera())
     small = np.zeros((240, 320, 3), dtype=np.uint8)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import shapely
 from shapely.geometry import Polygon
@@ -29,6 +31,17 @@ def region_to_pb(region: Polygon) -> geometry_pb2.Region:
 
 
 def region_from_pb(msg: geometry_pb2.Region, name: str = "region") -> Polygon:
+    """The validated region. Robots ask about the same regions again and again, so a region's
+    polygon (immutable, and prepared once for the routing test) is kept by its wire bytes."""
+    return _region_from_bytes(msg.SerializeToString(deterministic=True), name)
+
+
+@functools.lru_cache(maxsize=1024)
+def _region_from_bytes(data: bytes, name: str) -> Polygon:
+    return _region(geometry_pb2.Region.FromString(data), name)  # a bad region raises every time
+
+
+def _region(msg: geometry_pb2.Region, name: str) -> Polygon:
     shape = msg.WhichOneof("shape")
     if shape == "box":
         b = msg.box
