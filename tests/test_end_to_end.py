@@ -98,6 +98,23 @@ async def test_robot_that_stops_listening_stops_the_cameras(office: Office) -> N
         await cam1.wait_for_line(rf"request {sub.request_id} cancelled by the robot", timeout=5)
 
 
+async def test_robot_that_closes_mid_request_stops_the_cameras_quietly(office: Office) -> None:
+    """A robot that exits with a continuous request still running tells the cameras to stop: they
+    do not go on dialling the address it has left, warning for every report."""
+    async with DrvsClient(office.address) as robot:
+        sub = await robot.subscribe(YELLOW, CAM1_REGION, rate_hz=20, duration_s=30.0, timeout_s=5)
+        async for report in sub:
+            if report.sequence == 2:
+                break_at = len(office.cameras["cam1"].lines)
+                break
+    cam1 = office.cameras["cam1"]
+    await cam1.wait_for_line(rf"request {sub.request_id} cancelled by the robot", timeout=5, start=break_at)
+    # The job ends at that line, so nothing later can mention the request. Without the robot's
+    # cancellation the camera would instead have dialled the closed listener and warned.
+    robot_gone = [line for line in cam1.lines[break_at:] if "WARNING" in line and sub.request_id in line]
+    assert robot_gone == [], robot_gone
+
+
 async def test_dead_camera_does_not_hold_up_the_other_and_leaves_routing(office: Office) -> None:
     cam2 = office.cameras["cam2"]
     cam2.kill()  # a crash: no deregistration

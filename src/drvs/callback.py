@@ -122,15 +122,22 @@ class CallbackSender:
     def link(self, address: str) -> RobotLink:
         link = self._links.get(address)
         if link is None or link.broken:
-            if link is not None:
-                self._close_later(link)
+            old = link
             link = RobotLink(address, self._security)
+            if old is not None:
+                # What the robot cancelled stays cancelled: a robot that said stop and then closed
+                # its stream is not dialled again for those requests.
+                link._cancelled = old._cancelled
+                self._close_later(old)
             self._links[address] = link
         self._links.move_to_end(address)
         self._evict()
         return link
 
     async def send(self, address: str, report: DetectionReport, outlines: bool = True) -> bool:
+        known = self._links.get(address)
+        if known is not None and known.cancelled(report.request_id):
+            return False  # not even a new connection for a request the robot stopped
         return await self.link(address).send(report, outlines)
 
     def _evict(self) -> None:

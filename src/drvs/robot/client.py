@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import collections
+import contextlib
 import itertools
 import logging
 import secrets
@@ -218,6 +219,7 @@ class DrvsClient:
         self._subscriptions: dict[str, Subscription] = {}
         self.reports_received = 0
         self._closing = False
+        self._open_at_close: list[str] = []
         self._report_streams: set[asyncio.Task[Any]] = set()
         # Request ids: a random prefix per client (a restarted robot never reuses a live id) and a
         # counter; short, because the id travels in the request, the reply and every report.
@@ -278,6 +280,9 @@ class DrvsClient:
 
     async def close(self) -> None:
         self._closing = True
+        # Requests still open: each report stream tells its camera to stop them before it ends,
+        # so cameras do not go on dialling a robot that has gone.
+        self._open_at_close = list(self._subscriptions)
         for sub in list(self._subscriptions.values()):
             sub.close()
         for task in list(self._report_streams):
@@ -430,6 +435,11 @@ class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):
         except asyncio.CancelledError:
             if not client._closing:
                 raise
-            # The robot is closing: end the stream normally, so the camera sees it end, not fail.
+            # The robot is closing: stop what is still open, then end the stream normally, so the
+            # camera sees it end, not fail.
+            if client._open_at_close:
+                with contextlib.suppress(Exception):
+                    control = detection_pb2.ReportControl(cancelled_request_ids=client._open_at_close)
+                    await asyncio.wait_for(context.write(control), 0.5)
         finally:
             client._report_streams.discard(task)
