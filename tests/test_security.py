@@ -15,7 +15,6 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from drvs.certs import make_all
 from drvs.errors import InvalidArgument, ResourceExhausted, Unauthenticated, Unavailable
-from drvs.geometry import homography_from_pose
 from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.robot import DrvsClient
 from drvs.security import Security, load_tokens
@@ -25,6 +24,7 @@ from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 from .conftest import CAM1_REGION, MAX_RANGE, YELLOW
+from .test_server import register_message
 
 CAMERA_TOKEN = "camera-token-0123456789abcdef"
 OTHER_CAMERA_TOKEN = "camera-token-fedcba9876543210"
@@ -107,19 +107,6 @@ async def token_office(
         if camera is not None:
             await camera.stop()
         await server.stop()
-
-
-def register_message(camera_id: str) -> registry_pb2.RegisterRequest:
-    h = homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
-    return registry_pb2.RegisterRequest(
-        camera_id=camera_id,
-        address="127.0.0.1:9",
-        homography=registry_pb2.Homography(m=h.to_list()),
-        image_width=640,
-        image_height=480,
-        max_range_m=6.0,
-        detector_kinds=["hsv"],
-    )
 
 
 def bearer(token: str) -> tuple[tuple[str, str], ...]:

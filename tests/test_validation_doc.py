@@ -23,6 +23,8 @@ from drvs.launch import ManagedProcess
 from drvs.server import DrvsServer
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
+from .test_server import detect_message
+
 DOC = Path(__file__).resolve().parents[1] / "docs" / "validation.md"
 YELLOW = "hsv_014110130035225200"
 GOOD_H = homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480)).to_list()
@@ -63,17 +65,7 @@ def polygon(*points: tuple[float, float]) -> geometry_pb2.Region:
 
 
 def request(**overrides: Any) -> detection_pb2.DetectionRequest:
-    msg = detection_pb2.DetectionRequest(
-        request_id="req-1", robot_id="r", filter_def=YELLOW, region=box(-1, 0, 1, 5), callback_address="127.0.0.1:9"
-    )
-    for key, value in overrides.items():
-        if value is None:
-            msg.ClearField(key)
-        elif isinstance(value, str):
-            setattr(msg, key, value)
-        else:
-            getattr(msg, key).CopyFrom(value)
-    return msg
+    return detect_message(**overrides)
 
 
 def continuous(rate: float, duration: float) -> detection_pb2.ContinuousMode:
