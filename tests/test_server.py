@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from collections.abc import AsyncIterator
+from typing import Any
 
 import grpc
 import pytest
@@ -12,6 +13,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
 from drvs.geometry import homography_from_pose
+from drvs.robot import DrvsClient
 from drvs.server import DrvsServer
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
@@ -274,3 +276,41 @@ def test_peer_addresses_parse() -> None:
     assert str(peer_ip("ipv4:127.0.0.1:5000")) == "127.0.0.1"
     assert str(peer_ip("ipv6:[::1]:5000")) == "::1"
     assert peer_ip("unix:/tmp/sock") is None and peer_ip("ipv4:garbage") is None
+
+
+class _SilentCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
+    """Takes streamed requests and never accepts them: a camera too busy to answer."""
+
+    async def DetectStream(
+        self,
+        request_iterator: AsyncIterator[detection_pb2.DetectionRequest],
+        context: aio.ServicerContext[Any, Any],
+    ) -> AsyncIterator[detection_pb2.DetectionReply]:
+        async for _ in request_iterator:
+            pass
+        return
+        yield  # an async generator that never answers
+
+
+async def test_server_sheds_load_when_a_camera_has_too_many_requests_waiting() -> None:
+    camera = aio.server()
+    detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(_SilentCamera(), camera)
+    port = camera.add_insecure_port("127.0.0.1:0")
+    await camera.start()
+    try:
+        async with DrvsServer("127.0.0.1:0", max_queued_forwards=2, forward_timeout_s=30) as server:
+            async with aio.insecure_channel(server.address) as channel:
+                registration = register_message()
+                registration.address = f"127.0.0.1:{port}"
+                await registry_pb2_grpc.RegisterVisionServiceStub(channel).Register(registration)
+            async with DrvsClient(server.address, robot_id="r", listen="127.0.0.1:0") as robot:
+                waiting = [await robot.subscribe(YELLOW, (-1, 0, 1, 5), timeout_s=30) for _ in range(2)]
+                # The third finds two forwards waiting for cam1: it is told at once that cam1 is busy.
+                shed = await robot.detect(YELLOW, (-1, 0, 1, 5), timeout_s=30)
+                assert shed.complete and shed.camera_ids == ("cam1",)
+                assert len(shed.errors) == 1 and "RESOURCE_EXHAUSTED busy: 2 requests already waiting" in shed.errors[0]
+                assert "cam1" not in server._unreachable  # busy is not gone: it stays in routing
+                for sub in waiting:
+                    sub.close()
+    finally:
+        await camera.stop(0)

@@ -52,6 +52,11 @@ class RequestStream:
         self._write_lock = asyncio.Lock()
         self._sent = StreamContext()
 
+    @property
+    def in_flight(self) -> int:
+        """Requests sent or waiting to be sent that have no reply yet."""
+        return len(self._pending)
+
     def _open(self) -> aio.StreamStreamCall[Request, Reply]:
         call: aio.StreamStreamCall[Request, Reply] = self._stub.DetectStream(metadata=self._metadata or None)
         self._call = call

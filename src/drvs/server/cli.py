@@ -22,7 +22,7 @@ from drvs.net import parse_address
 from drvs.registry import DEFAULT_LEASE_TTL_S
 from drvs.security import load_tokens
 from drvs.server.policy import DEFAULT_MAX_ACTIVE, DEFAULT_RATE_HZ, CallbackPolicy, RequestLimits
-from drvs.server.server import DEFAULT_FORWARD_TIMEOUT_S, DEFAULT_LISTEN, DrvsServer
+from drvs.server.server import DEFAULT_FORWARD_TIMEOUT_S, DEFAULT_LISTEN, DEFAULT_MAX_QUEUED_FORWARDS, DrvsServer
 
 log = logging.getLogger("drvs.server")
 
@@ -50,6 +50,14 @@ def build_parser() -> argparse.ArgumentParser:
         default=DEFAULT_FORWARD_TIMEOUT_S,
         metavar="SECONDS",
         help="how long a camera may take to accept a forwarded request (default %(default)s)",
+    )
+    p.add_argument(
+        "--max-queued-forwards",
+        type=int,
+        default=DEFAULT_MAX_QUEUED_FORWARDS,
+        metavar="N",
+        help="requests waiting for one camera's acceptance at once; past this the robot is told at once "
+        "that the camera is busy (default %(default)s)",
     )
     p.add_argument(
         "--allow-callback",
@@ -97,6 +105,7 @@ async def serve(args: argparse.Namespace) -> None:
         args.listen,
         lease_ttl_s=args.lease_ttl,
         forward_timeout_s=args.forward_timeout,
+        max_queued_forwards=args.max_queued_forwards,
         allow_callback=args.allow_callback,
         allow_any_callback=args.allow_any_callback,
         security=args.security,
@@ -125,6 +134,8 @@ def main(argv: list[str] | None = None) -> int:
         CallbackPolicy(args.allow_callback)  # refuses a malformed network now, not after start
         if not 0 < args.forward_timeout <= 60:
             raise DrvsError(f"--forward-timeout: {args.forward_timeout} must be in (0, 60]")
+        if not 1 <= args.max_queued_forwards <= 100_000:
+            raise DrvsError(f"--max-queued-forwards: {args.max_queued_forwards} must be in [1, 100000]")
         if not (0 < args.rate_limit <= 1e6 and 1 <= args.max_continuous <= 1e6):
             raise DrvsError("--rate-limit must be in (0, 1e6] and --max-continuous in [1, 1e6]")
         if args.metrics_port is None:

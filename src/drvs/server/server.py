@@ -22,7 +22,14 @@ from drvs.convert import (
     region_from_pb,
     request_from_pb,
 )
-from drvs.errors import DeadlineExceeded, DrvsError, InvalidArgument, PermissionDenied, Unavailable
+from drvs.errors import (
+    DeadlineExceeded,
+    DrvsError,
+    InvalidArgument,
+    PermissionDenied,
+    ResourceExhausted,
+    Unavailable,
+)
 from drvs.geometry import DEFAULT_MAX_RANGE_M
 from drvs.model import DetectionReport, DetectionRequest, check_id
 from drvs.net import host_of, is_loopback_host
@@ -37,6 +44,9 @@ log = logging.getLogger("drvs.server")
 DEFAULT_LISTEN = "127.0.0.1:50051"
 #: How long the server waits for a camera to accept a forwarded request.
 DEFAULT_FORWARD_TIMEOUT_S = 2.0
+#: Forwards to one camera waiting for its acceptance at once; past this the server sheds load:
+#: the robot gets an error report for that camera at once (RESOURCE_EXHAUSTED, "busy").
+DEFAULT_MAX_QUEUED_FORWARDS = 64
 SERVICE_NAMES = (
     detection_pb2.DESCRIPTOR.services_by_name["DetectObjectBoundary"].full_name,
     registry_pb2.DESCRIPTOR.services_by_name["RegisterVisionService"].full_name,
@@ -72,6 +82,7 @@ class DrvsServer(Lifecycle):
         *,
         lease_ttl_s: float = DEFAULT_LEASE_TTL_S,
         forward_timeout_s: float = DEFAULT_FORWARD_TIMEOUT_S,
+        max_queued_forwards: int = DEFAULT_MAX_QUEUED_FORWARDS,
         default_max_range_m: float = DEFAULT_MAX_RANGE_M,
         allow_callback: Iterable[str] = (),
         allow_any_callback: bool = False,
@@ -91,6 +102,9 @@ class DrvsServer(Lifecycle):
         self._camera_tokens: dict[str, str] = {}
         self.registry = Registry(lease_ttl_s)
         self.forward_timeout_s = forward_timeout_s
+        if max_queued_forwards < 1:
+            raise InvalidArgument(f"max_queued_forwards: {max_queued_forwards} must be at least 1")
+        self.max_queued_forwards = max_queued_forwards
         self.default_max_range_m = default_max_range_m
         self._endpoint = Endpoint(
             listen,
@@ -200,6 +214,13 @@ class DrvsServer(Lifecycle):
         link = self._link(camera)
         started = time.perf_counter()
         try:
+            if link.requests.in_flight >= self.max_queued_forwards:
+                # Shed load at once rather than queue until the forward timeout: the robot hears
+                # now that this camera is busy, and the camera stays in routing.
+                raise ResourceExhausted(
+                    f"busy: {link.requests.in_flight} requests already waiting for it "
+                    f"(limit {self.max_queued_forwards}); try again later"
+                )
             await link.requests.request(message, self.forward_timeout_s)
             metrics.ROUTED_OK.inc()
             metrics.STAGE_FORWARD.observe(time.perf_counter() - started)
