@@ -104,19 +104,21 @@ async def wait_result(
     probe: ManagedProcess, ok: Callable[[dict[str, Any]], bool], timeout: float, what: str
 ) -> dict[str, Any]:
     """The first result the probe robot prints from now on that satisfies `ok`."""
-    loop = asyncio.get_running_loop()
     start = len(probe.lines)
-    deadline = loop.time() + timeout
-    while True:
-        for result in results(probe, start):
-            if ok(result):
-                return result
-        if probe.returncode is not None:
-            raise AssertionError(f"the probe robot exited:\n{probe.output()[-2000:]}")
-        if loop.time() > deadline:
-            seen = "\n".join(map(json.dumps, results(probe, start)[-5:]))
-            raise AssertionError(f"no result {what} within {timeout:g} s; last:\n{seen}")
-        await asyncio.sleep(0.05)
+
+    def satisfying(line: str) -> dict[str, Any] | None:
+        if not line.startswith("RESULT "):
+            return None
+        result: dict[str, Any] = json.loads(line[7:])
+        return result if ok(result) else None
+
+    try:
+        return await probe.wait_for(satisfying, f"printing a result {what}", timeout, start)
+    except RuntimeError:
+        raise AssertionError(f"the probe robot exited:\n{probe.output()[-2000:]}") from None
+    except TimeoutError:
+        seen = "\n".join(map(json.dumps, results(probe, start)[-5:]))
+        raise AssertionError(f"no result {what} within {timeout:g} s; last:\n{seen}") from None
 
 
 def healthy(r: dict[str, Any]) -> bool:

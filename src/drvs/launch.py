@@ -8,9 +8,11 @@ import os
 import re
 import signal
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import TextIO
+from typing import TextIO, TypeVar
+
+T = TypeVar("T")
 
 #: Longest output line read (a benchmark's result line can be large); a longer one is dropped.
 MAX_LINE_BYTES = 16 * 1024 * 1024
@@ -98,26 +100,31 @@ class ManagedProcess:
     ) -> re.Match[str]:
         """The first line (from index `start`) matching `pattern`; raises if the process ends first."""
         regex = re.compile(pattern) if isinstance(pattern, str) else pattern
+        return await self.wait_for(regex.search, f"logging {regex.pattern!r}", timeout, start)
+
+    async def wait_for(self, check: Callable[[str], T | None], what: str, timeout: float = 30.0, start: int = 0) -> T:
+        """The first non-None `check(line)` over the lines from index `start`, as they arrive;
+        raises, naming `what` ("logging 'READY'"), if the process ends first or `timeout` passes."""
         seen = start
 
-        def find() -> re.Match[str] | None:
+        def find() -> T | None:
             nonlocal seen
             while seen < len(self.lines):
-                m = regex.search(self.lines[seen])
+                found = check(self.lines[seen])
                 seen += 1
-                if m:
-                    return m
+                if found is not None:
+                    return found
             return None
 
-        async def wait() -> re.Match[str]:
+        async def wait() -> T:
             async with self._changed:
                 while True:
-                    m = find()
-                    if m:
-                        return m
+                    found = find()
+                    if found is not None:
+                        return found
                     if self._eof:
                         raise RuntimeError(
-                            f"{self.name} exited (code {self.returncode}) before logging {regex.pattern!r}:\n"
+                            f"{self.name} exited (code {self.returncode}) before {what}:\n"
                             + "\n".join(self.lines[-20:])
                         )
                     await self._changed.wait()
@@ -126,7 +133,7 @@ class ManagedProcess:
             return await asyncio.wait_for(wait(), timeout)
         except asyncio.TimeoutError:
             raise TimeoutError(
-                f"{self.name} did not log {regex.pattern!r} within {timeout:g} s:\n" + "\n".join(self.lines[-20:])
+                f"{self.name}: still no {what} after {timeout:g} s:\n" + "\n".join(self.lines[-20:])
             ) from None
 
     def output(self) -> str:
