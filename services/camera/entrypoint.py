@@ -30,17 +30,15 @@ def sim_homography(world: str, camera_id: str) -> tuple[Path, float]:
     import grpc
 
     from drvs.camera.homography_file import save_homography
-    from drvs.sim.scenario import parse_scenario
-    from drvs.v1 import sim_pb2, sim_pb2_grpc
+    from drvs.errors import Unavailable
+    from drvs.sim.world import fetch_scene
 
     with grpc.insecure_channel(world) as channel:
         try:
-            scene = sim_pb2_grpc.SimulatedWorldStub(channel).GetScene(
-                sim_pb2.GetSceneRequest(), timeout=60, wait_for_ready=True
-            )
-        except grpc.RpcError as exc:
-            raise SystemExit(f"camera {camera_id}: simulated world {world} unreachable: {exc.details()}") from None
-    cam = parse_scenario(scene.scenario_yaml, f"world {world}").camera(camera_id)
+            scenario, _seed = fetch_scene(channel, world, 60)
+        except Unavailable as exc:
+            raise SystemExit(f"camera {camera_id}: {exc}") from None
+    cam = scenario.camera(camera_id)
     path = Path(tempfile.gettempdir()) / f"{camera_id}.homography.yaml"
     save_homography(path, cam.homography, image_size=list(cam.resolution))
     return path, cam.max_range_m

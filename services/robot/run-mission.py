@@ -55,17 +55,14 @@ def drop_privileges(out: Path) -> None:
 def fetch_scene(world: str) -> tuple[Any, int]:
     import grpc
 
-    from drvs.sim.scenario import parse_scenario
-    from drvs.v1 import sim_pb2, sim_pb2_grpc
+    from drvs.errors import Unavailable
+    from drvs.sim import world as sim_world
 
     with grpc.insecure_channel(world) as channel:
         try:
-            scene = sim_pb2_grpc.SimulatedWorldStub(channel).GetScene(
-                sim_pb2.GetSceneRequest(), timeout=60, wait_for_ready=True
-            )
-        except grpc.RpcError as exc:
-            raise SystemExit(f"robot: the simulated world {world} is unreachable: {exc.details()}") from None
-    return parse_scenario(scene.scenario_yaml, f"world {world}"), int(scene.seed)
+            return sim_world.fetch_scene(channel, world, 60)
+        except Unavailable as exc:
+            raise SystemExit(f"robot: {exc}") from None
 
 
 def wait_for_cameras(server: str, wanted: set[str], timeout_s: float) -> None:

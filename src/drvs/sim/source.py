@@ -12,9 +12,9 @@ import grpc
 
 from drvs import _grpc
 from drvs.detection import Frame
-from drvs.errors import FailedPrecondition
+from drvs.errors import FailedPrecondition, Unavailable
 from drvs.sim.render import CameraRenderer
-from drvs.sim.scenario import parse_scenario
+from drvs.sim.world import fetch_scene
 from drvs.v1 import sim_pb2, sim_pb2_grpc
 
 log = logging.getLogger("drvs.sim.source")
@@ -46,11 +46,10 @@ class SimSource:
         self._channel = grpc.insecure_channel(self.world, options=_grpc.CHANNEL_OPTIONS)
         stub = sim_pb2_grpc.SimulatedWorldStub(self._channel)
         try:
-            scene = stub.GetScene(sim_pb2.GetSceneRequest(), timeout=10, wait_for_ready=True)
-        except grpc.RpcError as exc:
-            raise OSError(f"source {self.description}: simulated world unreachable: {exc.details()}") from None
-        scenario = parse_scenario(scene.scenario_yaml, f"world {self.world}")
-        self.renderer = CameraRenderer(scenario, scenario.camera(self.camera_id), seed=scene.seed)
+            scenario, seed = fetch_scene(self._channel, self.world, 10)
+        except Unavailable as exc:
+            raise OSError(f"source {self.description}: {exc}") from None
+        self.renderer = CameraRenderer(scenario, scenario.camera(self.camera_id), seed=seed)
         self.fps = scenario.camera(self.camera_id).fps
         self._watch = stub.WatchRobot(sim_pb2.WatchRobotRequest())
         self._threads = [

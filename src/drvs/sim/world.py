@@ -10,6 +10,7 @@ from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Any
 
+import grpc
 import shapely
 from grpc import aio
 from shapely import STRtree
@@ -19,9 +20,9 @@ from drvs import _grpc
 from drvs._cli import setup_logging, shutdown_event
 from drvs._service import Endpoint, Lifecycle
 from drvs.convert import polygon_to_pb
-from drvs.errors import DrvsError, InvalidArgument
+from drvs.errors import DrvsError, InvalidArgument, Unavailable
 from drvs.net import parse_address
-from drvs.sim.scenario import Scenario, load_scenario
+from drvs.sim.scenario import Scenario, load_scenario, parse_scenario
 from drvs.v1 import sim_pb2, sim_pb2_grpc
 
 log = logging.getLogger("drvs.sim.world")
@@ -185,6 +186,19 @@ async def serve_world(scenario_path: str | None, listen: str, seed: int) -> int:
     finally:
         await world.stop()
     return 0
+
+
+def fetch_scene(channel: grpc.Channel, world: str, timeout_s: float) -> tuple[Scenario, int]:
+    """The scenario and seed a running world serves, waiting up to `timeout_s` for it to come up;
+    Unavailable names the world when it does not answer."""
+    try:
+        scene = sim_pb2_grpc.SimulatedWorldStub(channel).GetScene(
+            sim_pb2.GetSceneRequest(), timeout=timeout_s, wait_for_ready=True
+        )
+    except grpc.RpcError as exc:
+        details = exc.details() if isinstance(exc, grpc.Call) else str(exc)
+        raise Unavailable(f"simulated world {world} unreachable: {details}") from None
+    return parse_scenario(scene.scenario_yaml, f"world {world}"), int(scene.seed)
 
 
 def add_world_arguments(p: argparse.ArgumentParser) -> None:
