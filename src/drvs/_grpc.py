@@ -60,10 +60,17 @@ def status_of(exc: errors.DrvsError) -> grpc.StatusCode:
     return grpc.StatusCode.UNKNOWN
 
 
+#: What grpc.aio says when an operation hits a call whose connection has just failed (the peer
+#: went away): not a fault of the peer but a broken link, which callers retry as Unavailable.
+CORE_BREAK = "Internal error from Core"
+
+
 def from_rpc_error(exc: grpc.RpcError, what: str) -> errors.DrvsError:
     """Turn a failed call into the domain error robot code sees (never a raw grpc.RpcError)."""
     code = exc.code() if hasattr(exc, "code") else grpc.StatusCode.UNKNOWN
     details = exc.details() if hasattr(exc, "details") else str(exc)
+    if code == grpc.StatusCode.INTERNAL and details == CORE_BREAK:
+        return errors.Unavailable(f"{what}: the connection broke during the call")
     cls = _FROM_STATUS.get(code, errors.DrvsError)
     return cls(f"{what}: {details or code.name}")
 

@@ -73,10 +73,7 @@ class RequestStream:
                     future.set_result(reply)
             failure = errors.Unavailable(f"{self._peer}: the request stream ended")
         except grpc.RpcError as exc:
-            if _core_write_failure(exc):
-                failure = errors.Unavailable(f"{self._peer}: the request stream broke")
-            else:
-                failure = _grpc.from_rpc_error(exc, self._peer)
+            failure = _grpc.from_rpc_error(exc, self._peer)
         except asyncio.CancelledError:
             failure = errors.Unavailable(f"{self._peer}: the request stream was closed")
         if self._call is call:
@@ -108,7 +105,7 @@ class RequestStream:
                     except (grpc.RpcError, asyncio.InvalidStateError) as exc:
                         if self._call is call:
                             self._call = None
-                        if isinstance(exc, grpc.RpcError) and not _core_write_failure(exc):
+                        if isinstance(exc, grpc.RpcError):
                             raise _grpc.from_rpc_error(exc, self._peer) from None
                         raise errors.Unavailable(f"{self._peer}: the request stream ended") from None
             reply = await future
@@ -131,15 +128,6 @@ class RequestStream:
         if reader is not None:
             reader.cancel()
             await asyncio.gather(reader, return_exceptions=True)
-
-
-def _core_write_failure(exc: grpc.RpcError) -> bool:
-    """grpc.aio reports a write on a call whose connection has just failed (the peer went away)
-    as INTERNAL "Internal error from Core": the stream broke, which the caller should see as
-    Unavailable, to retry, not as a fault of the peer."""
-    code = exc.code() if isinstance(exc, aio.AioRpcError) else None
-    details = exc.details() if isinstance(exc, aio.AioRpcError) else ""
-    return code == grpc.StatusCode.INTERNAL and details == "Internal error from Core"
 
 
 def _expire(future: asyncio.Future[Reply], peer: str, timeout_s: float) -> None:

@@ -1,0 +1,28 @@
+"""How failed calls become domain errors."""
+
+from __future__ import annotations
+
+import grpc
+from grpc import aio
+
+from drvs import _grpc, errors
+
+
+def rpc_error(code: grpc.StatusCode, details: str) -> aio.AioRpcError:
+    return aio.AioRpcError(code, aio.Metadata(), aio.Metadata(), details=details)
+
+
+def test_a_connection_broken_under_a_call_is_unavailable_not_a_fault_of_the_peer() -> None:
+    broke = _grpc.from_rpc_error(rpc_error(grpc.StatusCode.INTERNAL, _grpc.CORE_BREAK), "server a:1")
+    assert type(broke) is errors.Unavailable and str(broke).startswith("server a:1: ")
+    # Any other INTERNAL is the peer's fault, and says so.
+    other = _grpc.from_rpc_error(rpc_error(grpc.StatusCode.INTERNAL, "DetectStream: internal error"), "server a:1")
+    assert type(other) is errors.DrvsError and str(other) == "server a:1: DetectStream: internal error"
+
+
+def test_statuses_map_to_their_domain_errors_and_back() -> None:
+    for cls, code in _grpc._TO_STATUS.items():
+        error = _grpc.from_rpc_error(rpc_error(code, "why"), "peer")
+        assert type(error) is cls and str(error) == "peer: why"
+        assert _grpc.status_of(error) == code
+        assert type(_grpc.error_from_code(code.name, "why")) is cls
