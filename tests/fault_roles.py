@@ -101,13 +101,13 @@ class _SlowCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
     ) -> detection_pb2.DetectionReply:
         return await self._accept(request)
 
-    async def DetectStream(
+    async def DetectBatches(
         self,
-        request_iterator: AsyncIterator[detection_pb2.DetectionRequest],
+        request_iterator: AsyncIterator[detection_pb2.DetectionRequests],
         context: aio.ServicerContext[Any, Any],
-    ) -> AsyncIterator[detection_pb2.DetectionReply]:
-        async for message in request_iterator:
-            yield await self._accept(message)
+    ) -> AsyncIterator[detection_pb2.DetectionReplies]:
+        async for batch in request_iterator:
+            yield detection_pb2.DetectionReplies(replies=[await self._accept(message) for message in batch.requests])
 
 
 async def slow_camera(args: argparse.Namespace) -> None:

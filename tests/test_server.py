@@ -281,11 +281,11 @@ def test_peer_addresses_parse() -> None:
 class _SilentCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
     """Takes streamed requests and never accepts them: a camera too busy to answer."""
 
-    async def DetectStream(
+    async def DetectBatches(
         self,
-        request_iterator: AsyncIterator[detection_pb2.DetectionRequest],
+        request_iterator: AsyncIterator[detection_pb2.DetectionRequests],
         context: aio.ServicerContext[Any, Any],
-    ) -> AsyncIterator[detection_pb2.DetectionReply]:
+    ) -> AsyncIterator[detection_pb2.DetectionReplies]:
         async for _ in request_iterator:
             pass
         return

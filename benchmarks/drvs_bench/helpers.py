@@ -44,6 +44,19 @@ class _Ack(detection_pb2_grpc.DetectObjectBoundaryServicer):
         async for request in request_iterator:
             yield detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=["ack"])
 
+    async def DetectBatches(
+        self,
+        request_iterator: AsyncIterator[detection_pb2.DetectionRequests],
+        context: aio.ServicerContext[Any, Any],
+    ) -> AsyncIterator[detection_pb2.DetectionReplies]:
+        async for batch in request_iterator:
+            yield detection_pb2.DetectionReplies(
+                replies=[
+                    detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=["ack"])
+                    for request in batch.requests
+                ]
+            )
+
 
 async def ack_server(args: argparse.Namespace) -> None:
     stop = shutdown_event()

@@ -1,15 +1,17 @@
-"""DetectStream: many detection requests on one long-lived call, each answered by a reply.
+"""Detection requests on long-lived calls, each answered by a reply.
 
-A unary call pays for its headers, trailers and call set-up on every request; on the stream a
-request is one message. Both hops use it: the robot client to the server, the server to each
-camera. Replies carry the request_id they answer; a refused request gets a reply with `error`
-set and the stream goes on.
+A unary call pays for its headers, trailers and call set-up on every request; on a stream a
+request is one message. The robot client sends to the server on DetectStream (`RequestStream`):
+replies carry the request_id they answer; a refused request gets a reply with `error` set and
+the stream goes on. The server sends to each camera on DetectBatches (`BatchSender`): whatever
+waits for the camera when it can write goes as one message, answered by one message.
 """
 
 from __future__ import annotations
 
 import asyncio
 import logging
+from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable
 
 import grpc
@@ -22,6 +24,11 @@ log = logging.getLogger(__name__)
 
 Reply = detection_pb2.DetectionReply
 Request = detection_pb2.DetectionRequest
+Requests = detection_pb2.DetectionRequests
+Replies = detection_pb2.DetectionReplies
+#: A batch is closed once its requests' serialised sizes add up to this (a lone request may be
+#: larger, up to the message size limit).
+MAX_BATCH_BYTES = 1024 * 1024
 
 
 class RequestStream:
@@ -29,9 +36,8 @@ class RequestStream:
     DrvsError it stands for. The call is opened on first use and reopened after it ends (a peer that
     restarted), so a request during an outage fails fast with Unavailable and the next one retries.
 
-    elide_repeats=True leaves out robot_id, callback_address, filter_def and region when they repeat
-    the previous request on the stream (the receiver fills them back in); only for senders whose
-    messages are their own to edit.
+    It leaves out robot_id, callback_address, filter_def and region when they repeat the previous
+    request on the stream (the receiver fills them back in): it edits the messages it is given.
     """
 
     def __init__(
@@ -39,13 +45,11 @@ class RequestStream:
         stub: detection_pb2_grpc.DetectObjectBoundaryStub,
         peer: str,
         *,
-        elide_repeats: bool,
         metadata: tuple[tuple[str, str], ...] = (),
     ) -> None:
         self._stub = stub
         self._metadata = metadata
         self._peer = peer
-        self._elide = elide_repeats
         self._call: aio.StreamStreamCall[Request, Reply] | None = None
         self._reader: asyncio.Task[None] | None = None
         self._pending: dict[str, asyncio.Future[Reply]] = {}
@@ -98,8 +102,7 @@ class RequestStream:
                 # would work on a request whose sender has already given up on it.
                 if not future.done():
                     call = self._call or self._open()
-                    if self._elide:
-                        self._sent.elide(message)
+                    self._sent.elide(message)
                     try:
                         await call.write(message)
                     except (grpc.RpcError, asyncio.InvalidStateError) as exc:
@@ -128,6 +131,204 @@ class RequestStream:
         if reader is not None:
             reader.cancel()
             await asyncio.gather(reader, return_exceptions=True)
+
+
+class _Forward:
+    """One request on its way through a BatchSender; `done` is called exactly once."""
+
+    __slots__ = ("deadline", "done", "message", "settled")
+
+    def __init__(self, message: Request, deadline: float, done: Callable[[Reply | errors.DrvsError], None]) -> None:
+        self.message = message
+        self.deadline = deadline
+        self.done = done
+        self.settled = False
+
+
+class _BatchCall:
+    """One DetectBatches call and the requests written on it that have no reply yet, in order."""
+
+    __slots__ = ("call", "reader", "sent")
+
+    def __init__(self, call: aio.StreamStreamCall[Requests, Replies]) -> None:
+        self.call = call
+        self.sent: deque[_Forward] = deque()
+        self.reader: asyncio.Task[None] | None = None
+
+
+class BatchSender:
+    """The server's side of DetectBatches to one camera.
+
+    `submit(message, done)` queues a request and returns at once; `done` is later called exactly
+    once with the camera's reply, or with the DrvsError that stands for its refusal, its silence
+    past `timeout_s` (DeadlineExceeded), or a broken stream (Unavailable). No task, future or timer
+    is made per request: one writer task sends whatever is queued whenever the previous write has
+    completed (so batches grow with load and a lone request goes at once), one reader task matches
+    the replies to the requests in order, and one timer expires the oldest requests. A request
+    whose time ran out while it was queued is not sent. The call is opened on first use and
+    reopened after it ends (a camera that restarted).
+    """
+
+    def __init__(
+        self,
+        stub: detection_pb2_grpc.DetectObjectBoundaryStub,
+        peer: str,
+        *,
+        timeout_s: float,
+        metadata: tuple[tuple[str, str], ...] = (),
+        max_batch_bytes: int = MAX_BATCH_BYTES,
+    ) -> None:
+        self._stub = stub
+        self._peer = peer
+        self._timeout_s = timeout_s
+        self._metadata = metadata
+        self._max_batch_bytes = max_batch_bytes
+        self._queue: deque[_Forward] = deque()  # submitted, not yet written
+        self._order: deque[_Forward] = deque()  # every unsettled request, oldest (first to expire) first
+        self._unsettled = 0
+        self._call: _BatchCall | None = None
+        self._writer: asyncio.Task[None] | None = None
+        self._timer: asyncio.TimerHandle | None = None
+        self._closed = False
+        #: Messages written and requests they carried, for the curious (benchmarks, tests).
+        self.batches_written = 0
+        self.requests_written = 0
+
+    @property
+    def in_flight(self) -> int:
+        """Requests submitted that have no answer yet (queued, or sent and not answered)."""
+        return self._unsettled
+
+    def submit(self, message: Request, done: Callable[[Reply | errors.DrvsError], None]) -> None:
+        loop = asyncio.get_running_loop()
+        forward = _Forward(message, loop.time() + self._timeout_s, done)
+        self._unsettled += 1
+        if self._closed:
+            self._settle(forward, errors.Unavailable(f"{self._peer}: the request stream was closed"))
+            return
+        self._queue.append(forward)
+        self._order.append(forward)
+        if self._timer is None:
+            self._timer = loop.call_at(forward.deadline, self._expire)
+        if self._writer is None:
+            self._writer = loop.create_task(self._write())
+
+    def _settle(self, forward: _Forward, result: Reply | errors.DrvsError) -> None:
+        if forward.settled:
+            return
+        forward.settled = True
+        self._unsettled -= 1
+        try:
+            forward.done(result)
+        except Exception:
+            log.exception("%s: handling the answer to request %s failed", self._peer, forward.message.request_id)
+        order = self._order
+        while order and order[0].settled:
+            order.popleft()
+
+    def _expire(self) -> None:
+        self._timer = None
+        loop = asyncio.get_running_loop()
+        now = loop.time()
+        order = self._order
+        while order and (order[0].settled or order[0].deadline <= now):
+            forward = order.popleft()
+            self._settle(forward, errors.DeadlineExceeded(f"{self._peer}: no reply within {self._timeout_s:g} s"))
+        if order:
+            self._timer = loop.call_at(order[0].deadline, self._expire)
+
+    def _open(self) -> _BatchCall:
+        state = _BatchCall(self._stub.DetectBatches(metadata=self._metadata or None))
+        state.reader = asyncio.get_running_loop().create_task(self._read(state))
+        self._call = state
+        return state
+
+    def _take(self) -> list[_Forward]:
+        """The next batch: queued requests still wanted, up to the byte budget."""
+        batch: list[_Forward] = []
+        size = 0
+        queue = self._queue
+        while queue:
+            forward = queue[0]
+            if forward.settled:
+                queue.popleft()
+                continue
+            size += forward.message.ByteSize()
+            if batch and size > self._max_batch_bytes:
+                break
+            batch.append(queue.popleft())
+        return batch
+
+    async def _write(self) -> None:
+        try:
+            while self._queue:
+                batch = self._take()
+                if not batch:
+                    break
+                state = self._call or self._open()
+                state.sent.extend(batch)
+                self.batches_written += 1
+                self.requests_written += len(batch)
+                try:
+                    await state.call.write(Requests(requests=[f.message for f in batch]))
+                except (grpc.RpcError, asyncio.InvalidStateError) as exc:
+                    failure = (
+                        _grpc.from_rpc_error(exc, self._peer)
+                        if isinstance(exc, grpc.RpcError)
+                        else errors.Unavailable(f"{self._peer}: the request stream ended")
+                    )
+                    self._end(state, failure)
+        finally:
+            self._writer = None
+
+    async def _read(self, state: _BatchCall) -> None:
+        failure: errors.DrvsError = errors.Unavailable(f"{self._peer}: the request stream ended")
+        try:
+            async for replies in state.call:
+                for reply in replies.replies:
+                    if not state.sent or state.sent[0].message.request_id != reply.request_id:
+                        # Replies come in the order of the requests; anything else is a broken peer.
+                        log.error("%s: reply for %r out of order; closing the stream", self._peer, reply.request_id)
+                        state.call.cancel()
+                        self._end(state, failure)
+                        return
+                    forward = state.sent.popleft()
+                    if reply.HasField("error"):
+                        self._settle(forward, _grpc.error_from_code(reply.error.code, reply.error.message))
+                    else:
+                        self._settle(forward, reply)
+        except grpc.RpcError as exc:
+            failure = _grpc.from_rpc_error(exc, self._peer)
+        except asyncio.CancelledError:
+            failure = errors.Unavailable(f"{self._peer}: the request stream was closed")
+        self._end(state, failure)
+
+    def _end(self, state: _BatchCall, failure: errors.DrvsError) -> None:
+        """The call is over: what was sent on it will not be answered."""
+        if self._call is state:
+            self._call = None
+        while state.sent:
+            self._settle(state.sent.popleft(), failure)
+
+    async def close(self) -> None:
+        self._closed = True
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        failure = errors.Unavailable(f"{self._peer}: the request stream was closed")
+        while self._queue:
+            self._settle(self._queue.popleft(), failure)
+        state, writer = self._call, self._writer
+        self._call = None
+        if writer is not None:
+            writer.cancel()
+            await asyncio.gather(writer, return_exceptions=True)
+        if state is not None:
+            state.call.cancel()
+            if state.reader is not None:
+                state.reader.cancel()
+                await asyncio.gather(state.reader, return_exceptions=True)
+            self._end(state, failure)
 
 
 def _expire(future: asyncio.Future[Reply], peer: str, timeout_s: float) -> None:
@@ -192,6 +393,25 @@ async def serve_request_stream(
         except Exception:
             log.exception("%s: request %s failed", where, message.request_id)
             yield refusal(message.request_id, grpc.StatusCode.INTERNAL, f"{where}: internal error")
+
+
+async def serve_request_batches(
+    batches: AsyncIterator[Requests], answer: Callable[[Request], Reply], where: str
+) -> AsyncIterator[Replies]:
+    """The receiving side of DetectBatches: one Replies per Requests, one reply per request in
+    order; a DrvsError becomes that request's error and the others go on."""
+    async for batch in batches:
+        replies = Replies()
+        for message in batch.requests:
+            try:
+                replies.replies.append(answer(message))
+            except errors.DrvsError as exc:
+                replies.replies.append(refusal(message.request_id, _grpc.status_of(exc), str(exc)))
+            except Exception:
+                log.exception("%s: request %s failed", where, message.request_id)
+                failed = refusal(message.request_id, grpc.StatusCode.INTERNAL, f"{where}: internal error")
+                replies.replies.append(failed)
+        yield replies
 
 
 def refusal(request_id: str, code: grpc.StatusCode, text: str) -> Reply:

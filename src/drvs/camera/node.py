@@ -25,7 +25,7 @@ from drvs.errors import DrvsError, FailedPrecondition, InvalidArgument, Resource
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
 from drvs.model import DetectionReport, DetectionRequest, check_id
 from drvs.net import dialable_address, parse_address
-from drvs.request_stream import serve_request_stream
+from drvs.request_stream import serve_request_batches, serve_request_stream
 from drvs.security import Security, bearer_token
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc, stream_pb2, stream_pb2_grpc
 
@@ -364,6 +364,9 @@ class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         self._node = node
 
     async def _answer(self, message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
+        return self._accept(message)
+
+    def _accept(self, message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
         if self._node.detector is None:
             raise FailedPrecondition(f"camera {self._node.camera_id} is not started")
         request = request_from_pb(message, require_request_id=True)
@@ -394,6 +397,15 @@ class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         await self._check_caller(context)
         async for reply in serve_request_stream(request_iterator, self._answer, f"camera {self._node.camera_id}"):
             yield reply
+
+    async def DetectBatches(
+        self,
+        request_iterator: AsyncIterator[detection_pb2.DetectionRequests],
+        context: aio.ServicerContext[Any, Any],
+    ) -> AsyncIterator[detection_pb2.DetectionReplies]:
+        await self._check_caller(context)
+        async for replies in serve_request_batches(request_iterator, self._accept, f"camera {self._node.camera_id}"):
+            yield replies
 
 
 def encode_frame(image: NDArray[np.uint8], encoding: int, quality: int) -> bytes:

@@ -269,9 +269,7 @@ class DrvsClient:
             server_address = format_address("127.0.0.1", server_relay.port)
         self._channel = self.security.channel(server_address)
         self._detect = detection_pb2_grpc.DetectObjectBoundaryStub(self._channel)
-        self._requests = RequestStream(
-            self._detect, f"server {self.server}", elide_repeats=True, metadata=self.security.metadata()
-        )
+        self._requests = RequestStream(self._detect, f"server {self.server}", metadata=self.security.metadata())
         self._registry = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
         log.debug("robot %r listening for reports on %s", self.robot_id, self.callback_address)
 

@@ -10,6 +10,7 @@ import uuid
 from collections.abc import AsyncIterator, Iterable, Mapping
 from typing import Any
 
+import grpc
 from grpc import aio
 from shapely.geometry import Polygon
 
@@ -34,7 +35,7 @@ from drvs.geometry import DEFAULT_MAX_RANGE_M
 from drvs.model import DetectionReport, DetectionRequest, check_id
 from drvs.net import host_of, is_loopback_host
 from drvs.registry import DEFAULT_LEASE_TTL_S, CameraEntry, Registry
-from drvs.request_stream import RequestStream, serve_request_stream
+from drvs.request_stream import BatchSender, serve_request_stream
 from drvs.security import CAMERA, ROBOT, Security, TokenAuthority, TokenInterceptor, bearer_token, caller_identity
 from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits, peer_ip
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
@@ -56,15 +57,15 @@ SERVICE_NAMES = (
 class _CameraLink:
     """One reused channel per camera, replaced when the camera registers a new address."""
 
-    def __init__(self, address: str, security: Security, token: str) -> None:
+    def __init__(self, address: str, security: Security, token: str, timeout_s: float) -> None:
         self.address = address
         self.token = token
         self.channel = security.channel(address)
         # The server proves itself to a camera with the camera's own registration token.
-        self.requests = RequestStream(
+        self.requests = BatchSender(
             detection_pb2_grpc.DetectObjectBoundaryStub(self.channel),
             f"camera at {address}",
-            elide_repeats=False,
+            timeout_s=timeout_s,
             metadata=security.metadata(token),
         )
 
@@ -183,7 +184,7 @@ class DrvsServer(Lifecycle):
     def dispatch(self, request: DetectionRequest, message: detection_pb2.DetectionRequest) -> list[str]:
         cameras = self.route(request)
         for camera in cameras:
-            self._spawn(self._forward(camera, request, message))
+            self._forward(camera, request, message)
         log.debug(
             "request %s from robot %r (%s): dispatched to %s",
             request.request_id,
@@ -204,43 +205,60 @@ class DrvsServer(Lifecycle):
         if link is None or link.address != camera.address or link.token != token:
             if link is not None:
                 self._spawn(link.close())
-            link = _CameraLink(camera.address, self.security, token)
+            link = _CameraLink(camera.address, self.security, token, self.forward_timeout_s)
             self._links[camera.camera_id] = link
         return link
 
-    async def _forward(
-        self, camera: CameraEntry, request: DetectionRequest, message: detection_pb2.DetectionRequest
-    ) -> None:
+    def _forward(self, camera: CameraEntry, request: DetectionRequest, message: detection_pb2.DetectionRequest) -> None:
         link = self._link(camera)
-        started = time.perf_counter()
-        try:
-            if link.requests.in_flight >= self.max_queued_forwards:
-                # Shed load at once rather than queue until the forward timeout: the robot hears
-                # now that this camera is busy, and the camera stays in routing.
-                raise ResourceExhausted(
+        if link.requests.in_flight >= self.max_queued_forwards:
+            # Shed load at once rather than queue until the forward timeout: the robot hears
+            # now that this camera is busy, and the camera stays in routing.
+            self._not_accepted(
+                camera,
+                request,
+                ResourceExhausted(
                     f"busy: {link.requests.in_flight} requests already waiting for it "
                     f"(limit {self.max_queued_forwards}); try again later"
-                )
-            await link.requests.request(message, self.forward_timeout_s)
-            metrics.ROUTED_OK.inc()
-            metrics.STAGE_FORWARD.observe(time.perf_counter() - started)
+                ),
+            )
             return
-        except DrvsError as exc:
-            metrics.ROUTED_FAILED.inc()
-            reason = f"camera {camera.camera_id} did not accept the request: {_grpc.status_of(exc).name} {exc}"
-            unreachable = isinstance(exc, (Unavailable, DeadlineExceeded))
-        log.warning("request %s: %s", request.request_id, reason)
-        if unreachable:
-            self._unreachable.add(camera.camera_id)
-        # Answer for the camera, so the robot knows it will not report and need not wait for it.
-        report = DetectionReport(
-            request_id=request.request_id,
-            camera_id=camera.camera_id,
-            capture_time=time.time(),
-            sequence=0,
-            final=True,
-            error=reason,
-        )
+        started = time.perf_counter()
+
+        def done(result: detection_pb2.DetectionReply | DrvsError) -> None:
+            if isinstance(result, DrvsError):
+                self._not_accepted(camera, request, result)
+            else:
+                metrics.ROUTED_OK.inc()
+                metrics.STAGE_FORWARD.observe(time.perf_counter() - started)
+
+        link.requests.submit(message, done)
+
+    def _not_accepted(self, camera: CameraEntry, request: DetectionRequest, exc: DrvsError) -> None:
+        """The camera will not report on this request: tell the robot in the camera's name, so it
+        need not wait for it. A camera that could not be reached is skipped until it heartbeats."""
+        if self._stopped:
+            return  # the server's own shutdown closed the links: nobody is waiting to hear
+        metrics.ROUTED_FAILED.inc()
+        reason = f"camera {camera.camera_id} did not accept the request: {_grpc.status_of(exc).name} {exc}"
+        token = logs.request_id.set(request.request_id)
+        try:
+            log.warning("request %s: %s", request.request_id, reason)
+            if isinstance(exc, (Unavailable, DeadlineExceeded)):
+                self._unreachable.add(camera.camera_id)
+            report = DetectionReport(
+                request_id=request.request_id,
+                camera_id=camera.camera_id,
+                capture_time=time.time(),
+                sequence=0,
+                final=True,
+                error=reason,
+            )
+            self._spawn(self._tell_robot(request, report))
+        finally:
+            logs.request_id.reset(token)
+
+    async def _tell_robot(self, request: DetectionRequest, report: DetectionReport) -> None:
         try:
             await self._callbacks.send(request.callback_address, report)
         except Exception as exc:
@@ -325,6 +343,17 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
 
         async for reply in serve_request_stream(request_iterator, answer, "drvs-server"):
             yield reply
+
+    async def DetectBatches(
+        self,
+        request_iterator: AsyncIterator[detection_pb2.DetectionRequests],
+        context: aio.ServicerContext[Any, Any],
+    ) -> AsyncIterator[detection_pb2.DetectionReplies]:
+        await context.abort(
+            grpc.StatusCode.UNIMPLEMENTED,
+            "DetectBatches is the hop from a server to its cameras; robots send requests on DetectStream",
+        )
+        yield detection_pb2.DetectionReplies()  # never reached: abort raises
 
 
 class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):

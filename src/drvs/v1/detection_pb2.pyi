@@ -54,6 +54,18 @@ class DetectionReply(_message.Message):
     error: RequestError
     def __init__(self, request_id: _Optional[str] = ..., camera_ids: _Optional[_Iterable[str]] = ..., error: _Optional[_Union[RequestError, _Mapping]] = ...) -> None: ...
 
+class DetectionRequests(_message.Message):
+    __slots__ = ("requests",)
+    REQUESTS_FIELD_NUMBER: _ClassVar[int]
+    requests: _containers.RepeatedCompositeFieldContainer[DetectionRequest]
+    def __init__(self, requests: _Optional[_Iterable[_Union[DetectionRequest, _Mapping]]] = ...) -> None: ...
+
+class DetectionReplies(_message.Message):
+    __slots__ = ("replies",)
+    REPLIES_FIELD_NUMBER: _ClassVar[int]
+    replies: _containers.RepeatedCompositeFieldContainer[DetectionReply]
+    def __init__(self, replies: _Optional[_Iterable[_Union[DetectionReply, _Mapping]]] = ...) -> None: ...
+
 class Detection(_message.Message):
     __slots__ = ("outline_xy", "bounds", "centroid", "ground_contact", "pixel_box", "area_m2", "area_px", "score")
     OUTLINE_XY_FIELD_NUMBER: _ClassVar[int]

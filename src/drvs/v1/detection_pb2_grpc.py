@@ -45,6 +45,11 @@ class DetectObjectBoundaryStub(object):
                 request_serializer=drvs_dot_v1_dot_detection__pb2.DetectionRequest.SerializeToString,
                 response_deserializer=drvs_dot_v1_dot_detection__pb2.DetectionReply.FromString,
                 _registered_method=True)
+        self.DetectBatches = channel.stream_stream(
+                '/drvs.v1.DetectObjectBoundary/DetectBatches',
+                request_serializer=drvs_dot_v1_dot_detection__pb2.DetectionRequests.SerializeToString,
+                response_deserializer=drvs_dot_v1_dot_detection__pb2.DetectionReplies.FromString,
+                _registered_method=True)
 
 
 class DetectObjectBoundaryServicer(object):
@@ -68,6 +73,16 @@ class DetectObjectBoundaryServicer(object):
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def DetectBatches(self, request_iterator, context):
+        """The server-to-camera hop. The server writes whatever requests are waiting for a camera as one
+        message, so under load a camera reads, and answers, many requests at the cost of one; when
+        nothing waits, a batch is a single request and nothing is delayed. Cameras serve it; the
+        server answers UNIMPLEMENTED (robots use DetectStream).
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_DetectObjectBoundaryServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -80,6 +95,11 @@ def add_DetectObjectBoundaryServicer_to_server(servicer, server):
                     servicer.DetectStream,
                     request_deserializer=drvs_dot_v1_dot_detection__pb2.DetectionRequest.FromString,
                     response_serializer=drvs_dot_v1_dot_detection__pb2.DetectionReply.SerializeToString,
+            ),
+            'DetectBatches': grpc.stream_stream_rpc_method_handler(
+                    servicer.DetectBatches,
+                    request_deserializer=drvs_dot_v1_dot_detection__pb2.DetectionRequests.FromString,
+                    response_serializer=drvs_dot_v1_dot_detection__pb2.DetectionReplies.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -137,6 +157,33 @@ class DetectObjectBoundary(object):
             '/drvs.v1.DetectObjectBoundary/DetectStream',
             drvs_dot_v1_dot_detection__pb2.DetectionRequest.SerializeToString,
             drvs_dot_v1_dot_detection__pb2.DetectionReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def DetectBatches(request_iterator,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.stream_stream(
+            request_iterator,
+            target,
+            '/drvs.v1.DetectObjectBoundary/DetectBatches',
+            drvs_dot_v1_dot_detection__pb2.DetectionRequests.SerializeToString,
+            drvs_dot_v1_dot_detection__pb2.DetectionReplies.FromString,
             options,
             channel_credentials,
             insecure,

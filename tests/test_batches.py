@@ -1,0 +1,214 @@
+"""DetectBatches, the server-to-camera hop: requests waiting for a camera travel together, every
+request is answered exactly once, in order, and requests nobody waits for any more are not sent."""
+
+from __future__ import annotations
+
+import asyncio
+from collections.abc import AsyncIterator, Callable
+from typing import Any
+
+import grpc
+import pytest
+from grpc import aio
+
+from drvs import _grpc, errors
+from drvs.request_stream import BatchSender, refusal
+from drvs.server import DrvsServer
+from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
+
+Result = detection_pb2.DetectionReply | errors.DrvsError
+
+
+class _Camera(detection_pb2_grpc.DetectObjectBoundaryServicer):
+    """Answers every batch at once (refusing ids that start with "bad"). With `reading` cleared it
+    stops reading the stream after its next answer until it is set again; with `answering`
+    cleared it takes batches and never answers them."""
+
+    def __init__(self) -> None:
+        self.batches: list[list[str]] = []
+        self.got_batch = asyncio.Event()
+        self.reading = asyncio.Event()
+        self.reading.set()
+        self.answering = True
+
+    async def DetectBatches(
+        self,
+        request_iterator: AsyncIterator[detection_pb2.DetectionRequests],
+        context: aio.ServicerContext[Any, Any],
+    ) -> AsyncIterator[detection_pb2.DetectionReplies]:
+        async for batch in request_iterator:
+            self.batches.append([r.request_id for r in batch.requests])
+            self.got_batch.set()
+            if not self.answering:
+                continue
+            yield detection_pb2.DetectionReplies(
+                replies=[
+                    refusal(r.request_id, grpc.StatusCode.INVALID_ARGUMENT, "filter_def: bad")
+                    if r.request_id.startswith("bad")
+                    else detection_pb2.DetectionReply(request_id=r.request_id, camera_ids=["cam"])
+                    for r in batch.requests
+                ]
+            )
+            await self.reading.wait()
+
+
+class _Results:
+    def __init__(self) -> None:
+        self.by_id: dict[str, list[Result]] = {}
+        self.changed = asyncio.Event()
+
+    def callback(self, request_id: str) -> Callable[[Result], None]:
+        def done(result: Result) -> None:
+            self.by_id.setdefault(request_id, []).append(result)
+            self.changed.set()
+
+        return done
+
+    async def wait_for(self, count: int) -> None:
+        while len(self.by_id) < count:
+            self.changed.clear()
+            await asyncio.wait_for(self.changed.wait(), 10)
+
+
+async def _camera_server(camera: _Camera) -> tuple[aio.Server, str]:
+    server = aio.server(options=_grpc.SERVER_OPTIONS)
+    detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(camera, server)
+    port = server.add_insecure_port("127.0.0.1:0")
+    await server.start()
+    return server, f"127.0.0.1:{port}"
+
+
+def _request(request_id: str, vertices: int = 0) -> detection_pb2.DetectionRequest:
+    message = detection_pb2.DetectionRequest(request_id=request_id, robot_id="r", filter_def="hsv_014110130035225200")
+    if vertices:
+        ring = geometry_pb2.Polygon(points=[geometry_pb2.Point2(x=float(i), y=float(i % 7)) for i in range(vertices)])
+        message.region.CopyFrom(geometry_pb2.Region(polygon=ring))
+    return message
+
+
+async def test_requests_waiting_together_travel_in_one_message_and_are_answered_in_order() -> None:
+    camera = _Camera()
+    server, address = await _camera_server(camera)
+    try:
+        async with _grpc.insecure_channel(address) as channel:
+            sender = BatchSender(detection_pb2_grpc.DetectObjectBoundaryStub(channel), "camera", timeout_s=10)
+            results = _Results()
+            ids = [f"a{i}" for i in range(6)] + ["bad1"] + [f"b{i}" for i in range(3)]
+            for request_id in ids:  # no await in between: all are waiting when the writer first runs
+                sender.submit(_request(request_id), results.callback(request_id))
+            assert sender.in_flight == len(ids)
+            await results.wait_for(len(ids))
+            assert camera.batches == [ids]
+            assert (sender.batches_written, sender.requests_written, sender.in_flight) == (1, len(ids), 0)
+            for request_id in ids:
+                [result] = results.by_id[request_id]
+                if request_id == "bad1":
+                    assert isinstance(result, errors.InvalidArgument) and "filter_def" in str(result)
+                else:
+                    assert isinstance(result, detection_pb2.DetectionReply) and result.request_id == request_id
+            # A lone request afterwards goes on its own, on the same call.
+            sender.submit(_request("c0"), results.callback("c0"))
+            await results.wait_for(len(ids) + 1)
+            assert camera.batches[-1] == ["c0"] and sender.batches_written == 2
+            await sender.close()
+    finally:
+        await server.stop(None)
+
+
+async def test_late_replies_are_dropped_and_queued_requests_that_expired_are_never_sent() -> None:
+    camera = _Camera()
+    camera.reading.clear()  # takes the first batch, then stops reading: the stream backs up
+    server, address = await _camera_server(camera)
+    try:
+        async with _grpc.insecure_channel(address) as channel:
+            sender = BatchSender(
+                detection_pb2_grpc.DetectObjectBoundaryStub(channel),
+                "camera",
+                timeout_s=0.5,
+                max_batch_bytes=64 * 1024,
+            )
+            results = _Results()
+            # About 20 kB each: far more than the HTTP/2 windows hold, so writes stop completing.
+            ids = [f"big{i}" for i in range(200)]
+            for request_id in ids:
+                sender.submit(_request(request_id, vertices=1000), results.callback(request_id))
+            await results.wait_for(len(ids))
+            first = camera.batches[0]
+            assert all(isinstance(results.by_id[i][0], detection_pb2.DetectionReply) for i in first)
+            expired = ids[len(first) :]
+            assert all(isinstance(results.by_id[i][0], errors.DeadlineExceeded) for i in expired)
+            assert sender.in_flight == 0
+            written = sender.requests_written
+            assert len(first) < written < len(ids), "some requests were still queued when they expired"
+            camera.reading.set()
+            # The camera now reads what was written and answers it; those replies find nobody
+            # waiting, and the next request is answered as usual.
+            sender.submit(_request("after"), results.callback("after"))
+            await results.wait_for(len(ids) + 1)
+            [after] = results.by_id["after"]
+            assert isinstance(after, detection_pb2.DetectionReply) and after.request_id == "after"
+            seen = [request_id for batch in camera.batches for request_id in batch]
+            assert seen == [*ids[:written], "after"]
+            assert all(len(rs) == 1 for rs in results.by_id.values())  # nobody answered twice
+            await sender.close()
+    finally:
+        await server.stop(None)
+
+
+async def test_a_camera_that_goes_away_fails_what_it_had_and_the_next_request_reconnects() -> None:
+    camera = _Camera()
+    server, address = await _camera_server(camera)
+    port = int(address.rsplit(":", 1)[1])
+    async with _grpc.insecure_channel(address) as channel:
+        sender = BatchSender(detection_pb2_grpc.DetectObjectBoundaryStub(channel), "camera", timeout_s=10)
+        results = _Results()
+        sender.submit(_request("first"), results.callback("first"))
+        await results.wait_for(1)
+        camera.answering = False  # the next batch is taken but not answered before the camera stops
+        camera.got_batch.clear()
+        sender.submit(_request("lost"), results.callback("lost"))
+        await asyncio.wait_for(camera.got_batch.wait(), 10)
+        await server.stop(None)
+        await results.wait_for(2)
+        [lost] = results.by_id["lost"]
+        assert isinstance(lost, errors.Unavailable)
+        # The camera comes back on the same port: the next request opens a new call.
+        camera2 = _Camera()
+        server2 = aio.server()
+        detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(camera2, server2)
+        assert server2.add_insecure_port(f"127.0.0.1:{port}") == port
+        await server2.start()
+        try:
+            await asyncio.wait_for(channel.channel_ready(), 20)
+            sender.submit(_request("again"), results.callback("again"))
+            await results.wait_for(3)
+            [again] = results.by_id["again"]
+            assert isinstance(again, detection_pb2.DetectionReply) and camera2.batches == [["again"]]
+            await sender.close()
+        finally:
+            await server2.stop(None)
+
+
+async def test_after_close_requests_fail_at_once() -> None:
+    camera = _Camera()
+    server, address = await _camera_server(camera)
+    try:
+        async with _grpc.insecure_channel(address) as channel:
+            sender = BatchSender(detection_pb2_grpc.DetectObjectBoundaryStub(channel), "camera", timeout_s=10)
+            await sender.close()
+            results = _Results()
+            sender.submit(_request("x"), results.callback("x"))
+            [result] = results.by_id["x"]
+            assert isinstance(result, errors.Unavailable) and sender.in_flight == 0
+    finally:
+        await server.stop(None)
+
+
+async def test_the_server_does_not_serve_the_camera_hop() -> None:
+    async with DrvsServer("127.0.0.1:0") as server, aio.insecure_channel(server.address) as channel:
+        call = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectBatches()
+        await call.write(detection_pb2.DetectionRequests(requests=[_request("x")]))
+        with pytest.raises(aio.AioRpcError) as err:
+            async for _ in call:
+                pass
+        assert err.value.code() == grpc.StatusCode.UNIMPLEMENTED and "DetectStream" in (err.value.details() or "")
