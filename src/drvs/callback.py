@@ -31,6 +31,7 @@ MAX_LINKS = 64
 IDLE_CLOSE_S = 30.0
 #: A write that cannot complete in this time (the robot stopped reading) breaks the link.
 WRITE_TIMEOUT_S = 5.0
+STALLED = f"robot did not take a report within {WRITE_TIMEOUT_S:g} s"
 #: Cancelled request ids remembered per link.
 MAX_CANCELLED = 4096
 
@@ -73,14 +74,20 @@ class RobotLink:
         if self.broken:
             raise Unavailable(f"callback {self.address}: {self.broken}")
         self.sending += 1
+        loop = asyncio.get_running_loop()
         try:
             message = report_to_pb(report, outlines)
             async with self._write_lock:
-                await asyncio.wait_for(self._call.write(message), WRITE_TIMEOUT_S)
+                # A timer, not asyncio.wait_for: that would cost a task for every report.
+                stall = loop.call_later(WRITE_TIMEOUT_S, self._stalled)
+                try:
+                    await self._call.write(message)
+                finally:
+                    stall.cancel()
             metrics.REPORT_BYTES.inc(message.ByteSize())
-        except asyncio.TimeoutError:
-            self.broken = f"robot did not take a report within {WRITE_TIMEOUT_S:g} s"
-            self._call.cancel()
+        except asyncio.CancelledError:
+            if self.broken != STALLED:
+                raise  # our own task was cancelled
             raise Unavailable(f"callback {self.address}: {self.broken}") from None
         except (grpc.RpcError, asyncio.InvalidStateError) as exc:
             await asyncio.sleep(0)  # let the reader record why the stream ended
@@ -88,8 +95,14 @@ class RobotLink:
             raise Unavailable(f"callback {self.address}: {self.broken}") from None
         finally:
             self.sending -= 1
-            self.last_used = asyncio.get_running_loop().time()
+            self.last_used = loop.time()
         return True
+
+    def _stalled(self) -> None:
+        """The robot has not taken a report for WRITE_TIMEOUT_S: break the link (the pending write
+        ends with CancelledError, which send turns into Unavailable)."""
+        self.broken = STALLED
+        self._call.cancel()
 
     async def close(self) -> None:
         with contextlib.suppress(Exception):
