@@ -302,3 +302,34 @@ def test_many_cameras_route_to_the_few_near_the_region(clock: Clock) -> None:
         got = ids(reg, region)
         assert got == expected
         assert len(got) <= 4
+
+
+def test_a_region_asked_about_again_is_routed_afresh_after_every_change(clock: Clock) -> None:
+    reg = new_registry(clock)
+    register(reg, "a", 0.0)
+    region = box(-1.0, 3.0, 1.0, 4.0)  # the same object each time, as region_from_pb hands out
+    assert ids(reg, region) == ["a"]
+    register(reg, "b", 0.5)
+    assert ids(reg, region) == ["a", "b"]  # a new camera is seen at once
+    register(reg, "b", 50.0)
+    assert ids(reg, region) == ["a"]  # and a moved one is not
+    reg.remove("a")
+    assert ids(reg, region) == []
+    register(reg, "c", 0.0, kinds=frozenset({"aruco"}))
+    assert ids(reg, region, "hsv") == [] and ids(reg, region, "aruco") == ["c"]
+    clock.advance(TTL / 2)
+    register(reg, "d", 0.0)
+    clock.advance(TTL / 2)  # c's lease has run out, d's has not: no registration change in between
+    assert ids(reg, region) == ["d"]
+    # Equal regions in other objects route the same.
+    assert ids(reg, box(-1.0, 3.0, 1.0, 4.0)) == ["d"]
+
+
+def test_routing_memory_is_bounded(clock: Clock) -> None:
+    from drvs import registry
+
+    reg = new_registry(clock)
+    register(reg, "a", 0.0)
+    regions = [box(-1.0 + i * 1e-6, 3.0, 1.0, 4.0) for i in range(registry.ROUTE_CACHE_SIZE + 50)]
+    assert all(ids(reg, r) == ["a"] for r in regions)
+    assert len(reg._routes) == registry.ROUTE_CACHE_SIZE

@@ -17,6 +17,8 @@ from drvs.model import check_id
 from drvs.net import parse_address
 
 DEFAULT_LEASE_TTL_S = 10.0
+#: Regions whose overlapping cameras are remembered until the registry's next change.
+ROUTE_CACHE_SIZE = 1024
 
 
 @dataclass(frozen=True)
@@ -34,7 +36,9 @@ class Registry:
 
     Lookups are O(log n + k) in the number of cameras. Registrations are rare next to lookups, so
     the (immutable) STRtree is rebuilt on the first lookup after one; leases live apart from the
-    index, so heartbeats never touch it.
+    index, so heartbeats never touch it. Robots ask about the same regions again and again, and
+    `drvs.convert.region_from_pb` hands out one polygon object per distinct region, so the cameras
+    a region object overlaps are also remembered, until the next registration change.
     """
 
     def __init__(self, lease_ttl_s: float = DEFAULT_LEASE_TTL_S, clock: Callable[[], float] = time.monotonic) -> None:
@@ -47,6 +51,9 @@ class Registry:
         self._tree: STRtree | None = None
         self._tree_entries: list[CameraEntry] = []
         self._fovs: np.ndarray = np.array([], dtype=object)
+        # id(region) -> (region, the cameras it overlaps by camera id); the region is held, so
+        # its id is not reused while the entry lives.
+        self._routes: dict[int, tuple[Polygon, list[CameraEntry]]] = {}
 
     def __len__(self) -> int:
         return len(self._entries)
@@ -126,27 +133,35 @@ class Registry:
 
     def cameras_seeing(self, region: Polygon, kind: str | None = None) -> list[CameraEntry]:
         """Live cameras whose field of view meets `region` with positive area (and run `kind`)."""
+        now = self._clock()
+        return [
+            e
+            for e in self._overlapping(region)
+            if self._expires.get(e.camera_id, 0.0) > now and (kind is None or kind in e.detector_kinds)
+        ]
+
+    def _overlapping(self, region: Polygon) -> list[CameraEntry]:
         if self._tree is None:
             self._tree_entries = list(self._entries.values())
             self._fovs = np.array([e.field_of_view for e in self._tree_entries], dtype=object)
             self._tree = STRtree(self._fovs)
-        if not self._tree_entries:
-            return []
-        candidates = np.sort(self._tree.query(region, predicate="intersects"))
-        if len(candidates) == 0:
-            return []
-        # Positive-area overlap of two polygons is exactly "their interiors meet" (DE-9IM
-        # T********): a relate test, cheaper than building each intersection to measure it.
-        overlaps = shapely.relate_pattern(self._fovs[candidates], region, "T********")
-        now = self._clock()
-        return sorted(
-            (
-                e
-                for e in (self._tree_entries[i] for i, hit in zip(candidates, overlaps, strict=True) if hit)
-                if self._expires.get(e.camera_id, 0.0) > now and (kind is None or kind in e.detector_kinds)
-            ),
-            key=lambda e: e.camera_id,
-        )
+            self._routes.clear()
+        known = self._routes.get(id(region))
+        if known is not None and known[0] is region:
+            return known[1]
+        found: list[CameraEntry] = []
+        if self._tree_entries:
+            candidates = np.sort(self._tree.query(region, predicate="intersects"))
+            if len(candidates):
+                # Positive-area overlap of two polygons is exactly "their interiors meet" (DE-9IM
+                # T********): a relate test, cheaper than building each intersection to measure it.
+                overlaps = shapely.relate_pattern(self._fovs[candidates], region, "T********")
+                hits = (self._tree_entries[i] for i, hit in zip(candidates, overlaps, strict=True) if hit)
+                found = sorted(hits, key=lambda e: e.camera_id)
+        if len(self._routes) >= ROUTE_CACHE_SIZE:
+            del self._routes[next(iter(self._routes))]  # the oldest
+        self._routes[id(region)] = (region, found)
+        return found
 
     def remaining_s(self, camera_id: str) -> float:
         return max(0.0, self._expires.get(camera_id, 0.0) - self._clock())
