@@ -50,6 +50,9 @@ class FrameAnalysis:
     _hsv: NDArray[np.uint8] | None = None
     _blobs: dict[str, tuple[Detection, ...]] = field(default_factory=dict)
     _lock: threading.Lock = field(default_factory=threading.Lock)
+    #: Filters requests looked up on this frame, and on the frame before it (see drvs.camera.prefetch).
+    wanted: set[str] = field(default_factory=set)
+    inherited: frozenset[str] = frozenset()
 
     def cached_blobs(self, filter_def: str) -> tuple[Detection, ...] | None:
         """This filter's blobs if some request already found them (a complete entry or none: the

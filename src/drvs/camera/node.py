@@ -20,7 +20,7 @@ from drvs import _grpc, logs, metrics
 from drvs._service import Endpoint, Lifecycle
 from drvs.callback import CallbackSender
 from drvs.convert import homography_to_pb, request_from_pb
-from drvs.detection import DEFAULT_MIN_AREA_PX, FrameAnalysis, HsvDetector
+from drvs.detection import DEFAULT_MIN_AREA_PX, HsvDetector
 from drvs.errors import DrvsError, FailedPrecondition, InvalidArgument, ResourceExhausted
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
 from drvs.model import DetectionReport, DetectionRequest, check_id
@@ -29,6 +29,7 @@ from drvs.request_stream import serve_request_batches, serve_request_stream
 from drvs.security import Security, bearer_token
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc, stream_pb2, stream_pb2_grpc
 
+from .prefetch import Analyses
 from .source import FrameSource
 
 log = logging.getLogger("drvs.camera")
@@ -95,7 +96,7 @@ class CameraNode(Lifecycle):
         self.has_fresh_frame = True
         self._jobs: set[asyncio.Task[None]] = set()
         self._callbacks = CallbackSender(security=self.security)
-        self._analysis: FrameAnalysis | None = None
+        self._analyses: Analyses | None = None
         self._stopped = False
 
     @property
@@ -131,6 +132,8 @@ class CameraNode(Lifecycle):
             camera_id=self.camera_id,
             min_area_px=self.min_area_px,
         )
+        self._analyses = Analyses(self.source, self.detector, self.camera_id)
+        self._analyses.start()
         log.info(
             "camera %s: source %s gives %dx%d; field of view %.1f m²",
             self.camera_id,
@@ -170,6 +173,8 @@ class CameraNode(Lifecycle):
         await self._callbacks.close()
         if self._channel is not None:
             await self._channel.close()
+        if self._analyses is not None:
+            await asyncio.to_thread(self._analyses.stop)
         await asyncio.to_thread(self.source.stop)
         log.info("camera %s stopped", self.camera_id)
 
@@ -329,16 +334,14 @@ class CameraNode(Lifecycle):
                 final=final,
                 error=f"camera {self.camera_id}: no fresh frame ({age})",
             )
-        analysis = self._analysis
-        if analysis is None or analysis.frame.sequence != frame.sequence:
-            analysis = FrameAnalysis(frame)
-            self._analysis = analysis
-        assert self.detector is not None
+        assert self.detector is not None and self._analyses is not None
+        analysis = self._analyses.for_frame(frame)
+        self._analyses.want(analysis, request.filter_def)
         started = time.perf_counter()
         cached = analysis.cached_blobs(request.filter_def)
         if cached is not None:
-            # Another request already found this frame's blobs: selecting them is microseconds, so
-            # it is done here rather than paying a hop to a worker thread and back.
+            # The prefetcher or another request already found this frame's blobs: selecting them
+            # is microseconds, so it is done here rather than paying a hop to a thread and back.
             detections = self.detector.select(cached, request.region)
         else:
             detections = await asyncio.to_thread(self.detector.detect, analysis, request.filter_def, request.region)
