@@ -387,7 +387,9 @@ async def serve_request_stream(
     async for message in requests:
         context.fill(message)
         try:
-            yield await answer(message)
+            reply = await answer(message)
+            await asyncio.sleep(0)  # see serve_request_batches
+            yield reply
         except errors.DrvsError as exc:
             yield refusal(message.request_id, _grpc.status_of(exc), str(exc))
         except Exception:
@@ -411,6 +413,10 @@ async def serve_request_batches(
                 log.exception("%s: request %s failed", where, message.request_id)
                 failed = refusal(message.request_id, grpc.StatusCode.INTERNAL, f"{where}: internal error")
                 replies.replies.append(failed)
+        # One turn of the loop before the acknowledgement is written: the work the requests just
+        # started (the server's forwards, a camera's detections and reports) starts its writes
+        # first. Those are on the way to the robot's first report; the acknowledgement is not.
+        await asyncio.sleep(0)
         yield replies
 
 
