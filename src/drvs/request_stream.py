@@ -388,13 +388,10 @@ async def serve_request_stream(
         context.fill(message)
         try:
             reply = await answer(message)
-            await asyncio.sleep(0)  # see serve_request_batches
-            yield reply
-        except errors.DrvsError as exc:
-            yield refusal(message.request_id, _grpc.status_of(exc), str(exc))
-        except Exception:
-            log.exception("%s: request %s failed", where, message.request_id)
-            yield refusal(message.request_id, grpc.StatusCode.INTERNAL, f"{where}: internal error")
+        except Exception as exc:
+            reply = _refused(message, exc, where)
+        await asyncio.sleep(0)  # see serve_request_batches
+        yield reply
 
 
 async def serve_request_batches(
@@ -406,18 +403,24 @@ async def serve_request_batches(
         replies = Replies()
         for message in batch.requests:
             try:
-                replies.replies.append(answer(message))
-            except errors.DrvsError as exc:
-                replies.replies.append(refusal(message.request_id, _grpc.status_of(exc), str(exc)))
-            except Exception:
-                log.exception("%s: request %s failed", where, message.request_id)
-                failed = refusal(message.request_id, grpc.StatusCode.INTERNAL, f"{where}: internal error")
-                replies.replies.append(failed)
+                reply = answer(message)
+            except Exception as exc:
+                reply = _refused(message, exc, where)
+            replies.replies.append(reply)
         # One turn of the loop before the acknowledgement is written: the work the requests just
         # started (the server's forwards, a camera's detections and reports) starts its writes
         # first. Those are on the way to the robot's first report; the acknowledgement is not.
         await asyncio.sleep(0)
         yield replies
+
+
+def _refused(message: Request, exc: Exception, where: str) -> Reply:
+    """The reply to a request whose answer raised: a DrvsError is the peer's to read; anything
+    unexpected is logged here and answered as INTERNAL."""
+    if isinstance(exc, errors.DrvsError):
+        return refusal(message.request_id, _grpc.status_of(exc), str(exc))
+    log.error("%s: request %s failed", where, message.request_id, exc_info=exc)
+    return refusal(message.request_id, grpc.StatusCode.INTERNAL, f"{where}: internal error")
 
 
 def refusal(request_id: str, code: grpc.StatusCode, text: str) -> Reply:
