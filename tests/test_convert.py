@@ -57,8 +57,8 @@ def detection(x: float, y: float, filter_def: str = YELLOW) -> Detection:
     return Detection(
         outline=outline,
         bounds=outline.bounds,
-        centroid=outline.centroid,
-        ground_contact=Point(x, y - 0.25),
+        centroid_xy=(outline.centroid.x, outline.centroid.y),
+        ground_contact_xy=(x, y - 0.25),
         pixel_box=PixelBox(181, 194, 57, 34),
         area_m2=float(outline.area),
         area_px=1456.0,

@@ -5,7 +5,6 @@ from __future__ import annotations
 import functools
 
 import numpy as np
-import shapely
 from shapely.geometry import Polygon
 
 from drvs.errors import InvalidArgument
@@ -51,12 +50,15 @@ def _region(msg: geometry_pb2.Region, name: str) -> Polygon:
     raise InvalidArgument(f"{name}: missing; give a box or a polygon")
 
 
-def request_to_pb(req: DetectionRequest) -> detection_pb2.DetectionRequest:
+def request_to_pb(
+    req: DetectionRequest, *, region: geometry_pb2.Region | None = None
+) -> detection_pb2.DetectionRequest:
+    """`region`: the request's region already encoded (a client that keeps its regions encoded)."""
     return detection_pb2.DetectionRequest(
         request_id=req.request_id,
         robot_id=req.robot_id,
         filter_def=req.filter_def,
-        region=region_to_pb(req.region),
+        region=region if region is not None else region_to_pb(req.region),
         callback_address=req.callback_address,
         continuous=None
         if req.continuous.single_shot
@@ -89,8 +91,8 @@ def detection_to_pb(d: Detection, outline: bool = True) -> detection_pb2.Detecti
     x0, y0, x1, y1 = d.bounds
     msg = detection_pb2.Detection(
         bounds=geometry_pb2.FloorBox(x_lower=x0, y_lower=y0, x_upper=x1, y_upper=y1),
-        centroid=geometry_pb2.FloorPoint(x=d.centroid.x, y=d.centroid.y),
-        ground_contact=geometry_pb2.FloorPoint(x=d.ground_contact.x, y=d.ground_contact.y),
+        centroid=geometry_pb2.FloorPoint(x=d.centroid_xy[0], y=d.centroid_xy[1]),
+        ground_contact=geometry_pb2.FloorPoint(x=d.ground_contact_xy[0], y=d.ground_contact_xy[1]),
     )
     if outline:
         msg.outline_xy.extend(v for xy in polygon_coords(d.outline) for v in xy)
@@ -110,13 +112,11 @@ def detection_from_pb(msg: detection_pb2.Detection, camera_id: str, capture_time
     b = msg.bounds
     xy = msg.outline_xy
     outline = Polygon(np.asarray(xy, dtype=float).reshape(-1, 2)) if len(xy) >= 6 else _NO_OUTLINE
-    # One vectorised call for both points: shapely's per-object constructor costs more than the rest.
-    centroid, contact = shapely.points([(msg.centroid.x, msg.centroid.y), (msg.ground_contact.x, msg.ground_contact.y)])
     return Detection(
         outline=outline,
         bounds=(b.x_lower, b.y_lower, b.x_upper, b.y_upper),
-        centroid=centroid,
-        ground_contact=contact,
+        centroid_xy=(msg.centroid.x, msg.centroid.y),
+        ground_contact_xy=(msg.ground_contact.x, msg.ground_contact.y),
         pixel_box=PixelBox(msg.pixel_box.x, msg.pixel_box.y, msg.pixel_box.width, msg.pixel_box.height),
         area_m2=msg.area_m2,
         area_px=msg.area_px,

@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 import shapely
 from numpy.typing import NDArray
-from shapely.geometry import Point, Polygon
+from shapely.geometry import Polygon
 
 from drvs.filters import HsvRange
 from drvs.geometry import FieldOfView, Homography
@@ -166,11 +166,12 @@ class HsvDetector:
         if outline.is_empty or outline.area <= 0:
             return None
         contact = self.homography.apply([[x + (w - 1) / 2.0, y + h - 1.0]])[0]
+        centroid = outline.centroid
         return Detection(
             outline=outline,
             bounds=tuple(float(v) for v in outline.bounds),  # type: ignore[arg-type]
-            centroid=outline.centroid,
-            ground_contact=Point(float(contact[0]), float(contact[1])),
+            centroid_xy=(float(centroid.x), float(centroid.y)),
+            ground_contact_xy=(float(contact[0]), float(contact[1])),
             pixel_box=PixelBox(x, y, w, h),
             area_m2=float(outline.area),
             area_px=area_px,

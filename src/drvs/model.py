@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass, field
 
@@ -27,12 +28,16 @@ class PixelBox:
 
 @dataclass(frozen=True)
 class Detection:
-    """One object seen by one camera, in floor coordinates (metres)."""
+    """One object seen by one camera, in floor coordinates (metres).
+
+    `centroid` and `ground_contact` are shapely Points, built when first asked for: a robot that
+    reads only the coordinates (or only counts) never pays for the geometry objects.
+    """
 
     outline: Polygon
     bounds: tuple[float, float, float, float]
-    centroid: Point
-    ground_contact: Point
+    centroid_xy: tuple[float, float]
+    ground_contact_xy: tuple[float, float]
     pixel_box: PixelBox
     area_m2: float
     area_px: float
@@ -40,6 +45,14 @@ class Detection:
     filter_def: str
     camera_id: str = ""
     capture_time: float = 0.0
+
+    @functools.cached_property
+    def centroid(self) -> Point:
+        return Point(self.centroid_xy)
+
+    @functools.cached_property
+    def ground_contact(self) -> Point:
+        return Point(self.ground_contact_xy)
 
 
 @dataclass(frozen=True)
