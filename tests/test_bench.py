@@ -24,6 +24,10 @@ async def test_paper_benchmark_smoke(tmp_path: Path) -> None:
     assert result["modes"]["raw"]["frames"] > 0 and result["modes"]["raw"]["detections"] > 0
     for key in ("bandwidth_ratio_raw", "bandwidth_ratio_jpeg", "robot_cpu_ratio"):
         assert result[key] > 1, key  # streaming video always costs the robot more than DRVS
+    # The floors ran: DRVS's message flow in bare grpc.aio, and an idle loop at the same rate.
+    for key in ("robot_cpu_ratio_at_bare_path", "robot_cpu_over_bare_path", "robot_cpu_ratio_at_idle"):
+        assert result[key] > 0, key
+    assert result["robot_cpu_bare_path"]["last_report_ms_p50"] > 0
     for png in ("bandwidth.png", "cpu.png"):
         image = cv2.imread(str(tmp_path / png))
         assert image is not None and image.shape[0] > 200
@@ -37,6 +41,8 @@ async def test_service_benchmark_smoke(tmp_path: Path) -> None:
     for key in (
         "latency_p50_over_floor",
         "routing_over_echo",
+        "bare_proxy_over_echo",
+        "routing_over_bare_proxy",
         "lookup_10k_over_100",
         "camera_cpu_200_over_20",
         "server_peak_rss_bytes_2000_cameras",

@@ -10,6 +10,7 @@ import sys
 import time
 from pathlib import Path
 
+from .bare import add_bare_parsers
 from .helpers import add_helper_parsers
 from .load import add_load_parser
 from .workload import add_workload_arguments, workload_main
@@ -21,7 +22,7 @@ def paper_main(args: argparse.Namespace) -> int:
     requests = args.requests or (150 if args.quick else 1500)
     out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
     result = asyncio.run(run_paper(out, requests, args.rate))
-    summary = {k: v for k, v in result.items() if "ratio" in k}
+    summary = {k: v for k, v in result.items() if "ratio" in k or k.endswith("_over_bare_path")}
     for mode, data in result["modes"].items():
         summary[f"{mode}_bytes_per_s"] = round(data["bytes_per_s"])
         summary[f"{mode}_cpu_s"] = round(data["cpu_s"], 3)
@@ -35,7 +36,11 @@ def service_main(args: argparse.Namespace) -> int:
 
     out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
     result = asyncio.run(run_service(out, args.quick))
-    keys = [k for k in result if k.endswith(("_over_floor", "_over_echo", "_over_100", "_over_20")) or "rss" in k]
+    keys = [
+        k
+        for k in result
+        if k.endswith(("_over_floor", "_over_echo", "_over_bare_proxy", "_over_100", "_over_20")) or "rss" in k
+    ]
     print(json.dumps({k: result[k] for k in keys}, indent=1))
     print(f"written: {out / 'service.json'}, {out / 'latency.png'}")
     return 0
@@ -56,6 +61,7 @@ def main(argv: list[str] | None = None) -> int:
     s.set_defaults(func=service_main)
     add_load_parser(sub)
     add_helper_parsers(sub)
+    add_bare_parsers(sub)
     r = sub.add_parser("robot", help="(internal) the paper benchmark's robot process")
     add_workload_arguments(r)
     r.set_defaults(func=workload_main)

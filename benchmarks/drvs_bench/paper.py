@@ -108,6 +108,11 @@ async def run_paper(out: Path, requests: int, rate: float) -> dict[str, Any]:
             floor = await run_helper(
                 "rtt-floor", "rtt", "--target", ack_address, "--calls", str(requests), "--rate", str(rate)
             )
+            # DRVS's whole message flow in bare grpc.aio (request, reply, a forward to each of the two
+            # cameras, a report from each), and a robot that only wakes at the request rate.
+            print("drvs-bench paper: bare-path and idle floors ...", file=sys.stderr, flush=True)
+            bare_path = await run_bare_path(procs, len(cameras), requests, rate)
+            idle = await run_helper("idle-robot", "idle-robot", "--requests", str(requests), "--rate", str(rate))
         finally:
             for proc in reversed(procs):
                 await proc.stop()
@@ -140,10 +145,43 @@ async def run_paper(out: Path, requests: int, rate: float) -> dict[str, Any]:
         },
         # The best robot_cpu_ratio any grpc.aio robot could reach: raw-frame CPU over the floor's.
         "robot_cpu_ratio_at_floor": cpu_rate(modes["raw"]) / (floor["cpu_s"] / floor["wall_s"]),
+        "robot_cpu_bare_path": {
+            "cpu_s": bare_path["cpu_s"],
+            "wall_s": bare_path["wall_s"],
+            "last_report_ms_p50": bare_path["last_report_ms_p50"],
+            "definition": "DRVS's message flow in bare grpc.aio, with no DRVS code: the request on a "
+            "long-lived stream, the server's reply, a forward to each camera, one report from each to the "
+            "robot's listener; same count and rate",
+        },
+        "robot_cpu_ratio_at_bare_path": cpu_rate(modes["raw"]) / cpu_rate(bare_path),
+        # The robot's CPU with DRVS over the same messages moved by bare grpc.aio: what DRVS's own code adds.
+        "robot_cpu_over_bare_path": cpu_rate(boxes) / cpu_rate(bare_path),
+        "robot_cpu_idle": {
+            "cpu_s": idle["cpu_s"],
+            "wall_s": idle["wall_s"],
+            "definition": "an asyncio process that only wakes at the request rate and does nothing",
+        },
+        "robot_cpu_ratio_at_idle": cpu_rate(modes["raw"]) / cpu_rate(idle),
         "machine": machine(),
     }
     await asyncio.to_thread(write_outputs, result, out)
     return result
+
+
+async def run_bare_path(procs: list[ManagedProcess], cameras: int, requests: int, rate: float) -> dict[str, Any]:
+    async def listening(name: str, *args: str) -> str:
+        proc = await bench_process(name, *args).start()
+        procs.append(proc)
+        return (await proc.wait_for_line(r"^LISTENING (\S+)", timeout=30)).group(1)
+
+    camera_args: list[str] = []
+    for k in range(cameras):
+        camera_args += ["--camera", await listening(f"bare-camera{k}", "bare-camera", "--id", f"bare{k}")]
+    server = await listening("bare-server", "bare-server", *camera_args)
+    return await run_helper(
+        "bare-robot", "bare-robot", "--server", server, "--cameras", str(cameras),
+        "--requests", str(requests), "--rate", str(rate),
+    )  # fmt: skip
 
 
 def write_outputs(result: dict[str, Any], out: Path) -> None:
@@ -187,6 +225,12 @@ def plot(result: dict[str, Any], out: Path) -> None:
         windows = [series[max(0, i - 4) : i + 1] for i in range(len(series))]
         smooth = [sum(w) / len(w) for w in windows]
         ax.plot([i * BUCKET_S for i in range(len(smooth))], [100 * v for v in smooth], label=labels[mode], lw=1)
+    for key, style, name in (
+        ("robot_cpu_bare_path", "--", "bare grpc.aio, same messages"),
+        ("robot_cpu_idle", ":", "idle asyncio loop at the same rate"),
+    ):
+        floor = result[key]
+        ax.axhline(100 * floor["cpu_s"] / floor["wall_s"], color="black", ls=style, lw=1, label=f"floor: {name}")
     ax.set_xlabel("time (s)")
     ax.set_ylabel("robot process CPU (% of one core, 0.5 s mean)")
     ax.set_title(f"Robot CPU load (paper Fig. 9): onboard raw / DRVS x{result['robot_cpu_ratio']:.1f}")

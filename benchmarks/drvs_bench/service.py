@@ -138,9 +138,18 @@ async def measure_routing(quick: bool, out: dict[str, Any]) -> None:
         procs.append(server)
         await run_helper("register", "register", "--server", address, "--camera-address", ack_address,
                          "--count", str(cameras))  # fmt: skip
+        # The floor of any grpc.aio router: a bare proxy that answers each request on its stream and
+        # forwards it on a long-lived stream to one of 1000 cameras in turn, with no DRVS code.
+        bare = await bench_process("bare-proxy", "bare-server", "--camera", ack_address, "--fanout", "one",
+                                   "--streams", str(cameras)).start()  # fmt: skip
+        procs.append(bare)
+        bare_address = (await bare.wait_for_line(r"^LISTENING (\S+)", timeout=30)).group(1)
         rates = {}
         for mode in ("stream", "unary"):
-            for name, target in (("echo", ack_address), ("routing", address)):
+            targets = [("echo", ack_address), ("routing", address)]
+            if mode == "stream":
+                targets.append(("bare_proxy", bare_address))
+            for name, target in targets:
                 rates[f"{name}_{mode}"] = await run_helper(
                     f"load-{name}-{mode}", "routing-load", "--target", target, "--seconds", seconds, "--mode", mode
                 )
@@ -150,11 +159,16 @@ async def measure_routing(quick: bool, out: dict[str, Any]) -> None:
             **{f"{k}_rps": round(v["rps"], 1) for k, v in rates.items()},
             "errors": sum(v["errors"] for v in rates.values()),
             "definition": "requests a second from 64 workers, each waiting for its reply; stream: each worker "
-            "sends on its own DetectStream (as DrvsClient does), unary: DetectObjects calls",
+            "sends on its own DetectStream (as DrvsClient does), unary: DetectObjects calls; bare_proxy: "
+            "bare grpc.aio that answers each request and forwards it to one of the 1000 cameras in turn",
         }
         # Requests travel on DetectStream (the client's way), so that is the headline; unary for reference.
         out["routing_over_echo"] = round(rates["routing_stream"]["rps"] / rates["echo_stream"]["rps"], 3)
         out["routing_over_echo_unary"] = round(rates["routing_unary"]["rps"] / rates["echo_unary"]["rps"], 3)
+        # The best routing_over_echo a grpc.aio router that forwards each request could reach here,
+        # and how much of it DRVS reaches.
+        out["bare_proxy_over_echo"] = round(rates["bare_proxy_stream"]["rps"] / rates["echo_stream"]["rps"], 3)
+        out["routing_over_bare_proxy"] = round(rates["routing_stream"]["rps"] / rates["bare_proxy_stream"]["rps"], 3)
     finally:
         for p in reversed(procs):
             await p.stop()

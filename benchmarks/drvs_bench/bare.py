@@ -1,0 +1,237 @@
+"""DRVS's message flow in bare grpc.aio, with no DRVS code: the floor that DRVS's own costs are
+measured against.
+
+A request goes from the robot to the bare server on a long-lived DetectStream; the server answers
+at once and forwards it on a long-lived DetectStream to each camera it names (or, for the routing
+floor, to one camera of many); each bare camera acknowledges at once and sends one report to the
+robot's listener on a ReportDetections stream it keeps per robot. No validation, no routing index,
+no detection, no Python objects beyond the messages: what any grpc.aio system that moves the same
+messages between the same processes must pay.
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import itertools
+import json
+import os
+import time
+from collections.abc import AsyncIterator
+from typing import Any
+
+from grpc import aio
+
+from drvs import _grpc
+from drvs._cli import shutdown_event
+from drvs._service import Endpoint
+from drvs.v1 import detection_pb2, detection_pb2_grpc
+
+from .common import peak_rss_bytes
+from .helpers import one_camera_request
+
+_DETECT = detection_pb2.DESCRIPTOR.services_by_name["DetectObjectBoundary"].full_name
+_CALLBACK = detection_pb2.DESCRIPTOR.services_by_name["CallbackCoordinates"].full_name
+
+
+async def _serve(service: str, add: Any) -> None:
+    stop = shutdown_event()
+    endpoint = Endpoint("127.0.0.1:0", [service], add)
+    await endpoint.start()
+    print(f"LISTENING {endpoint.address}", flush=True)
+    await stop.wait()
+    await endpoint.stop(0.5)
+
+
+class _Forwards:
+    """One long-lived DetectStream per camera on one channel; a task per stream drains the acks."""
+
+    def __init__(self, channel: aio.Channel, count: int) -> None:
+        self.channel = channel  # an aio.Channel closes its calls when collected
+        stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
+        self.calls: list[aio.StreamStreamCall[Any, Any]] = [stub.DetectStream() for _ in range(count)]
+        self.locks = [asyncio.Lock() for _ in range(count)]
+        self._drains = [asyncio.get_running_loop().create_task(self._drain(c)) for c in self.calls]
+
+    @staticmethod
+    async def _drain(call: aio.StreamStreamCall[Any, Any]) -> None:
+        async for _ack in call:
+            pass
+
+    async def send(self, k: int, message: detection_pb2.DetectionRequest) -> None:
+        async with self.locks[k]:
+            await self.calls[k].write(message)
+
+
+class _BareServer(detection_pb2_grpc.DetectObjectBoundaryServicer):
+    def __init__(self, targets: list[str], streams_per_target: int, fanout: str) -> None:
+        self._targets = targets
+        self._per_target = streams_per_target
+        self._fanout = fanout
+        self._forwards: list[_Forwards] = []
+        self._counter = itertools.count()
+
+    def _open(self) -> None:
+        if not self._forwards:
+            self._forwards = [_Forwards(_grpc.insecure_channel(t), self._per_target) for t in self._targets]
+
+    async def DetectStream(
+        self,
+        request_iterator: AsyncIterator[detection_pb2.DetectionRequest],
+        context: aio.ServicerContext[Any, Any],
+    ) -> AsyncIterator[detection_pb2.DetectionReply]:
+        self._open()
+        async for request in request_iterator:
+            if self._fanout == "all":
+                for forwards in self._forwards:
+                    await forwards.send(0, request)
+                cameras = [f"bare{k}" for k in range(len(self._forwards))]
+            else:  # one camera of many, in turn
+                k = next(self._counter) % self._per_target
+                await self._forwards[0].send(k, request)
+                cameras = [f"bare{k}"]
+            yield detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=cameras)
+
+
+class _BareCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
+    def __init__(self, camera_id: str) -> None:
+        self._camera_id = camera_id
+        self._reports: dict[str, aio.StreamStreamCall[Any, Any]] = {}
+        self._channels: list[aio.Channel] = []  # an aio.Channel closes its calls when collected
+
+    def _report_stream(self, address: str) -> aio.StreamStreamCall[Any, Any]:
+        call = self._reports.get(address)
+        if call is None:
+            self._channels.append(_grpc.insecure_channel(address))
+            stub = detection_pb2_grpc.CallbackCoordinatesStub(self._channels[-1])
+            call = self._reports[address] = stub.ReportDetections()
+        return call
+
+    async def DetectStream(
+        self,
+        request_iterator: AsyncIterator[detection_pb2.DetectionRequest],
+        context: aio.ServicerContext[Any, Any],
+    ) -> AsyncIterator[detection_pb2.DetectionReply]:
+        async for request in request_iterator:
+            yield detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=[self._camera_id])
+            report = detection_pb2.DetectionReport(request_id=request.request_id, camera_id=self._camera_id, final=True)
+            report.capture_time.GetCurrentTime()
+            await self._report_stream(request.callback_address).write(report)
+
+
+class _BareListener(detection_pb2_grpc.CallbackCoordinatesServicer):
+    def __init__(self) -> None:
+        self.waiting: dict[str, tuple[int, asyncio.Future[None]]] = {}
+
+    async def ReportDetections(
+        self,
+        request_iterator: AsyncIterator[detection_pb2.DetectionReport],
+        context: aio.ServicerContext[Any, Any],
+    ) -> None:
+        async for report in request_iterator:
+            left, done = self.waiting.get(report.request_id, (0, None))
+            if done is None:
+                continue
+            if left <= 1:
+                del self.waiting[report.request_id]
+                done.set_result(None)
+            else:
+                self.waiting[report.request_id] = (left - 1, done)
+
+
+async def bare_robot(args: argparse.Namespace) -> None:
+    """Requests at a fixed rate, one at a time: write it, read the reply, wait for every camera's report."""
+    listener = _BareListener()
+    server = _grpc.new_server()
+    detection_pb2_grpc.add_CallbackCoordinatesServicer_to_server(listener, server)
+    port = _grpc.bind(server, "127.0.0.1:0")
+    await server.start()
+    async with _grpc.insecure_channel(args.server) as channel:
+        call = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
+        template = one_camera_request(0, f"127.0.0.1:{port}")
+        loop = asyncio.get_running_loop()
+        latencies: list[float] = []
+
+        async def one(request_id: str) -> None:
+            t0 = loop.time()
+            done = loop.create_future()
+            listener.waiting[request_id] = (args.cameras, done)
+            template.request_id = request_id
+            await call.write(template)
+            await call.read()
+            await asyncio.wait_for(done, 5)
+            latencies.append((loop.time() - t0) * 1000)
+
+        for i in range(50):
+            await one(f"w{i}")
+        start = loop.time()
+        cpu_start = time.process_time()
+        for i in range(args.requests):
+            delay = start + i / args.rate - loop.time()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            await one(f"r{i}")
+        cpu = time.process_time() - cpu_start
+        wall = loop.time() - start
+        call.cancel()
+    await server.stop(0.5)
+    latencies.sort()
+    print(
+        "DONE "
+        + json.dumps(
+            {
+                "cpu_s": cpu,
+                "wall_s": wall,
+                "requests": args.requests,
+                "last_report_ms_p50": latencies[len(latencies) // 2],
+                "peak_rss_bytes": peak_rss_bytes(os.getpid()),
+            }
+        ),
+        flush=True,
+    )
+
+
+async def idle_robot(args: argparse.Namespace) -> None:
+    """A robot process that only wakes at the request rate and does nothing: the floor of any
+    asyncio robot on a schedule."""
+    loop = asyncio.get_running_loop()
+    start = loop.time()
+    cpu_start = time.process_time()
+    for i in range(args.requests):
+        delay = start + i / args.rate - loop.time()
+        if delay > 0:
+            await asyncio.sleep(delay)
+    print("DONE " + json.dumps({"cpu_s": time.process_time() - cpu_start, "wall_s": loop.time() - start}), flush=True)
+
+
+def _server_main(args: argparse.Namespace) -> int:
+    servicer = _BareServer(args.camera, args.streams if args.fanout == "one" else 1, args.fanout)
+    asyncio.run(_serve(_DETECT, lambda s: detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(servicer, s)))
+    return 0
+
+
+def _camera_main(args: argparse.Namespace) -> int:
+    servicer = _BareCamera(args.id)
+    asyncio.run(_serve(_DETECT, lambda s: detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(servicer, s)))
+    return 0
+
+
+def add_bare_parsers(sub: Any) -> None:
+    s = sub.add_parser("bare-server", help="(internal) bare grpc.aio: answer and forward each request")
+    s.add_argument("--camera", action="append", required=True, help="camera HOST:PORT (repeat)")
+    s.add_argument("--fanout", choices=["all", "one"], default="all", help="every camera, or one in turn")
+    s.add_argument("--streams", type=int, default=1, help="with --fanout one: streams (cameras) to the one target")
+    s.set_defaults(func=_server_main)
+    c = sub.add_parser("bare-camera", help="(internal) bare grpc.aio: ack each request, report to its robot")
+    c.add_argument("--id", required=True)
+    c.set_defaults(func=_camera_main)
+    r = sub.add_parser("bare-robot", help="(internal) bare grpc.aio robot: request, reply, reports")
+    r.add_argument("--server", required=True)
+    r.add_argument("--cameras", type=int, required=True, help="reports to wait for per request")
+    r.add_argument("--requests", type=int, required=True)
+    r.add_argument("--rate", type=float, required=True)
+    r.set_defaults(func=lambda args: asyncio.run(bare_robot(args)) or 0)
+    i = sub.add_parser("idle-robot", help="(internal) a robot that only wakes at the request rate")
+    i.add_argument("--requests", type=int, required=True)
+    i.add_argument("--rate", type=float, required=True)
+    i.set_defaults(func=lambda args: asyncio.run(idle_robot(args)) or 0)
