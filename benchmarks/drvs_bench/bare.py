@@ -28,7 +28,7 @@ from drvs._service import Endpoint
 from drvs.v1 import detection_pb2, detection_pb2_grpc
 
 from .common import peak_rss_bytes
-from .helpers import one_camera_request
+from .helpers import one_camera_request, percentile
 
 _DETECT = detection_pb2.DESCRIPTOR.services_by_name["DetectObjectBoundary"].full_name
 _CALLBACK = detection_pb2.DESCRIPTOR.services_by_name["CallbackCoordinates"].full_name
@@ -139,6 +139,17 @@ class _BareListener(detection_pb2_grpc.CallbackCoordinatesServicer):
                 self.waiting[report.request_id] = (left - 1, done)
 
 
+async def paced(count: int, rate: float) -> AsyncIterator[int]:
+    """0 .. count-1, each at its time on a fixed schedule of `rate` a second from the first."""
+    loop = asyncio.get_running_loop()
+    start = loop.time()
+    for i in range(count):
+        delay = start + i / rate - loop.time()
+        if delay > 0:
+            await asyncio.sleep(delay)
+        yield i
+
+
 async def bare_robot(args: argparse.Namespace) -> None:
     """Requests at a fixed rate, one at a time: write it, read the reply, wait for every camera's report."""
     listener = _BareListener()
@@ -166,16 +177,12 @@ async def bare_robot(args: argparse.Namespace) -> None:
             await one(f"w{i}")
         start = loop.time()
         cpu_start = time.process_time()
-        for i in range(args.requests):
-            delay = start + i / args.rate - loop.time()
-            if delay > 0:
-                await asyncio.sleep(delay)
+        async for i in paced(args.requests, args.rate):
             await one(f"r{i}")
         cpu = time.process_time() - cpu_start
         wall = loop.time() - start
         call.cancel()
     await server.stop(0.5)
-    latencies.sort()
     print(
         "DONE "
         + json.dumps(
@@ -183,7 +190,7 @@ async def bare_robot(args: argparse.Namespace) -> None:
                 "cpu_s": cpu,
                 "wall_s": wall,
                 "requests": args.requests,
-                "last_report_ms_p50": latencies[len(latencies) // 2],
+                "last_report_ms_p50": percentile(latencies, 50),
                 "peak_rss_bytes": peak_rss_bytes(os.getpid()),
             }
         ),
@@ -197,10 +204,8 @@ async def idle_robot(args: argparse.Namespace) -> None:
     loop = asyncio.get_running_loop()
     start = loop.time()
     cpu_start = time.process_time()
-    for i in range(args.requests):
-        delay = start + i / args.rate - loop.time()
-        if delay > 0:
-            await asyncio.sleep(delay)
+    async for _ in paced(args.requests, args.rate):
+        pass
     print("DONE " + json.dumps({"cpu_s": time.process_time() - cpu_start, "wall_s": loop.time() - start}), flush=True)
 
 
