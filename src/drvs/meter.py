@@ -1,18 +1,162 @@
-"""A TCP relay that counts the bytes it carries: real socket bytes, not message sizes."""
+"""A TCP relay that counts the bytes it carries: TCP payload, and what an Ethernet link would carry.
+
+Two figures, both directions:
+
+- **payload**: the bytes `read()` returns, i.e. what the applications wrote (HTTP/2 frames for gRPC);
+- **wire**: the frames a 1500-byte-MTU Ethernet link would carry for the same connection. Each of
+  the relay's sockets is opened with TCP_MAXSEG 1460 (1500 - 20 IPv4 - 20 TCP), so the kernel cuts
+  its TCP stream, and the peer's, into Ethernet-sized segments (1448 bytes of payload once the 12
+  bytes of the timestamp option are taken off), even on loopback (MTU 64 kB). When a connection
+  closes (and whenever `wire()` is asked), the kernel's per-socket counters (`TCP_INFO`:
+  `tcpi_segs_out`, `tcpi_segs_in`, `tcpi_bytes_sent`, `tcpi_bytes_received`) give every segment
+  each way, pure ACKs, SYN and FIN included, and the payload they carried. Wire bytes are that
+  payload plus, per segment, 14 bytes of Ethernet header, 20 of IPv4 and 20 of TCP (32 when the
+  connection uses timestamps, as Linux does by default): 66 bytes. Not counted: the preamble,
+  frame check sequence and inter-frame gap of the physical layer, and the larger TCP options of
+  the two SYNs.
+
+Which socket is measured: `side="client"` counts the connection between the relay and whoever
+dialled it (a robot in front of a server), `side="target"` the one between the relay and its target
+(a robot's listener, which cameras dial). The payload figures are the same on both.
+"""
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import socket
+import struct
+from dataclasses import dataclass
+from typing import Literal
 
 _CHUNK = 65536
+
+#: TCP_MAXSEG on every relay socket: a 1500-byte IPv4 MTU less 20 bytes of IP and 20 of TCP. Linux
+#: takes the options the connection uses (12 bytes of timestamps) off it: 1448 payload bytes a segment.
+ETHERNET_MSS = 1460
+ETHERNET_HEADER = 14
+IPV4_HEADER = 20
+TCP_HEADER = 20
+TCP_TIMESTAMPS = 12
+_TCPI_OPT_TIMESTAMPS = 1
+# struct tcp_info (linux/tcp.h): tcpi_options is byte 5; tcpi_bytes_acked and tcpi_bytes_received
+# (u64) at 120 and 128; tcpi_segs_out and tcpi_segs_in (u32) at 136 and 140; tcpi_bytes_sent
+# (u64, Linux 5.5+, retransmissions included) at 200.
+_OFF_OPTIONS = 5
+_OFF_BYTES_ACKED = 120
+_OFF_SEGS = 136
+_OFF_BYTES_SENT = 200
+_TCP_INFO_LEN = 256
+
+
+@dataclass(frozen=True)
+class TcpCounters:
+    """The kernel's counters of one TCP socket, from its own side: out = sent by this socket."""
+
+    payload_out: int
+    payload_in: int
+    segments_out: int
+    segments_in: int
+    timestamps: bool
+
+    @property
+    def header_bytes(self) -> int:
+        """Ethernet + IPv4 + TCP header bytes of one of this connection's segments."""
+        return ETHERNET_HEADER + IPV4_HEADER + TCP_HEADER + (TCP_TIMESTAMPS if self.timestamps else 0)
+
+    @property
+    def wire_out(self) -> int:
+        return self.payload_out + self.segments_out * self.header_bytes
+
+    @property
+    def wire_in(self) -> int:
+        return self.payload_in + self.segments_in * self.header_bytes
+
+
+def tcp_counters(sock: socket.socket) -> TcpCounters:
+    """Read a connected TCP socket's TCP_INFO (Linux). Raises OSError if the socket is closed or the
+    kernel does not give the counters (before Linux 4.2)."""
+    raw = sock.getsockopt(socket.IPPROTO_TCP, socket.TCP_INFO, _TCP_INFO_LEN)
+    if len(raw) < _OFF_SEGS + 8:
+        raise OSError(f"TCP_INFO: {len(raw)} bytes, too short for segment counters (Linux >= 4.2 needed)")
+    acked, received = struct.unpack_from("=QQ", raw, _OFF_BYTES_ACKED)
+    segs_out, segs_in = struct.unpack_from("=II", raw, _OFF_SEGS)
+    sent = struct.unpack_from("=Q", raw, _OFF_BYTES_SENT)[0] if len(raw) >= _OFF_BYTES_SENT + 8 else acked
+    return TcpCounters(sent, received, segs_out, segs_in, bool(raw[_OFF_OPTIONS] & _TCPI_OPT_TIMESTAMPS))
+
+
+def ethernet_socket(family: socket.AddressFamily = socket.AF_INET) -> socket.socket:
+    """A non-blocking TCP socket whose segments are Ethernet-sized (TCP_MAXSEG, set before connecting
+    or listening, so the MSS it announces holds its peer to the same size)."""
+    sock = socket.socket(family, socket.SOCK_STREAM)
+    try:
+        sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_MAXSEG, ETHERNET_MSS)
+        sock.setblocking(False)
+    except BaseException:
+        sock.close()
+        raise
+    return sock
+
+
+async def _resolve(host: str, port: int) -> tuple[socket.AddressFamily, tuple[str, int]]:
+    infos = await asyncio.get_running_loop().getaddrinfo(host, port, type=socket.SOCK_STREAM)
+    if not infos:
+        raise OSError(f"cannot resolve {host}:{port}")
+    family, _, _, _, address = infos[0]
+    return family, (str(address[0]), int(address[1]))
+
+
+@dataclass(frozen=True)
+class WireCount:
+    """Bytes to and from the measured host: `to_host` is what the relay sent it, `from_host` what it sent."""
+
+    to_host: int = 0
+    from_host: int = 0
+    segments_to_host: int = 0
+    segments_from_host: int = 0
+
+    @property
+    def total(self) -> int:
+        return self.to_host + self.from_host
+
+    @property
+    def segments(self) -> int:
+        return self.segments_to_host + self.segments_from_host
+
+    def __add__(self, other: WireCount) -> WireCount:
+        return WireCount(
+            self.to_host + other.to_host,
+            self.from_host + other.from_host,
+            self.segments_to_host + other.segments_to_host,
+            self.segments_from_host + other.segments_from_host,
+        )
+
+
+class _Measured:
+    """The measured socket of one relayed connection and the last counters read from it (the socket
+    itself is gone once the connection closes)."""
+
+    def __init__(self, sock: socket.socket | None) -> None:
+        self._sock = sock
+        self.last = WireCount()
+
+    def read(self) -> WireCount:
+        if self._sock is not None:
+            try:
+                c = tcp_counters(self._sock)
+            except (OSError, ValueError):  # closed: keep the last reading
+                self._sock = None
+            else:
+                self.last = WireCount(c.wire_out, c.wire_in, c.segments_out, c.segments_in)
+        return self.last
 
 
 class CountingRelay:
     """Accepts connections on a local port and forwards each to `target`, counting both directions.
 
     The target may be set after start() (set_target); connections wait for it. With bucket_s, the
-    bytes carried (both directions) are also kept per interval since start, for plots.
+    payload bytes (`timeline`) and the wire bytes (`wire_timeline`) carried, both directions, are
+    also kept per interval since start, for plots.
     """
 
     def __init__(
@@ -21,20 +165,28 @@ class CountingRelay:
         target_port: int = 0,
         listen_host: str = "127.0.0.1",
         bucket_s: float = 0.0,
+        side: Literal["client", "target"] = "client",
     ) -> None:
+        if side not in ("client", "target"):
+            raise ValueError(f"side: {side!r} must be 'client' or 'target'")
         self.target: tuple[str, int] | None = None
         self._target_known = asyncio.Event()
         if target_host is not None:
             self.set_target(target_host, target_port)
         self.listen_host = listen_host
+        self.side = side
         self.port = 0
         self.to_target = 0
         self.from_target = 0
         self.bucket_s = bucket_s
         self.timeline: dict[int, int] = {}
+        self.wire_timeline: dict[int, int] = {}
         self._t0 = 0.0
         self._server: asyncio.Server | None = None
         self._pipes: set[asyncio.Task[None]] = set()
+        self._measured: list[_Measured] = []
+        self._sampler: asyncio.Task[None] | None = None
+        self._sampled = 0
 
     def set_target(self, host: str, port: int) -> None:
         self.target = (host, port)
@@ -42,12 +194,30 @@ class CountingRelay:
 
     @property
     def total(self) -> int:
+        """Payload bytes carried, both directions."""
         return self.to_target + self.from_target
 
+    def wire(self) -> WireCount:
+        """Wire bytes and segments on the measured side of every connection so far (open ones read now)."""
+        count = WireCount()
+        for m in self._measured:
+            count = count + m.read()
+        return count
+
     async def start(self) -> int:
-        self._t0 = asyncio.get_running_loop().time()
-        self._server = await asyncio.start_server(self._accept, self.listen_host, 0)
+        loop = asyncio.get_running_loop()
+        self._t0 = loop.time()
+        family, address = await _resolve(self.listen_host, 0)
+        listener = ethernet_socket(family)
+        try:
+            listener.bind(address)
+        except BaseException:
+            listener.close()
+            raise
+        self._server = await asyncio.start_server(self._accept, sock=listener)
         self.port = int(self._server.sockets[0].getsockname()[1])
+        if self.bucket_s:
+            self._sampler = loop.create_task(self._sample())
         return self.port
 
     async def close(self) -> None:
@@ -58,23 +228,57 @@ class CountingRelay:
             await asyncio.gather(*self._pipes, return_exceptions=True)
             await self._server.wait_closed()
             self._server = None
+        if self._sampler is not None:
+            self._sampler.cancel()
+            await asyncio.gather(self._sampler, return_exceptions=True)
+            self._sampler = None
+            self._sample_now()
+
+    def _bucket(self) -> int:
+        return int((asyncio.get_running_loop().time() - self._t0) / self.bucket_s)
+
+    def _sample_now(self) -> None:
+        total = self.wire().total
+        k = self._bucket()
+        self.wire_timeline[k] = self.wire_timeline.get(k, 0) + total - self._sampled
+        self._sampled = total
+
+    async def _sample(self) -> None:
+        """Reads the counters at the end of every bucket: the wire bytes of each interval."""
+        loop = asyncio.get_running_loop()
+        k = 0
+        while True:
+            k += 1
+            await asyncio.sleep(max(0.0, self._t0 + k * self.bucket_s - loop.time()))
+            self._sample_now()
 
     async def _accept(self, client_r: asyncio.StreamReader, client_w: asyncio.StreamWriter) -> None:
         try:
             await self._target_known.wait()
             assert self.target is not None
-            target_r, target_w = await asyncio.open_connection(*self.target)
+            family, address = await _resolve(*self.target)
+            upstream = ethernet_socket(family)
+            try:
+                await asyncio.get_running_loop().sock_connect(upstream, address)
+            except BaseException:
+                upstream.close()
+                raise
+            target_r, target_w = await asyncio.open_connection(sock=upstream)
         except OSError:
             client_w.close()
             return
-        up = asyncio.get_running_loop().create_task(self._pipe(client_r, target_w, True))
-        down = asyncio.get_running_loop().create_task(self._pipe(target_r, client_w, False))
+        measured = _Measured((client_w if self.side == "client" else target_w).get_extra_info("socket"))
+        self._measured.append(measured)
+        up = asyncio.get_running_loop().create_task(self._pipe(client_r, target_w, True, measured))
+        down = asyncio.get_running_loop().create_task(self._pipe(target_r, client_w, False, measured))
         for task in (up, down):
             self._pipes.add(task)
             task.add_done_callback(self._pipes.discard)
         await asyncio.gather(up, down, return_exceptions=True)
 
-    async def _pipe(self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, upstream: bool) -> None:
+    async def _pipe(
+        self, reader: asyncio.StreamReader, writer: asyncio.StreamWriter, upstream: bool, measured: _Measured
+    ) -> None:
         try:
             loop = asyncio.get_running_loop()
             while data := await reader.read(_CHUNK):
@@ -90,5 +294,6 @@ class CountingRelay:
         except (ConnectionError, asyncio.IncompleteReadError):
             pass
         finally:
+            measured.read()  # the last look at the counters before a socket of the pair closes
             with contextlib.suppress(Exception):
                 writer.close()
