@@ -17,15 +17,28 @@ from .workload import add_workload_arguments, workload_main
 
 
 def paper_main(args: argparse.Namespace) -> int:
-    from .paper import run_paper
+    from .paper import FULL_REQUESTS, QUICK_REQUESTS, run_paper
+    from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch
 
-    requests = args.requests or (150 if args.quick else 1500)
+    requests = args.requests or (QUICK_REQUESTS if args.quick else FULL_REQUESTS)
+    rounds = args.rounds or (QUICK_ROUNDS if args.quick else FULL_ROUNDS)
+    if requests < 1 or rounds < 1 or not args.rate > 0:
+        print("drvs-bench paper: --requests, --rounds and --rate must be > 0", file=sys.stderr)
+        return 2
     out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
-    result = asyncio.run(run_paper(out, requests, args.rate))
-    summary = {k: v for k, v in result.items() if "ratio" in k or k.endswith("_over_bare_path")}
+    try:
+        result = asyncio.run(run_paper(out, requests, args.rate, rounds))
+    except WorkMismatch as exc:
+        print(f"drvs-bench paper: FAILED: {exc}", file=sys.stderr)
+        return 1
+    summary: dict[str, object] = {
+        k: v for k, v in result.items() if ("ratio" in k or k.endswith("_over_bare_path")) and not k.endswith("_runs")
+    }
     for mode, data in result["modes"].items():
         summary[f"{mode}_bytes_per_s"] = round(data["bytes_per_s"])
+        summary[f"{mode}_payload_bytes_per_s"] = round(data["payload_bytes_per_s"])
         summary[f"{mode}_cpu_s"] = round(data["cpu_s"], 3)
+    summary["targets"] = {k: v["verdict"] for k, v in result["targets"].items()}
     print(json.dumps(summary, indent=1))
     print(f"written: {out / 'paper.json'}, {out / 'bandwidth.png'}, {out / 'cpu.png'}")
     return 0
@@ -50,8 +63,11 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="drvs-bench", description="DRVS benchmarks: JSON and PNG into --out.")
     sub = parser.add_subparsers(dest="bench", required=True)
     p = sub.add_parser("paper", help="the paper's robot CPU and network comparison (Exp. C, D)")
-    p.add_argument("--quick", action="store_true", help="150 requests instead of 1500: a smoke run")
-    p.add_argument("--requests", type=int, default=0, help="override the number of requests")
+    p.add_argument(
+        "--quick", action="store_true", help="3 rounds of 90 requests a mode instead of 5 of 600: a smoke run"
+    )
+    p.add_argument("--requests", type=int, default=0, help="override the number of requests per run")
+    p.add_argument("--rounds", type=int, default=0, help="override the number of interleaved rounds")
     p.add_argument("--rate", type=float, default=30.0, help="requests per second (default 30)")
     p.add_argument("--out", type=Path, default=None)
     p.set_defaults(func=paper_main)

@@ -1,48 +1,145 @@
-"""drvs-bench paper: the paper's Exp. C and D side by side in one run.
+"""drvs-bench paper: the paper's Exp. C and D side by side, in interleaved rounds.
 
-The robot, a process of its own, either asks DRVS (1500 single-shot requests at 30 Hz) or has
-both cameras stream every frame (raw, or JPEG at quality 80) and detects on board. Counting TCP
-relays in front of the robot measure the bytes its sockets carry; /proc gives its CPU time.
+The robot, a process of its own, either asks DRVS (single-shot requests at 30 Hz) or has both
+cameras stream every frame (raw, or JPEG at quality 80) and detects on board. Counting TCP relays
+in front of the robot measure what its sockets carry: the TCP payload, and the frames a 1500-byte-
+MTU Ethernet link would carry (drvs.meter). /proc gives its CPU time and the machine's.
+
+Every mode and floor runs once per round, in the same order (A B C … A B C …), for several rounds;
+each figure, and each ratio taken within a round, is published as its median and spread. Every run
+is checked for the work it was meant to do (stats.check_work): one that did less fails the
+benchmark (WorkMismatch) instead of publishing a ratio.
 """
 
 from __future__ import annotations
 
 import asyncio
 import json
+import os
 import re
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+from drvs.geometry import FieldOfView
 from drvs.launch import ManagedProcess, start_camera, start_server
-from drvs.meter import CountingRelay
+from drvs.meter import CountingRelay, WireCount
+from drvs.sim.scenario import load_scenario
 
-from .common import CpuSampler, bench_process, machine, record_scene
+from .common import (
+    BOTH_REGION,
+    IMAGE_SIZE,
+    SCENE,
+    YELLOW,
+    CpuSampler,
+    bench_process,
+    cpu_seconds,
+    machine,
+    record_scene,
+)
 from .service import ack_server, run_helper
+from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, check_work, interleaved, publish, verdict
+
+__all__ = ["FULL_ROUNDS", "QUICK_ROUNDS", "WorkMismatch", "run_paper"]
 
 BUCKET_S = 0.1
 #: drvs: reports with floor outlines (the API's default); drvs_boxes: bounding boxes only, as the
-#: paper's DRVS sent; raw / jpeg: both cameras stream frames, the robot detects on board.
-MODES = ("drvs", "drvs_boxes", "raw", "jpeg")
+#: paper's DRVS sent; drvs_boxes_moving: the same, but the region slides and the filter alternates
+#: every request (workload.moving_request); raw / jpeg: both cameras stream frames, the robot
+#: detects on board.
+MODES = ("drvs", "drvs_boxes", "drvs_boxes_moving", "raw", "jpeg")
+#: The robot CPU floors, run in the same rounds: DRVS's messages in bare grpc.aio, one bare round
+#: trip per request, an idle loop at the request rate.
+FLOORS = ("bare_path", "rtt_floor", "idle")
+#: Requests per run (30 Hz): the full run takes about 15-20 minutes on the 2-core machine, --quick 2-3.
+FULL_REQUESTS = 600
+QUICK_REQUESTS = 90
+#: The paper's targets (higher is better).
+TARGETS = {"bandwidth_ratio_raw": 1000.0, "bandwidth_ratio_jpeg": 100.0, "robot_cpu_ratio": 20.0}
+_TICK = os.sysconf("SC_CLK_TCK")
+
+CPU_COVERAGE = {
+    "cpu_s": "the robot process only: time.process_time() in it over its measured interval (user + "
+    "system, all its threads: event loop, gRPC's poller and event-engine threads, detection workers)",
+    "cpu_load_timeline": "the same process from /proc/<pid>/stat (utime + stime, all threads), per 0.1 s",
+    "machine_cpu_cores": "the whole machine from /proc/stat (user + nice + system + irq + softirq + steal "
+    "jiffies, every core) over the robot's measured interval, in cores; includes the cameras, the server, "
+    "the benchmark's relays and anything else running (the machine is shared)",
+    "cameras_cpu_s / server_cpu_s": "the drvs-camera processes (together) and the drvs-server, /proc "
+    "utime + stime over the same interval: on loopback a raw stream's send work lands in the cameras",
+    "relays_cpu_s": "the benchmark process itself (its counting relays and samplers) over the same interval",
+}
+
+
+def _machine_busy_jiffies() -> int:
+    """Busy jiffies of the whole machine (every core) since boot, from /proc/stat."""
+    fields = [int(v) for v in Path("/proc/stat").read_text().split("\n", 1)[0].split()[1:9]]
+    user, nice, system, _idle, _iowait, irq, softirq, steal = fields
+    return user + nice + system + irq + softirq + steal
+
+
+class _Cpu:
+    """CPU seconds of the machine and of named processes over an interval."""
+
+    def __init__(self, procs: dict[str, list[int]]) -> None:
+        self.procs = procs
+        self._start = self._read()
+
+    def _read(self) -> dict[str, float]:
+        out = {"machine": _machine_busy_jiffies() / _TICK, "relays": cpu_seconds(os.getpid())}
+        for name, pids in self.procs.items():
+            out[name] = sum(cpu_seconds(pid) for pid in pids)
+        return out
+
+    def stop(self) -> dict[str, float]:
+        end = self._read()
+        return {k: end[k] - self._start[k] for k in end}
+
+
+def _wire_sum(relays: list[CountingRelay]) -> WireCount:
+    total = WireCount()
+    for r in relays:
+        total = total + r.wire()
+    return total
+
+
+def _merge(timelines: list[dict[int, int]]) -> list[int]:
+    merged: dict[int, int] = {}
+    for t in timelines:
+        for k, v in t.items():
+            merged[k] = merged.get(k, 0) + v
+    return [merged.get(k, 0) for k in range(max(merged, default=-1) + 1)]
 
 
 async def run_mode(
-    mode: str, server: str, cameras: dict[str, tuple[str, Path]], requests: int, rate: float
+    mode: str,
+    server: str,
+    cameras: dict[str, tuple[str, Path]],
+    requests: int,
+    rate: float,
+    cpu_procs: dict[str, list[int]] | None = None,
 ) -> dict[str, Any]:
+    """One run of one mode: the robot process through counting relays. Returns its outcome and figures."""
     relays: list[CountingRelay] = []
     args = ["robot", "--mode", mode.split("_")[0], "--requests", str(requests), "--rate", str(rate)]
-    if mode == "drvs_boxes":
+    if mode.startswith("drvs_boxes"):
         args.append("--no-outlines")
+    if mode.endswith("_moving"):
+        args.append("--moving")
     callback_relay: CountingRelay | None = None
+    to_robot: Callable[[CountingRelay], int] = lambda r: r.from_target  # noqa: E731
     if mode.startswith("drvs"):
         host, port = server.rsplit(":", 1)
         server_relay = CountingRelay(host, int(port), bucket_s=BUCKET_S)
-        callback_relay = CountingRelay(bucket_s=BUCKET_S)  # target: the robot's listener, once it is up
+        # target: the robot's listener, once it is up; the socket to measure is the one to the robot
+        callback_relay = CountingRelay(bucket_s=BUCKET_S, side="target")
         relays = [server_relay, callback_relay]
         for r in relays:
             await r.start()
         args += ["--server", f"127.0.0.1:{server_relay.port}", "--advertise", f"127.0.0.1:{callback_relay.port}"]
+        args += ["--cameras", str(len(cameras))]
     else:
         for address, hfile in cameras.values():
             host, port = address.rsplit(":", 1)
@@ -55,9 +152,11 @@ async def run_mode(
     sampler.start()
     try:
         ready = await robot.wait_for_line(r"^READY (\d+)", timeout=60)
+        cpu = _Cpu(cpu_procs or {})
         if callback_relay is not None:
             callback_relay.set_target("127.0.0.1", int(ready.group(1)))
         done = await robot.wait_for_line(r"^DONE (.*)", timeout=requests / rate + 120)
+        used = cpu.stop()
         outcome = json.loads(done.group(1))
         assert await robot.wait(timeout=30) == 0, robot.output()
     finally:
@@ -65,110 +164,255 @@ async def run_mode(
         await robot.stop()
         for r in relays:
             await r.close()
-    timeline: dict[int, int] = {}
-    for r in relays:
-        for k, v in r.timeline.items():
-            timeline[k] = timeline.get(k, 0) + v
-    total = sum(r.total for r in relays)
+    wire = _wire_sum(relays)
+    payload = sum(r.total for r in relays)
+    payload_to_robot = sum((r.to_target if r is callback_relay else to_robot(r)) for r in relays)
+    wall = float(outcome["wall_s"])
     return {
         **outcome,
-        "bytes": total,
-        "bytes_per_s": total / outcome["wall_s"],
-        "bytes_timeline": [timeline.get(k, 0) for k in range(max(timeline, default=-1) + 1)],
+        # Wire bytes: both directions, as a 1500-byte-MTU Ethernet link carries them (drvs.meter).
+        "bytes": wire.total,
+        "bytes_per_s": wire.total / wall,
+        "wire_bytes_to_robot": wire.to_host,
+        "wire_bytes_from_robot": wire.from_host,
+        "segments": wire.segments,
+        "segments_to_robot": wire.segments_to_host,
+        "segments_from_robot": wire.segments_from_host,
+        # TCP payload (what the applications wrote), both directions.
+        "payload_bytes": payload,
+        "payload_bytes_per_s": payload / wall,
+        "payload_bytes_to_robot": payload_to_robot,
+        "payload_bytes_from_robot": payload - payload_to_robot,
+        "robot_cpu_cores": float(outcome["cpu_s"]) / wall,
+        "machine_cpu_cores": used["machine"] / wall,
+        "machine_cpu_s": used["machine"],
+        "cameras_cpu_s": used.get("cameras", 0.0),
+        "server_cpu_s": used.get("server", 0.0),
+        "relays_cpu_s": used["relays"],
+        "bytes_timeline": _merge([r.wire_timeline for r in relays]),
+        "payload_bytes_timeline": _merge([r.timeline for r in relays]),
         "cpu_load_timeline": [round(load, 4) for _, load in sampler.load()],
     }
 
 
-async def run_paper(out: Path, requests: int, rate: float) -> dict[str, Any]:
+def expected_detections(
+    homography_files: list[Path], filter_def: str, region: tuple[float, float, float, float]
+) -> list[int] | None:
+    """Objects of `filter_def`'s colour each camera sees whole, inside the region, from scene.yaml; None
+    if an object lies across a field of view's or the region's edge (its count is not certain)."""
+    from shapely.geometry import box
+
+    from drvs.camera.homography_file import load_homography
+
+    scenario = load_scenario(SCENE)
+    area = box(*region)
+    counts = []
+    for hfile in homography_files:
+        fov = FieldOfView.compute(load_homography(hfile), IMAGE_SIZE, 6.0).floor
+        n = 0
+        for obj in scenario.objects:
+            if obj.color is None or obj.color.filter_def != filter_def or not obj.shape.intersects(fov):
+                continue
+            if not (obj.shape.within(fov) and obj.shape.within(area)):
+                return None
+            n += 1
+        counts.append(n)
+    return counts
+
+
+def check_drvs(mode: str, run: dict[str, Any], requests: int, cameras: int, detections: int | None) -> None:
+    """Every request delivered: a final report from each camera, none an error (busy included), none
+    refused; with a fixed scene, the detections the scene holds in every request."""
+    expected: dict[str, float] = {
+        "requests": requests,
+        "requests_delivered": requests,
+        "reports": cameras * requests,
+        "error_reports": 0,
+        "busy_reports": 0,
+        "refused_requests": 0,
+        "missing_finals": 0,
+    }
+    if detections is not None:
+        expected["detections"] = detections * requests
+    check_work(mode, expected, run)
+
+
+def check_stream(mode: str, run: dict[str, Any], per_frame: list[int] | None) -> None:
+    """Every frame received was analysed, each camera sent frames, and (with a fixed scene) each frame's
+    detections were the objects its camera sees."""
+    for k, cam in enumerate(run["per_camera"]):
+        expected: dict[str, float] = {"frames_analysed": cam["frames_received"]}
+        if per_frame is not None:
+            expected["detections"] = per_frame[k] * cam["frames_received"]
+        check_work(f"{mode} camera {k}", expected, cam)
+        if cam["frames_received"] <= 0:
+            raise WorkMismatch(f"{mode} camera {k}: no frame received, no ratio published")
+
+
+async def run_paper(out: Path, requests: int, rate: float, rounds: int = FULL_ROUNDS) -> dict[str, Any]:
     procs: list[ManagedProcess] = []
+    runs: list[dict[str, dict[str, Any]]] = [{} for _ in range(rounds)]
     with tempfile.TemporaryDirectory(prefix="drvs-bench-") as tmp:
         scene = record_scene(Path(tmp))
         try:
             server, address = await start_server()
             procs.append(server)
             cameras: dict[str, tuple[str, Path]] = {}
+            camera_pids: list[int] = []
             for camera_id, rec in scene.items():
                 cam = await start_camera(
                     camera_id, rec.video, rec.homography_file, address, "--max-range", "6", "--serve-frames"
                 )
                 procs.append(cam)
+                camera_pids.append(cam.pid)
                 listening = next(re.search(r"listening on (\S+)", line) for line in cam.lines if "listening on" in line)
                 assert listening is not None
                 cameras[camera_id] = (listening.group(1), rec.homography_file)
-            modes = {}
-            for mode in MODES:
-                print(f"drvs-bench paper: {mode} ...", file=sys.stderr, flush=True)
-                modes[mode] = await run_mode(mode, address, cameras, requests, rate)
-            # The transport's floor for the robot's CPU: a bare grpc.aio process making one round trip
-            # on a long-lived stream per request, at the same rate, to a server that answers at once:
-            # no reports, no DRVS code. No robot that asks over grpc.aio can use less.
-            print("drvs-bench paper: floor ...", file=sys.stderr, flush=True)
+            cpu_procs = {"cameras": camera_pids, "server": [server.pid]}
+            per_camera = expected_detections([h for _, h in cameras.values()], YELLOW, BOTH_REGION)
+            # The floors' long-lived processes: an ack-at-once server, and DRVS's message flow in bare grpc.aio.
             ack, ack_address = await ack_server()
             procs.append(ack)
-            floor = await run_helper(
-                "rtt-floor", "rtt", "--target", ack_address, "--calls", str(requests), "--rate", str(rate)
-            )
-            # DRVS's whole message flow in bare grpc.aio (request, reply, a forward to each of the two
-            # cameras, a report from each), and a robot that only wakes at the request rate.
-            print("drvs-bench paper: bare-path and idle floors ...", file=sys.stderr, flush=True)
-            bare_path = await run_bare_path(procs, len(cameras), requests, rate)
-            idle = await run_helper("idle-robot", "idle-robot", "--requests", str(requests), "--rate", str(rate))
+            bare_server = await start_bare_path(procs, len(cameras))
+            for r, mode in interleaved((*MODES, *FLOORS), rounds):
+                print(f"drvs-bench paper: round {r + 1}/{rounds}: {mode} ...", file=sys.stderr, flush=True)
+                if mode in MODES:
+                    run = await run_mode(mode, address, cameras, requests, rate, cpu_procs)
+                    if mode.startswith("drvs"):
+                        fixed = None if mode.endswith("_moving") or per_camera is None else sum(per_camera)
+                        check_drvs(mode, run, requests, len(cameras), fixed)
+                    else:
+                        check_stream(mode, run, per_camera)
+                elif mode == "bare_path":
+                    run = await run_helper(
+                        "bare-robot", "bare-robot", "--server", bare_server, "--cameras", str(len(cameras)),
+                        "--requests", str(requests), "--rate", str(rate),
+                    )  # fmt: skip
+                elif mode == "rtt_floor":
+                    run = await run_helper(
+                        "rtt-floor", "rtt", "--target", ack_address, "--calls", str(requests), "--rate", str(rate)
+                    )
+                else:
+                    run = await run_helper("idle-robot", "idle-robot", "--requests", str(requests), "--rate", str(rate))
+                runs[r][mode] = run
         finally:
             for proc in reversed(procs):
                 await proc.stop()
-    boxes, outlines = modes["drvs_boxes"], modes["drvs"]
-
-    def cpu_rate(m: dict[str, Any]) -> float:
-        return float(m["cpu_s"]) / float(m["wall_s"])
-
-    result = {
-        "benchmark": "paper",
-        "requests": requests,
-        "rate_hz": rate,
-        "cameras": len(scene),
-        "frame": "640x480 BGR, 20 fps",
-        "modes": modes,
-        "jpeg_mean_frame_bytes": modes["jpeg"]["bytes"] / max(1, modes["jpeg"]["frames"]),
-        # Against the paper's DRVS (bounding boxes), then against reports with outlines.
-        "bandwidth_ratio_raw": modes["raw"]["bytes_per_s"] / boxes["bytes_per_s"],
-        "bandwidth_ratio_jpeg": modes["jpeg"]["bytes_per_s"] / boxes["bytes_per_s"],
-        "robot_cpu_ratio": cpu_rate(modes["raw"]) / cpu_rate(boxes),
-        "robot_cpu_ratio_jpeg": cpu_rate(modes["jpeg"]) / cpu_rate(boxes),
-        "bandwidth_ratio_raw_outlines": modes["raw"]["bytes_per_s"] / outlines["bytes_per_s"],
-        "bandwidth_ratio_jpeg_outlines": modes["jpeg"]["bytes_per_s"] / outlines["bytes_per_s"],
-        "robot_cpu_ratio_outlines": cpu_rate(modes["raw"]) / cpu_rate(outlines),
-        "robot_cpu_floor": {
-            "cpu_s": floor["cpu_s"],
-            "wall_s": floor["wall_s"],
-            "definition": "a bare grpc.aio client: one request/reply round trip per request on one stream, "
-            "same count and rate, to a server that answers at once; no reports, no DRVS code",
-        },
-        # The best robot_cpu_ratio any grpc.aio robot could reach: raw-frame CPU over the floor's.
-        "robot_cpu_ratio_at_floor": cpu_rate(modes["raw"]) / (floor["cpu_s"] / floor["wall_s"]),
-        "robot_cpu_bare_path": {
-            "cpu_s": bare_path["cpu_s"],
-            "wall_s": bare_path["wall_s"],
-            "last_report_ms_p50": bare_path["last_report_ms_p50"],
-            "definition": "DRVS's message flow in bare grpc.aio, with no DRVS code: the request on a "
-            "long-lived stream, the server's reply, a forward to each camera, one report from each to the "
-            "robot's listener; same count and rate",
-        },
-        "robot_cpu_ratio_at_bare_path": cpu_rate(modes["raw"]) / cpu_rate(bare_path),
-        # The robot's CPU with DRVS over the same messages moved by bare grpc.aio: what DRVS's own code adds.
-        "robot_cpu_over_bare_path": cpu_rate(boxes) / cpu_rate(bare_path),
-        "robot_cpu_idle": {
-            "cpu_s": idle["cpu_s"],
-            "wall_s": idle["wall_s"],
-            "definition": "an asyncio process that only wakes at the request rate and does nothing",
-        },
-        "robot_cpu_ratio_at_idle": cpu_rate(modes["raw"]) / cpu_rate(idle),
-        "machine": machine(),
-    }
+    result = summarise(runs, requests, rate, len(scene))
     await asyncio.to_thread(write_outputs, result, out)
     return result
 
 
-async def run_bare_path(procs: list[ManagedProcess], cameras: int, requests: int, rate: float) -> dict[str, Any]:
+def _cpu_rate(m: dict[str, Any]) -> float:
+    return float(m["cpu_s"]) / float(m["wall_s"])
+
+
+#: Ratios taken within each round: name -> (numerator mode, denominator mode).
+_BANDWIDTH = {
+    "bandwidth_ratio_raw": ("raw", "drvs_boxes"),
+    "bandwidth_ratio_jpeg": ("jpeg", "drvs_boxes"),
+    "bandwidth_ratio_raw_outlines": ("raw", "drvs"),
+    "bandwidth_ratio_jpeg_outlines": ("jpeg", "drvs"),
+    "bandwidth_ratio_raw_moving": ("raw", "drvs_boxes_moving"),
+    "bandwidth_ratio_jpeg_moving": ("jpeg", "drvs_boxes_moving"),
+}
+_CPU = {
+    "robot_cpu_ratio": ("raw", "drvs_boxes"),
+    "robot_cpu_ratio_jpeg": ("jpeg", "drvs_boxes"),
+    "robot_cpu_ratio_outlines": ("raw", "drvs"),
+    "robot_cpu_ratio_moving": ("raw", "drvs_boxes_moving"),
+    "robot_cpu_ratio_at_floor": ("raw", "rtt_floor"),
+    "robot_cpu_ratio_at_bare_path": ("raw", "bare_path"),
+    "robot_cpu_over_bare_path": ("drvs_boxes", "bare_path"),
+    "robot_cpu_ratio_at_idle": ("raw", "idle"),
+}
+_MACHINE = {
+    "machine_cpu_ratio": ("raw", "drvs_boxes"),
+    "machine_cpu_ratio_jpeg": ("jpeg", "drvs_boxes"),
+    "machine_cpu_ratio_moving": ("raw", "drvs_boxes_moving"),
+}
+_FLOOR_DEFINITIONS = {
+    "robot_cpu_floor": (
+        "rtt_floor",
+        "a bare grpc.aio client: one request/reply round trip per request on one stream, same count and rate, "
+        "to a server that answers at once; no reports, no DRVS code",
+    ),
+    "robot_cpu_bare_path": (
+        "bare_path",
+        "DRVS's message flow in bare grpc.aio, with no DRVS code: the request on a long-lived stream, the "
+        "server's reply, a forward to each camera, one report from each to the robot's listener; same count "
+        "and rate",
+    ),
+    "robot_cpu_idle": ("idle", "an asyncio process that only wakes at the request rate and does nothing"),
+}
+
+
+def _numeric(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)
+
+
+def summarise(runs: list[dict[str, dict[str, Any]]], requests: int, rate: float, cameras: int) -> dict[str, Any]:
+    """paper.json from the rounds' runs: each figure and each ratio (within a round) as median and spread."""
+    last = runs[-1]
+    modes: dict[str, dict[str, Any]] = {}
+    for mode in MODES:
+        data: dict[str, Any] = {}
+        for key, value in last[mode].items():
+            if _numeric(value):
+                publish(data, key, [run[mode][key] for run in runs])
+            else:
+                data[key] = value  # histograms, per-camera counts, timelines: from the last round
+        modes[mode] = data
+    result: dict[str, Any] = {
+        "benchmark": "paper",
+        "requests": requests,
+        "rate_hz": rate,
+        "rounds": len(runs),
+        "order": [*MODES, *FLOORS],
+        "cameras": cameras,
+        "frame": "640x480 BGR, 20 fps",
+        "bytes": "bytes: wire bytes, both directions of the robot's sockets, every TCP segment (ACK-only, SYN, "
+        "FIN included) as a 1500-byte-MTU Ethernet link carries it: payload + 66 B a segment (Ethernet 14, IPv4 "
+        "20, TCP 32 with timestamps), from the kernel's TCP_INFO; payload_bytes: the TCP payload alone",
+        "cpu": CPU_COVERAGE,
+        "modes": modes,
+    }
+    publish(
+        result,
+        "jpeg_mean_frame_bytes",
+        [run["jpeg"]["payload_bytes_to_robot"] / max(1, run["jpeg"]["frames"]) for run in runs],
+    )
+    for name, (num, den) in _BANDWIDTH.items():
+        publish(result, name, [run[num]["bytes_per_s"] / run[den]["bytes_per_s"] for run in runs])
+        payload = [run[num]["payload_bytes_per_s"] / run[den]["payload_bytes_per_s"] for run in runs]
+        publish(result, f"{name}_payload", payload)
+    for name, (num, den) in _CPU.items():
+        publish(result, name, [_cpu_rate(run[num]) / _cpu_rate(run[den]) for run in runs])
+    for name, (num, den) in _MACHINE.items():
+        publish(result, name, [run[num]["machine_cpu_cores"] / run[den]["machine_cpu_cores"] for run in runs])
+    for key, (floor, definition) in _FLOOR_DEFINITIONS.items():
+        figures: dict[str, Any] = {}
+        for fig in ("cpu_s", "wall_s", "last_report_ms_p50"):
+            if fig in runs[0][floor]:
+                publish(figures, fig, [run[floor][fig] for run in runs])
+        figures["definition"] = definition
+        result[key] = figures
+    result["targets"] = {
+        name: {
+            "target": target,
+            "median": result[name],
+            "spread": result[f"{name}_spread"],
+            "verdict": verdict(result[f"{name}_runs"], target),
+        }
+        for name, target in TARGETS.items()
+    }
+    result["machine"] = machine()
+    return result
+
+
+async def start_bare_path(procs: list[ManagedProcess], cameras: int) -> str:
+    """The bare path's cameras and server (drvs_bench.bare), kept for every round; returns the server's address."""
+
     async def listening(name: str, *args: str) -> str:
         proc = await bench_process(name, *args).start()
         procs.append(proc)
@@ -177,11 +421,7 @@ async def run_bare_path(procs: list[ManagedProcess], cameras: int, requests: int
     camera_args: list[str] = []
     for k in range(cameras):
         camera_args += ["--camera", await listening(f"bare-camera{k}", "bare-camera", "--id", f"bare{k}")]
-    server = await listening("bare-server", "bare-server", *camera_args)
-    return await run_helper(
-        "bare-robot", "bare-robot", "--server", server, "--cameras", str(cameras),
-        "--requests", str(requests), "--rate", str(rate),
-    )  # fmt: skip
+    return await listening("bare-server", "bare-server", *camera_args)
 
 
 def write_outputs(result: dict[str, Any], out: Path) -> None:
@@ -199,6 +439,7 @@ def plot(result: dict[str, Any], out: Path) -> None:
     labels = {
         "drvs": "DRVS, outlines",
         "drvs_boxes": "DRVS, boxes (as the paper)",
+        "drvs_boxes_moving": "DRVS, boxes, moving region and alternating filter",
         "raw": "raw frame stream",
         "jpeg": "JPEG q80 frame stream",
     }
@@ -208,10 +449,11 @@ def plot(result: dict[str, Any], out: Path) -> None:
         ax.plot([i * BUCKET_S for i in range(len(series))], [max(v, 1) for v in series], label=labels[mode], lw=1)
     ax.set_yscale("log")
     ax.set_xlabel("time (s)")
-    ax.set_ylabel(f"bytes to and from the robot per {BUCKET_S:g} s")
+    ax.set_ylabel(f"Ethernet bytes to and from the robot per {BUCKET_S:g} s")
     ax.set_title(
-        f"Robot network traffic (paper Fig. 10): raw/DRVS x{result['bandwidth_ratio_raw']:.0f}, "
-        f"JPEG/DRVS x{result['bandwidth_ratio_jpeg']:.0f}"
+        f"Robot network traffic (paper Fig. 10), last of {result['rounds']} rounds; median ratios: "
+        f"raw/DRVS x{result['bandwidth_ratio_raw']:.0f}, JPEG/DRVS x{result['bandwidth_ratio_jpeg']:.0f}",
+        fontsize=10,
     )
     ax.legend()
     ax.grid(True, which="both", alpha=0.3)
@@ -233,7 +475,11 @@ def plot(result: dict[str, Any], out: Path) -> None:
         ax.axhline(100 * floor["cpu_s"] / floor["wall_s"], color="black", ls=style, lw=1, label=f"floor: {name}")
     ax.set_xlabel("time (s)")
     ax.set_ylabel("robot process CPU (% of one core, 0.5 s mean)")
-    ax.set_title(f"Robot CPU load (paper Fig. 9): onboard raw / DRVS x{result['robot_cpu_ratio']:.1f}")
+    ax.set_title(
+        f"Robot CPU load (paper Fig. 9), last of {result['rounds']} rounds; median onboard raw / DRVS "
+        f"x{result['robot_cpu_ratio']:.1f}",
+        fontsize=10,
+    )
     ax.legend()
     ax.grid(True, alpha=0.3)
     fig.tight_layout()

@@ -1,7 +1,11 @@
 """The robot's side of the paper benchmark, run as its own process so its CPU is its own.
 
-drvs: 1500 single-shot requests at 30 Hz through DRVS. raw / jpeg: both cameras stream every
-frame to the robot, which runs the same HSV detection on each frame itself.
+drvs: single-shot requests at 30 Hz through DRVS (with --moving, the region slides and the filter
+alternates every request). raw / jpeg: both cameras stream every frame to the robot over a plain
+grpc.aio channel (gRPC's defaults), and the robot runs the same HSV detection on each frame itself.
+
+Each mode counts the work it did, so the parent can check that it did what it was meant to
+(`cpu_s` is `time.process_time()`: user + system time of this whole process, all its threads).
 """
 
 from __future__ import annotations
@@ -11,12 +15,13 @@ import asyncio
 import json
 import time
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
+from grpc import aio
 from shapely.geometry import box
 
-from drvs import _grpc
 from drvs.camera.homography_file import load_homography
 from drvs.detection import Frame, FrameAnalysis, HsvDetector
 from drvs.errors import DrvsError
@@ -26,6 +31,29 @@ from drvs.v1 import stream_pb2, stream_pb2_grpc
 
 from .common import BOTH_REGION, FPS, IMAGE_SIZE, YELLOW
 
+#: The scene's other colour (scene.yaml: one blue object in each camera's view).
+BLUE = "hsv_100120080130255255"
+#: The moving variant: a band across both cameras' views slides this far along y each request ...
+MOVING_STEP_M = 0.05
+#: ... over this range (cameras see about 1 to 6 m in front of them), then starts again ...
+MOVING_RANGE_M = 4.0
+#: ... and each pass is this much further along x, so no region repeats within a run.
+MOVING_PASS_SHIFT_M = 0.01
+
+
+def moving_request(i: int) -> tuple[str, tuple[float, float, float, float]]:
+    """The i-th request of the moving variant: a robot looking along its path. The region, a 4 m
+    band across both cameras' views, slides 5 cm a request; the filter alternates yellow / blue."""
+    passes, step = divmod(i, round(MOVING_RANGE_M / MOVING_STEP_M))
+    y0 = step * MOVING_STEP_M
+    dx = passes * MOVING_PASS_SHIFT_M
+    x0, _, x1, _ = BOTH_REGION
+    return (YELLOW if i % 2 == 0 else BLUE), (x0 + dx, y0, x1 + dx, y0 + MOVING_RANGE_M)
+
+
+def _bump(histogram: dict[str, int], value: int) -> None:
+    histogram[str(value)] = histogram.get(str(value), 0) + 1
+
 
 async def drvs_mode(args: argparse.Namespace) -> dict[str, object]:
     async with DrvsClient(args.server, robot_id="bench", listen="127.0.0.1:0", advertise=args.advertise) as client:
@@ -33,19 +61,31 @@ async def drvs_mode(args: argparse.Namespace) -> dict[str, object]:
         start_cpu = time.process_time()
         loop = asyncio.get_running_loop()
         t0 = loop.time()
-        reports = detections = missing = failed = 0
+        reports = detections = missing = refused = error_reports = busy_reports = delivered = 0
+        reports_per_request: dict[str, int] = {}
+        detections_per_request: dict[str, int] = {}
 
         async def one(i: int) -> None:
-            nonlocal reports, detections, missing, failed
+            nonlocal reports, detections, missing, refused, error_reports, busy_reports, delivered
+            filter_def, region = moving_request(i) if args.moving else (YELLOW, BOTH_REGION)
             try:
-                result = await client.detect(YELLOW, BOTH_REGION, timeout_s=5.0, outlines=not args.no_outlines)
-            except DrvsError as exc:  # counted, not fatal: a loaded machine may drop one
-                failed += 1
-                print(f"request {i} failed: {exc}", flush=True)
+                result = await client.detect(filter_def, region, timeout_s=5.0, outlines=not args.no_outlines)
+            except DrvsError as exc:  # refused (rate limit, invalid, unavailable): a failure, never delivered
+                refused += 1
+                print(f"request {i} refused: {exc}", flush=True)
                 return
-            reports += len(result.reports)
+            errors = result.errors
+            good = [r for r in result.reports if not r.error]
+            reports += len(good)
+            error_reports += len(errors)
+            busy_reports += sum("busy" in e for e in errors)
             detections += len(result.detections)
             missing += len(result.missing_cameras)
+            _bump(reports_per_request, len(good))
+            _bump(detections_per_request, len(result.detections))
+            # Delivered: every camera the request needs answered with a final report, none an error.
+            if not errors and result.complete and len(result.camera_ids) == args.cameras == len(good):
+                delivered += 1
 
         tasks = []
         for i in range(args.requests):
@@ -58,10 +98,16 @@ async def drvs_mode(args: argparse.Namespace) -> dict[str, object]:
             "cpu_s": time.process_time() - start_cpu,
             "wall_s": loop.time() - t0,
             "requests": args.requests,
+            "requests_delivered": delivered,
             "reports": reports,
+            "error_reports": error_reports,
+            "busy_reports": busy_reports,
             "detections": detections,
             "missing_finals": missing,
-            "failed_requests": failed,
+            "refused_requests": refused,
+            "failed_requests": args.requests - delivered,
+            "reports_per_request": reports_per_request,
+            "detections_per_request": detections_per_request,
         }
 
 
@@ -77,7 +123,10 @@ async def stream_mode(args: argparse.Namespace) -> dict[str, object]:
     start_cpu = time.process_time()
     loop = asyncio.get_running_loop()
     t0 = loop.time()
-    frames = detections = 0
+    cameras = [
+        {"camera": address, "frames_received": 0, "frames_analysed": 0, "detections": 0, "detections_per_frame": {}}
+        for address in args.camera
+    ]
 
     def detect(detector: HsvDetector, data: bytes, seq: int) -> int:
         if encoding == stream_pb2.FRAME_ENCODING_RAW_BGR:
@@ -86,26 +135,33 @@ async def stream_mode(args: argparse.Namespace) -> dict[str, object]:
             pixels = np.asarray(cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_COLOR), dtype=np.uint8)
         return len(detector.detect(FrameAnalysis(Frame(pixels, 0.0, seq)), YELLOW, region))
 
-    async def watch(address: str, detector: HsvDetector) -> None:
-        nonlocal frames, detections
-        async with _grpc.insecure_channel(address) as channel:
+    async def watch(address: str, detector: HsvDetector, counts: dict[str, Any]) -> None:
+        # gRPC's default channel: the baseline is what a user streaming video would get, not DRVS's tuning.
+        async with aio.insecure_channel(address) as channel:
             stub = stream_pb2_grpc.FrameStreamStub(channel)
             call = stub.StreamFrames(stream_pb2.StreamFramesRequest(encoding=encoding, jpeg_quality=80, max_fps=FPS))
             try:
                 async for frame in call:
-                    frames += 1
-                    detections += await asyncio.to_thread(detect, detector, frame.data, frame.sequence)
+                    counts["frames_received"] += 1
+                    found = await asyncio.to_thread(detect, detector, frame.data, frame.sequence)
+                    # Added after the await: `x += await ...` reads x before it and loses the other
+                    # camera's updates made meanwhile.
+                    counts["frames_analysed"] += 1
+                    counts["detections"] += found
+                    _bump(counts["detections_per_frame"], found)
                     if loop.time() - t0 >= duration:
                         break
             finally:
                 call.cancel()
 
-    await asyncio.gather(*(watch(a, d) for a, d in zip(args.camera, detectors, strict=True)))
+    await asyncio.gather(*(watch(a, d, c) for a, d, c in zip(args.camera, detectors, cameras, strict=True)))
     return {
         "cpu_s": time.process_time() - start_cpu,
         "wall_s": loop.time() - t0,
-        "frames": frames,
-        "detections": detections,
+        "frames": sum(c["frames_received"] for c in cameras),
+        "frames_analysed": sum(c["frames_analysed"] for c in cameras),
+        "detections": sum(c["detections"] for c in cameras),
+        "per_camera": cameras,
     }
 
 
@@ -123,5 +179,7 @@ def add_workload_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--camera", action="append", default=[], help="camera HOST:PORT to stream from (raw/jpeg)")
     p.add_argument("--homography", action="append", type=Path, default=[], help="each camera's homography file")
     p.add_argument("--no-outlines", action="store_true", help="drvs mode: ask for boxes only, as the paper's DRVS")
+    p.add_argument("--moving", action="store_true", help="drvs mode: the region slides and the filter alternates")
+    p.add_argument("--cameras", type=int, default=2, help="drvs mode: cameras every request needs a report from")
     p.add_argument("--requests", type=int, default=1500)
     p.add_argument("--rate", type=float, default=30.0)
