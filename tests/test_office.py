@@ -63,6 +63,8 @@ async def test_navigate_with_drvs_avoids_the_unknown_obstacle(tmp_path: Path) ->
     assert result["replans"] >= 1  # the straight line was planned first, then the obstacle seen
     assert result["localisation"]["fixes"] > 0 and result["localisation"]["mean_error_m"] < 0.10
     assert result["bytes_to_robot"] > 0 and result["robot_cpu_s"] > 0
+    # On an Ethernet link the same payload comes with a header per segment.
+    assert result["wire_bytes_to_robot"] > result["bytes_to_robot"]
     check_map(tmp_path)
 
 
@@ -70,6 +72,7 @@ async def test_navigate_without_drvs_collides_and_replans(tmp_path: Path) -> Non
     code, result, log = await run_office(tmp_path, "--scenario", str(SMALL_ROOM), "--no-drvs")
     assert code == 0, log
     assert result["drvs"] is False and result["detections"] == [] and result["bytes_to_robot"] == 0
+    assert result["wire_bytes_to_robot"] == 0
     assert result["collisions"] >= 1 and result["replans"] >= 1 and result["reached_goal"] is True
     check_map(tmp_path)
 

@@ -276,11 +276,21 @@ class DrvsClient:
         self._regions = _Regions()
 
     def wire_bytes(self) -> tuple[int, int]:
-        """(received, sent) bytes on the robot's sockets; needs meter=True."""
+        """(received, sent) TCP payload bytes on the robot's sockets; needs meter=True."""
         if not self._relays:
             raise DrvsError("wire_bytes() needs DrvsClient(meter=True)")
         callback, server = self._relays
         return callback.to_target + server.from_target, callback.from_target + server.to_target
+
+    def ethernet_bytes(self) -> tuple[int, int]:
+        """(received, sent) bytes on the robot's connections as a 1500-byte-MTU Ethernet link carries
+        them: payload plus Ethernet, IP and TCP headers of every segment, ACKs included (drvs.meter);
+        needs meter=True."""
+        if not self._relays:
+            raise DrvsError("ethernet_bytes() needs DrvsClient(meter=True)")
+        callback, server = self._relays
+        wire = callback.wire() + server.wire()
+        return wire.to_host, wire.from_host
 
     @property
     def callback_address(self) -> str:
@@ -298,7 +308,9 @@ class DrvsClient:
         self._listener = listener
         server_address = self.server
         if self._meter:
-            callback_relay = CountingRelay(host_of(self.listen), self.port, listen_host=host_of(self.listen))
+            callback_relay = CountingRelay(
+                host_of(self.listen), self.port, listen_host=host_of(self.listen), side="target"
+            )
             host, port = parse_address(self.server, "server")
             server_relay = CountingRelay(host, port)
             await callback_relay.start()

@@ -140,7 +140,10 @@ def summarise(result: dict[str, Any], out: Path, quiet: bool) -> None:
     loc = result["localisation"]
     if loc["fixes"]:
         print(f"localisation     {loc['fixes']} DRVS fixes, mean error {loc['mean_error_m'] * 100:.1f} cm")
-    print(f"bytes to robot   {result['bytes_to_robot']:,} (wire bytes)")
+    print(
+        f"bytes to robot   {result['bytes_to_robot']:,} TCP payload, "
+        f"{result.get('wire_bytes_to_robot', 0):,} on a 1500-MTU Ethernet link"
+    )
     print(f"robot CPU        {result['robot_cpu_s']:.2f} s over {result['elapsed_s']:.1f} s")
     if result.get("failure"):
         print(f"failure          {result['failure']}")

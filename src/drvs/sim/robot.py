@@ -341,6 +341,7 @@ async def run_robot(
                 failure = str(exc)
             robot.report_progress(force=True)
             received = client.wire_bytes()[0] if client is not None else 0
+            wire_received = client.ethernet_bytes()[0] if client is not None else 0
         finally:
             if client is not None:
                 await client.close()
@@ -364,6 +365,7 @@ async def run_robot(
             "max_error_m": round(max(errors), 4) if errors else None,
         },
         "bytes_to_robot": received,
+        "wire_bytes_to_robot": wire_received,
         "robot_cpu_s": round(time.process_time() - cpu_start, 3),
         "elapsed_s": round(time.monotonic() - robot._started, 2),
     }
