@@ -69,6 +69,8 @@ CPU_COVERAGE = {
     "the benchmark's relays and anything else running (the machine is shared)",
     "cameras_cpu_s / server_cpu_s": "the drvs-camera processes (together) and the drvs-server, /proc "
     "utime + stime over the same interval: on loopback a raw stream's send work lands in the cameras",
+    "system_cpu_cores": "robot + cameras + server, as above, in cores: the whole system's work for the robot "
+    "without the rest of the machine (what machine_cpu_cores shows on a quiet machine)",
     "relays_cpu_s": "the benchmark process itself (its counting relays and samplers) over the same interval",
 }
 
@@ -123,6 +125,8 @@ async def run_mode(
 ) -> dict[str, Any]:
     """One run of one mode: the robot process through counting relays. Returns its outcome and figures."""
     relays: list[CountingRelay] = []
+    loop = asyncio.get_running_loop()
+    t_relays = loop.time()
     args = ["robot", "--mode", mode.split("_")[0], "--requests", str(requests), "--rate", str(rate)]
     if mode.startswith("drvs_boxes"):
         args.append("--no-outlines")
@@ -148,10 +152,12 @@ async def run_mode(
             relays.append(relay)
             args += ["--camera", f"127.0.0.1:{relay.port}", "--homography", str(hfile)]
     robot = await bench_process(f"robot-{mode}", *args).start()
+    t_robot = loop.time()
     sampler = CpuSampler(robot.pid, BUCKET_S)
     sampler.start()
     try:
         ready = await robot.wait_for_line(r"^READY (\d+)", timeout=60)
+        t_ready = loop.time()
         cpu = _Cpu(cpu_procs or {})
         if callback_relay is not None:
             callback_relay.set_target("127.0.0.1", int(ready.group(1)))
@@ -168,6 +174,7 @@ async def run_mode(
     payload = sum(r.total for r in relays)
     payload_to_robot = sum((r.to_target if r is callback_relay else to_robot(r)) for r in relays)
     wall = float(outcome["wall_s"])
+    skip = int((t_ready - t_relays) / BUCKET_S)
     return {
         **outcome,
         # Wire bytes: both directions, as a 1500-byte-MTU Ethernet link carries them (drvs.meter).
@@ -189,9 +196,11 @@ async def run_mode(
         "cameras_cpu_s": used.get("cameras", 0.0),
         "server_cpu_s": used.get("server", 0.0),
         "relays_cpu_s": used["relays"],
-        "bytes_timeline": _merge([r.wire_timeline for r in relays]),
-        "payload_bytes_timeline": _merge([r.timeline for r in relays]),
-        "cpu_load_timeline": [round(load, 4) for _, load in sampler.load()],
+        "system_cpu_cores": (float(outcome["cpu_s"]) + used.get("cameras", 0.0) + used.get("server", 0.0)) / wall,
+        # Timelines from the robot's READY (its start-up left out), per BUCKET_S.
+        "bytes_timeline": _merge([r.wire_timeline for r in relays])[skip:],
+        "payload_bytes_timeline": _merge([r.timeline for r in relays])[skip:],
+        "cpu_load_timeline": [round(load, 4) for t, load in sampler.load() if t >= t_ready - t_robot],
     }
 
 
@@ -331,6 +340,11 @@ _MACHINE = {
     "machine_cpu_ratio_jpeg": ("jpeg", "drvs_boxes"),
     "machine_cpu_ratio_moving": ("raw", "drvs_boxes_moving"),
 }
+_SYSTEM = {
+    "system_cpu_ratio": ("raw", "drvs_boxes"),
+    "system_cpu_ratio_jpeg": ("jpeg", "drvs_boxes"),
+    "system_cpu_ratio_moving": ("raw", "drvs_boxes_moving"),
+}
 _FLOOR_DEFINITIONS = {
     "robot_cpu_floor": (
         "rtt_floor",
@@ -390,6 +404,8 @@ def summarise(runs: list[dict[str, dict[str, Any]]], requests: int, rate: float,
         publish(result, name, [_cpu_rate(run[num]) / _cpu_rate(run[den]) for run in runs])
     for name, (num, den) in _MACHINE.items():
         publish(result, name, [run[num]["machine_cpu_cores"] / run[den]["machine_cpu_cores"] for run in runs])
+    for name, (num, den) in _SYSTEM.items():
+        publish(result, name, [run[num]["system_cpu_cores"] / run[den]["system_cpu_cores"] for run in runs])
     for key, (floor, definition) in _FLOOR_DEFINITIONS.items():
         figures: dict[str, Any] = {}
         for fig in ("cpu_s", "wall_s", "last_report_ms_p50"):
