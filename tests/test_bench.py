@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -27,10 +28,14 @@ async def test_paper_benchmark_smoke(tmp_path: Path) -> None:
     assert set(result["modes"]) == {"drvs", "drvs_boxes", "drvs_boxes_moving", "raw", "jpeg"}
     for mode in result["modes"].values():
         assert mode["bytes"] > 0 and mode["cpu_s"] > 0 and mode["bytes_timeline"]
-        # Wire bytes are the payload plus 66 B of headers a segment, and every run is kept.
-        assert mode["bytes"] == mode["payload_bytes"] + 66 * mode["segments"] + _fin_bytes(mode)
+        # Wire bytes are the payload plus 66 B of headers a segment, in every run (the relay may
+        # have read a little a closing robot never took; the kernel counts a FIN as a byte).
+        runs = zip(mode["bytes_runs"], mode["payload_bytes_runs"], mode["segments_runs"], strict=True)
+        for wire, payload, segments in runs:
+            assert 0.99 * (payload + 66 * segments) <= wire <= payload + 66 * segments + 8
         assert len(mode["bytes_runs"]) == 3 and mode["bytes_spread"][0] <= mode["bytes"] <= mode["bytes_spread"][1]
-        assert 0 < mode["robot_cpu_cores"] < 2 and 0 < mode["machine_cpu_cores"] <= 2.05
+        cores = os.cpu_count() or 1
+        assert 0 < mode["robot_cpu_cores"] < cores and 0 < mode["machine_cpu_cores"] <= cores + 0.1  # 10 ms ticks
     for name in ("drvs_boxes", "drvs_boxes_moving"):
         boxes = result["modes"][name]
         assert boxes["requests"] == boxes["requests_delivered"] == 15 and boxes["reports"] == 30, name
@@ -62,13 +67,6 @@ async def test_paper_benchmark_smoke(tmp_path: Path) -> None:
     for png in ("bandwidth.png", "cpu.png"):
         image = cv2.imread(str(tmp_path / png))
         assert image is not None and image.shape[0] > 200
-
-
-def _fin_bytes(mode: dict[str, Any]) -> float:
-    """The kernel counts each FIN as one byte of sequence space: at most one each way per connection."""
-    extra = mode["bytes"] - mode["payload_bytes"] - 66 * mode["segments"]
-    assert 0 <= extra <= 8, extra
-    return float(extra)
 
 
 def _drvs_run(requests: int, **changes: Any) -> dict[str, Any]:

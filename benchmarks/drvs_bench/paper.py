@@ -65,7 +65,7 @@ CPU_COVERAGE = {
     "system, all its threads: event loop, gRPC's poller and event-engine threads, detection workers)",
     "cpu_load_timeline": "the same process from /proc/<pid>/stat (utime + stime, all threads), per 0.1 s",
     "machine_cpu_cores": "the whole machine from /proc/stat (user + nice + system + irq + softirq + steal "
-    "jiffies, every core) over the robot's measured interval, in cores; includes the cameras, the server, "
+    "jiffies, every core) from the robot's READY to its DONE, in cores; includes the cameras, the server, "
     "the benchmark's relays and anything else running (the machine is shared)",
     "cameras_cpu_s / server_cpu_s": "the drvs-camera processes (together) and the drvs-server, /proc "
     "utime + stime over the same interval: on loopback a raw stream's send work lands in the cameras",
@@ -163,6 +163,7 @@ async def run_mode(
             callback_relay.set_target("127.0.0.1", int(ready.group(1)))
         done = await robot.wait_for_line(r"^DONE (.*)", timeout=requests / rate + 120)
         used = cpu.stop()
+        interval = loop.time() - t_ready
         outcome = json.loads(done.group(1))
         assert await robot.wait(timeout=30) == 0, robot.output()
     finally:
@@ -191,12 +192,13 @@ async def run_mode(
         "payload_bytes_to_robot": payload_to_robot,
         "payload_bytes_from_robot": payload - payload_to_robot,
         "robot_cpu_cores": float(outcome["cpu_s"]) / wall,
-        "machine_cpu_cores": used["machine"] / wall,
+        "machine_cpu_cores": used["machine"] / interval,
         "machine_cpu_s": used["machine"],
         "cameras_cpu_s": used.get("cameras", 0.0),
         "server_cpu_s": used.get("server", 0.0),
         "relays_cpu_s": used["relays"],
-        "system_cpu_cores": (float(outcome["cpu_s"]) + used.get("cameras", 0.0) + used.get("server", 0.0)) / wall,
+        "system_cpu_cores": float(outcome["cpu_s"]) / wall
+        + (used.get("cameras", 0.0) + used.get("server", 0.0)) / interval,
         # Timelines from the robot's READY (its start-up left out), per BUCKET_S.
         "bytes_timeline": _merge([r.wire_timeline for r in relays])[skip:],
         "payload_bytes_timeline": _merge([r.timeline for r in relays])[skip:],
