@@ -19,7 +19,6 @@ import os
 import re
 import sys
 import tempfile
-from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -61,12 +60,12 @@ TARGETS = {"bandwidth_ratio_raw": 1000.0, "bandwidth_ratio_jpeg": 100.0, "robot_
 _TICK = os.sysconf("SC_CLK_TCK")
 
 CPU_COVERAGE = {
-    "cpu_s": "the robot process only: time.process_time() in it over its measured interval (user + "
+    "cpu_s": "the robot process only: time.process_time() in it over its measured interval, after its warm-up (user + "
     "system, all its threads: event loop, gRPC's poller and event-engine threads, detection workers)",
     "cpu_load_timeline": "the same process from /proc/<pid>/stat (utime + stime, all threads), per 0.1 s",
     "machine_cpu_cores": "the whole machine from /proc/stat (user + nice + system + irq + softirq + steal "
-    "jiffies, every core) from the robot's READY to its DONE, in cores; includes the cameras, the server, "
-    "the benchmark's relays and anything else running (the machine is shared)",
+    "jiffies, every core) from the robot's START (after its warm-up) to its DONE, in cores; includes the "
+    "cameras, the server, the benchmark's relays and anything else running (the machine is shared)",
     "cameras_cpu_s / server_cpu_s": "the drvs-camera processes (together) and the drvs-server, /proc "
     "utime + stime over the same interval: on loopback a raw stream's send work lands in the cameras",
     "system_cpu_cores": "robot + cameras + server, as above, in cores: the whole system's work for the robot "
@@ -133,7 +132,6 @@ async def run_mode(
     if mode.endswith("_moving"):
         args.append("--moving")
     callback_relay: CountingRelay | None = None
-    to_robot: Callable[[CountingRelay], int] = lambda r: r.from_target  # noqa: E731
     if mode.startswith("drvs"):
         host, port = server.rsplit(":", 1)
         server_relay = CountingRelay(host, int(port), bucket_s=BUCKET_S)
@@ -157,13 +155,17 @@ async def run_mode(
     sampler.start()
     try:
         ready = await robot.wait_for_line(r"^READY (\d+)", timeout=60)
-        t_ready = loop.time()
-        cpu = _Cpu(cpu_procs or {})
         if callback_relay is not None:
             callback_relay.set_target("127.0.0.1", int(ready.group(1)))
+        # Measured from START, after the robot's warm-up (requests back to back, or the streams' first frames).
+        await robot.wait_for_line(r"^START$", timeout=120)
+        t_start = loop.time()
+        cpu = _Cpu(cpu_procs or {})
+        wire0 = _wire_sum(relays)
         done = await robot.wait_for_line(r"^DONE (.*)", timeout=requests / rate + 120)
         used = cpu.stop()
-        interval = loop.time() - t_ready
+        interval = loop.time() - t_start
+        wire = _wire_sum(relays) - wire0
         outcome = json.loads(done.group(1))
         assert await robot.wait(timeout=30) == 0, robot.output()
     finally:
@@ -171,11 +173,9 @@ async def run_mode(
         await robot.stop()
         for r in relays:
             await r.close()
-    wire = _wire_sum(relays)
-    payload = sum(r.total for r in relays)
-    payload_to_robot = sum((r.to_target if r is callback_relay else to_robot(r)) for r in relays)
+    payload, payload_to_robot = wire.payload, wire.payload_to_host
     wall = float(outcome["wall_s"])
-    skip = int((t_ready - t_relays) / BUCKET_S)
+    skip = int((t_start - t_relays) / BUCKET_S)
     return {
         **outcome,
         # Wire bytes: both directions, as a 1500-byte-MTU Ethernet link carries them (drvs.meter).
@@ -186,7 +186,7 @@ async def run_mode(
         "segments": wire.segments,
         "segments_to_robot": wire.segments_to_host,
         "segments_from_robot": wire.segments_from_host,
-        # TCP payload (what the applications wrote), both directions.
+        # TCP payload (what the applications wrote), both directions, from the same counters.
         "payload_bytes": payload,
         "payload_bytes_per_s": payload / wall,
         "payload_bytes_to_robot": payload_to_robot,
@@ -199,10 +199,10 @@ async def run_mode(
         "relays_cpu_s": used["relays"],
         "system_cpu_cores": float(outcome["cpu_s"]) / wall
         + (used.get("cameras", 0.0) + used.get("server", 0.0)) / interval,
-        # Timelines from the robot's READY (its start-up left out), per BUCKET_S.
+        # Timelines from the robot's START (its start-up and warm-up left out), per BUCKET_S.
         "bytes_timeline": _merge([r.wire_timeline for r in relays])[skip:],
         "payload_bytes_timeline": _merge([r.timeline for r in relays])[skip:],
-        "cpu_load_timeline": [round(load, 4) for t, load in sampler.load() if t >= t_ready - t_robot],
+        "cpu_load_timeline": [round(load, 4) for t, load in sampler.load() if t >= t_start - t_robot],
     }
 
 

@@ -26,7 +26,7 @@ import asyncio
 import contextlib
 import socket
 import struct
-from dataclasses import dataclass
+from dataclasses import astuple, dataclass
 from typing import Literal
 
 _CHUNK = 65536
@@ -108,12 +108,16 @@ async def _resolve(host: str, port: int) -> tuple[socket.AddressFamily, tuple[st
 
 @dataclass(frozen=True)
 class WireCount:
-    """Bytes to and from the measured host: `to_host` is what the relay sent it, `from_host` what it sent."""
+    """Bytes to and from the measured host as a 1500-byte-MTU Ethernet link carries them (`to_host` is
+    what the relay sent it, `from_host` what it sent), their segments, and the TCP payload in them, all
+    from the kernel's counters of the socket that faces the host."""
 
     to_host: int = 0
     from_host: int = 0
     segments_to_host: int = 0
     segments_from_host: int = 0
+    payload_to_host: int = 0
+    payload_from_host: int = 0
 
     @property
     def total(self) -> int:
@@ -123,13 +127,15 @@ class WireCount:
     def segments(self) -> int:
         return self.segments_to_host + self.segments_from_host
 
+    @property
+    def payload(self) -> int:
+        return self.payload_to_host + self.payload_from_host
+
     def __add__(self, other: WireCount) -> WireCount:
-        return WireCount(
-            self.to_host + other.to_host,
-            self.from_host + other.from_host,
-            self.segments_to_host + other.segments_to_host,
-            self.segments_from_host + other.segments_from_host,
-        )
+        return WireCount(*(a + b for a, b in zip(astuple(self), astuple(other), strict=True)))
+
+    def __sub__(self, other: WireCount) -> WireCount:
+        return WireCount(*(a - b for a, b in zip(astuple(self), astuple(other), strict=True)))
 
 
 class _Measured:
@@ -147,7 +153,7 @@ class _Measured:
             except (OSError, ValueError):  # closed: keep the last reading
                 self._sock = None
             else:
-                self.last = WireCount(c.wire_out, c.wire_in, c.segments_out, c.segments_in)
+                self.last = WireCount(c.wire_out, c.wire_in, c.segments_out, c.segments_in, c.payload_out, c.payload_in)
         return self.last
 
 
