@@ -164,7 +164,8 @@ async def run_mode(
         wire0 = _wire_sum(relays)
         done = await robot.wait_for_line(r"^DONE (.*)", timeout=requests / rate + 120)
         used = cpu.stop()
-        interval = loop.time() - t_start
+        t_done = loop.time()
+        interval = t_done - t_start
         wire = _wire_sum(relays) - wire0
         outcome = json.loads(done.group(1))
         assert await robot.wait(timeout=30) == 0, robot.output()
@@ -175,7 +176,7 @@ async def run_mode(
             await r.close()
     payload, payload_to_robot = wire.payload, wire.payload_to_host
     wall = float(outcome["wall_s"])
-    skip = int((t_start - t_relays) / BUCKET_S)
+    skip, end = int((t_start - t_relays) / BUCKET_S), int((t_done - t_relays) / BUCKET_S) + 1
     return {
         **outcome,
         # Wire bytes: both directions, as a 1500-byte-MTU Ethernet link carries them (drvs.meter).
@@ -199,10 +200,12 @@ async def run_mode(
         "relays_cpu_s": used["relays"],
         "system_cpu_cores": float(outcome["cpu_s"]) / wall
         + (used.get("cameras", 0.0) + used.get("server", 0.0)) / interval,
-        # Timelines from the robot's START (its start-up and warm-up left out), per BUCKET_S.
-        "bytes_timeline": _merge([r.wire_timeline for r in relays])[skip:],
-        "payload_bytes_timeline": _merge([r.timeline for r in relays])[skip:],
-        "cpu_load_timeline": [round(load, 4) for t, load in sampler.load() if t >= t_start - t_robot],
+        # Timelines from the robot's START to its DONE (start-up, warm-up and exit left out), per BUCKET_S.
+        "bytes_timeline": _merge([r.wire_timeline for r in relays])[skip:end],
+        "payload_bytes_timeline": _merge([r.timeline for r in relays])[skip:end],
+        "cpu_load_timeline": [
+            round(load, 4) for t, load in sampler.load() if t_start - t_robot <= t <= t_done - t_robot
+        ],
     }
 
 
