@@ -39,9 +39,7 @@ from .common import (
     record_scene,
 )
 from .service import ack_server, run_helper
-from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, check_work, interleaved, publish, verdict
-
-__all__ = ["FULL_ROUNDS", "QUICK_ROUNDS", "WorkMismatch", "run_paper"]
+from .stats import FULL_ROUNDS, WorkMismatch, check_work, interleaved, publish, verdict
 
 BUCKET_S = 0.1
 #: drvs: reports with floor outlines (the API's default); drvs_boxes: bounding boxes only, as the
@@ -248,7 +246,12 @@ def check_drvs(mode: str, run: dict[str, Any], requests: int, cameras: int, dete
     }
     if detections is not None:
         expected["detections"] = detections * requests
-    check_work(mode, expected, run)
+    try:
+        check_work(mode, expected, run)
+    except WorkMismatch as exc:
+        if run.get("failures"):
+            raise WorkMismatch(f"{exc}; first failures: {'; '.join(run['failures'])}") from None
+        raise
 
 
 def check_stream(mode: str, run: dict[str, Any], per_frame: list[int] | None) -> None:

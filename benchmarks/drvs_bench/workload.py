@@ -72,6 +72,7 @@ async def drvs_mode(args: argparse.Namespace) -> dict[str, object]:
         reports = detections = missing = refused = error_reports = busy_reports = delivered = 0
         reports_per_request: dict[str, int] = {}
         detections_per_request: dict[str, int] = {}
+        failures: list[str] = []  # the first few, to name in a failed work check
 
         async def one(i: int) -> None:
             nonlocal reports, detections, missing, refused, error_reports, busy_reports, delivered
@@ -81,6 +82,8 @@ async def drvs_mode(args: argparse.Namespace) -> dict[str, object]:
             except DrvsError as exc:  # refused (rate limit, invalid, unavailable): a failure, never delivered
                 refused += 1
                 print(f"request {i} refused: {exc}", flush=True)
+                if len(failures) < 10:
+                    failures.append(f"request {i} refused: {type(exc).__name__}: {exc}")
                 return
             errors = result.errors
             good = [r for r in result.reports if not r.error]
@@ -94,6 +97,11 @@ async def drvs_mode(args: argparse.Namespace) -> dict[str, object]:
             # Delivered: every camera the request needs answered with a final report, none an error.
             if not errors and result.complete and len(result.camera_ids) == args.cameras == len(good):
                 delivered += 1
+            elif len(failures) < 10:
+                failures.append(
+                    f"request {i}: cameras {sorted(result.camera_ids)}, {len(good)} reports, errors {errors}, "
+                    f"missing {sorted(result.missing_cameras)}"
+                )
 
         tasks = []
         for i in range(args.requests):
@@ -116,6 +124,7 @@ async def drvs_mode(args: argparse.Namespace) -> dict[str, object]:
             "failed_requests": args.requests - delivered,
             "reports_per_request": reports_per_request,
             "detections_per_request": detections_per_request,
+            "failures": failures,
         }
 
 
