@@ -16,6 +16,7 @@ from drvs_bench.stats import QUICK_ROUNDS, WorkMismatch
 from drvs.launch import ManagedProcess, start_camera, start_server
 
 
+@pytest.mark.timeout(480)  # 24 runs, each a process of its own: a minute alone, more on a loaded machine
 async def test_paper_benchmark_smoke(tmp_path: Path) -> None:
     """--quick's three interleaved rounds (of 15 requests here), every mode and floor, checked work."""
     proc = ManagedProcess.entry_point(
@@ -112,6 +113,7 @@ def test_paper_work_check_fires_when_stream_work_is_missing() -> None:
         check_stream("jpeg", {"per_camera": [camera(20, 20, 40), camera(0, 0, 0)]}, [2, 1])
 
 
+@pytest.mark.timeout(240)
 async def test_paper_work_check_fires_on_a_real_run_with_a_camera_missing(tmp_path: Path) -> None:
     """Two cameras expected, one running: every request gets one report, and the check refuses the run."""
     scene = record_scene(tmp_path, frames=10)
