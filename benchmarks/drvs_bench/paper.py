@@ -381,7 +381,10 @@ def summarise(runs: list[dict[str, dict[str, Any]]], requests: int, rate: float,
         data: dict[str, Any] = {}
         for key, value in last[mode].items():
             if _numeric(value):
-                publish(data, key, [run[mode][key] for run in runs])
+                values = [run[mode][key] for run in runs]
+                median = publish(data, key, values)["median"]
+                if all(isinstance(v, int) for v in values) and float(median).is_integer():
+                    data[key] = data[f"{key}_median"] = int(median)  # counts stay counts
             else:
                 data[key] = value  # histograms, per-camera counts, timelines: from the last round
         modes[mode] = data
