@@ -197,10 +197,14 @@ async def stream_mode(args: argparse.Namespace) -> dict[str, object]:
     if not measuring.is_set():
         starter.cancel()
         raise SystemExit("a camera's frame stream ended before its warm-up frames")
+    wall = loop.time() - t0
     return {
         "cpu_s": time.process_time() - start_cpu,
-        "wall_s": loop.time() - t0,
+        "wall_s": wall,
         "frames": sum(c["frames_received"] for c in cameras),
+        # What the cameras' sources made meanwhile: fewer frames received means a stream fell behind
+        # (a camera or the robot short of CPU), and the baseline carried less than a full stream.
+        "frames_expected": round(FPS * wall) * len(cameras),
         "frames_analysed": sum(c["frames_analysed"] for c in cameras),
         "detections": sum(c["detections"] for c in cameras),
         "per_camera": cameras,
