@@ -123,6 +123,24 @@ async def test_load_benchmark_smoke(tmp_path: Path) -> None:
     assert cv2.imread(str(tmp_path / "load.png")) is not None
 
 
+async def test_load_abuse_smoke(tmp_path: Path) -> None:
+    """--abuse runs the same robots without and then with the abuse mix, and publishes both."""
+    proc = ManagedProcess.entry_point(
+        "bench", "drvs-bench", "load", "--abuse", "--robots", "2", "--workers", "1", "--seconds", "3",
+        "--warmup", "1", "--out", str(tmp_path),
+    )  # fmt: skip
+    await proc.start()
+    assert await proc.wait(timeout=240) == 0, proc.output()
+    result = json.loads((tmp_path / "load.json").read_text())
+    abused = json.loads((tmp_path / "load-abuse.json").read_text())
+    assert result["baseline_reports_expected"] == result["abuse_reports_expected"] == 2 * 30 * 3 * 3
+    assert result["baseline_reports_lost"] == result["reports_lost"]
+    assert result["abuse_reports_lost"] == abused["reports_lost"] and "abuse_p99_ms" in result
+    abuser = result["abuser"]
+    assert abuser["registrations_sent"] > 0 and abuser["oversized_sent"] > 0 and abuser["stalled_streams"] == 8
+    assert (tmp_path / "load-abuse.png").exists()
+
+
 # --- the work checks fire: a run that did not do its work publishes nothing --------------------
 
 

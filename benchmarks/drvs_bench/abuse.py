@@ -36,6 +36,8 @@ from .helpers import grid_position
 
 #: The flood's fake cameras sit this far from the robots' region (metres, along x and y).
 FLOOD_OFFSET_M = 5000.0
+#: Registrations in flight at once.
+FLOOD_CALLERS = 8
 
 
 class _StalledListener(detection_pb2_grpc.CallbackCoordinatesServicer):
@@ -97,10 +99,14 @@ async def abuse(args: argparse.Namespace) -> None:
         registry = registry_pb2_grpc.RegisterVisionServiceStub(channel)
         detect = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
 
+        next_id = iter(range(args.registrations))
+
         async def flood() -> None:
-            for i in range(args.registrations):
+            """One of FLOOD_CALLERS registrars: together at most --registration-rate a second."""
+            for i in next_id:
                 if loop.time() >= end:
                     return
+                t0 = loop.time()
                 x, y = grid_position(i)
                 h = homography_from_pose((x + FLOOD_OFFSET_M, y + FLOOD_OFFSET_M, 3.0), 90.0, 40.0, 60.0, (640, 480))
                 counts["registrations_sent"] += 1
@@ -115,7 +121,7 @@ async def abuse(args: argparse.Namespace) -> None:
                     )  # fmt: skip
                 except grpc.RpcError as exc:
                     refused("registrations", f"{exc.code().name}: {exc.details()}")
-                await asyncio.sleep(1 / args.registration_rate)
+                await asyncio.sleep(max(0.0, t0 + FLOOD_CALLERS / args.registration_rate - loop.time()))
 
         async def single(kind: str, message: detection_pb2.DetectionRequest) -> None:
             counts[f"{kind}_sent"] += 1
@@ -169,7 +175,12 @@ async def abuse(args: argparse.Namespace) -> None:
             await asyncio.sleep(max(0.0, end - loop.time()))  # holds the stream open, never reading
             call.cancel()
 
-        jobs = [flood(), oversized(), continuous(), *(stalled(k) for k in range(args.stalled))]
+        jobs = [
+            *(flood() for _ in range(FLOOD_CALLERS)),
+            oversized(),
+            continuous(),
+            *(stalled(k) for k in range(args.stalled)),
+        ]
         await asyncio.wait_for(asyncio.gather(*jobs, return_exceptions=True), timeout=args.seconds + 30)
     stop.set()
     counts["stalled_report_streams"] = listener.streams

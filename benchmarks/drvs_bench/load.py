@@ -464,8 +464,8 @@ def write_outputs(result: dict[str, Any], out: Path, name: str = "load") -> None
     ax2.legend(fontsize=8)
     ax2.grid(True, alpha=0.3)
     rss = result["rss_timeline"]
-    for name in [k for k in (rss[0] if rss else {}) if k != "t"]:
-        ax3.plot([p["t"] for p in rss], [p.get(name, math.nan) / 2**20 for p in rss], label=name)
+    for process in [k for k in (rss[0] if rss else {}) if k != "t"]:
+        ax3.plot([p["t"] for p in rss], [p.get(process, math.nan) / 2**20 for p in rss], label=process)
     ax3.set_ylabel("RSS (MiB)")
     ax3.set_xlabel("seconds from start")
     ax3.legend(fontsize=8)

@@ -312,7 +312,7 @@ ROUTING_MODES = (
 
 async def measure_routing(quick: bool, out: dict[str, Any]) -> None:
     cameras = 1000
-    seconds = "2" if quick else "8"
+    seconds = "1.5" if quick else "8"
     procs: list[ManagedProcess] = []
     try:
         ack, ack_address = await ack_server()
