@@ -190,6 +190,7 @@ async def load(args: argparse.Namespace) -> None:
             return one_camera_request(i % args.cameras, args.callback, moving=counter)
 
         done = errors = 0
+        error_kinds: dict[str, int] = {}
         loop = asyncio.get_running_loop()
         callers = [_Caller(channel, args.mode) for _ in range(args.concurrency)]
         for k, caller in enumerate(callers):
@@ -206,8 +207,10 @@ async def load(args: argparse.Namespace) -> None:
                 try:
                     await callers[k](message(i))
                     done += 1
-                except (grpc.RpcError, RuntimeError):
+                except (grpc.RpcError, RuntimeError) as exc:
                     errors += 1
+                    kind = str(exc)[:200]
+                    error_kinds[kind] = error_kinds.get(kind, 0) + 1
                 i += args.concurrency
 
         t0 = loop.time()
@@ -215,7 +218,11 @@ async def load(args: argparse.Namespace) -> None:
         elapsed = loop.time() - t0
         for caller in callers:
             caller.close()
-        print("DONE " + json.dumps({"calls": done, "errors": errors, "rps": done / elapsed}), flush=True)
+        kinds = dict(sorted(error_kinds.items(), key=lambda kv: -kv[1])[:5])
+        print(
+            "DONE " + json.dumps({"calls": done, "errors": errors, "rps": done / elapsed, "error_kinds": kinds}),
+            flush=True,
+        )
 
 
 def with_request_id(message: detection_pb2.DetectionRequest, request_id: str) -> detection_pb2.DetectionRequest:
