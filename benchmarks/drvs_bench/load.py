@@ -408,6 +408,7 @@ def summarise(
         "latency_p99_ms": percentile(latencies, 99),
         "latency_max_ms": max(latencies, default=math.nan),
         "send_lag_p99_ms": percentile(lags, 99),
+        "send_lag_max_ms": max(lags, default=math.nan),
         "latency_from": "each request's scheduled send time",
         "rss_window_s": window,
         "server_rss_start_bytes": rss_warm["server"],
