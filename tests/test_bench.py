@@ -94,6 +94,7 @@ def check_service_rounds(result: dict[str, Any]) -> None:
         assert v["verdict"] in ("met", "missed", "spread crosses target")
 
 
+@pytest.mark.timeout(300)
 async def test_load_benchmark_smoke(tmp_path: Path) -> None:
     proc = ManagedProcess.entry_point("bench", "drvs-bench", "load", "--quick", "--out", str(tmp_path))
     await proc.start()
@@ -127,6 +128,7 @@ async def test_load_benchmark_smoke(tmp_path: Path) -> None:
     assert cv2.imread(str(tmp_path / "load.png")) is not None
 
 
+@pytest.mark.timeout(300)  # two load runs, each with its own server and cameras
 async def test_load_abuse_smoke(tmp_path: Path) -> None:
     """--abuse runs the same robots without and then with the abuse mix, and publishes both."""
     proc = ManagedProcess.entry_point(

@@ -38,6 +38,8 @@ from .helpers import grid_position
 FLOOD_OFFSET_M = 5000.0
 #: Registrations in flight at once.
 FLOOD_CALLERS = 8
+#: Robot ids the oversized and continuous requests take in turn (ids cost an attacker nothing).
+ROBOT_IDS = 16
 
 
 class _StalledListener(detection_pb2_grpc.CallbackCoordinatesServicer):
@@ -139,7 +141,7 @@ async def abuse(args: argparse.Namespace) -> None:
             i = 0
             while loop.time() < end and i < int(args.oversized_rate * args.seconds):
                 message = detection_pb2.DetectionRequest(
-                    request_id=f"big{i}", robot_id="abuser", filter_def=YELLOW, region=region,
+                    request_id=f"big{i}", robot_id=f"abuser{i % ROBOT_IDS}", filter_def=YELLOW, region=region,
                     callback_address=stalled_callback,
                 )  # fmt: skip
                 tasks.append(loop.create_task(single("oversized", message)))
@@ -150,11 +152,13 @@ async def abuse(args: argparse.Namespace) -> None:
         async def continuous() -> None:
             for i in range(args.continuous):
                 message = detection_pb2.DetectionRequest(
-                    request_id=f"cont{i}", robot_id="abuser", filter_def=YELLOW, region=big_polygon(8),
+                    request_id=f"cont{i}", robot_id=f"abuser{i % ROBOT_IDS}", filter_def=YELLOW, region=big_polygon(8),
                     callback_address=stalled_callback,
                     continuous=detection_pb2.ContinuousMode(rate_hz=20.0, duration_s=max(1.0, args.seconds)),
                 )  # fmt: skip
                 await single("continuous", message)
+
+        small = big_polygon(8)
 
         async def stalled(k: int) -> None:
             call = detect.DetectStream()
@@ -164,8 +168,8 @@ async def abuse(args: argparse.Namespace) -> None:
                     if loop.time() >= end:
                         break
                     message = detection_pb2.DetectionRequest(
-                        request_id=f"st{k}-{i}", robot_id="abuser", filter_def=YELLOW, region=big_polygon(8),
-                        callback_address=stalled_callback,
+                        request_id=f"st{k}-{i}", robot_id=f"abuser-stalled{k}", filter_def=YELLOW,
+                        region=small, callback_address=stalled_callback,
                     )  # fmt: skip
                     await asyncio.wait_for(call.write(message), timeout=max(0.01, end - loop.time()))
                     counts["stalled_requests_written"] += 1
