@@ -258,6 +258,7 @@ async def latency(args: argparse.Namespace) -> None:
         first: list[float] = []
         last: list[float] = []
         counts = {"complete": 0, "missing": 0, "error_reports": 0, "refused": 0, "no_camera": 0}
+        error_kinds: dict[str, int] = {}
 
         async def one(i: int, t0: float) -> None:
             filter_def = moving_filter(i) if args.moving else YELLOW
@@ -273,6 +274,9 @@ async def latency(args: argparse.Namespace) -> None:
                     first_ms = (loop.time() - t0) * 1000
             errors = sum(1 for r in sub.result.reports if r.error)
             counts["error_reports"] += errors
+            for r in sub.result.reports:
+                if r.error and len(error_kinds) < 5:
+                    error_kinds[r.error[:200]] = error_kinds.get(r.error[:200], 0) + 1
             if not sub.camera_ids:
                 counts["no_camera"] += 1
             elif not sub.result.complete:
@@ -302,6 +306,7 @@ async def latency(args: argparse.Namespace) -> None:
                     "requests": args.requests,
                     "moving": bool(args.moving),
                     **counts,
+                    "error_kinds": error_kinds,
                     "first_ms": first,
                     "last_ms": last,
                     "peak_rss_bytes": peak_rss_bytes(os.getpid()),

@@ -51,6 +51,12 @@ TARGETS: dict[str, tuple[float, bool]] = {
     "camera_cpu_200_over_20": (3.0, False),
     "camera_cpu_200_over_20_moving": (3.0, False),
 }
+#: The service benchmark measures capacity and cost, not policy: besides the per-robot rate limit,
+#: it lifts load shedding (`busy` past 64 queued forwards) and the 2 s forward timeout, after which a
+#: camera leaves routing until its next heartbeat (fake cameras never send one). On this shared
+#: machine a stall of a fraction of a second would otherwise turn into refusals, and any refusal
+#: fails the run's work check.
+CAPACITY_NOT_POLICY = (*NO_RATE_LIMIT, "--forward-timeout", "60", "--max-queued-forwards", "100000")
 #: Where the floors hold.
 FLOOR_HOLDS = (
     "this message layout (DRVS's request, reply, forward and report messages, reports without "
@@ -131,6 +137,8 @@ class Selection:
 
 
 def check_latency_run(name: str, run: dict[str, Any]) -> None:
+    if run.get("error_kinds"):
+        name = f"{name} (errors: {run['error_kinds']})"
     check_work(
         name,
         {"complete": run["requests"], "missing": 0, "error_reports": 0, "refused": 0, "no_camera": 0},
@@ -143,7 +151,7 @@ async def measure_latency(quick: bool, out: dict[str, Any]) -> None:
         scene = record_scene(Path(tmp), cameras=3)
         procs: list[ManagedProcess] = []
         try:
-            server, address = await start_server(*NO_RATE_LIMIT)
+            server, address = await start_server(*CAPACITY_NOT_POLICY)
             procs.append(server)
             for camera_id, rec in scene.items():
                 procs.append(await start_camera(camera_id, rec.video, rec.homography_file, address, "--max-range", "6"))
@@ -319,10 +327,7 @@ async def measure_routing(quick: bool, out: dict[str, Any]) -> None:
     try:
         ack, ack_address = await ack_server()
         procs.append(ack)
-        # The fake cameras never heartbeat: a forward that missed the 2 s forward timeout once (this
-        # machine is shared, and stalls) would leave its camera out of routing for good, and every
-        # later request to it would be answered "no camera". Capacity, not that policy, is measured.
-        server, address = await start_server("--lease-ttl", "3600", "--forward-timeout", "60", *NO_RATE_LIMIT)
+        server, address = await start_server("--lease-ttl", "3600", *CAPACITY_NOT_POLICY)
         procs.append(server)
         await run_helper("register", "register", "--server", address, "--camera-address", ack_address,
                          "--count", str(cameras))  # fmt: skip
@@ -433,7 +438,7 @@ async def measure_camera_cpu(quick: bool, out: dict[str, Any]) -> None:
         rec = record_scene(Path(tmp), cameras=1)["cam1"]
         procs: list[ManagedProcess] = []
         try:
-            server, address = await start_server(*NO_RATE_LIMIT)
+            server, address = await start_server(*CAPACITY_NOT_POLICY)
             procs.append(server)
             cam = await start_camera("cam1", rec.video, rec.homography_file, address, "--max-range", "6")
             procs.append(cam)
@@ -464,7 +469,9 @@ async def measure_camera_cpu(quick: bool, out: dict[str, Any]) -> None:
                         "complete": sum(1 for res in results if res.complete and res.camera_ids and not res.errors),
                         "error_reports": sum(len(res.errors) for res in results),
                     }
-                    check_work(f"camera CPU {name}, round {r + 1}", {"complete": n, "error_reports": 0}, got)
+                    kinds = sorted({e[:200] for res in results for e in res.errors})[:3]
+                    what = f"camera CPU {name}, round {r + 1}" + (f" (errors: {kinds})" if kinds else "")
+                    check_work(what, {"complete": n, "error_reports": 0}, got)
                     per_round[r][name] = {"cpu_s": c1 - c0, "wall_s": t1 - t0, "requests": n}
             loads: dict[str, Any] = {}
             for name, rate, _moving in CAMERA_MODES:
