@@ -10,7 +10,9 @@ from typing import Any
 import cv2
 import pytest
 from drvs_bench.common import record_scene
+from drvs_bench.load import QUICK_ROBOTS, Sampler, check_load_work, expected_requests, schedule, summarise
 from drvs_bench.paper import check_drvs, check_stream, run_mode
+from drvs_bench.service import check_latency_run
 from drvs_bench.stats import QUICK_ROUNDS, WorkMismatch
 
 from drvs.launch import ManagedProcess, start_camera, start_server
@@ -134,10 +136,11 @@ async def test_paper_work_check_fires_on_a_real_run_with_a_camera_missing(tmp_pa
         check_drvs("drvs_boxes", run, 10, 2, None)
 
 
+@pytest.mark.timeout(600)  # three interleaved rounds of every comparison: about three minutes
 async def test_service_benchmark_smoke(tmp_path: Path) -> None:
     proc = ManagedProcess.entry_point("bench", "drvs-bench", "service", "--quick", "--out", str(tmp_path))
     await proc.start()
-    assert await proc.wait(timeout=400) == 0, proc.output()
+    assert await proc.wait(timeout=600) == 0, proc.output()
     result = json.loads((tmp_path / "service.json").read_text())
     for key in (
         "latency_p50_over_floor",
@@ -153,21 +156,161 @@ async def test_service_benchmark_smoke(tmp_path: Path) -> None:
         assert result[key] > 0, key
     assert result["latency"]["30"]["missing"] == 0 and result["routing"]["errors"] == 0
     assert cv2.imread(str(tmp_path / "latency.png")) is not None
+    check_service_rounds(result)
 
 
+def check_service_rounds(result: dict[str, Any]) -> None:
+    """Issue 13's keys in a --quick run: three interleaved rounds; median, spread and every round
+    of each comparison; the moving-region variant; the floor named; marginal camera CPU; verdicts."""
+    assert result["rounds"] == 3
+    for key in (
+        "latency_p50_over_floor",
+        "latency_moving_p50_over_floor",
+        "latency_last_final_p50_over_floor",
+        "routing_over_echo",
+        "routing_moving_over_echo",
+        "routing_over_bare_proxy",
+        "lookup_10k_over_100",
+        "camera_cpu_200_over_20",
+        "camera_cpu_200_over_20_moving",
+    ):
+        runs, (low, high) = result[f"{key}_runs"], result[f"{key}_spread"]
+        assert len(runs) == 3 and low <= result[f"{key}_median"] == result[key] <= high, key
+        assert low == min(runs) and high == max(runs), key
+    floor = result["latency_floor"]
+    assert floor["floor_ms"] == floor["floor_ms_median"] > floor["select_ms_p50"] > 0
+    assert "selection" in floor["definition"] and "this machine" in floor["holds_for"]
+    assert result["latency_moving"]["30"]["first_report_ms"]["p50"] > 0
+    for name in ("echo_stream", "routing_stream", "routing_moving_stream", "bare_proxy_stream"):
+        assert len(result["routing"][f"{name}_rps_runs"]) == 3, name
+    for name in ("20", "200", "20_moving", "200_moving"):
+        assert result["camera_cpu"][name]["marginal_cpu_ms_per_request_spread"], name
+        assert f"camera_marginal_cpu_ms_per_request_{name}" in result
+    assert result["camera_cpu"]["idle"]["camera_cpu_per_s"] > 0
+    assert set(result["verdicts"]) >= {"latency_p50_over_floor", "routing_over_echo", "lookup_10k_over_100"}
+    for v in result["verdicts"].values():
+        assert v["verdict"] in ("met", "missed", "spread crosses target")
+
+
+@pytest.mark.timeout(300)
 async def test_load_benchmark_smoke(tmp_path: Path) -> None:
     proc = ManagedProcess.entry_point("bench", "drvs-bench", "load", "--quick", "--out", str(tmp_path))
     await proc.start()
     assert await proc.wait(timeout=240) == 0, proc.output()
     result = json.loads((tmp_path / "load.json").read_text())
-    assert (result["robots"], result["workers"], result["cameras"], result["rate_hz"]) == (10, 2, 3, 30)
-    # Ten robots at 30 Hz for a 2 s warm-up and 10 s, every request over all three cameras.
+    # --quick sits at the capacity the last full sweep found (12 robots), not below it.
+    assert (result["robots"], result["workers"], result["cameras"], result["rate_hz"]) == (QUICK_ROBOTS, 2, 3, 30)
+    assert "sweep" in result["quick_robots_source"]
+    # Twelve robots at 30 Hz for 10 s after a 2 s warm-up whose requests count nowhere, every
+    # request over all three cameras.
     assert result["requests"] == 3600 and result["reports_expected"] == 10800
+    assert result["warmup_requests"] == 720 and result["latency_from"] == "each request's scheduled send time"
     assert 0 < result["reports_received"] <= result["reports_expected"]
     assert result["reports_lost"] == result["reports_expected"] - result["reports_received"]
-    assert 0 < result["latency_p50_ms"] <= result["latency_p99_ms"] <= 1000 * result["report_timeout_s"]
+    assert 0 < result["latency_p50_ms"] <= result["latency_p99_ms"] <= result["latency_max_ms"]
+    # Timed from the scheduled send: at most the send's lag, the server's reply (5 s at most) and the
+    # report timeout after it.
+    assert result["latency_max_ms"] <= result["send_lag_max_ms"] + 5000 + 1000 * result["report_timeout_s"] + 100
     for key in ("server_rss_growth", "camera_rss_growth"):
         assert -0.5 < result[key] < 0.5, key  # a ratio, not bytes
     assert result["server_rss_start_bytes"] > 10 * 2**20 and len(result["camera_rss_start_bytes"]) == 3
-    assert len(result["timeline"]) == 12 and set(result["targets"]) == {"no_report_lost", "rss_growth_under_10_percent"}
+    assert len(result["timeline"]) == 12
+    assert set(result["targets"]) == {
+        "no_report_lost",
+        "rss_growth_under_10_percent",
+        "rss_peak_growth_under_10_percent",
+    }
+    for who in ("server", "camera"):  # the whole run's peak is at least where it started
+        assert result[f"{who}_rss_peak_growth"] >= min(0.0, result[f"{who}_rss_growth"]), who
+    assert result["server_rss_peak_bytes"] >= result["server_rss_start_bytes"]
     assert cv2.imread(str(tmp_path / "load.png")) is not None
+
+
+@pytest.mark.timeout(300)  # two load runs, each with its own server and cameras
+async def test_load_abuse_smoke(tmp_path: Path) -> None:
+    """--abuse runs the same robots without and then with the abuse mix, and publishes both."""
+    proc = ManagedProcess.entry_point(
+        "bench", "drvs-bench", "load", "--abuse", "--robots", "2", "--workers", "1", "--seconds", "3",
+        "--warmup", "1", "--out", str(tmp_path),
+    )  # fmt: skip
+    await proc.start()
+    assert await proc.wait(timeout=240) == 0, proc.output()
+    result = json.loads((tmp_path / "load.json").read_text())
+    abused = json.loads((tmp_path / "load-abuse.json").read_text())
+    assert result["baseline_reports_expected"] == result["abuse_reports_expected"] == 2 * 30 * 3 * 3
+    assert result["baseline_reports_lost"] == result["reports_lost"]
+    assert result["abuse_reports_lost"] == abused["reports_lost"] and "abuse_p99_ms" in result
+    abuser = result["abuser"]
+    assert abuser["registrations_sent"] > 0 and abuser["oversized_sent"] > 0 and abuser["stalled_streams"] == 8
+    assert (tmp_path / "load-abuse.png").exists()
+
+
+# --- the work checks fire: a run that did not do its work publishes nothing --------------------
+
+
+async def run_bench_helper(*args: str) -> dict[str, Any]:
+    proc = await ManagedProcess.entry_point("helper", "drvs-bench", *args).start()
+    try:
+        done = await proc.wait_for_line(r"^DONE (.*)", timeout=60)
+        assert await proc.wait(timeout=30) == 0, proc.output()
+    finally:
+        await proc.stop()
+    return dict(json.loads(done.group(1)))
+
+
+async def test_latency_work_check_fires_when_no_camera_answers() -> None:
+    """A server with no camera answers every request at once with nothing in it: the latency
+    robot counts each as a failure, not a delivered request, and the check refuses the run."""
+    server, address = await start_server()
+    try:
+        run = await run_bench_helper(
+            "latency", "--server", address, "--rate", "50", "--requests", "5", "--warmup", "0"
+        )  # fmt: skip
+        routing = await run_bench_helper("routing-load", "--target", address, "--seconds", "0.5", "--concurrency", "2")
+    finally:
+        await server.stop()
+    assert (run["complete"], run["no_camera"], run["first_ms"], run["last_ms"]) == (0, 5, [], [])
+    with pytest.raises(WorkMismatch, match="complete: expected 5, got 0"):
+        check_latency_run("latency", run)
+    # The routing load counts a reply that names no camera as an error, never as a request done.
+    assert routing["calls"] == 0 and routing["errors"] > 0
+
+
+def test_latency_work_check_counts_busy_and_refusals_as_failures() -> None:
+    done = {"requests": 4, "complete": 4, "missing": 0, "error_reports": 0, "refused": 0, "no_camera": 0}
+    check_latency_run("latency", done)  # all the work: no error
+    for failure in ("missing", "error_reports", "refused"):
+        with pytest.raises(WorkMismatch, match=failure):
+            check_latency_run("latency", {**done, failure: 1})
+
+
+def load_records(robots: int, rate: float, warmup: float, seconds: float) -> list[list[Any]]:
+    """What the load robots would record if every request came back whole from all three cameras."""
+    return [
+        [round(o, 4), 0.1, 3, 0, 5.0, "", o < warmup]
+        for g in range(robots)
+        for o in schedule(g, robots, rate, warmup + seconds)
+    ]
+
+
+def summarise_records(records: list[list[Any]], warmup: float, seconds: float) -> dict[str, Any]:
+    sampler = Sampler({})
+    for t in (0.0, warmup, warmup + seconds):
+        sampler.samples.append((t, {"server": 100, "cam": 100}, {"server": t, "cam": t}))
+    return summarise(records, sampler.samples[1], sampler.samples[2], sampler, ["cam"], warmup)
+
+
+def test_load_counts_leave_out_warmup_and_count_errors_as_lost() -> None:
+    records = load_records(robots=3, rate=10, warmup=1, seconds=2)
+    records[-1][2:5] = [2, 1, -1.0]  # one camera answered "busy": its report is lost, the request incomplete
+    result = summarise_records(records, warmup=1, seconds=2)
+    assert result["requests"] == expected_requests(3, 10, 1, 2) == 60 and result["warmup_requests"] == 30
+    assert result["reports_lost"] == 1 and result["reports_with_error"] == 1 and result["complete_requests"] == 59
+
+
+def test_load_work_check_fires_when_requests_are_missing() -> None:
+    records = load_records(robots=3, rate=10, warmup=1, seconds=2)
+    result = summarise_records(records[:-1], warmup=1, seconds=2)  # one request never recorded
+    with pytest.raises(WorkMismatch, match="requests: expected 60, got 59"):
+        check_load_work("load", result, robots=3, rate=10, warmup=1, seconds=2)
+    check_load_work("load", summarise_records(records, warmup=1, seconds=2), robots=3, rate=10, warmup=1, seconds=2)

@@ -121,22 +121,25 @@ class _BareCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
 
 class _BareListener(detection_pb2_grpc.CallbackCoordinatesServicer):
     def __init__(self) -> None:
-        self.waiting: dict[str, tuple[int, asyncio.Future[None]]] = {}
+        #: request id -> [reports still to come, future set by the last, loop time of the first]
+        self.waiting: dict[str, list[Any]] = {}
 
     async def ReportDetections(
         self,
         request_iterator: AsyncIterator[detection_pb2.DetectionReport],
         context: aio.ServicerContext[Any, Any],
     ) -> None:
+        loop = asyncio.get_running_loop()
         async for report in request_iterator:
-            left, done = self.waiting.get(report.request_id, (0, None))
-            if done is None:
+            entry = self.waiting.get(report.request_id)
+            if entry is None:
                 continue
-            if left <= 1:
+            if entry[2] is None:
+                entry[2] = loop.time()
+            entry[0] -= 1
+            if entry[0] <= 0:
                 del self.waiting[report.request_id]
-                done.set_result(None)
-            else:
-                self.waiting[report.request_id] = (left - 1, done)
+                entry[1].set_result(None)
 
 
 async def paced(count: int, rate: float) -> AsyncIterator[int]:
@@ -151,7 +154,11 @@ async def paced(count: int, rate: float) -> AsyncIterator[int]:
 
 
 async def bare_robot(args: argparse.Namespace) -> None:
-    """Requests at a fixed rate, one at a time: write it, read the reply, wait for every camera's report."""
+    """Requests at a fixed rate, one at a time: write it, read the reply, wait for every camera's report.
+
+    --warmup requests go back to back first and are not counted. Paced requests are timed from
+    their scheduled send time (as the service benchmark's DRVS robot is); with --rate 0 they go back
+    to back, each timed from its send."""
     listener = _BareListener()
     server = _grpc.new_server()
     detection_pb2_grpc.add_CallbackCoordinatesServicer_to_server(listener, server)
@@ -161,25 +168,33 @@ async def bare_robot(args: argparse.Namespace) -> None:
         call = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
         template = one_camera_request(0, f"127.0.0.1:{port}")
         loop = asyncio.get_running_loop()
+        first: list[float] = []
         latencies: list[float] = []
 
-        async def one(request_id: str) -> None:
-            t0 = loop.time()
+        async def one(request_id: str, t0: float | None = None) -> None:
+            t0 = loop.time() if t0 is None else t0
             done = loop.create_future()
-            listener.waiting[request_id] = (args.cameras, done)
+            entry: list[Any] = [args.cameras, done, None]
+            listener.waiting[request_id] = entry
             template.request_id = request_id
             await call.write(template)
             await call.read()
             await asyncio.wait_for(done, 5)
+            first.append((entry[2] - t0) * 1000)
             latencies.append((loop.time() - t0) * 1000)
 
-        for i in range(50):
+        for i in range(args.warmup):
             await one(f"w{i}")
+        first.clear()
         latencies.clear()  # the warm-up ran back to back: only the paced requests count
         start = loop.time()
         cpu_start = time.process_time()
-        async for i in paced(args.requests, args.rate):
-            await one(f"r{i}")
+        if args.rate > 0:
+            async for i in paced(args.requests, args.rate):
+                await one(f"r{i}", start + i / args.rate)
+        else:
+            for i in range(args.requests):
+                await one(f"r{i}")
         cpu = time.process_time() - cpu_start
         wall = loop.time() - start
         call.cancel()
@@ -191,7 +206,11 @@ async def bare_robot(args: argparse.Namespace) -> None:
                 "cpu_s": cpu,
                 "wall_s": wall,
                 "requests": args.requests,
+                "completed": len(latencies),
+                "first_report_ms_p50": percentile(first, 50),
                 "last_report_ms_p50": percentile(latencies, 50),
+                "first_ms": first,
+                "last_ms": latencies,
                 "peak_rss_bytes": peak_rss_bytes(os.getpid()),
             }
         ),
@@ -235,7 +254,8 @@ def add_bare_parsers(sub: Any) -> None:
     r.add_argument("--server", required=True)
     r.add_argument("--cameras", type=int, required=True, help="reports to wait for per request")
     r.add_argument("--requests", type=int, required=True)
-    r.add_argument("--rate", type=float, required=True)
+    r.add_argument("--rate", type=float, required=True, help="requests a second (0: back to back)")
+    r.add_argument("--warmup", type=int, default=50, help="back-to-back requests first, not counted")
     r.set_defaults(func=lambda args: asyncio.run(bare_robot(args)) or 0)
     i = sub.add_parser("idle-robot", help="(internal) a robot that only wakes at the request rate")
     i.add_argument("--requests", type=int, required=True)

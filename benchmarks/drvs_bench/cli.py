@@ -49,12 +49,20 @@ def service_main(args: argparse.Namespace) -> int:
 
     out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
     result = asyncio.run(run_service(out, args.quick))
+    # The medians (every figure's spread and rounds are in service.json) and the verdicts.
     keys = [
         k
         for k in result
-        if k.endswith(("_over_floor", "_over_echo", "_over_bare_proxy", "_over_100", "_over_20")) or "rss" in k
+        if (
+            k.endswith(("_over_floor", "_over_echo", "_over_bare_proxy", "_over_100", "_over_20", "_over_20_moving"))
+            or k.startswith("camera_marginal_cpu_ms_per_request_")
+            or "rss" in k
+        )
+        and not k.endswith(("_median", "_spread", "_runs"))
     ]
-    print(json.dumps({k: result[k] for k in keys}, indent=1))
+    summary = {k: result[k] for k in keys}
+    summary["verdicts"] = {k: v["verdict"] for k, v in result.get("verdicts", {}).items()}
+    print(json.dumps(summary, indent=1))
     print(f"written: {out / 'service.json'}, {out / 'latency.png'}")
     return 0
 
@@ -72,7 +80,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", type=Path, default=None)
     p.set_defaults(func=paper_main)
     s = sub.add_parser("service", help="DRVS's own latency, routing throughput, lookup scaling, CPU and memory")
-    s.add_argument("--quick", action="store_true", help="a smoke run of under a minute")
+    s.add_argument("--quick", action="store_true", help="a smoke run: 3 interleaved rounds of short runs (full: 5)")
     s.add_argument("--out", type=Path, default=None)
     s.set_defaults(func=service_main)
     add_load_parser(sub)

@@ -18,6 +18,7 @@ from grpc import aio
 from drvs import _grpc
 from drvs._cli import shutdown_event
 from drvs._service import Endpoint
+from drvs.errors import DrvsError
 from drvs.geometry import homography_from_pose
 from drvs.robot import DrvsClient
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
@@ -26,6 +27,30 @@ from .common import ALL_REGION, YELLOW, peak_rss_bytes
 
 #: Fake cameras sit on a grid this many metres apart; each sees about 6 m in front of it.
 GRID_M = 10.0
+#: The scene's second colour: the moving variant alternates it with YELLOW request by request.
+BLUE = "hsv_100120080130255255"
+#: Back-to-back requests before a latency run's measured ones, in DRVS and in the bare path alike.
+WARMUP_REQUESTS = 50
+
+
+def moving_filter(i: int) -> str:
+    """The moving variant's filter for request i: yellow and blue in turn, so a request never
+    repeats the previous one's filter (request compaction, filter caches)."""
+    return YELLOW if i % 2 == 0 else BLUE
+
+
+def moving_box(i: int, base: tuple[float, float, float, float], dx: float, dy: float) -> tuple[float, ...]:
+    """`base` shifted by a different offset (within ±dx, 0..dy) for every i: a robot looking along
+    its path, so no region repeats and the region caches do not hit."""
+    ox = ((i * 0.6180339887) % 1.0 * 2 - 1) * dx
+    oy = ((i * 0.4142135624) % 1.0) * dy
+    x0, y0, x1, y1 = base
+    return (x0 + ox, y0 + oy, x1 + ox, y1 + oy)
+
+
+def moving_all_region(i: int) -> tuple[float, ...]:
+    """ALL_REGION moved by up to ±1 m along x and 0.5 m along y: still over all three cameras."""
+    return moving_box(i, ALL_REGION, 1.0, 0.5)
 
 
 class _Ack(detection_pb2_grpc.DetectObjectBoundaryServicer):
@@ -104,14 +129,20 @@ async def register(args: argparse.Namespace) -> None:
         print("DONE " + json.dumps({"registered": args.count, "seconds": time.perf_counter() - t0}), flush=True)
 
 
-def one_camera_request(i: int, callback: str) -> detection_pb2.DetectionRequest:
-    """A request whose region lies in front of exactly one fake camera."""
+def one_camera_request(i: int, callback: str, moving: int | None = None) -> detection_pb2.DetectionRequest:
+    """A request whose region lies in front of exactly one fake camera. With `moving` (a request
+    counter), the region moves by up to ±0.4 m and the filter alternates, request by request."""
     x, y = grid_position(i)
-    box = geometry_pb2.Box(x_lower=x - 0.5, y_lower=y + 3.0, x_upper=x + 0.5, y_upper=y + 4.0)
+    bounds: tuple[float, ...] = (x - 0.5, y + 3.0, x + 0.5, y + 4.0)
+    filter_def = YELLOW
+    if moving is not None:
+        bounds = moving_box(moving, (x - 0.5, y + 3.0, x + 0.5, y + 4.0), 0.4, 0.8)
+        filter_def = moving_filter(moving)
+    box = geometry_pb2.Box(x_lower=bounds[0], y_lower=bounds[1], x_upper=bounds[2], y_upper=bounds[3])
     return detection_pb2.DetectionRequest(
         request_id=f"r{i}",
         robot_id="load",
-        filter_def=YELLOW,
+        filter_def=filter_def,
         region=geometry_pb2.Region(box=box),
         callback_address=callback,
     )
@@ -126,12 +157,16 @@ class _Caller:
 
     async def __call__(self, message: detection_pb2.DetectionRequest) -> None:
         if self._stream is None:
-            await self._stub.DetectObjects(message, timeout=10)
+            unary = await self._stub.DetectObjects(message, timeout=10)
+            if not unary.camera_ids:
+                raise RuntimeError(f"request {unary.request_id} was dispatched to no camera")
             return
         await self._stream.write(message)
         reply = await self._stream.read()
         if not isinstance(reply, detection_pb2.DetectionReply) or reply.HasField("error"):
             raise RuntimeError(f"stream refused or ended: {reply}")
+        if not reply.camera_ids:  # routed nowhere: not a request served
+            raise RuntimeError(f"request {reply.request_id} was dispatched to no camera")
 
     def close(self) -> None:
         if self._stream is not None:
@@ -140,14 +175,29 @@ class _Caller:
 
 async def load(args: argparse.Namespace) -> None:
     """As many requests as `concurrency` workers can make in `seconds`; each worker waits for the
-    reply before its next request (unary calls, or its own DetectStream)."""
+    reply before its next request (unary calls, or its own DetectStream). A refused request, an
+    error reply or a reply naming no camera counts as an error, never as done. With --moving, every
+    request's region is new and the filter alternates."""
     async with _grpc.insecure_channel(args.target) as channel:
         messages = [one_camera_request(i % args.cameras, args.callback) for i in range(args.cameras)]
+        counter = args.first_index
+
+        def message(i: int) -> detection_pb2.DetectionRequest:
+            nonlocal counter
+            if not args.moving:
+                return messages[i % len(messages)]
+            counter += 1
+            return one_camera_request(i % args.cameras, args.callback, moving=counter)
+
         done = errors = 0
+        error_kinds: dict[str, int] = {}
         loop = asyncio.get_running_loop()
         callers = [_Caller(channel, args.mode) for _ in range(args.concurrency)]
         for k, caller in enumerate(callers):
-            await caller(with_request_id(messages[0], f"warm{k}"))
+            try:
+                await caller(with_request_id(messages[0], f"warm{k}"))
+            except (grpc.RpcError, RuntimeError):
+                errors += 1  # a failed warm-up fails the run as any error does
         end = loop.time() + args.seconds
 
         async def worker(k: int) -> None:
@@ -155,10 +205,12 @@ async def load(args: argparse.Namespace) -> None:
             i = k
             while loop.time() < end:
                 try:
-                    await callers[k](messages[i % len(messages)])
+                    await callers[k](message(i))
                     done += 1
-                except (grpc.RpcError, RuntimeError):
+                except (grpc.RpcError, RuntimeError) as exc:
                     errors += 1
+                    kind = str(exc)[:200]
+                    error_kinds[kind] = error_kinds.get(kind, 0) + 1
                 i += args.concurrency
 
         t0 = loop.time()
@@ -166,7 +218,11 @@ async def load(args: argparse.Namespace) -> None:
         elapsed = loop.time() - t0
         for caller in callers:
             caller.close()
-        print("DONE " + json.dumps({"calls": done, "errors": errors, "rps": done / elapsed}), flush=True)
+        kinds = dict(sorted(error_kinds.items(), key=lambda kv: -kv[1])[:5])
+        print(
+            "DONE " + json.dumps({"calls": done, "errors": errors, "rps": done / elapsed, "error_kinds": kinds}),
+            flush=True,
+        )
 
 
 def with_request_id(message: detection_pb2.DetectionRequest, request_id: str) -> detection_pb2.DetectionRequest:
@@ -184,35 +240,61 @@ def percentile(values: list[float], q: float) -> float:
 
 
 async def latency(args: argparse.Namespace) -> None:
-    """Single-shot requests over all cameras at a fixed rate: time to first report and to last final."""
+    """Single-shot requests over all cameras at a fixed rate: time to first report and to last final.
+
+    WARMUP_REQUESTS back to back first (as the bare path's robot does), not counted. A request
+    counts as complete only when every dispatched camera sent a final report and none carried an
+    error (a `busy` refusal is an error report); a refused request (DrvsError) is a failure. Only
+    complete requests give latencies. With --moving, every request moves its region and alternates
+    the filter."""
     async with DrvsClient(args.server, robot_id="latency", listen="127.0.0.1:0") as client:
-        await client.detect(YELLOW, ALL_REGION, timeout_s=5)
+        for w in range(args.warmup):
+            await client.detect(
+                moving_filter(w) if args.moving else YELLOW,
+                moving_all_region(args.first_index - 1 - w) if args.moving else ALL_REGION,
+                timeout_s=5,
+            )
         loop = asyncio.get_running_loop()
         first: list[float] = []
         last: list[float] = []
-        missing = 0
+        counts = {"complete": 0, "missing": 0, "error_reports": 0, "refused": 0, "no_camera": 0}
+        error_kinds: dict[str, int] = {}
 
-        async def one() -> None:
-            nonlocal missing
-            t0 = loop.time()
-            sub = await client.subscribe(YELLOW, ALL_REGION, timeout_s=5.0)
-            got_first = False
-            async for _report in sub:
-                if not got_first:
-                    first.append((loop.time() - t0) * 1000)
-                    got_first = True
-            if sub.result.complete and sub.camera_ids:
+        async def one(i: int, t0: float) -> None:
+            filter_def = moving_filter(i) if args.moving else YELLOW
+            region = moving_all_region(args.first_index + i) if args.moving else ALL_REGION
+            try:
+                sub = await client.subscribe(filter_def, region, timeout_s=5.0)
+            except DrvsError:
+                counts["refused"] += 1
+                return
+            first_ms = -1.0
+            async for report in sub:
+                if first_ms < 0 and not report.error:
+                    first_ms = (loop.time() - t0) * 1000
+            errors = sum(1 for r in sub.result.reports if r.error)
+            counts["error_reports"] += errors
+            for r in sub.result.reports:
+                if r.error and len(error_kinds) < 5:
+                    error_kinds[r.error[:200]] = error_kinds.get(r.error[:200], 0) + 1
+            if not sub.camera_ids:
+                counts["no_camera"] += 1
+            elif not sub.result.complete:
+                counts["missing"] += 1
+            elif errors == 0:
+                counts["complete"] += 1
+                first.append(first_ms)
                 last.append((loop.time() - t0) * 1000)
-            else:
-                missing += 1
 
         start = loop.time()
         tasks = []
         for i in range(args.requests):
-            delay = start + i / args.rate - loop.time()
+            scheduled = start + i / args.rate
+            delay = scheduled - loop.time()
             if delay > 0:
                 await asyncio.sleep(delay)
-            tasks.append(loop.create_task(one()))
+            # Timed from its scheduled time: a request sent late counts its lag.
+            tasks.append(loop.create_task(one(i, scheduled)))
         await asyncio.gather(*tasks)
         elapsed = loop.time() - start
         print(
@@ -222,7 +304,9 @@ async def latency(args: argparse.Namespace) -> None:
                     "rate_hz": args.rate,
                     "achieved_hz": args.requests / elapsed,
                     "requests": args.requests,
-                    "missing": missing,
+                    "moving": bool(args.moving),
+                    **counts,
+                    "error_kinds": error_kinds,
                     "first_ms": first,
                     "last_ms": last,
                     "peak_rss_bytes": peak_rss_bytes(os.getpid()),
@@ -282,11 +366,16 @@ def add_helper_parsers(sub: Any) -> None:
     lo.add_argument("--concurrency", type=int, default=64)
     lo.add_argument("--seconds", type=float, default=5.0)
     lo.add_argument("--mode", choices=["unary", "stream"], default="stream")
+    lo.add_argument("--moving", action="store_true", help="a new region and the other filter every request")
+    lo.add_argument("--first-index", type=int, default=0, help="--moving: where the regions' sequence starts")
     lo.set_defaults(func=lambda args: asyncio.run(load(args)) or 0)
     la = sub.add_parser("latency", help="(internal) request latency at a fixed rate")
     la.add_argument("--server", required=True)
     la.add_argument("--rate", type=float, required=True)
     la.add_argument("--requests", type=int, required=True)
+    la.add_argument("--warmup", type=int, default=WARMUP_REQUESTS, help="back-to-back requests first, not counted")
+    la.add_argument("--moving", action="store_true", help="a new region and the other filter every request")
+    la.add_argument("--first-index", type=int, default=WARMUP_REQUESTS, help="--moving: where the regions start")
     la.set_defaults(func=lambda args: asyncio.run(latency(args)) or 0)
     rt = sub.add_parser("rtt", help="(internal) bare round trips")
     rt.add_argument("--target", required=True)
