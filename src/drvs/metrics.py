@@ -18,6 +18,10 @@ REQUESTS = Counter(
 ROUTED = Counter(
     "drvs_requests_routed_total", "Forwards of a request to a camera, by outcome (ok or failed)", ["outcome"]
 )
+FORWARDED_BYTES = Counter(
+    "drvs_forwarded_bytes_total",
+    "Serialised bytes of the requests the server forwarded to cameras (a request's size times its cameras)",
+)
 CAMERAS = Gauge("drvs_cameras_registered", "Cameras in the server's routing table")
 DETECTIONS = Counter("drvs_detections_sent_total", "Detections a camera node sent to robots")
 REPORTS = Counter(

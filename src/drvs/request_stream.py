@@ -18,6 +18,7 @@ import grpc
 from grpc import aio
 
 from drvs import _grpc, errors
+from drvs.convert import MAX_REGION_BYTES
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
 
 log = logging.getLogger(__name__)
@@ -136,13 +137,14 @@ class RequestStream:
 class _Forward:
     """One request on its way through a BatchSender; `done` is called exactly once."""
 
-    __slots__ = ("deadline", "done", "message", "settled")
+    __slots__ = ("deadline", "done", "message", "settled", "written")
 
     def __init__(self, message: Request, deadline: float, done: Callable[[Reply | errors.DrvsError], None]) -> None:
         self.message = message
         self.deadline = deadline
         self.done = done
         self.settled = False
+        self.written = False
 
 
 class _BatchCall:
@@ -231,9 +233,20 @@ class BatchSender:
         loop = asyncio.get_running_loop()
         now = loop.time()
         order = self._order
+        unanswered = False
+        failure = errors.DeadlineExceeded(f"{self._peer}: no reply within {self._timeout_s:g} s")
         while order and (order[0].settled or order[0].deadline <= now):
             forward = order.popleft()
-            self._settle(forward, errors.DeadlineExceeded(f"{self._peer}: no reply within {self._timeout_s:g} s"))
+            unanswered = unanswered or (forward.written and not forward.settled)
+            self._settle(forward, failure)
+        state = self._call
+        if unanswered and state is not None:
+            # A request was written and not answered in time: the camera is not reading its stream
+            # (or cannot keep up). The call is cut off, so neither this process nor gRPC keeps
+            # writing to (and buffering for) a peer that does not read; the next request reopens it.
+            log.warning("%s: no reply within %g s; closing its request stream", self._peer, self._timeout_s)
+            state.call.cancel()
+            self._end(state, failure)
         if order:
             self._timer = loop.call_at(order[0].deadline, self._expire)
 
@@ -266,6 +279,8 @@ class BatchSender:
                 if not batch:
                     break
                 state = self._call or self._open()
+                for forward in batch:
+                    forward.written = True
                 state.sent.extend(batch)
                 self.batches_written += 1
                 self.requests_written += len(batch)
@@ -372,8 +387,11 @@ class StreamContext:
             else:
                 setattr(message, name, self.values[name])
         if message.HasField("region"):
-            self.region = geometry_pb2.Region()
-            self.region.CopyFrom(message.region)
+            if message.region.ByteSize() > MAX_REGION_BYTES:
+                self.region = None  # refused as too large: not kept for the requests that follow
+            else:
+                self.region = geometry_pb2.Region()
+                self.region.CopyFrom(message.region)
         elif self.region is not None:
             message.region.CopyFrom(self.region)
 
