@@ -19,8 +19,9 @@ from drvs.errors import InvalidArgument
 from drvs.filters import DETECTOR_KINDS
 from drvs.geometry import DEFAULT_MAX_RANGE_M
 from drvs.logs import FORMATS
+from drvs.metrics import DEFAULT_METRICS_HOST
 from drvs.model import check_id
-from drvs.net import parse_address
+from drvs.net import format_address, parse_address
 from drvs.security import Security
 
 DEFAULT_SERVER = "127.0.0.1:50051"
@@ -47,6 +48,7 @@ ENVIRONMENT = {
     "log_level": "DRVS_LOG_LEVEL",
     "log_format": "DRVS_LOG_FORMAT",
     "metrics_port": "DRVS_METRICS_PORT",
+    "metrics_host": "DRVS_METRICS_HOST",
     **SECURITY_ENV,
 }
 
@@ -76,6 +78,8 @@ class CameraConfig:
     log_format: str | None = None
     #: Serve Prometheus metrics on this port (0: any free port; None: off).
     metrics_port: int | None = None
+    #: Where the metrics listen: this host only unless the operator says otherwise.
+    metrics_host: str = DEFAULT_METRICS_HOST
     #: TLS and the registration token (see drvs.security); paths are relative to the config file.
     tls_cert: Path | None = None
     tls_key: Path | None = None
@@ -99,7 +103,8 @@ _FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max
           "listen": "--listen", "advertise": "--advertise", "resolution": "--resolution", "fps": "--fps",
           "detectors": "--detectors", "heartbeat_s": "--heartbeat", "tls_cert": "--tls-cert",
           "tls_key": "--tls-key", "tls_ca": "--tls-ca", "tls_client_auth": "--tls-client-auth",
-          "token_file": "--token-file", "log_format": "--log-format", "metrics_port": "--metrics-port"}  # fmt: skip
+          "token_file": "--token-file", "log_format": "--log-format", "metrics_port": "--metrics-port",
+          "metrics_host": "--metrics-host"}  # fmt: skip
 
 
 def load_config(
@@ -198,6 +203,9 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
             parse_address(text, where)
         elif name == "listen":
             parse_address(text, where, allow_port_zero=True)
+        elif name == "metrics_host":
+            parse_address(format_address(text.strip("[]"), 1), where)
+            return text.strip("[]")
         elif name in ("homography", "tls_cert", "tls_key", "tls_ca", "token_file"):
             path = Path(text)
             return path if path.is_absolute() else base / path

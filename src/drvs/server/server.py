@@ -108,11 +108,13 @@ class DrvsServer(Lifecycle):
         camera_tokens: Mapping[str, str] | None = None,
         robot_tokens: Mapping[str, str] | None = None,
         limits: RequestLimits | None = None,
+        connection_limits: _grpc.ConnectionLimits | None = None,
     ) -> None:
         self.callback_policy = CallbackPolicy(allow_callback, allow_any_callback)
         self.security = security or Security()
         self.tokens = TokenAuthority(camera_tokens, robot_tokens)
         self.limits = limits or RequestLimits()
+        self.connection_limits = connection_limits or _grpc.ConnectionLimits()
         # camera id -> the identity that registered it (token name or certificate name): another
         # identity may not re-register, renew or deregister it.
         self.owners: dict[str, str] = {}
@@ -130,6 +132,7 @@ class DrvsServer(Lifecycle):
             self._add_servicers,
             security=self.security,
             interceptors=[TokenInterceptor(self.tokens)] if self.tokens.enabled else [],
+            options=self.connection_limits.options(),
         )
         self._links: dict[str, _CameraLink] = {}
         # Cameras whose last forward failed: skipped until their next heartbeat proves them alive.
