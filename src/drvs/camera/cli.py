@@ -76,6 +76,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--heartbeat", dest="heartbeat_s", type=float, metavar="S", help="heartbeat interval (default: lease / 3)"
     )
+    p.add_argument(
+        "--max-continuous",
+        metavar="N",
+        help=f"continuous requests one robot may have running on this camera at once (default 32; "
+        f"{e['max_continuous']})",
+    )
     add_security_arguments(p, "file holding this camera's registration token")
     p.add_argument("--log-level", help=f"DEBUG, INFO, WARNING ({e['log_level']})")
     p.add_argument("--log-format", help=f"text, or json: one object per line with the request id ({e['log_format']})")
@@ -333,6 +339,7 @@ def main(argv: list[str] | None = None) -> int:
             resolution=config.resolution,
             detectors=config.detectors,
             heartbeat_s=config.heartbeat_s,
+            max_continuous_per_robot=config.max_continuous,
             security=config.security(),
         )
     except DrvsError as exc:

@@ -27,6 +27,7 @@ from drvs.security import Security
 DEFAULT_SERVER = "127.0.0.1:50051"
 DEFAULT_LISTEN = "127.0.0.1:0"
 DEFAULT_MAX_FRAME_AGE_S = 2.0
+DEFAULT_MAX_CONTINUOUS_PER_ROBOT = 32  # as drvs.camera.node's
 
 #: Every environment variable a camera node reads, by setting.
 ENVIRONMENT = {
@@ -45,6 +46,7 @@ ENVIRONMENT = {
     "fps": "DRVS_CAMERA_FPS",
     "detectors": "DRVS_CAMERA_DETECTORS",
     "heartbeat_s": "DRVS_CAMERA_HEARTBEAT",
+    "max_continuous": "DRVS_CAMERA_MAX_CONTINUOUS",
     "log_level": "DRVS_LOG_LEVEL",
     "log_format": "DRVS_LOG_FORMAT",
     "metrics_port": "DRVS_METRICS_PORT",
@@ -73,6 +75,8 @@ class CameraConfig:
     detectors: tuple[str, ...] = DETECTOR_KINDS
     #: Heartbeat interval; by default a third of the lease the server grants.
     heartbeat_s: float | None = None
+    #: Continuous requests one robot (callback address) may have running on this camera at once.
+    max_continuous: int = DEFAULT_MAX_CONTINUOUS_PER_ROBOT
     log_level: str | None = None
     #: text, or json (one object per line, with the request id).
     log_format: str | None = None
@@ -104,7 +108,7 @@ _FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max
           "detectors": "--detectors", "heartbeat_s": "--heartbeat", "tls_cert": "--tls-cert",
           "tls_key": "--tls-key", "tls_ca": "--tls-ca", "tls_client_auth": "--tls-client-auth",
           "token_file": "--token-file", "log_format": "--log-format", "metrics_port": "--metrics-port",
-          "metrics_host": "--metrics-host"}  # fmt: skip
+          "metrics_host": "--metrics-host", "max_continuous": "--max-continuous"}  # fmt: skip
 
 
 def load_config(
@@ -176,6 +180,11 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
             if not (math.isfinite(value) and limits[0] <= value <= limits[1]):
                 raise InvalidArgument(f"{where}: {raw!r} must be a number from {limits[0]:g} to {limits[1]:g}")
             return value
+        if name == "max_continuous":
+            count = int(raw) if not isinstance(raw, bool) and str(raw).strip().isdecimal() else 0
+            if not 1 <= count <= 1_000_000:
+                raise InvalidArgument(f"{where}: {raw!r} must be a whole number from 1 to 1000000")
+            return count
         if name == "metrics_port":
             port = int(raw) if not isinstance(raw, bool) and str(raw).strip().isdecimal() else -1
             if not 0 <= port <= 65535:
