@@ -135,8 +135,10 @@ class _StalledCamera(_SlowCamera):
 
 async def slow_camera(args: argparse.Namespace) -> None:
     stop = _stop_event()
-    camera = _StalledCamera(args.id) if args.role == "stalled-camera" else _SlowCamera(
-        args.id, args.accept_delay, args.report_delay
+    camera = (
+        _StalledCamera(args.id)
+        if args.role == "stalled-camera"
+        else _SlowCamera(args.id, args.accept_delay, args.report_delay)
     )
     server = aio.server()
     detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(camera, server)
