@@ -213,7 +213,10 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
         elif name == "listen":
             parse_address(text, where, allow_port_zero=True)
         elif name == "metrics_host":
-            parse_address(format_address(text.strip("[]"), 1), where)
+            try:
+                parse_address(format_address(text.strip("[]"), 1), where)
+            except InvalidArgument:
+                raise InvalidArgument(f"{where}: {text[:80]!r} is not a host name or IP address") from None
             return text.strip("[]")
         elif name in ("homography", "tls_cert", "tls_key", "tls_ca", "token_file"):
             path = Path(text)
