@@ -70,7 +70,12 @@ class _AcceptingCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
 
 
 async def measure(
-    server_args: Sequence[str] = (), *, cameras: int = 4, seconds: float = 3.0, rate_hz: float = 150.0
+    server_args: Sequence[str] = (),
+    *,
+    cameras: int = 4,
+    seconds: float = 3.0,
+    rate_hz: float = 150.0,
+    points: int = 1000,
 ) -> dict[str, Any]:
     server, address = await start_server(*server_args)
     servers: list[aio.Server] = []
@@ -103,7 +108,7 @@ async def measure(
                     ),
                     timeout=5,
                 )
-        region = big_region()
+        region = big_region(points)
         loop = asyncio.get_running_loop()
         accepted = refused = 0
         refusals: set[str] = set()
@@ -135,6 +140,7 @@ async def measure(
         forwarded = sum(r.to_target for r in relays)
         return {
             "server_args": list(server_args),
+            "region_points": points,
             "cameras": cameras,
             "seconds": round(elapsed, 2),
             "requests_sent": accepted + refused,
@@ -160,8 +166,11 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--cameras", type=int, default=4)
     p.add_argument("--seconds", type=float, default=3.0)
     p.add_argument("--rate", type=float, default=150.0, help="requests a second (default 150)")
+    p.add_argument("--points", type=int, default=1000, help="points in the region's polygon (default 1000)")
     args = p.parse_args(argv)
-    result = asyncio.run(measure(args.server_arg, cameras=args.cameras, seconds=args.seconds, rate_hz=args.rate))
+    result = asyncio.run(
+        measure(args.server_arg, cameras=args.cameras, seconds=args.seconds, rate_hz=args.rate, points=args.points)
+    )
     print(json.dumps(result))
     return 0
 
