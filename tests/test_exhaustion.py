@@ -308,25 +308,24 @@ async def test_a_camera_that_heartbeats_but_never_reads_is_cut_off_and_costs_the
 # --- server-wide connection limits, metrics -------------------------------------------------------
 
 
-async def test_connection_limits_end_old_connections_and_cap_streams_per_connection() -> None:
-    server, address = await start_server(
-        "--max-streams-per-connection", "2", "--max-connection-age", "1", "--max-connection-age-grace", "0.5",
-        "--max-connection-idle", "1",
-    )  # fmt: skip
+BOX = geometry_pb2.Region(box=geometry_pb2.Box(x_lower=0, y_lower=0, x_upper=1, y_upper=1))
+
+
+async def test_streams_per_connection_are_capped_and_idle_connections_closed() -> None:
+    server, address = await start_server("--max-streams-per-connection", "2", "--max-connection-idle", "1")
     try:
         async with aio.insecure_channel(address) as channel:
             stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
-            box = geometry_pb2.Region(box=geometry_pb2.Box(x_lower=0, y_lower=0, x_upper=1, y_upper=1))
             calls = []
             for i in range(2):
                 calls.append(stub.DetectStream())
-                await calls[i].write(request(f"s{i}", box))
+                await calls[i].write(request(f"s{i}", BOX))
                 assert (await calls[i].read()).request_id == f"s{i}"
             # A third stream on the same connection waits for one of the two to end.
             calls.append(stub.DetectStream())
 
             async def third_answer() -> detection_pb2.DetectionReply:
-                await calls[2].write(request("s2", box))
+                await calls[2].write(request("s2", BOX))
                 reply: detection_pb2.DetectionReply = await calls[2].read()
                 return reply
 
@@ -336,13 +335,39 @@ async def test_connection_limits_end_old_connections_and_cap_streams_per_connect
             await calls[0].done_writing()
             assert await calls[0].code() == grpc.StatusCode.OK
             assert (await asyncio.wait_for(third, 10)).request_id == "s2"
-            # Past its age (1 s) and grace (0.5 s) the connection's calls are ended: the client
-            # reconnects for the next one.
-            assert await asyncio.wait_for(calls[1].code(), 10) == grpc.StatusCode.UNAVAILABLE
+            for call in calls[1:]:
+                await call.done_writing()
+                assert await call.code() == grpc.StatusCode.OK
+            # No call open: the server closes the connection after a second.
+            assert channel.get_state() == grpc.ChannelConnectivity.READY
+            await asyncio.wait_for(channel.wait_for_state_change(grpc.ChannelConnectivity.READY), 10)
+            assert channel.get_state() != grpc.ChannelConnectivity.READY
+    finally:
+        await server.stop()
+
+
+async def test_old_connections_are_ended_and_clients_reconnect() -> None:
+    server, address = await start_server("--max-connection-age", "1", "--max-connection-age-grace", "0.5")
+    try:
+        async with aio.insecure_channel(address) as channel:
+            stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
+            call = stub.DetectStream()
+            await call.write(request("s0", BOX))
+            assert (await call.read()).request_id == "s0"
+            # Past its age (1 s) and grace (0.5 s) the connection's calls are ended.
+            assert await asyncio.wait_for(call.code(), 10) == grpc.StatusCode.UNAVAILABLE
+            # The client reconnects for the next one.
             again = stub.DetectStream()
-            await again.write(request("s3", box))
-            assert (await again.read()).request_id == "s3"
+            await again.write(request("s1", BOX))
+            assert (await again.read()).request_id == "s1"
             again.cancel()
+        # DrvsClient reopens its request stream by itself.
+        async with DrvsClient(address, robot_id="r", listen="127.0.0.1:0", retries=2) as robot:
+            loop = asyncio.get_running_loop()
+            end = loop.time() + 3.0
+            while loop.time() < end:  # across two connection lifetimes, 50 requests a second
+                assert (await robot.detect(YELLOW, (0, 0, 1, 1), timeout_s=1)).complete
+                await asyncio.sleep(0.02)
     finally:
         await server.stop()
 
