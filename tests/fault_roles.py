@@ -5,6 +5,9 @@ slow-camera: a camera node that registers with a DRVS server, keeps its lease, a
     forwarded request (after --accept-delay) and sends its final report only after --report-delay:
     a camera whose detection takes seconds. drvs-camera has no option to make detection slow, and
     no source is slow enough to detect on (even a 100-megapixel frame takes well under a second).
+stalled-camera: a hostile camera: it registers and heartbeats (every --heartbeat seconds), and never
+    reads the request streams the server opens to it. It prints `STREAM n OPENED` and `STREAM n
+    CLOSED` as the server opens and ends them.
 probe-robot: a DrvsClient that sends one single-shot request every --period seconds and prints one
     `RESULT {json}` line per request (for the network-namespace test, where the robot must run
     inside a namespace of its own).
@@ -110,9 +113,33 @@ class _SlowCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
             yield detection_pb2.DetectionReplies(replies=[await self._accept(message) for message in batch.requests])
 
 
+class _StalledCamera(_SlowCamera):
+    def __init__(self, camera_id: str) -> None:
+        super().__init__(camera_id, 0.0, 0.0)
+        self.streams = 0
+
+    async def DetectBatches(
+        self,
+        request_iterator: AsyncIterator[detection_pb2.DetectionRequests],
+        context: aio.ServicerContext[Any, Any],
+    ) -> AsyncIterator[detection_pb2.DetectionReplies]:
+        self.streams += 1
+        n = self.streams
+        print(f"STREAM {n} OPENED", flush=True)
+        try:
+            await asyncio.Event().wait()  # never reads: the server's writes pile up, unread
+        finally:
+            print(f"STREAM {n} CLOSED", flush=True)
+        yield detection_pb2.DetectionReplies()  # never reached
+
+
 async def slow_camera(args: argparse.Namespace) -> None:
     stop = _stop_event()
-    camera = _SlowCamera(args.id, args.accept_delay, args.report_delay)
+    camera = (
+        _StalledCamera(args.id)
+        if args.role == "stalled-camera"
+        else _SlowCamera(args.id, args.accept_delay, args.report_delay)
+    )
     server = aio.server()
     detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(camera, server)
     port = server.add_insecure_port("127.0.0.1:0")
@@ -135,7 +162,7 @@ async def slow_camera(args: argparse.Namespace) -> None:
         lease = (await stub.Register(register, timeout=5)).lease_ttl_s
         print(f"REGISTERED {args.id} lease {lease:g}", flush=True)
         while True:
-            await asyncio.sleep(lease / 3)
+            await asyncio.sleep(args.heartbeat or lease / 3)
             try:
                 await stub.Heartbeat(registry_pb2.HeartbeatRequest(camera_id=args.id), timeout=lease / 3)
             except grpc.RpcError:
@@ -194,7 +221,14 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--x", type=float, default=40.0, help="camera position along x; it sees x-6..x+6, y 1.5..7.5")
     s.add_argument("--accept-delay", type=float, default=0.0)
     s.add_argument("--report-delay", type=float, default=3.0)
+    s.add_argument("--heartbeat", type=float, default=0.0, help="seconds between heartbeats (default: lease / 3)")
     s.set_defaults(run=slow_camera)
+    h = sub.add_parser("stalled-camera")
+    h.add_argument("--server", required=True)
+    h.add_argument("--id", default="stalled")
+    h.add_argument("--x", type=float, default=40.0, help="camera position along x; it sees x-6..x+6, y 1.5..7.5")
+    h.add_argument("--heartbeat", type=float, default=0.0, help="seconds between heartbeats (default: lease / 3)")
+    h.set_defaults(run=slow_camera)
     p = sub.add_parser("probe-robot")
     p.add_argument("--server", required=True)
     p.add_argument("--listen", required=True)

@@ -103,6 +103,11 @@ def register(**overrides: Any) -> Callable[[Any], Any]:
 
 
 BOWTIE = polygon((0, 0), (1, 1), (1, 0), (0, 1))
+CIRCLE_1001 = [(math.cos(2 * math.pi * i / 1001), math.sin(2 * math.pi * i / 1001)) for i in range(1001)]
+#: A valid box carrying 30 000 bytes of an unknown field (number 1023, length-delimited).
+PADDED_BOX = geometry_pb2.Region.FromString(
+    box(0, 0, 1, 1).SerializeToString() + b"\xfa\x3f" + bytes([0xB0, 0xEA, 0x01]) + b"x" * 30_000
+)
 PITCHED_UP = homography_from_pose((0, 0, 3), 90, -30, 60, (640, 480)).to_list()
 INVALID, DENIED, NOT_FOUND = "INVALID_ARGUMENT", "PERMISSION_DENIED", "NOT_FOUND"
 
@@ -127,6 +132,8 @@ GRPC_CASES = [
     ),
     Case(INVALID, "region.polygon: needs at least 3 distinct points, got …", detect(region=polygon((0, 0), (1, 1)))),
     Case(INVALID, "region.polygon: not a simple polygon (Self-intersection[…])", detect(region=BOWTIE)),
+    Case(INVALID, "region.polygon: … points; at most 1000, simplify the region", detect(region=polygon(*CIRCLE_1001))),
+    Case(INVALID, "region: … bytes encoded; at most 24576", detect(region=PADDED_BOX)),
     Case(INVALID, "callback_address: empty; expected host:port", detect(callback_address="")),
     Case(INVALID, "callback_address: '…' is not host:port", detect(callback_address="no port")),
     Case(
@@ -279,6 +286,16 @@ def cli_cases(tmp: Path) -> list[CliCase]:
         CliCase(
             "drvs-camera", (*camera, "--detectors", "rgb"), "detectors (from …): '…': detectors must be some of hsv"
         ),
+        CliCase(
+            "drvs-camera",
+            (*camera, "--max-continuous", "0"),
+            "max_continuous (from …): '…' must be a whole number from 1 to 1000000",
+        ),
+        CliCase("drvs-server", ("--max-forward-bytes", "0"), "--max-forward-bytes: … must be in [1, 1e12]"),
+        CliCase(
+            "drvs-server", ("--max-connection-idle", "-1"), "--max-connection-idle: … must be in [0, 1e9] (0: no limit)"
+        ),
+        CliCase("drvs-server", ("--metrics-port", "nowhere"), "--metrics-port: '…' is not host:port"),
     ]
 
 

@@ -136,9 +136,15 @@ def add_observability_arguments(p: argparse.ArgumentParser, metrics: bool = True
     if metrics:
         p.add_argument(
             "--metrics-port",
-            type=int,
             default=None,
-            metavar="PORT",
-            help="serve Prometheus metrics on http://0.0.0.0:PORT/metrics; 0 picks a free port "
-            "(env DRVS_METRICS_PORT; default off)",
+            metavar="[HOST:]PORT",
+            help="serve Prometheus metrics on http://HOST:PORT/metrics (HOST: --metrics-host); 0 picks a free "
+            "port (env DRVS_METRICS_PORT; default off)",
+        )
+        p.add_argument(
+            "--metrics-host",
+            default=None,
+            metavar="HOST",
+            help="address the metrics listen on when --metrics-port gives only a port "
+            "(env DRVS_METRICS_HOST; default 127.0.0.1, this host only; 0.0.0.0 for every interface)",
         )

@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import logging
 from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import grpc
@@ -48,6 +49,43 @@ SERVER_OPTIONS: list[tuple[str, Any]] = [
     ("grpc.so_reuseport", 0),
     ("grpc.http2.bdp_probe", 0),
 ]
+
+#: Server-wide connection limits of the DRVS server (drvs-server flags of the same names).
+DEFAULT_MAX_STREAMS_PER_CONNECTION = 100
+DEFAULT_MAX_CONNECTION_IDLE_S = 300.0
+DEFAULT_MAX_CONNECTION_AGE_S = 3600.0
+DEFAULT_MAX_CONNECTION_AGE_GRACE_S = 60.0
+
+
+@dataclass(frozen=True)
+class ConnectionLimits:
+    """What one client connection may hold: streams open at once (more wait on the client), how
+    long it may stay without a call before the server closes it, and how long it may live at all
+    (after which the server asks the client to reconnect, and ends its calls `age_grace_s` later).
+    0 means no limit. Without these a client can hold connections and streams open forever."""
+
+    max_streams: int = DEFAULT_MAX_STREAMS_PER_CONNECTION
+    max_idle_s: float = DEFAULT_MAX_CONNECTION_IDLE_S
+    max_age_s: float = DEFAULT_MAX_CONNECTION_AGE_S
+    age_grace_s: float = DEFAULT_MAX_CONNECTION_AGE_GRACE_S
+
+    def __post_init__(self) -> None:
+        for name in ("max_streams", "max_idle_s", "max_age_s", "age_grace_s"):
+            value = getattr(self, name)
+            if not (value >= 0 and value <= 1e9):
+                raise errors.InvalidArgument(f"{name}: {value} must be a number in [0, 1e9] (0: no limit)")
+
+    def options(self) -> list[tuple[str, Any]]:
+        out: list[tuple[str, Any]] = []
+        if self.max_streams:
+            out.append(("grpc.max_concurrent_streams", int(self.max_streams)))
+        if self.max_idle_s:
+            out.append(("grpc.max_connection_idle_ms", round(self.max_idle_s * 1000)))
+        if self.max_age_s:
+            out.append(("grpc.max_connection_age_ms", round(self.max_age_s * 1000)))
+            out.append(("grpc.max_connection_age_grace_ms", round(self.age_grace_s * 1000)))
+        return out
+
 
 T = TypeVar("T")
 Handler = Callable[..., Awaitable[T]]
@@ -104,8 +142,10 @@ def insecure_channel(address: str) -> aio.Channel:
     return aio.insecure_channel(address, options=CHANNEL_OPTIONS)
 
 
-def new_server(interceptors: Sequence[aio.ServerInterceptor] = ()) -> aio.Server:
-    return aio.server(options=SERVER_OPTIONS, interceptors=list(interceptors) or None)
+def new_server(
+    interceptors: Sequence[aio.ServerInterceptor] = (), options: Sequence[tuple[str, Any]] = ()
+) -> aio.Server:
+    return aio.server(options=[*SERVER_OPTIONS, *options], interceptors=list(interceptors) or None)
 
 
 def bind(server: aio.Server, address: str, credentials: grpc.ServerCredentials | None = None) -> int:

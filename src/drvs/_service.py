@@ -48,8 +48,10 @@ class Endpoint:
         *,
         security: Security | None = None,
         interceptors: Sequence[aio.ServerInterceptor] = (),
+        options: Sequence[tuple[str, Any]] = (),
     ) -> None:
         self.listen = listen
+        self._options = tuple(options)
         self.security = security or Security()
         self._interceptors = tuple(interceptors)
         self.service_names = tuple(service_names)
@@ -69,7 +71,7 @@ class Endpoint:
         return self._server is not None
 
     async def start(self) -> None:
-        server = _grpc.new_server(self._interceptors)
+        server = _grpc.new_server(self._interceptors, self._options)
         self._add_servicers(server)
         self._health = add_health_and_reflection(server, self.service_names)
         self.port = self.security.bind(server, self.listen)

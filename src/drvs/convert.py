@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-import functools
+import threading
+from collections import OrderedDict
 
 import numpy as np
 from shapely.geometry import Polygon
 
 from drvs.errors import InvalidArgument
-from drvs.geometry import Homography, box_region, polygon_coords, polygon_region
+from drvs.geometry import MAX_REGION_VERTICES, Homography, box_region, polygon_coords, polygon_region
 from drvs.model import ContinuousMode, Detection, DetectionReport, DetectionRequest, PixelBox
 from drvs.v1 import detection_pb2, geometry_pb2, registry_pb2
 
@@ -17,7 +18,13 @@ def polygon_to_pb(poly: Polygon) -> geometry_pb2.Polygon:
     return geometry_pb2.Polygon(points=[geometry_pb2.Point2(x=x, y=y) for x, y in polygon_coords(poly)])
 
 
+def _check_vertices(msg: geometry_pb2.Polygon, name: str) -> None:
+    if len(msg.points) > MAX_REGION_VERTICES:
+        raise InvalidArgument(f"{name}: {len(msg.points)} points; at most {MAX_REGION_VERTICES}, simplify the region")
+
+
 def polygon_from_pb(msg: geometry_pb2.Polygon, name: str) -> Polygon:
+    _check_vertices(msg, name)
     return polygon_region(((p.x, p.y) for p in msg.points), name)
 
 
@@ -29,15 +36,73 @@ def region_to_pb(region: Polygon) -> geometry_pb2.Region:
     return geometry_pb2.Region(polygon=polygon_to_pb(region))
 
 
+#: A region's encoded size: 1000 points take about 20 000 bytes; the rest is room for unknown
+#: fields, which a sender could otherwise use to make every forward of its request megabytes long.
+MAX_REGION_BYTES = 24 * 1024
+#: Decoded regions kept, by count and by (estimated) memory: a region is at most MAX_REGION_BYTES,
+#: so the cache holds either many small regions or a few large ones, never a gigabyte.
+REGION_CACHE_SIZE = 1024
+REGION_CACHE_BYTES = 8 * 1024 * 1024
+#: Memory of a decoded polygon per byte of its encoding (GEOS coordinates, the prepared index,
+#: the key), measured roughly; a fixed cost per entry on top.
+_DECODED_PER_BYTE = 4
+_ENTRY_BYTES = 1024
+
+
+class RegionCache:
+    """Decoded regions by their wire bytes, least recently used first out, within both a count and
+    a byte budget. Thread-safe (robot code may convert regions from threads)."""
+
+    def __init__(self, size: int = REGION_CACHE_SIZE, budget_bytes: int = REGION_CACHE_BYTES) -> None:
+        self.size = size
+        self.budget_bytes = budget_bytes
+        self.bytes = 0
+        self._entries: OrderedDict[tuple[bytes, str], Polygon] = OrderedDict()
+        self._lock = threading.Lock()
+
+    def __len__(self) -> int:
+        return len(self._entries)
+
+    @staticmethod
+    def cost(data: bytes) -> int:
+        return _ENTRY_BYTES + len(data) * _DECODED_PER_BYTE
+
+    def get(self, data: bytes, name: str) -> Polygon:
+        key = (data, name)
+        with self._lock:
+            hit = self._entries.get(key)
+            if hit is not None:
+                self._entries.move_to_end(key)
+                return hit
+        region = _region(geometry_pb2.Region.FromString(data), name)  # a bad region raises every time
+        cost = self.cost(data)
+        with self._lock:
+            if key not in self._entries and cost <= self.budget_bytes:
+                self._entries[key] = region
+                self.bytes += cost
+                while len(self._entries) > self.size or self.bytes > self.budget_bytes:
+                    (old, _name), _polygon = self._entries.popitem(last=False)
+                    self.bytes -= self.cost(old)
+        return region
+
+    def clear(self) -> None:
+        with self._lock:
+            self._entries.clear()
+            self.bytes = 0
+
+
+REGIONS = RegionCache()
+
+
 def region_from_pb(msg: geometry_pb2.Region, name: str = "region") -> Polygon:
     """The validated region. Robots ask about the same regions again and again, so a region's
     polygon (immutable, and prepared once for the routing test) is kept by its wire bytes."""
-    return _region_from_bytes(msg.SerializeToString(deterministic=True), name)
-
-
-@functools.lru_cache(maxsize=1024)
-def _region_from_bytes(data: bytes, name: str) -> Polygon:
-    return _region(geometry_pb2.Region.FromString(data), name)  # a bad region raises every time
+    if msg.HasField("polygon"):
+        _check_vertices(msg.polygon, f"{name}.polygon")
+    size = msg.ByteSize()
+    if size > MAX_REGION_BYTES:
+        raise InvalidArgument(f"{name}: {size} bytes encoded; at most {MAX_REGION_BYTES}")
+    return REGIONS.get(msg.SerializeToString(deterministic=True), name)
 
 
 def _region(msg: geometry_pb2.Region, name: str) -> Polygon:

@@ -8,6 +8,7 @@ looks at that frame; a request only filters the blobs by its region.
 from __future__ import annotations
 
 import threading
+import time
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -31,11 +32,19 @@ OUTLINE_TOLERANCE_PX = 1.0
 
 @dataclass(frozen=True)
 class Frame:
-    """A captured image (BGR) with its capture time (Unix seconds) and a per-source sequence number."""
+    """A captured image (BGR) with its capture time (Unix seconds, for reports) and a per-source
+    sequence number. `captured_at` is the same instant on the monotonic clock: a frame's age is
+    measured on it, so a wall clock that steps (NTP, an operator) never makes a stale frame look
+    fresh or a fresh one stale."""
 
     image: NDArray[np.uint8]
     capture_time: float
     sequence: int
+    captured_at: float = field(default_factory=time.monotonic)
+
+    def age_s(self) -> float:
+        """Seconds since capture, on the monotonic clock."""
+        return time.monotonic() - self.captured_at
 
     @property
     def size(self) -> tuple[int, int]:

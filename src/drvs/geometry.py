@@ -27,6 +27,9 @@ DEFAULT_MAX_RANGE_M = 15.0
 HORIZON_MARGIN = 0.05
 _MIN_AREA_M2 = 1e-9
 MAX_CONDITION = 1e15
+#: A region's polygon may have at most this many points: a room or a corridor needs tens, and every
+#: point costs the server (and every camera the region reaches) time and memory on every request.
+MAX_REGION_VERTICES = 1000
 
 
 def _finite(value: float, name: str) -> float:
@@ -58,6 +61,8 @@ def polygon_region(points: Iterable[Sequence[float]], name: str = "region.polygo
     """A simple polygon with positive area from its exterior ring (closing point optional)."""
     coords = []
     for i, p in enumerate(points):
+        if i >= MAX_REGION_VERTICES:
+            raise InvalidArgument(f"{name}: more than {MAX_REGION_VERTICES} points; simplify the region")
         if len(p) != 2:
             raise InvalidArgument(f"{name}.points[{i}]: expected [x, y], got {len(p)} values")
         coords.append((_finite(p[0], f"{name}.points[{i}].x"), _finite(p[1], f"{name}.points[{i}].y")))

@@ -7,6 +7,9 @@ import logging
 
 from prometheus_client import Counter, Gauge, Histogram, start_http_server
 
+from drvs.errors import InvalidArgument
+from drvs.net import parse_address
+
 log = logging.getLogger(__name__)
 
 #: Request-path stages are milliseconds long; detection can take tens of milliseconds.
@@ -17,6 +20,10 @@ REQUESTS = Counter(
 )
 ROUTED = Counter(
     "drvs_requests_routed_total", "Forwards of a request to a camera, by outcome (ok or failed)", ["outcome"]
+)
+FORWARDED_BYTES = Counter(
+    "drvs_forwarded_bytes_total",
+    "Serialised bytes of the requests the server forwarded to cameras (a request's size times its cameras)",
 )
 CAMERAS = Gauge("drvs_cameras_registered", "Cameras in the server's routing table")
 DETECTIONS = Counter("drvs_detections_sent_total", "Detections a camera node sent to robots")
@@ -33,7 +40,25 @@ STAGE = Histogram(
 )
 
 
-def serve_metrics(port: int | None, host: str = "0.0.0.0") -> int | None:
+#: Where /metrics listens unless the operator says otherwise: this host only. The metrics say how
+#: busy the service is and which requests fail; publish them to the network on purpose.
+DEFAULT_METRICS_HOST = "127.0.0.1"
+
+
+def parse_metrics_address(value: str, name: str, host: str = DEFAULT_METRICS_HOST) -> tuple[str, int] | None:
+    """`PORT` (on `host`), `HOST:PORT`, or a negative number (off: None). 0 picks a free port."""
+    text = value.strip()
+    if text.lstrip("-").isdecimal():
+        port = int(text)
+        if port < 0:
+            return None
+        if port > 65535:
+            raise InvalidArgument(f"{name}: {port} is not a port number (0 picks a free one)")
+        return host, port
+    return parse_address(text, name, allow_port_zero=True)
+
+
+def serve_metrics(port: int | None, host: str = DEFAULT_METRICS_HOST) -> int | None:
     """Serve /metrics on host:port (0: any free port; None: not at all); returns the bound port."""
     if port is None:
         return None

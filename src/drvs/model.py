@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import overload
 
 from shapely.geometry import Point, Polygon
 
@@ -92,13 +94,51 @@ class ContinuousMode:
                 f"got rate_hz={self.rate_hz:g}, duration_s={self.duration_s:g}"
             )
 
-    def report_times(self) -> list[float]:
+    def report_times(self) -> ReportTimes:
         """Offsets (s) from the start at which reports are taken; the last one is final."""
         if self.single_shot:
-            return [0.0]
-        period = 1.0 / self.rate_hz
-        count = math.floor(self.duration_s * self.rate_hz + 1e-9)
-        return [i * period for i in range(count + 1)]
+            return ReportTimes(1, 0.0)
+        return ReportTimes(math.floor(self.duration_s * self.rate_hz + 1e-9) + 1, 1.0 / self.rate_hz)
+
+
+class ReportTimes(Sequence[float]):
+    """A request's report offsets, each computed when asked for: a 100 Hz request for an hour has
+    360 001 of them, which as a list of floats took 14 MB per request on the camera."""
+
+    __slots__ = ("_count", "_period")
+
+    def __init__(self, count: int, period: float) -> None:
+        self._count = count
+        self._period = period
+
+    def __len__(self) -> int:
+        return self._count
+
+    @overload
+    def __getitem__(self, index: int) -> float: ...
+
+    @overload
+    def __getitem__(self, index: slice) -> list[float]: ...
+
+    def __getitem__(self, index: int | slice) -> float | list[float]:
+        if isinstance(index, slice):
+            return [i * self._period for i in range(*index.indices(self._count))]
+        i = index + self._count if index < 0 else index
+        if not 0 <= i < self._count:
+            raise IndexError(f"report {index} of {self._count}")
+        return i * self._period
+
+    def __eq__(self, other: object) -> bool:
+        if isinstance(other, ReportTimes):
+            return (self._count, self._period) == (other._count, other._period)
+        if isinstance(other, Sequence) and not isinstance(other, str):
+            return len(other) == self._count and all(a == b for a, b in zip(self, other, strict=True))
+        return NotImplemented
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def __repr__(self) -> str:
+        return f"ReportTimes(count={self._count}, period={self._period:g})"
 
 
 @dataclass(frozen=True)

@@ -17,8 +17,10 @@ from drvs.model import check_id
 from drvs.net import parse_address
 
 DEFAULT_LEASE_TTL_S = 10.0
-#: Regions whose overlapping cameras are remembered until the registry's next change.
+#: Regions whose overlapping cameras are remembered until the registry's next change, by count and
+#: by the regions' points (the cache holds the regions alive: a byte budget, not only a count).
 ROUTE_CACHE_SIZE = 1024
+ROUTE_CACHE_POINTS = 64 * 1024
 
 
 @dataclass(frozen=True)
@@ -53,7 +55,8 @@ class Registry:
         self._fovs: np.ndarray = np.array([], dtype=object)
         # id(region) -> (region, the cameras it overlaps by camera id); the region is held, so
         # its id is not reused while the entry lives.
-        self._routes: dict[int, tuple[Polygon, list[CameraEntry]]] = {}
+        self._routes: dict[int, tuple[Polygon, list[CameraEntry], int]] = {}
+        self._route_points = 0
 
     def __len__(self) -> int:
         return len(self._entries)
@@ -146,6 +149,7 @@ class Registry:
             self._fovs = np.array([e.field_of_view for e in self._tree_entries], dtype=object)
             self._tree = STRtree(self._fovs)
             self._routes.clear()
+            self._route_points = 0
         known = self._routes.get(id(region))
         if known is not None and known[0] is region:
             return known[1]
@@ -158,9 +162,14 @@ class Registry:
                 overlaps = shapely.relate_pattern(self._fovs[candidates], region, "T********")
                 hits = (self._tree_entries[i] for i, hit in zip(candidates, overlaps, strict=True) if hit)
                 found = sorted(hits, key=lambda e: e.camera_id)
-        if len(self._routes) >= ROUTE_CACHE_SIZE:
-            del self._routes[next(iter(self._routes))]  # the oldest
-        self._routes[id(region)] = (region, found)
+        points = int(shapely.get_num_coordinates(region))
+        while self._routes and (
+            len(self._routes) >= ROUTE_CACHE_SIZE or self._route_points + points > ROUTE_CACHE_POINTS
+        ):
+            self._route_points -= self._routes.pop(next(iter(self._routes)))[2]  # the oldest
+        if points <= ROUTE_CACHE_POINTS:
+            self._routes[id(region)] = (region, found, points)
+            self._route_points += points
         return found
 
     def remaining_s(self, camera_id: str) -> float:

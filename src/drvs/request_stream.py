@@ -18,6 +18,7 @@ import grpc
 from grpc import aio
 
 from drvs import _grpc, errors
+from drvs.convert import MAX_REGION_BYTES
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
 
 log = logging.getLogger(__name__)
@@ -136,13 +137,14 @@ class RequestStream:
 class _Forward:
     """One request on its way through a BatchSender; `done` is called exactly once."""
 
-    __slots__ = ("deadline", "done", "message", "settled")
+    __slots__ = ("deadline", "done", "message", "settled", "written_at")
 
     def __init__(self, message: Request, deadline: float, done: Callable[[Reply | errors.DrvsError], None]) -> None:
         self.message = message
         self.deadline = deadline
         self.done = done
         self.settled = False
+        self.written_at: float | None = None  # when its write began (loop time)
 
 
 class _BatchCall:
@@ -231,11 +233,29 @@ class BatchSender:
         loop = asyncio.get_running_loop()
         now = loop.time()
         order = self._order
+        failure = errors.DeadlineExceeded(f"{self._peer}: no reply within {self._timeout_s:g} s")
         while order and (order[0].settled or order[0].deadline <= now):
-            forward = order.popleft()
-            self._settle(forward, errors.DeadlineExceeded(f"{self._peer}: no reply within {self._timeout_s:g} s"))
-        if order:
-            self._timer = loop.call_at(order[0].deadline, self._expire)
+            self._settle(order.popleft(), failure)
+        state = self._call
+        oldest = state.sent[0].written_at if state is not None and state.sent else None
+        if state is not None and oldest is not None and oldest + self._timeout_s <= now:
+            # The camera has had a whole timeout to read and answer a request written to it, and
+            # has not: it is not reading its stream (or cannot keep up). The call is cut off, so
+            # neither this process nor gRPC keeps writing to (and buffering for) a peer that does
+            # not read; the next request opens a new one.
+            log.warning("%s: no reply within %g s; closing its request stream", self._peer, self._timeout_s)
+            state.call.cancel()
+            self._end(state, failure)
+            oldest = None
+        self._schedule(oldest)
+
+    def _schedule(self, oldest_written: float | None = None) -> None:
+        """Wake for the next deadline, or for the oldest unanswered write's timeout."""
+        wake = [self._order[0].deadline] if self._order else []
+        if oldest_written is not None:
+            wake.append(oldest_written + self._timeout_s)
+        if wake and self._timer is None:
+            self._timer = asyncio.get_running_loop().call_at(min(wake), self._expire)
 
     def _open(self) -> _BatchCall:
         state = _BatchCall(self._stub.DetectBatches(metadata=self._metadata or None))
@@ -266,6 +286,9 @@ class BatchSender:
                 if not batch:
                     break
                 state = self._call or self._open()
+                now = asyncio.get_running_loop().time()
+                for forward in batch:
+                    forward.written_at = now
                 state.sent.extend(batch)
                 self.batches_written += 1
                 self.requests_written += len(batch)
@@ -372,8 +395,11 @@ class StreamContext:
             else:
                 setattr(message, name, self.values[name])
         if message.HasField("region"):
-            self.region = geometry_pb2.Region()
-            self.region.CopyFrom(message.region)
+            if message.region.ByteSize() > MAX_REGION_BYTES:
+                self.region = None  # refused as too large: not kept for the requests that follow
+            else:
+                self.region = geometry_pb2.Region()
+                self.region.CopyFrom(message.region)
         elif self.region is not None:
             message.region.CopyFrom(self.region)
 

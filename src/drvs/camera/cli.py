@@ -21,7 +21,7 @@ from drvs.camera.source import FrameSource, VideoSource
 from drvs.detection import Frame
 from drvs.errors import DrvsError
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, polygon_coords
-from drvs.metrics import serve_metrics
+from drvs.metrics import DEFAULT_METRICS_HOST, serve_metrics
 
 log = logging.getLogger("drvs.camera")
 
@@ -76,10 +76,20 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--heartbeat", dest="heartbeat_s", type=float, metavar="S", help="heartbeat interval (default: lease / 3)"
     )
+    p.add_argument(
+        "--max-continuous",
+        metavar="N",
+        help=f"continuous requests one robot may have running on this camera at once (default 32; "
+        f"{e['max_continuous']})",
+    )
     add_security_arguments(p, "file holding this camera's registration token")
     p.add_argument("--log-level", help=f"DEBUG, INFO, WARNING ({e['log_level']})")
     p.add_argument("--log-format", help=f"text, or json: one object per line with the request id ({e['log_format']})")
     p.add_argument("--metrics-port", help=f"Prometheus metrics port; 0 picks one; default off ({e['metrics_port']})")
+    p.add_argument(
+        "--metrics-host",
+        help=f"address the metrics listen on (default 127.0.0.1: this host only; {e['metrics_host']})",
+    )
     return p
 
 
@@ -99,11 +109,11 @@ def make_source(
     return VideoSource(spec, loop_file=loop_file, resolution=resolution, fps=fps)
 
 
-async def run(node: CameraNode, metrics_port: int | None = None) -> int:
+async def run(node: CameraNode, metrics_port: int | None = None, metrics_host: str = DEFAULT_METRICS_HOST) -> int:
     stop = shutdown_event()
     try:
         await node.start()
-        serve_metrics(metrics_port)
+        serve_metrics(metrics_port, metrics_host)
     except (DrvsError, OSError) as exc:
         log.error("camera %s cannot start: %s", node.camera_id, exc)
         await node.stop(grace=0)
@@ -329,8 +339,9 @@ def main(argv: list[str] | None = None) -> int:
             resolution=config.resolution,
             detectors=config.detectors,
             heartbeat_s=config.heartbeat_s,
+            max_continuous_per_robot=config.max_continuous,
             security=config.security(),
         )
     except DrvsError as exc:
         parser.error(str(exc))
-    return asyncio.run(run(node, config.metrics_port))
+    return asyncio.run(run(node, config.metrics_port, config.metrics_host))

@@ -19,13 +19,15 @@ from drvs.errors import InvalidArgument
 from drvs.filters import DETECTOR_KINDS
 from drvs.geometry import DEFAULT_MAX_RANGE_M
 from drvs.logs import FORMATS
+from drvs.metrics import DEFAULT_METRICS_HOST
 from drvs.model import check_id
-from drvs.net import parse_address
+from drvs.net import format_address, parse_address
 from drvs.security import Security
 
 DEFAULT_SERVER = "127.0.0.1:50051"
 DEFAULT_LISTEN = "127.0.0.1:0"
 DEFAULT_MAX_FRAME_AGE_S = 2.0
+DEFAULT_MAX_CONTINUOUS_PER_ROBOT = 32  # as drvs.camera.node's
 
 #: Every environment variable a camera node reads, by setting.
 ENVIRONMENT = {
@@ -44,9 +46,11 @@ ENVIRONMENT = {
     "fps": "DRVS_CAMERA_FPS",
     "detectors": "DRVS_CAMERA_DETECTORS",
     "heartbeat_s": "DRVS_CAMERA_HEARTBEAT",
+    "max_continuous": "DRVS_CAMERA_MAX_CONTINUOUS",
     "log_level": "DRVS_LOG_LEVEL",
     "log_format": "DRVS_LOG_FORMAT",
     "metrics_port": "DRVS_METRICS_PORT",
+    "metrics_host": "DRVS_METRICS_HOST",
     **SECURITY_ENV,
 }
 
@@ -71,11 +75,15 @@ class CameraConfig:
     detectors: tuple[str, ...] = DETECTOR_KINDS
     #: Heartbeat interval; by default a third of the lease the server grants.
     heartbeat_s: float | None = None
+    #: Continuous requests one robot (callback address) may have running on this camera at once.
+    max_continuous: int = DEFAULT_MAX_CONTINUOUS_PER_ROBOT
     log_level: str | None = None
     #: text, or json (one object per line, with the request id).
     log_format: str | None = None
     #: Serve Prometheus metrics on this port (0: any free port; None: off).
     metrics_port: int | None = None
+    #: Where the metrics listen: this host only unless the operator says otherwise.
+    metrics_host: str = DEFAULT_METRICS_HOST
     #: TLS and the registration token (see drvs.security); paths are relative to the config file.
     tls_cert: Path | None = None
     tls_key: Path | None = None
@@ -99,7 +107,8 @@ _FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max
           "listen": "--listen", "advertise": "--advertise", "resolution": "--resolution", "fps": "--fps",
           "detectors": "--detectors", "heartbeat_s": "--heartbeat", "tls_cert": "--tls-cert",
           "tls_key": "--tls-key", "tls_ca": "--tls-ca", "tls_client_auth": "--tls-client-auth",
-          "token_file": "--token-file", "log_format": "--log-format", "metrics_port": "--metrics-port"}  # fmt: skip
+          "token_file": "--token-file", "log_format": "--log-format", "metrics_port": "--metrics-port",
+          "metrics_host": "--metrics-host", "max_continuous": "--max-continuous"}  # fmt: skip
 
 
 def load_config(
@@ -171,6 +180,11 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
             if not (math.isfinite(value) and limits[0] <= value <= limits[1]):
                 raise InvalidArgument(f"{where}: {raw!r} must be a number from {limits[0]:g} to {limits[1]:g}")
             return value
+        if name == "max_continuous":
+            count = int(raw) if not isinstance(raw, bool) and str(raw).strip().isdecimal() else 0
+            if not 1 <= count <= 1_000_000:
+                raise InvalidArgument(f"{where}: {raw!r} must be a whole number from 1 to 1000000")
+            return count
         if name == "metrics_port":
             port = int(raw) if not isinstance(raw, bool) and str(raw).strip().isdecimal() else -1
             if not 0 <= port <= 65535:
@@ -198,6 +212,12 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
             parse_address(text, where)
         elif name == "listen":
             parse_address(text, where, allow_port_zero=True)
+        elif name == "metrics_host":
+            try:
+                parse_address(format_address(text.strip("[]"), 1), where)
+            except InvalidArgument:
+                raise InvalidArgument(f"{where}: {text[:80]!r} is not a host name or IP address") from None
+            return text.strip("[]")
         elif name in ("homography", "tls_cert", "tls_key", "tls_ca", "token_file"):
             path = Path(text)
             return path if path.is_absolute() else base / path

@@ -42,6 +42,10 @@ FRAME_POLL_S = 0.005
 DEFAULT_MAX_FRAME_AGE_S = 2.0
 #: Concurrent requests a node serves at once; more are refused with RESOURCE_EXHAUSTED.
 MAX_ACTIVE_REQUESTS = 512
+#: Continuous requests one robot (its callback address, which the server checked is the robot's
+#: own) may have running on this camera at once: the server's per-robot cap counts a robot per
+#: credential or connection, and a robot with many connections would otherwise take every slot.
+DEFAULT_MAX_CONTINUOUS_PER_ROBOT = 32
 
 
 class CameraNode(Lifecycle):
@@ -65,8 +69,14 @@ class CameraNode(Lifecycle):
         detectors: tuple[str, ...] = ("hsv",),
         heartbeat_s: float | None = None,
         security: Security | None = None,
+        max_continuous_per_robot: int = DEFAULT_MAX_CONTINUOUS_PER_ROBOT,
     ) -> None:
         self.security = security or Security()
+        if max_continuous_per_robot < 1:
+            raise InvalidArgument(f"max_continuous_per_robot: {max_continuous_per_robot} must be at least 1")
+        self.max_continuous_per_robot = max_continuous_per_robot
+        # callback address -> continuous requests of that robot running here
+        self._continuous: dict[str, int] = {}
         self.resolution = resolution
         self.detectors = detectors
         self.heartbeat_s = heartbeat_s
@@ -183,7 +193,7 @@ class CameraNode(Lifecycle):
 
     def frame_is_fresh(self) -> bool:
         frame = self.source.latest()
-        return frame is not None and time.time() - frame.capture_time <= self.max_frame_age_s
+        return frame is not None and frame.age_s() <= self.max_frame_age_s
 
     async def _watch_frames(self) -> None:
         """Health follows the frames: NOT_SERVING while none is fresh. Registration is kept, so
@@ -280,6 +290,13 @@ class CameraNode(Lifecycle):
             raise InvalidArgument(f"filter_def: camera {self.camera_id} does not run detector {request.kind!r}")
         if len(self._jobs) >= MAX_ACTIVE_REQUESTS:
             raise ResourceExhausted(f"camera {self.camera_id}: {len(self._jobs)} requests active; try later")
+        robot = request.callback_address
+        continuous = not request.continuous.single_shot
+        if continuous and self._continuous.get(robot, 0) >= self.max_continuous_per_robot:
+            raise ResourceExhausted(
+                f"camera {self.camera_id}: continuous: {self._continuous[robot]} continuous requests already "
+                f"running for {robot} (limit {self.max_continuous_per_robot}); wait for one to end or cancel one"
+            )
         if log.isEnabledFor(logging.DEBUG):
             log.debug(
                 "camera %s: request %s from robot %r: %s, %s",
@@ -299,17 +316,33 @@ class CameraNode(Lifecycle):
             logs.request_id.reset(token)
         self._jobs.add(job)
         job.add_done_callback(self._jobs.discard)
+        if continuous:
+            self._continuous[robot] = self._continuous.get(robot, 0) + 1
+            job.add_done_callback(lambda _job: self._release(robot))
+
+    def _release(self, robot: str) -> None:
+        """A continuous request ended (done, cancelled by the robot, or stopped): its slot is free."""
+        left = self._continuous.get(robot, 0) - 1
+        if left > 0:
+            self._continuous[robot] = left
+        else:
+            self._continuous.pop(robot, None)
+
+    def continuous_running(self, robot: str) -> int:
+        """Continuous requests running here whose reports go to `robot` (a callback address)."""
+        return self._continuous.get(robot, 0)
 
     async def _serve(self, request: DetectionRequest) -> None:
         loop = asyncio.get_running_loop()
-        offsets = request.continuous.report_times()
+        offsets = request.continuous.report_times()  # lazy: nothing is allocated per report time
+        last = len(offsets) - 1
         start = loop.time()
         try:
             for sequence, offset in enumerate(offsets):
                 delay = start + offset - loop.time()
                 if delay > 0:
                     await asyncio.sleep(delay)
-                report = await self._look(request, sequence, final=sequence == len(offsets) - 1)
+                report = await self._look(request, sequence, final=sequence == last)
                 sending = time.perf_counter()
                 sent = await self._callbacks.send(request.callback_address, report, not request.omit_outlines)
                 metrics.STAGE_REPORT.observe(time.perf_counter() - sending)
@@ -323,9 +356,9 @@ class CameraNode(Lifecycle):
 
     async def _look(self, request: DetectionRequest, sequence: int, final: bool) -> DetectionReport:
         frame = self.source.latest()
-        now = time.time()
-        if frame is None or now - frame.capture_time > self.max_frame_age_s:
-            age = "no frame" if frame is None else f"newest frame is {now - frame.capture_time:.1f} s old"
+        frame_age = frame.age_s() if frame is not None else math.inf
+        if frame is None or frame_age > self.max_frame_age_s:
+            age = "no frame" if frame is None else f"newest frame is {frame_age:.1f} s old"
             return DetectionReport(
                 request_id=request.request_id,
                 camera_id=self.camera_id,

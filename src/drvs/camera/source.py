@@ -145,10 +145,15 @@ class VideoSource:
                 self.error = "source stopped delivering frames"
                 log.warning("source %s stopped delivering frames; reconnecting", self.description)
                 return
-            now = time.time()
+            captured_at, now = time.monotonic(), time.time()
             with self._lock:
                 self._sequence += 1
-                self._latest = Frame(image=np.asarray(image, dtype=np.uint8), capture_time=now, sequence=self._sequence)
+                self._latest = Frame(
+                    image=np.asarray(image, dtype=np.uint8),
+                    capture_time=now,
+                    sequence=self._sequence,
+                    captured_at=captured_at,
+                )
             self._first.set()
             if period:
                 next_at += period

@@ -7,6 +7,7 @@ import asyncio
 import logging
 from pathlib import Path
 
+from drvs import _grpc
 from drvs._cli import (
     add_observability_arguments,
     add_security_arguments,
@@ -17,11 +18,17 @@ from drvs._cli import (
     shutdown_event,
 )
 from drvs.errors import DrvsError
-from drvs.metrics import serve_metrics
+from drvs.metrics import DEFAULT_METRICS_HOST, parse_metrics_address, serve_metrics
 from drvs.net import parse_address
 from drvs.registry import DEFAULT_LEASE_TTL_S
 from drvs.security import load_tokens
-from drvs.server.policy import DEFAULT_MAX_ACTIVE, DEFAULT_RATE_HZ, CallbackPolicy, RequestLimits
+from drvs.server.policy import (
+    DEFAULT_FORWARD_BYTES_PER_S,
+    DEFAULT_MAX_ACTIVE,
+    DEFAULT_RATE_HZ,
+    CallbackPolicy,
+    RequestLimits,
+)
 from drvs.server.server import DEFAULT_FORWARD_TIMEOUT_S, DEFAULT_LISTEN, DEFAULT_MAX_QUEUED_FORWARDS, DrvsServer
 
 log = logging.getLogger("drvs.server")
@@ -94,6 +101,43 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="continuous requests one robot may have running at once (default %(default)s)",
     )
+    p.add_argument(
+        "--max-forward-bytes",
+        type=float,
+        default=DEFAULT_FORWARD_BYTES_PER_S,
+        metavar="BYTES",
+        help="bytes a second the server may forward to cameras for one robot (a request's size times the "
+        "cameras it goes to); burst twice that (default %(default)d)",
+    )
+    g = p.add_argument_group("connections (0: no limit)")
+    g.add_argument(
+        "--max-streams-per-connection",
+        type=int,
+        default=_grpc.DEFAULT_MAX_STREAMS_PER_CONNECTION,
+        metavar="N",
+        help="calls one connection may have open at once; more wait on the client (default %(default)s)",
+    )
+    g.add_argument(
+        "--max-connection-idle",
+        type=float,
+        default=_grpc.DEFAULT_MAX_CONNECTION_IDLE_S,
+        metavar="SECONDS",
+        help="close a connection that has had no call open this long (default %(default)g)",
+    )
+    g.add_argument(
+        "--max-connection-age",
+        type=float,
+        default=_grpc.DEFAULT_MAX_CONNECTION_AGE_S,
+        metavar="SECONDS",
+        help="ask a client to reconnect after this long; clients reconnect by themselves (default %(default)g)",
+    )
+    g.add_argument(
+        "--max-connection-age-grace",
+        type=float,
+        default=_grpc.DEFAULT_MAX_CONNECTION_AGE_GRACE_S,
+        metavar="SECONDS",
+        help="then end the old connection's calls this much later (default %(default)g)",
+    )
     add_security_arguments(p, "unused by the server (it checks tokens, it presents none)")
     add_observability_arguments(p)
     return p
@@ -112,9 +156,11 @@ async def serve(args: argparse.Namespace) -> None:
         camera_tokens=args.camera_token_table,
         robot_tokens=args.robot_token_table,
         limits=args.limits,
+        connection_limits=args.connection_limits,
     )
     await server.start()
-    serve_metrics(args.metrics_port if args.metrics_port >= 0 else None)
+    if args.metrics is not None:
+        serve_metrics(args.metrics[1], args.metrics[0])
     try:
         await stop.wait()
         log.info("shutting down")
@@ -138,11 +184,37 @@ def main(argv: list[str] | None = None) -> int:
             raise DrvsError(f"--max-queued-forwards: {args.max_queued_forwards} must be in [1, 100000]")
         if not (0 < args.rate_limit <= 1e6 and 1 <= args.max_continuous <= 1e6):
             raise DrvsError("--rate-limit must be in (0, 1e6] and --max-continuous in [1, 1e6]")
-        if args.metrics_port is None:
-            args.metrics_port = int(env_number("DRVS_METRICS_PORT", -1, integer=True))
-        if args.metrics_port > 65535:
-            raise DrvsError(f"--metrics-port: {args.metrics_port} is not a port number (0 picks a free one)")
-        args.limits = RequestLimits(args.rate_limit, max(1, round(2 * args.rate_limit)), args.max_continuous)
+        metrics_host = args.metrics_host or env("DRVS_METRICS_HOST", DEFAULT_METRICS_HOST) or DEFAULT_METRICS_HOST
+        if args.metrics_port is not None:
+            args.metrics = parse_metrics_address(args.metrics_port, "--metrics-port", metrics_host)
+        else:
+            args.metrics = parse_metrics_address(
+                env("DRVS_METRICS_PORT", "-1") or "-1", "DRVS_METRICS_PORT", metrics_host
+            )
+        if not 1 <= args.max_forward_bytes <= 1e12:
+            raise DrvsError(f"--max-forward-bytes: {args.max_forward_bytes:g} must be in [1, 1e12]")
+        args.limits = RequestLimits(
+            args.rate_limit,
+            max(1, round(2 * args.rate_limit)),
+            args.max_continuous,
+            forward_bytes_per_s=args.max_forward_bytes,
+        )
+        for flag in (
+            "max_streams_per_connection",
+            "max_connection_idle",
+            "max_connection_age",
+            "max_connection_age_grace",
+        ):
+            if not 0 <= getattr(args, flag) <= 1e9:
+                raise DrvsError(
+                    f"--{flag.replace('_', '-')}: {getattr(args, flag):g} must be in [0, 1e9] (0: no limit)"
+                )
+        args.connection_limits = _grpc.ConnectionLimits(
+            max_streams=args.max_streams_per_connection,
+            max_idle_s=args.max_connection_idle,
+            max_age_s=args.max_connection_age,
+            age_grace_s=args.max_connection_age_grace,
+        )
         args.security = security_from(vars(args))
         for role in ("camera", "robot"):
             path = getattr(args, f"{role}_tokens") or env(f"DRVS_{role.upper()}_TOKENS")

@@ -79,14 +79,20 @@ async def _resolve(host: str, port: int) -> list[IPAddress]:
 DEFAULT_RATE_HZ = 200.0
 DEFAULT_BURST = 400
 DEFAULT_MAX_ACTIVE = 32
+#: Per robot: bytes a second the server may forward to cameras on its behalf (a request's size
+#: times the cameras it goes to), and the burst above it. A robot on a stream repeats a region by
+#: leaving it out, so without this a few bytes from it could become a 24 kB region sent to every
+#: camera, as often as the rate limit allows.
+DEFAULT_FORWARD_BYTES_PER_S = 1024 * 1024
 #: Robots whose buckets are kept; the longest idle is dropped past this, so memory stays bounded.
 MAX_TRACKED_ROBOTS = 10_000
 
 
 class RequestLimits:
     """Per robot (its credential, or without credentials its connection): a token bucket on the
-    request rate, and a cap on continuous requests running at once, so no robot can keep every
-    camera busy or starve the others."""
+    request rate, one on the bytes forwarded to cameras for it, and a cap on continuous requests
+    running at once, so no robot can keep every camera busy, amplify its traffic, or starve the
+    others."""
 
     def __init__(
         self,
@@ -94,27 +100,46 @@ class RequestLimits:
         burst: int = DEFAULT_BURST,
         max_active: int = DEFAULT_MAX_ACTIVE,
         clock: Callable[[], float] = time.monotonic,
+        forward_bytes_per_s: float = DEFAULT_FORWARD_BYTES_PER_S,
+        forward_burst_bytes: float | None = None,
     ) -> None:
-        if not (rate_hz > 0 and burst >= 1 and max_active >= 1):
-            raise InvalidArgument("request limits: rate_hz > 0, burst >= 1 and max_active >= 1")
+        if not (rate_hz > 0 and burst >= 1 and max_active >= 1 and forward_bytes_per_s > 0):
+            raise InvalidArgument(
+                "request limits: rate_hz > 0, burst >= 1, max_active >= 1 and forward_bytes_per_s > 0"
+            )
         self.rate_hz = rate_hz
         self.burst = float(burst)
         self.max_active = max_active
+        self.forward_bytes_per_s = float(forward_bytes_per_s)
+        self.forward_burst_bytes = float(
+            2 * forward_bytes_per_s if forward_burst_bytes is None else forward_burst_bytes
+        )
         self._clock = clock
-        # robot -> (tokens, last refill); robot -> end times of its running continuous requests
-        self._buckets: OrderedDict[str, tuple[float, float]] = OrderedDict()
+        # robot -> (request tokens, forward byte tokens, last refill); robot -> end times of its
+        # running continuous requests
+        self._buckets: OrderedDict[str, tuple[float, float, float]] = OrderedDict()
         self._active: dict[str, list[float]] = {}
 
-    def admit(self, robot: str, continuous_s: float) -> None:
-        """Count one request, or raise ResourceExhausted naming the limit (nothing is counted then)."""
+    def admit(self, robot: str, continuous_s: float, forward_bytes: int = 0) -> float | None:
+        """Count one request that will forward `forward_bytes` to cameras, or raise
+        ResourceExhausted naming the limit (nothing is counted then). Returns the continuous
+        request's slot, for `release`, or None for a single shot."""
         now = self._clock()
-        tokens, last = self._buckets.pop(robot, (self.burst, now))
+        tokens, byte_tokens, last = self._buckets.pop(robot, (self.burst, self.forward_burst_bytes, now))
         tokens = min(self.burst, tokens + (now - last) * self.rate_hz)
+        byte_tokens = min(self.forward_burst_bytes, byte_tokens + (now - last) * self.forward_bytes_per_s)
         active = [end for end in self._active.get(robot, ()) if end > now]
+        slot: float | None = None
         try:
             if tokens < 1.0:
                 raise ResourceExhausted(
                     f"rate: more than {self.rate_hz:g} requests a second (burst {self.burst:g}); slow down"
+                )
+            if forward_bytes > byte_tokens:
+                raise ResourceExhausted(
+                    f"forwarded bytes: this request goes to cameras as {forward_bytes} bytes, more than the "
+                    f"{int(byte_tokens)} left of {self.forward_bytes_per_s:g} bytes a second "
+                    f"(burst {self.forward_burst_bytes:g}); use a smaller region or slow down"
                 )
             if continuous_s > 0 and len(active) >= self.max_active:
                 raise ResourceExhausted(
@@ -122,10 +147,12 @@ class RequestLimits:
                     "wait for one to end or cancel one"
                 )
             tokens -= 1.0
+            byte_tokens -= forward_bytes
             if continuous_s > 0:
-                active.append(now + continuous_s)
+                slot = now + continuous_s
+                active.append(slot)
         finally:
-            self._buckets[robot] = (tokens, now)
+            self._buckets[robot] = (tokens, byte_tokens, now)
             if active:
                 self._active[robot] = active
             else:
@@ -133,3 +160,23 @@ class RequestLimits:
             while len(self._buckets) > MAX_TRACKED_ROBOTS:
                 old, _ = self._buckets.popitem(last=False)
                 self._active.pop(old, None)
+        return slot
+
+    def release(self, robot: str, slot: float | None) -> None:
+        """A continuous request ended early (no camera took it): its slot is free again."""
+        if slot is None:
+            return
+        active = self._active.get(robot)
+        if active is None:
+            return
+        try:
+            active.remove(slot)
+        except ValueError:
+            return
+        if not active:
+            del self._active[robot]
+
+    def active(self, robot: str) -> int:
+        """Continuous requests of `robot` still holding a slot."""
+        now = self._clock()
+        return sum(1 for end in self._active.get(robot, ()) if end > now)

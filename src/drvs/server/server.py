@@ -4,10 +4,11 @@ from __future__ import annotations
 
 import asyncio
 import dataclasses
+import functools
 import logging
 import time
 import uuid
-from collections.abc import AsyncIterator, Iterable, Mapping
+from collections.abc import AsyncIterator, Callable, Iterable, Mapping
 from typing import Any
 
 import grpc
@@ -54,6 +55,22 @@ SERVICE_NAMES = (
 )
 
 
+class _Outcome:
+    """Counts a request's forwards that failed; calls `on_none_accepted` once when all have."""
+
+    __slots__ = ("on_none_accepted", "pending")
+
+    def __init__(self, forwards: int, on_none_accepted: Callable[[], None] | None) -> None:
+        self.pending = forwards
+        self.on_none_accepted = on_none_accepted
+
+    def failed(self) -> None:
+        self.pending -= 1
+        if self.pending == 0 and self.on_none_accepted is not None:
+            callback, self.on_none_accepted = self.on_none_accepted, None
+            callback()
+
+
 class _CameraLink:
     """One reused channel per camera, replaced when the camera registers a new address."""
 
@@ -91,11 +108,13 @@ class DrvsServer(Lifecycle):
         camera_tokens: Mapping[str, str] | None = None,
         robot_tokens: Mapping[str, str] | None = None,
         limits: RequestLimits | None = None,
+        connection_limits: _grpc.ConnectionLimits | None = None,
     ) -> None:
         self.callback_policy = CallbackPolicy(allow_callback, allow_any_callback)
         self.security = security or Security()
         self.tokens = TokenAuthority(camera_tokens, robot_tokens)
         self.limits = limits or RequestLimits()
+        self.connection_limits = connection_limits or _grpc.ConnectionLimits()
         # camera id -> the identity that registered it (token name or certificate name): another
         # identity may not re-register, renew or deregister it.
         self.owners: dict[str, str] = {}
@@ -113,6 +132,7 @@ class DrvsServer(Lifecycle):
             self._add_servicers,
             security=self.security,
             interceptors=[TokenInterceptor(self.tokens)] if self.tokens.enabled else [],
+            options=self.connection_limits.options(),
         )
         self._links: dict[str, _CameraLink] = {}
         # Cameras whose last forward failed: skipped until their next heartbeat proves them alive.
@@ -181,10 +201,20 @@ class DrvsServer(Lifecycle):
         seeing = self.registry.cameras_seeing(request.region, request.kind)
         return [c for c in seeing if c.camera_id not in self._unreachable]
 
-    def dispatch(self, request: DetectionRequest, message: detection_pb2.DetectionRequest) -> list[str]:
-        cameras = self.route(request)
+    def dispatch(
+        self,
+        request: DetectionRequest,
+        message: detection_pb2.DetectionRequest,
+        cameras: list[CameraEntry] | None = None,
+        on_none_accepted: Callable[[], None] | None = None,
+    ) -> list[str]:
+        """Forward to `cameras` (by default the ones `route` finds). `on_none_accepted` is called
+        once if every camera refused or failed the request (so it holds no resources anywhere)."""
+        if cameras is None:
+            cameras = self.route(request)
+        outcome = _Outcome(len(cameras), on_none_accepted)
         for camera in cameras:
-            self._forward(camera, request, message)
+            self._forward(camera, request, message, outcome)
         log.debug(
             "request %s from robot %r (%s): dispatched to %s",
             request.request_id,
@@ -209,7 +239,13 @@ class DrvsServer(Lifecycle):
             self._links[camera.camera_id] = link
         return link
 
-    def _forward(self, camera: CameraEntry, request: DetectionRequest, message: detection_pb2.DetectionRequest) -> None:
+    def _forward(
+        self,
+        camera: CameraEntry,
+        request: DetectionRequest,
+        message: detection_pb2.DetectionRequest,
+        outcome: _Outcome | None = None,
+    ) -> None:
         link = self._link(camera)
         if link.requests.in_flight >= self.max_queued_forwards:
             # Shed load at once rather than queue until the forward timeout: the robot hears
@@ -222,12 +258,16 @@ class DrvsServer(Lifecycle):
                     f"(limit {self.max_queued_forwards}); try again later"
                 ),
             )
+            if outcome is not None:
+                outcome.failed()
             return
         started = time.perf_counter()
 
         def done(result: detection_pb2.DetectionReply | DrvsError) -> None:
             if isinstance(result, DrvsError):
                 self._not_accepted(camera, request, result)
+                if outcome is not None:
+                    outcome.failed()
             else:
                 metrics.ROUTED_OK.inc()
                 metrics.STAGE_FORWARD.observe(time.perf_counter() - started)
@@ -310,15 +350,31 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         self, message: detection_pb2.DetectionRequest, peer: IPAddress | None, allowed: set[str], robot: str
     ) -> detection_pb2.DetectionReply:
         request = request_from_pb(message, require_request_id=False)
-        self._s.limits.admit(robot, request.continuous.duration_s)
-        if request.callback_address not in allowed:
-            await self._s.callback_policy.check(request.callback_address, peer)
-            allowed.add(request.callback_address)
+        # Unknown fields are not forwarded: they would make every camera's copy as large as the sender likes.
+        message.DiscardUnknownFields()
         if not request.request_id:
             request = dataclasses.replace(request, request_id=uuid.uuid4().hex)
             message.request_id = request.request_id
             logs.request_id.set(request.request_id)
-        camera_ids = self._s.dispatch(request, message)
+        cameras = self._s.route(request)
+        # What this request costs the cameras, counted against the robot's budget (not what it
+        # cost the robot to send: on a stream a repeated region is left out).
+        limits = self._s.limits
+        size = message.ByteSize()
+        slot = limits.admit(robot, request.continuous.duration_s, size * len(cameras))
+        try:
+            if request.callback_address not in allowed:
+                await self._s.callback_policy.check(request.callback_address, peer)
+                allowed.add(request.callback_address)
+        except BaseException:
+            limits.release(robot, slot)
+            raise
+        if slot is not None and not cameras:
+            limits.release(robot, slot)  # nothing runs: the slot is free again at once
+        camera_ids = self._s.dispatch(
+            request, message, cameras, None if slot is None else functools.partial(limits.release, robot, slot)
+        )
+        metrics.FORWARDED_BYTES.inc(size * len(camera_ids))
         return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=camera_ids)
 
     @_grpc.servicer_method

@@ -109,7 +109,7 @@ class SimSource:
             if image is None or version != rendered_version:  # pixels depend only on the world state
                 image = self.renderer.render(robot, max(version, 0))
             sequence += 1
-            frame = Frame(image=image, capture_time=time.time(), sequence=sequence)
+            frame = Frame(image=image, capture_time=time.time(), sequence=sequence, captured_at=time.monotonic())
             with self._lock:
                 self._latest = frame
             rendered_version = version
