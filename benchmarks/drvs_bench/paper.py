@@ -10,6 +10,7 @@ from __future__ import annotations
 import asyncio
 import json
 import re
+import secrets
 import sys
 import tempfile
 from pathlib import Path
@@ -28,7 +29,12 @@ MODES = ("drvs", "drvs_boxes", "raw", "jpeg")
 
 
 async def run_mode(
-    mode: str, server: str, cameras: dict[str, tuple[str, Path]], requests: int, rate: float
+    mode: str,
+    server: str,
+    cameras: dict[str, tuple[str, Path]],
+    requests: int,
+    rate: float,
+    camera_token: Path | None = None,
 ) -> dict[str, Any]:
     relays: list[CountingRelay] = []
     args = ["robot", "--mode", mode.split("_")[0], "--requests", str(requests), "--rate", str(rate)]
@@ -50,6 +56,8 @@ async def run_mode(
             await relay.start()
             relays.append(relay)
             args += ["--camera", f"127.0.0.1:{relay.port}", "--homography", str(hfile)]
+        if camera_token is not None:
+            args += ["--camera-token-file", str(camera_token)]  # frames only for whoever holds the token
     robot = await bench_process(f"robot-{mode}", *args).start()
     sampler = CpuSampler(robot.pid, BUCKET_S)
     sampler.start()
@@ -87,10 +95,14 @@ async def run_paper(out: Path, requests: int, rate: float) -> dict[str, Any]:
             server, address = await start_server()
             procs.append(server)
             cameras: dict[str, tuple[str, Path]] = {}
+            # A camera streams whole frames only to a caller that presents its token.
+            camera_token = Path(tmp) / "camera.token"
+            camera_token.write_text(secrets.token_urlsafe(24))
             for camera_id, rec in scene.items():
                 cam = await start_camera(
-                    camera_id, rec.video, rec.homography_file, address, "--max-range", "6", "--serve-frames"
-                )
+                    camera_id, rec.video, rec.homography_file, address, "--max-range", "6", "--serve-frames",
+                    "--token-file", str(camera_token),
+                )  # fmt: skip
                 procs.append(cam)
                 listening = next(re.search(r"listening on (\S+)", line) for line in cam.lines if "listening on" in line)
                 assert listening is not None
@@ -98,7 +110,7 @@ async def run_paper(out: Path, requests: int, rate: float) -> dict[str, Any]:
             modes = {}
             for mode in MODES:
                 print(f"drvs-bench paper: {mode} ...", file=sys.stderr, flush=True)
-                modes[mode] = await run_mode(mode, address, cameras, requests, rate)
+                modes[mode] = await run_mode(mode, address, cameras, requests, rate, camera_token)
             # The transport's floor for the robot's CPU: a bare grpc.aio process making one round trip
             # on a long-lived stream per request, at the same rate, to a server that answers at once:
             # no reports, no DRVS code. No robot that asks over grpc.aio can use less.
