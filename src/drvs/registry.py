@@ -28,6 +28,8 @@ DEFAULT_MAX_CAMERAS_PER_IDENTITY = 1000
 #: cannot claim a whole site and receive every robot's requests.
 DEFAULT_MAX_FOV_RANGE_M = 100.0
 DEFAULT_MAX_FOV_AREA_M2 = 5000.0
+#: Detector kinds one camera may register (DRVS has five).
+MAX_DETECTOR_KINDS = 16
 #: Regions whose overlapping cameras are remembered until the registry's next change.
 ROUTE_CACHE_SIZE = 1024
 
@@ -103,6 +105,8 @@ class Registry:
         parse_address(address, "address")
         if not detector_kinds:
             raise InvalidArgument("detector_kinds: empty; a camera must run at least one detector")
+        if len(detector_kinds) > MAX_DETECTOR_KINDS:
+            raise InvalidArgument(f"detector_kinds: {len(detector_kinds)} kinds; at most {MAX_DETECTOR_KINDS}")
         for kind in detector_kinds:
             check_id(kind, "detector_kinds")
         if max_range_m > self.max_fov_range_m:

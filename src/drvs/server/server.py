@@ -68,8 +68,10 @@ DEFAULT_FORWARD_TIMEOUT_S = 2.0
 #: the robot gets an error report for that camera at once (RESOURCE_EXHAUSTED, "busy").
 DEFAULT_MAX_QUEUED_FORWARDS = 64
 #: ListCameras: cameras per reply unless the caller asks for fewer, and the most it may ask for.
+#: A camera's entry is at most about 4 kB (id, address, 16 detector kinds, a field of view of at
+#: most about 70 vertices): 500 of them stay far below the 4 MB message limit.
 DEFAULT_PAGE_SIZE = 500
-MAX_PAGE_SIZE = 1000
+MAX_PAGE_SIZE = 500
 #: Longest secret a camera may hand over (it travels as call metadata on every forward).
 MAX_SECRET_LENGTH = 256
 SERVICE_NAMES = (
