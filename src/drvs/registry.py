@@ -276,7 +276,7 @@ class Claims:
                     f"camera_id: {camera_id!r} belongs to another credential (an anonymous registration; "
                     f"this request does not carry its registration_secret) {self._until(claim)}"
                 )
-        elif self.held_by(quota) >= self.max_per_identity:
+        if (claim is None or claim.quota != quota) and self.held_by(quota) >= self.max_per_identity:
             raise ResourceExhausted(
                 f"registrations: {quota} already holds {self.held_by(quota)} camera ids "
                 f"(limit {self.max_per_identity} per identity, --max-cameras-per-identity)"

@@ -1,0 +1,105 @@
+"""Camera-id ownership (drvs.registry.Claims) as a property: whatever several identities do to the
+same few ids, in any order, no identity registers, renews or deregisters an id another holds, and
+every refusal changes nothing."""
+
+from __future__ import annotations
+
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from drvs.errors import FailedPrecondition, NotFound, PermissionDenied, ResourceExhausted
+from drvs.registry import Claims
+
+LEASE = 5.0
+GRACE = 2.0
+#: Two credentials and two anonymous callers (who differ only in what secrets they know).
+CALLERS = ("token:lobby", "token:yard", "anon-1", "anon-2")
+IDS = ("a", "b", "c")
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.now = 0.0
+
+    def __call__(self) -> float:
+        return self.now
+
+
+def owner_of(caller: str) -> str:
+    return "" if caller.startswith("anon") else caller
+
+
+def quota_of(caller: str) -> str:
+    return caller  # anonymous callers count against their address; one each here
+
+
+ops = st.lists(
+    st.tuples(
+        st.sampled_from(("register", "heartbeat", "deregister", "wait")),
+        st.sampled_from(CALLERS),
+        st.sampled_from(IDS),
+        st.sampled_from(("own", "stale", "none", "stolen")),
+        st.floats(0.0, 4.0),
+    ),
+    max_size=60,
+)
+
+
+@settings(max_examples=300, deadline=None)
+@given(ops)
+def test_no_identity_can_affect_another_identitys_camera_ids(steps: list[tuple[str, str, str, str, float]]) -> None:
+    clock = Clock()
+    claims = Claims(grace_s=GRACE, max_per_identity=2, clock=clock)
+    # What each caller knows: the secrets of the registrations it made itself (newest last).
+    known: dict[tuple[str, str], list[str]] = {}
+    for op, caller, camera_id, which, dt in steps:
+        if op == "wait":
+            clock.now += dt
+            claims.expire()
+            continue
+        mine = known.get((caller, camera_id), [])
+        others = [s for (c, i), ss in known.items() if i == camera_id and c != caller for s in ss]
+        secret = {
+            "own": mine[-1] if mine else "",
+            "stale": mine[0] if mine else "",
+            "none": "",
+            # A secret another caller was given: it leaks only if the rule lets it act for the holder.
+            "stolen": others[-1] if others else "",
+        }[which]
+        before = claims.holder(camera_id)
+        snapshot = None if before is None else (before.owner, before.secret, before.until)
+        owner = owner_of(caller)
+        try:
+            if op == "register":
+                claims.check_register(camera_id, owner, secret, quota_of(caller))
+                new = claims.grant(camera_id, owner, quota_of(caller), clock.now + LEASE)
+                known.setdefault((caller, camera_id), []).append(new)
+                # Allowed only on a free id, by the same credential, or (anonymous) with the secret.
+                assert before is None or (before.owner == owner and (owner or secret == snapshot[1]))  # type: ignore[index]
+            else:
+                claims.check(camera_id, owner, secret)
+                assert before is not None and before.owner == owner and secret == before.secret
+                if op == "heartbeat":
+                    claims.renew(camera_id, clock.now + LEASE)
+                else:
+                    claims.release(camera_id)
+        except (PermissionDenied, FailedPrecondition, NotFound, ResourceExhausted) as exc:
+            after = claims.holder(camera_id)
+            assert (None if after is None else (after.owner, after.secret, after.until)) == snapshot, exc
+            if isinstance(exc, PermissionDenied):
+                assert before is not None and str(exc).startswith(f"camera_id: {camera_id!r} belongs to another")
+        # No credential ever holds more than its cap.
+        for caller_name in CALLERS:
+            assert claims.held_by(quota_of(caller_name)) <= 2
+
+
+def test_a_claim_lapses_exactly_after_lease_plus_grace() -> None:
+    clock = Clock()
+    claims = Claims(grace_s=GRACE, clock=clock)
+    claims.grant("a", "token:yard", "token:yard", LEASE)
+    clock.now = LEASE + GRACE - 0.01
+    with pytest.raises(PermissionDenied, match=r"until \d\d:\d\d:\d\d UTC \(0 s from now\)"):
+        claims.check_register("a", "token:lobby", "", "token:lobby")
+    clock.now = LEASE + GRACE
+    claims.check_register("a", "token:lobby", "", "token:lobby")
