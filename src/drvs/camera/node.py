@@ -149,6 +149,12 @@ class CameraNode(Lifecycle):
         )
         await self._endpoint.start()
         log.info("camera %s listening on %s (advertised as %s)", self.camera_id, self._endpoint.address, self.address)
+        if self.serve_frames and not self.security.token:
+            log.warning(
+                "camera %s: --serve-frames without --token-file: frames go only to a caller that presents "
+                "this camera's token, so nobody can stream them",
+                self.camera_id,
+            )
         self._channel = self.security.channel(self.server_address)
         self._registrar = asyncio.get_running_loop().create_task(self._keep_registered(image_size))
         self._watchdog = asyncio.get_running_loop().create_task(self._watch_frames())

@@ -193,9 +193,8 @@ class DrvsServer(Lifecycle):
             return ", ".join(parts)
         if is_loopback_host(host_of(self.address)):
             return "none (plain TCP, no tokens): serving this host only; configure TLS or tokens to serve others"
-        return (
-            "NONE on a non-loopback address: anyone who can reach "
-            f"{self.address} can register cameras and ask for detections"
+        return f"NONE on a non-loopback address: anyone who can reach {self.address} can " + (
+            "register cameras and ask for detections" if self.trust_network else "ask for detections"
         )
 
     @property
