@@ -68,15 +68,18 @@ def test_no_identity_can_affect_another_identitys_camera_ids(steps: list[tuple[s
             "stolen": others[-1] if others else "",
         }[which]
         before = claims.holder(camera_id)
-        snapshot = None if before is None else (before.owner, before.secret, before.until)
+        snapshot = None if before is None else (before.owner, before.secret, before.until, before.forward_secret)
+        forward = f"forward-{caller}"  # each caller's own process secret
         owner = owner_of(caller)
         try:
             if op == "register":
-                claims.check_register(camera_id, owner, secret, quota_of(caller))
-                new = claims.grant(camera_id, owner, quota_of(caller), clock.now + LEASE)
+                claims.check_register(camera_id, owner, secret, quota_of(caller), forward)
+                new = claims.grant(camera_id, owner, quota_of(caller), clock.now + LEASE, forward)
                 known.setdefault((caller, camera_id), []).append(new)
                 # Allowed only on a free id, by the same credential, or (anonymous) with the secret.
-                assert before is None or (before.owner == owner and (owner or secret == snapshot[1]))  # type: ignore[index]
+                assert snapshot is None or (
+                    snapshot[0] == owner and bool(owner or secret == snapshot[1] or forward == snapshot[3])
+                )
             else:
                 claims.check(camera_id, owner, secret)
                 assert before is not None and before.owner == owner and secret == before.secret
@@ -86,7 +89,8 @@ def test_no_identity_can_affect_another_identitys_camera_ids(steps: list[tuple[s
                     claims.release(camera_id)
         except (PermissionDenied, FailedPrecondition, NotFound, ResourceExhausted) as exc:
             after = claims.holder(camera_id)
-            assert (None if after is None else (after.owner, after.secret, after.until)) == snapshot, exc
+            kept = None if after is None else (after.owner, after.secret, after.until, after.forward_secret)
+            assert kept == snapshot, exc
             if isinstance(exc, PermissionDenied):
                 assert before is not None and str(exc).startswith(f"camera_id: {camera_id!r} belongs to another")
         # No credential ever holds more than its cap.
@@ -103,3 +107,15 @@ def test_a_claim_lapses_exactly_after_lease_plus_grace() -> None:
         claims.check_register("a", "token:lobby", "", "token:lobby")
     clock.now = LEASE + GRACE
     claims.check_register("a", "token:lobby", "", "token:lobby")
+
+
+def test_an_anonymous_camera_whose_reply_was_lost_proves_itself_with_its_forward_secret() -> None:
+    """Its Register reached the server but the reply (with the new secret) did not reach it: it
+    registers again with the same forward secret, which only it and the server know."""
+    clock = Clock()
+    claims = Claims(grace_s=GRACE, clock=clock)
+    claims.grant("a", "", "127.0.0.1", LEASE, "forward-real")
+    claims.check_register("a", "", "", "127.0.0.1", "forward-real")
+    for forward in ("", "forward-other"):
+        with pytest.raises(PermissionDenied, match="does not carry its registration_secret"):
+            claims.check_register("a", "", "", "127.0.0.2", forward)

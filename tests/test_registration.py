@@ -7,7 +7,6 @@ takes requests (and gives frames) only to whoever holds its secret."""
 from __future__ import annotations
 
 import asyncio
-import re
 from collections.abc import AsyncIterator
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -238,31 +237,45 @@ async def test_a_stale_registration_secret_is_refused_and_the_camera_registers_a
 async def test_a_squatted_id_lapses_with_its_lease_and_grace_and_the_camera_says_why(
     tmp_path: Path, recorded: dict[str, RecordedCamera]
 ) -> None:
-    """Another credential registers `cam1` and never renews: the real camera logs the conflict
-    (which id, another credential, until when) and retries, and gets its id once the squatter's
-    lease and grace have run out."""
+    """Another credential holds `cam1`: the real camera logs the conflict (which id, another
+    credential, until when) and keeps retrying; once the squatter stops renewing, the id lapses
+    with its lease and grace, and the camera gets it."""
     server, address = await tokens_server(tmp_path, "--lease-ttl", "1", "--registration-grace", "1")
-    camera: ManagedProcess | None = None
+    rec = recorded["cam1"]
+    camera = ManagedProcess.entry_point(
+        "cam1", "drvs-camera", "--id", "cam1", "--source", str(rec.video), "--homography", str(rec.homography_file),
+        "--server", address, "--listen", "127.0.0.1:0", "--max-range", MAX_RANGE,
+        "--token-file", str(tmp_path / "lobby.token"),
+    )  # fmt: skip
+    squatting: asyncio.Task[None] | None = None
     try:
         async with aio.insecure_channel(address) as channel:
             registry = registry_pb2_grpc.RegisterVisionServiceStub(channel)
-            await registry.Register(at(register_message("cam1"), "127.0.0.1:9"), metadata=bearer(YARD_TOKEN))
-        rec = recorded["cam1"]
-        camera = await start_camera(
-            "cam1", rec.video, rec.homography_file, address, "--max-range", MAX_RANGE,
-            "--token-file", str(tmp_path / "lobby.token"),
-        )  # fmt: skip
-        conflict = re.compile(
-            r"camera cam1: CONFLICT: the server gives camera id cam1 to another registration: PERMISSION_DENIED "
-            r"camera_id: 'cam1' belongs to another credential until \d\d:\d\d:\d\d UTC"
-        )
-        first_conflict = next(i for i, line in enumerate(camera.lines) if conflict.search(line))
-        registered = next(i for i, line in enumerate(camera.lines) if "camera cam1 registered with" in line)
-        assert first_conflict < registered
+            held = await registry.Register(at(register_message("cam1"), "127.0.0.1:9"), metadata=bearer(YARD_TOKEN))
+
+            async def squat() -> None:
+                beat = registry_pb2.HeartbeatRequest(camera_id="cam1", registration_secret=held.registration_secret)
+                while True:
+                    await registry.Heartbeat(beat, metadata=bearer(YARD_TOKEN))
+                    await asyncio.sleep(0.3)  # the squatter's own pace, inside its 1 s lease
+
+            squatting = asyncio.get_running_loop().create_task(squat())
+            await camera.start()
+            conflict = (
+                r"camera cam1: CONFLICT: the server gives camera id cam1 to another registration: PERMISSION_DENIED "
+                r"camera_id: 'cam1' belongs to another credential until \d\d:\d\d:\d\d UTC \(\d+ s from now\)"
+            )
+            await camera.wait_for_line(conflict, 30)
+            assert not any("camera cam1 registered with" in line for line in camera.lines)
+            squatting.cancel()
+            await asyncio.gather(squatting, return_exceptions=True)
+        await camera.wait_for_line(r"camera cam1 registered with", 15)
         await server.wait_for_line(r"camera cam1 registered at 127\.0\.0\.1:\d+ by token:lobby", 5)
     finally:
-        if camera is not None:
-            await camera.stop()
+        if squatting is not None:
+            squatting.cancel()
+            await asyncio.gather(squatting, return_exceptions=True)
+        await camera.stop()
         await server.stop()
 
 

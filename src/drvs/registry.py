@@ -219,6 +219,8 @@ class Claim:
     quota: str
     secret: str
     until: float
+    #: The forward secret the registration handed over: the same camera process sends it again.
+    forward_secret: str = ""
 
 
 class Claims:
@@ -265,13 +267,18 @@ class Claims:
         at = time.strftime("%H:%M:%S", time.gmtime(self._wall_clock() + left))
         return f"until {at} UTC ({left:.0f} s from now) unless it renews its lease"
 
-    def check_register(self, camera_id: str, owner: str, proof: str, quota: str) -> None:
-        """May `owner` register `camera_id` now? Raises PermissionDenied / ResourceExhausted."""
+    def check_register(self, camera_id: str, owner: str, proof: str, quota: str, forward_secret: str = "") -> None:
+        """May `owner` register `camera_id` now? Raises PermissionDenied / ResourceExhausted.
+
+        An anonymous caller proves it holds the id with the current registration's secret, or by
+        sending the same forward secret again: the same camera process whose reply was lost."""
         claim = self.holder(camera_id)
         if claim is not None:
             if claim.owner != owner:
                 raise PermissionDenied(f"camera_id: {camera_id!r} belongs to another credential {self._until(claim)}")
-            if not owner and not (proof and hmac.compare_digest(proof.encode(), claim.secret.encode())):
+            proven = bool(proof) and hmac.compare_digest(proof.encode(), claim.secret.encode())
+            same = bool(forward_secret) and hmac.compare_digest(forward_secret.encode(), claim.forward_secret.encode())
+            if not owner and not (proven or same):
                 raise PermissionDenied(
                     f"camera_id: {camera_id!r} belongs to another credential (an anonymous registration; "
                     f"this request does not carry its registration_secret) {self._until(claim)}"
@@ -282,11 +289,11 @@ class Claims:
                 f"(limit {self.max_per_identity} per identity, --max-cameras-per-identity)"
             )
 
-    def grant(self, camera_id: str, owner: str, quota: str, lease_until: float) -> str:
+    def grant(self, camera_id: str, owner: str, quota: str, lease_until: float, forward_secret: str = "") -> str:
         """Give `camera_id` to `owner` with a new registration secret (check_register first)."""
         self.release(camera_id)
         secret = secrets.token_urlsafe(24)
-        self._claims[camera_id] = Claim(owner, quota, secret, lease_until + self.grace_s)
+        self._claims[camera_id] = Claim(owner, quota, secret, lease_until + self.grace_s, forward_secret)
         self._held.setdefault(quota, set()).add(camera_id)
         return secret
 

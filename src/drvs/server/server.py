@@ -459,7 +459,7 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
         owner = self._identity(context, "Register")
         quota = owner or f"the anonymous caller at {peer_ip(context.peer()) or context.peer()}"
         claims = self._s.claims
-        claims.check_register(message.camera_id, owner, message.registration_secret, quota)
+        claims.check_register(message.camera_id, owner, message.registration_secret, quota, message.forward_secret)
         max_range = message.max_range_m or self._s.default_max_range_m
         entry = self._s.registry.register(
             camera_id=message.camera_id,
@@ -469,7 +469,8 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
             detector_kinds=set(message.detector_kinds),
             max_range_m=max_range,
         )
-        secret = claims.grant(entry.camera_id, owner, quota, self._s.registry.expires_at(entry.camera_id))
+        expires = self._s.registry.expires_at(entry.camera_id)
+        secret = claims.grant(entry.camera_id, owner, quota, expires, message.forward_secret)
         metrics.CAMERAS.set(len(self._s.registry))
         # What the server presents on forwards: this registration's own secret (or token), never
         # the previous registration's, which could hand one camera's credential to another address.
