@@ -4,12 +4,20 @@ every refusal changes nothing."""
 
 from __future__ import annotations
 
+import asyncio
+
+import grpc
 import pytest
+from grpc import aio
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from drvs.errors import FailedPrecondition, NotFound, PermissionDenied, ResourceExhausted
 from drvs.registry import Claims
+from drvs.server import DrvsServer
+from drvs.v1 import registry_pb2, registry_pb2_grpc
+
+from .test_server import register_message
 
 LEASE = 5.0
 GRACE = 2.0
@@ -119,3 +127,74 @@ def test_an_anonymous_camera_whose_reply_was_lost_proves_itself_with_its_forward
     for forward in ("", "forward-other"):
         with pytest.raises(PermissionDenied, match="does not carry its registration_secret"):
             claims.check_register("a", "", "", "127.0.0.2", forward)
+
+
+# --- the same, black-box: a real server on a real socket, two credentials -------------------------
+
+TOKENS = {"lobby": "lobby-token-0123456789abcdef", "yard": "yard-token-fedcba9876543210"}
+ADDRESSES = {"lobby": "127.0.0.1:1001", "yard": "127.0.0.1:1002"}
+
+server_ops = st.lists(
+    st.tuples(
+        st.sampled_from(("register", "heartbeat", "deregister")),
+        st.sampled_from(tuple(TOKENS)),
+        st.sampled_from(IDS),
+        st.sampled_from(("own", "none", "stolen")),
+    ),
+    min_size=1,
+    max_size=25,
+)
+
+
+@settings(max_examples=40, deadline=None)
+@given(server_ops)
+def test_over_the_wire_no_credential_moves_or_drops_another_credentials_camera(
+    steps: list[tuple[str, str, str, str]],
+) -> None:
+    """Whatever two camera credentials send about the same ids, an id listed by the server is at the
+    address of the credential that holds it, and every call on an id held by the other fails."""
+    asyncio.run(_exercise_server(steps))
+
+
+async def _exercise_server(steps: list[tuple[str, str, str, str]]) -> None:
+    tables = {token: name for name, token in TOKENS.items()}
+    async with (
+        DrvsServer("127.0.0.1:0", lease_ttl_s=600, camera_tokens=tables, robot_tokens=None) as server,
+        aio.insecure_channel(server.address) as channel,
+    ):
+        stub = registry_pb2_grpc.RegisterVisionServiceStub(channel)
+        holder: dict[str, str] = {}  # id -> credential, as the server should see it
+        secrets: dict[tuple[str, str], str] = {}  # (credential, id) -> the secret it was last given
+        for op, who, camera_id, which in steps:
+            other = next(n for n in TOKENS if n != who)
+            secret = {
+                "own": secrets.get((who, camera_id), ""),
+                "none": "",
+                "stolen": secrets.get((other, camera_id), ""),
+            }[which]
+            metadata = (("authorization", f"Bearer {TOKENS[who]}"),)
+            try:
+                if op == "register":
+                    message = register_message(camera_id)
+                    message.address = ADDRESSES[who]
+                    message.registration_secret = secret
+                    reply = await stub.Register(message, metadata=metadata)
+                    secrets[(who, camera_id)] = reply.registration_secret
+                    assert holder.get(camera_id, who) == who
+                    holder[camera_id] = who
+                elif op == "heartbeat":
+                    beat = registry_pb2.HeartbeatRequest(camera_id=camera_id, registration_secret=secret)
+                    await stub.Heartbeat(beat, metadata=metadata)
+                    assert holder.get(camera_id) == who
+                else:
+                    bye = registry_pb2.DeregisterRequest(camera_id=camera_id, registration_secret=secret)
+                    await stub.Deregister(bye, metadata=metadata)
+                    assert holder.pop(camera_id) == who
+            except aio.AioRpcError as exc:
+                expected = {grpc.StatusCode.PERMISSION_DENIED, grpc.StatusCode.FAILED_PRECONDITION}
+                expected.add(grpc.StatusCode.NOT_FOUND)
+                assert exc.code() in expected, (exc.code(), exc.details())
+                if holder.get(camera_id) == other:
+                    assert exc.code() == grpc.StatusCode.PERMISSION_DENIED
+            listed = {c.camera_id: c.address for c in server.registry.cameras()}
+            assert listed == {cid: ADDRESSES[name] for cid, name in holder.items()}
