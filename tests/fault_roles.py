@@ -157,16 +157,24 @@ async def slow_camera(args: argparse.Namespace) -> None:
         detector_kinds=["hsv"],
     )
 
+    secret = ""
+
     async def keep_registered(channel: aio.Channel) -> None:
+        nonlocal secret
         stub = registry_pb2_grpc.RegisterVisionServiceStub(channel)
-        lease = (await stub.Register(register, timeout=5)).lease_ttl_s
+        reply = await stub.Register(register, timeout=5)
+        lease, secret = reply.lease_ttl_s, reply.registration_secret
         print(f"REGISTERED {args.id} lease {lease:g}", flush=True)
         while True:
             await asyncio.sleep(args.heartbeat or lease / 3)
             try:
-                await stub.Heartbeat(registry_pb2.HeartbeatRequest(camera_id=args.id), timeout=lease / 3)
+                await stub.Heartbeat(
+                    registry_pb2.HeartbeatRequest(camera_id=args.id, registration_secret=secret), timeout=lease / 3
+                )
             except grpc.RpcError:
-                lease = (await stub.Register(register, timeout=5)).lease_ttl_s
+                register.registration_secret = secret  # the same camera coming back
+                reply = await stub.Register(register, timeout=5)
+                lease, secret = reply.lease_ttl_s, reply.registration_secret
 
     async with aio.insecure_channel(args.server) as channel:
         registrar = asyncio.get_running_loop().create_task(keep_registered(channel))
@@ -174,7 +182,7 @@ async def slow_camera(args: argparse.Namespace) -> None:
         registrar.cancel()
         await asyncio.gather(registrar, return_exceptions=True)
         await registry_pb2_grpc.RegisterVisionServiceStub(channel).Deregister(
-            registry_pb2.DeregisterRequest(camera_id=args.id), timeout=2
+            registry_pb2.DeregisterRequest(camera_id=args.id, registration_secret=secret), timeout=2
         )
     for job in list(camera.jobs):
         job.cancel()

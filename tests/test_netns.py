@@ -131,7 +131,7 @@ async def test_links_cut_and_restored_recover_without_restarts(
     rec = recorded["cam1"]
     server = network.process(
         "srv", "server", "drvs-server", "--listen", f"{HOSTS['srv']}:0", "--lease-ttl", str(LEASE_S),
-        "--forward-timeout", "1",
+        "--forward-timeout", "1", "--trust-network",
     )  # fmt: skip
     procs = [server]
     try:

@@ -143,9 +143,10 @@ async def test_tokens_robots_and_cameras_need_their_own(token_office: tuple[str,
             assert err.value.code() == grpc.StatusCode.PERMISSION_DENIED
             assert "camera_id: 'cam1' belongs to another credential" in (err.value.details() or "")
         # ... but may register an id of its own.
-        await registry.Register(register_message("yard-1"), metadata=bearer(OTHER_CAMERA_TOKEN))
+        own = await registry.Register(register_message("yard-1"), metadata=bearer(OTHER_CAMERA_TOKEN))
         await registry.Deregister(
-            registry_pb2.DeregisterRequest(camera_id="yard-1"), metadata=bearer(OTHER_CAMERA_TOKEN)
+            registry_pb2.DeregisterRequest(camera_id="yard-1", registration_secret=own.registration_secret),
+            metadata=bearer(OTHER_CAMERA_TOKEN),
         )
         # Health stays open for probes.
         health = await health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest())

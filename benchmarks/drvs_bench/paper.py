@@ -17,6 +17,7 @@ import asyncio
 import json
 import os
 import re
+import secrets
 import sys
 import tempfile
 from pathlib import Path
@@ -119,6 +120,7 @@ async def run_mode(
     requests: int,
     rate: float,
     cpu_procs: dict[str, list[int]] | None = None,
+    camera_token: Path | None = None,
 ) -> dict[str, Any]:
     """One run of one mode: the robot process through counting relays. Returns its outcome and figures."""
     relays: list[CountingRelay] = []
@@ -147,6 +149,8 @@ async def run_mode(
             await relay.start()
             relays.append(relay)
             args += ["--camera", f"127.0.0.1:{relay.port}", "--homography", str(hfile)]
+        if camera_token is not None:
+            args += ["--camera-token-file", str(camera_token)]  # frames only for whoever holds the token
     robot = await bench_process(f"robot-{mode}", *args).start()
     t_robot = loop.time()
     sampler = CpuSampler(robot.pid, BUCKET_S)
@@ -276,10 +280,14 @@ async def run_paper(out: Path, requests: int, rate: float, rounds: int = FULL_RO
             procs.append(server)
             cameras: dict[str, tuple[str, Path]] = {}
             camera_pids: list[int] = []
+            # A camera streams whole frames only to a caller that presents its token.
+            camera_token = Path(tmp) / "camera.token"
+            camera_token.write_text(secrets.token_urlsafe(24))
             for camera_id, rec in scene.items():
                 cam = await start_camera(
-                    camera_id, rec.video, rec.homography_file, address, "--max-range", "6", "--serve-frames"
-                )
+                    camera_id, rec.video, rec.homography_file, address, "--max-range", "6", "--serve-frames",
+                    "--token-file", str(camera_token),
+                )  # fmt: skip
                 procs.append(cam)
                 camera_pids.append(cam.pid)
                 listening = next(re.search(r"listening on (\S+)", line) for line in cam.lines if "listening on" in line)
@@ -294,7 +302,7 @@ async def run_paper(out: Path, requests: int, rate: float, rounds: int = FULL_RO
             for r, mode in interleaved((*MODES, *FLOORS), rounds):
                 print(f"drvs-bench paper: round {r + 1}/{rounds}: {mode} ...", file=sys.stderr, flush=True)
                 if mode in MODES:
-                    run = await run_mode(mode, address, cameras, requests, rate, cpu_procs)
+                    run = await run_mode(mode, address, cameras, requests, rate, cpu_procs, camera_token)
                     if mode.startswith("drvs"):
                         fixed = None if mode.endswith("_moving") or per_camera is None else sum(per_camera)
                         check_drvs(mode, run, requests, len(cameras), fixed)

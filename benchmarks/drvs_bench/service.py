@@ -525,7 +525,9 @@ async def measure_server_memory(quick: bool, out: dict[str, Any]) -> None:
     try:
         ack, ack_address = await ack_server()
         procs.append(ack)
-        server, address = await start_server("--lease-ttl", "3600", "--log-level", "INFO")
+        server, address = await start_server(
+            "--lease-ttl", "3600", "--log-level", "INFO", "--max-cameras-per-identity", str(count)
+        )  # fmt: skip
         procs.append(server)
         before = peak_rss_bytes(server.pid)
         reg = await run_helper("register", "register", "--server", address, "--camera-address", ack_address,

@@ -166,11 +166,16 @@ async def stream_mode(args: argparse.Namespace) -> dict[str, object]:
             pixels = np.asarray(cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_COLOR), dtype=np.uint8)
         return len(detector.detect(FrameAnalysis(Frame(pixels, 0.0, seq)), YELLOW, region))
 
+    token = args.camera_token_file.read_text().strip() if args.camera_token_file else ""
+    metadata = (("authorization", f"Bearer {token}"),) if token else ()
+
     async def watch(address: str, detector: HsvDetector, counts: dict[str, Any], warm: asyncio.Event) -> None:
         # gRPC's default channel: the baseline is what a user streaming video would get, not DRVS's tuning.
         async with aio.insecure_channel(address) as channel:
             stub = stream_pb2_grpc.FrameStreamStub(channel)
-            call = stub.StreamFrames(stream_pb2.StreamFramesRequest(encoding=encoding, jpeg_quality=80, max_fps=FPS))
+            call = stub.StreamFrames(
+                stream_pb2.StreamFramesRequest(encoding=encoding, jpeg_quality=80, max_fps=FPS), metadata=metadata
+            )
             try:
                 seen = 0
                 async for frame in call:
@@ -224,6 +229,7 @@ def add_workload_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--advertise", help="callback address cameras should call (drvs mode)")
     p.add_argument("--camera", action="append", default=[], help="camera HOST:PORT to stream from (raw/jpeg)")
     p.add_argument("--homography", action="append", type=Path, default=[], help="each camera's homography file")
+    p.add_argument("--camera-token-file", type=Path, help="the cameras' token, for their frame streams (raw/jpeg)")
     p.add_argument("--no-outlines", action="store_true", help="drvs mode: ask for boxes only, as the paper's DRVS")
     p.add_argument("--moving", action="store_true", help="drvs mode: the region slides and the filter alternates")
     p.add_argument("--cameras", type=int, default=2, help="drvs mode: cameras every request needs a report from")

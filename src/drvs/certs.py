@@ -1,12 +1,16 @@
 """drvs-certs: a development CA and per-role certificates, so TLS is on in minutes.
 
     drvs-certs --out certs                       # ca.pem, server.pem/-key.pem, camera.pem/…, robot.pem/…
+    drvs-certs --out certs --camera lobby --camera hall-1   # camera-lobby.pem, camera-hall-1.pem (+ keys)
     drvs-certs --out certs --host cams.lan --host 10.0.0.7 --role camera-3
 
 Every certificate names localhost, 127.0.0.1 and ::1 plus each --host, and serves both as a server
-certificate (its own listener: every role listens) and as a client certificate (mutual TLS). Its
-common name is the role name, which the server uses as the caller's identity. For development and
-tests: keep ca-key.pem private, and use your organisation's CA in production.
+certificate (its own listener: every role listens) and as a client certificate (mutual TLS). It
+says its role in its subject's organizational unit (OU=server, camera or robot): under mutual TLS
+the server lets only camera certificates register cameras. Its common name is the server's name
+for the caller, so give each camera its own (--camera NAME): cameras that share one certificate
+share one identity, and may take over each other's ids. For development and tests: keep
+ca-key.pem private, and use your organisation's CA in production.
 """
 
 from __future__ import annotations
@@ -25,18 +29,29 @@ from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
 from drvs.errors import InvalidArgument
 from drvs.model import check_id
+from drvs.security import ROLES
 
 DEFAULT_ROLES = ("server", "camera", "robot")
 DEFAULT_DAYS = 365
 
 
-def _name(common_name: str) -> x509.Name:
+def _name(common_name: str, role: str | None = None) -> x509.Name:
+    unit = [x509.NameAttribute(NameOID.ORGANIZATIONAL_UNIT_NAME, role)] if role else []
     return x509.Name(
         [
             x509.NameAttribute(NameOID.ORGANIZATION_NAME, "DRVS development"),
+            *unit,
             x509.NameAttribute(NameOID.COMMON_NAME, common_name),
         ]
     )
+
+
+def role_of(name: str) -> str:
+    """`camera` -> camera, `camera-3` -> camera: a certificate's role is its name or its prefix."""
+    role = name.split("-", 1)[0]
+    if role not in ROLES:
+        raise InvalidArgument(f"role: {name!r} must be {', '.join(ROLES)}, or one of them followed by -NAME")
+    return role
 
 
 def _write(path: Path, data: bytes, private: bool) -> None:
@@ -103,13 +118,21 @@ def _san(hosts: list[str]) -> x509.SubjectAlternativeName:
 
 
 def make_certificate(
-    out: Path, role: str, hosts: list[str], ca: x509.Certificate, ca_key: ec.EllipticCurvePrivateKey, days: int
+    out: Path,
+    role: str,
+    hosts: list[str],
+    ca: x509.Certificate,
+    ca_key: ec.EllipticCurvePrivateKey,
+    days: int,
+    common_name: str | None = None,
 ) -> tuple[Path, Path]:
+    """`role`.pem and `role`-key.pem; the role is `role` or its prefix (camera-3: camera), the
+    common name `common_name` (default: `role`)."""
     key = ec.generate_private_key(ec.SECP256R1())
     now = datetime.datetime.now(datetime.timezone.utc)
     cert = (
         x509.CertificateBuilder()
-        .subject_name(_name(role))
+        .subject_name(_name(common_name or role, role_of(role)))
         .issuer_name(ca.subject)
         .public_key(key.public_key())
         .serial_number(x509.random_serial_number())
@@ -128,10 +151,22 @@ def make_certificate(
     return cert_path, key_path
 
 
-def make_all(out: Path, roles: list[str], hosts: list[str], days: int = DEFAULT_DAYS) -> dict[str, tuple[Path, Path]]:
-    """The CA (kept if `out` has one) and one certificate per role; returns role -> (cert, key)."""
+def make_all(
+    out: Path,
+    roles: list[str],
+    hosts: list[str],
+    days: int = DEFAULT_DAYS,
+    *,
+    cameras: list[str] | tuple[str, ...] = (),
+    robots: list[str] | tuple[str, ...] = (),
+) -> dict[str, tuple[Path, Path]]:
+    """The CA (kept if `out` has one) and one certificate per role, and one per named camera and
+    robot (file camera-NAME.pem, common name NAME); returns file stem -> (cert, key)."""
     for role in roles:
         check_id(role, "role")
+        role_of(role)
+    for name in (*cameras, *robots):
+        check_id(name, "name")
     for host in hosts:
         if not host or any(c.isspace() for c in host):
             raise InvalidArgument(f"host: {host!r} is not a host name or IP address")
@@ -139,7 +174,11 @@ def make_all(out: Path, roles: list[str], hosts: list[str], days: int = DEFAULT_
         raise InvalidArgument(f"days: {days} must be from 1 to 3650")
     out.mkdir(parents=True, exist_ok=True)
     ca, ca_key = make_ca(out, days)
-    return {role: make_certificate(out, role, hosts, ca, ca_key, days) for role in roles}
+    made = {role: make_certificate(out, role, hosts, ca, ca_key, days) for role in roles}
+    for role, names in (("camera", cameras), ("robot", robots)):
+        for name in names:
+            made[f"{role}-{name}"] = make_certificate(out, f"{role}-{name}", hosts, ca, ca_key, days, name)
+    return made
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -149,13 +188,21 @@ def main(argv: list[str] | None = None) -> int:
         "--role",
         action="append",
         default=[],
-        help="certificate to make (repeatable; default: server camera robot)",
+        help="certificate to make: server, camera, robot, or one of them followed by -NAME (repeatable; default: "
+        "server camera robot, unless --camera or --robot is given)",
+    )
+    p.add_argument(
+        "--camera", action="append", default=[], metavar="NAME", help="a camera certificate of its own (repeatable)"
+    )
+    p.add_argument(
+        "--robot", action="append", default=[], metavar="NAME", help="a robot certificate of its own (repeatable)"
     )
     p.add_argument("--host", action="append", default=[], help="another name or IP the certificates answer for")
     p.add_argument("--days", type=int, default=DEFAULT_DAYS, help="validity (default %(default)s)")
     args = p.parse_args(argv)
     try:
-        made = make_all(args.out, args.role or list(DEFAULT_ROLES), args.host, args.days)
+        roles = args.role or ([] if args.camera or args.robot else list(DEFAULT_ROLES))
+        made = make_all(args.out, roles, args.host, args.days, cameras=args.camera, robots=args.robot)
     except (InvalidArgument, OSError) as exc:
         print(f"drvs-certs: {exc}", file=sys.stderr)
         return 2

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import hmac
+import secrets
 import time
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -11,12 +13,23 @@ import shapely
 from shapely import STRtree
 from shapely.geometry import Polygon
 
-from drvs.errors import InvalidArgument, NotFound
+from drvs.errors import FailedPrecondition, InvalidArgument, NotFound, PermissionDenied, ResourceExhausted
 from drvs.geometry import FieldOfView, Homography
 from drvs.model import check_id
 from drvs.net import parse_address
 
 DEFAULT_LEASE_TTL_S = 10.0
+#: How long a camera id stays with whoever registered it after its lease ran out: the real camera
+#: gets it back after a network blip, and a squatter loses it this long after it stops renewing.
+DEFAULT_GRACE_S = 10.0
+#: Camera ids one identity (a credential; without one, a peer IP) may hold at once.
+DEFAULT_MAX_CAMERAS_PER_IDENTITY = 1000
+#: The largest field of view a registration may claim: sized for a building, so one registration
+#: cannot claim a whole site and receive every robot's requests.
+DEFAULT_MAX_FOV_RANGE_M = 100.0
+DEFAULT_MAX_FOV_AREA_M2 = 5000.0
+#: Detector kinds one camera may register (DRVS has five).
+MAX_DETECTOR_KINDS = 16
 #: Regions whose overlapping cameras are remembered until the registry's next change, by count and
 #: by the regions' points (the cache holds the regions alive: a byte budget, not only a count).
 ROUTE_CACHE_SIZE = 1024
@@ -43,10 +56,21 @@ class Registry:
     a region object overlaps are also remembered, until the next registration change.
     """
 
-    def __init__(self, lease_ttl_s: float = DEFAULT_LEASE_TTL_S, clock: Callable[[], float] = time.monotonic) -> None:
+    def __init__(
+        self,
+        lease_ttl_s: float = DEFAULT_LEASE_TTL_S,
+        clock: Callable[[], float] = time.monotonic,
+        *,
+        max_fov_range_m: float = DEFAULT_MAX_FOV_RANGE_M,
+        max_fov_area_m2: float = DEFAULT_MAX_FOV_AREA_M2,
+    ) -> None:
         if not lease_ttl_s > 0:
             raise ValueError(f"lease_ttl_s must be > 0, got {lease_ttl_s}")
+        if not (max_fov_range_m > 0 and max_fov_area_m2 > 0):
+            raise ValueError("max_fov_range_m and max_fov_area_m2 must be > 0")
         self.lease_ttl_s = lease_ttl_s
+        self.max_fov_range_m = max_fov_range_m
+        self.max_fov_area_m2 = max_fov_area_m2
         self._clock = clock
         self._entries: dict[str, CameraEntry] = {}
         self._expires: dict[str, float] = {}
@@ -84,9 +108,15 @@ class Registry:
         parse_address(address, "address")
         if not detector_kinds:
             raise InvalidArgument("detector_kinds: empty; a camera must run at least one detector")
+        if len(detector_kinds) > MAX_DETECTOR_KINDS:
+            raise InvalidArgument(f"detector_kinds: {len(detector_kinds)} kinds; at most {MAX_DETECTOR_KINDS}")
         for kind in detector_kinds:
             check_id(kind, "detector_kinds")
-        fov = FieldOfView.compute(homography, image_size, max_range_m)
+        if max_range_m > self.max_fov_range_m:
+            raise InvalidArgument(
+                f"max_range_m: {max_range_m:g} m is beyond this server's limit of {self.max_fov_range_m:g} m"
+            )
+        fov = self.field_of_view(homography, image_size, max_range_m)
         entry = CameraEntry(
             camera_id=camera_id,
             address=address,
@@ -99,6 +129,19 @@ class Registry:
         self._expires[camera_id] = self._clock() + self.lease_ttl_s
         self._tree = None
         return entry
+
+    def field_of_view(self, homography: Homography, image_size: tuple[int, int], max_range_m: float) -> FieldOfView:
+        """The field of view a registration would get; INVALID_ARGUMENT when larger than allowed."""
+        fov = FieldOfView.compute(homography, image_size, max_range_m)
+        if fov.floor.area > self.max_fov_area_m2:
+            raise InvalidArgument(
+                f"field_of_view: {fov.floor.area:.0f} m² of floor is more than this server's limit of "
+                f"{self.max_fov_area_m2:g} m² for one camera"
+            )
+        return fov
+
+    def expires_at(self, camera_id: str) -> float:
+        return self._expires.get(camera_id, 0.0)
 
     def renew(self, camera_id: str) -> CameraEntry:
         entry = self.get(camera_id)
@@ -174,3 +217,126 @@ class Registry:
 
     def remaining_s(self, camera_id: str) -> float:
         return max(0.0, self._expires.get(camera_id, 0.0) - self._clock())
+
+
+@dataclass
+class Claim:
+    """Who holds a camera id: their identity ("" when anonymous), whom the id counts against, the
+    secret of the current registration, and when the hold lapses (lease end plus grace)."""
+
+    owner: str
+    quota: str
+    secret: str
+    until: float
+    #: The forward secret the registration handed over: the same camera process sends it again.
+    forward_secret: str = ""
+
+
+class Claims:
+    """Camera ids and who holds them. Pure logic, on the registry's clock.
+
+    An id belongs to the identity that registered it until its lease ends plus a grace period.
+    While held, a different identity may not register, renew or deregister it; the same identity
+    may register it again (a new registration, with a new secret). Anonymous callers cannot be
+    told apart, so for them the proof is the secret: replacing a held anonymous registration
+    needs the secret of the current one. Heartbeats and deregistrations always need it.
+    """
+
+    def __init__(
+        self,
+        grace_s: float = DEFAULT_GRACE_S,
+        max_per_identity: int = DEFAULT_MAX_CAMERAS_PER_IDENTITY,
+        clock: Callable[[], float] = time.monotonic,
+        wall_clock: Callable[[], float] = time.time,
+    ) -> None:
+        if grace_s < 0 or max_per_identity < 1:
+            raise ValueError("grace_s must be >= 0 and max_per_identity >= 1")
+        self.grace_s = grace_s
+        self.max_per_identity = max_per_identity
+        self._clock = clock
+        self._wall_clock = wall_clock
+        self._claims: dict[str, Claim] = {}
+        self._held: dict[str, set[str]] = {}
+
+    def __contains__(self, camera_id: object) -> bool:
+        return camera_id in self._claims
+
+    def holder(self, camera_id: str) -> Claim | None:
+        claim = self._claims.get(camera_id)
+        if claim is not None and claim.until <= self._clock():
+            self.release(camera_id)
+            return None
+        return claim
+
+    def held_by(self, quota: str) -> int:
+        return len(self._held.get(quota, ()))
+
+    def _until(self, claim: Claim) -> str:
+        left = max(0.0, claim.until - self._clock())
+        at = time.strftime("%H:%M:%S", time.gmtime(self._wall_clock() + left))
+        return f"until {at} UTC ({left:.0f} s from now) unless it renews its lease"
+
+    def check_register(self, camera_id: str, owner: str, proof: str, quota: str, forward_secret: str = "") -> None:
+        """May `owner` register `camera_id` now? Raises PermissionDenied / ResourceExhausted.
+
+        An anonymous caller proves it holds the id with the current registration's secret, or by
+        sending the same forward secret again: the same camera process whose reply was lost."""
+        claim = self.holder(camera_id)
+        if claim is not None:
+            if claim.owner != owner:
+                raise PermissionDenied(f"camera_id: {camera_id!r} belongs to another credential {self._until(claim)}")
+            proven = bool(proof) and hmac.compare_digest(proof.encode(), claim.secret.encode())
+            same = bool(forward_secret) and hmac.compare_digest(forward_secret.encode(), claim.forward_secret.encode())
+            if not owner and not (proven or same):
+                raise PermissionDenied(
+                    f"camera_id: {camera_id!r} belongs to another credential (an anonymous registration; "
+                    f"this request does not carry its registration_secret) {self._until(claim)}"
+                )
+        if (claim is None or claim.quota != quota) and self.held_by(quota) >= self.max_per_identity:
+            raise ResourceExhausted(
+                f"registrations: {quota} already holds {self.held_by(quota)} camera ids "
+                f"(limit {self.max_per_identity} per identity, --max-cameras-per-identity)"
+            )
+
+    def grant(self, camera_id: str, owner: str, quota: str, lease_until: float, forward_secret: str = "") -> str:
+        """Give `camera_id` to `owner` with a new registration secret (check_register first)."""
+        self.release(camera_id)
+        secret = secrets.token_urlsafe(24)
+        self._claims[camera_id] = Claim(owner, quota, secret, lease_until + self.grace_s, forward_secret)
+        self._held.setdefault(quota, set()).add(camera_id)
+        return secret
+
+    def check(self, camera_id: str, owner: str, secret: str) -> None:
+        """May this call act for `camera_id`'s current registration (heartbeat, deregister)?"""
+        claim = self.holder(camera_id)
+        if claim is None:
+            raise NotFound(f"camera_id: {camera_id!r} is not registered")
+        if claim.owner != owner:
+            raise PermissionDenied(f"camera_id: {camera_id!r} belongs to another credential {self._until(claim)}")
+        if not (secret and hmac.compare_digest(secret.encode(), claim.secret.encode())):
+            raise FailedPrecondition(
+                f"registration_secret: {'empty' if not secret else 'not the current one'} for camera_id "
+                f"{camera_id!r}: another registration of this id replaced it, or it never was; register again"
+            )
+
+    def renew(self, camera_id: str, lease_until: float) -> None:
+        claim = self._claims.get(camera_id)
+        if claim is not None:
+            claim.until = lease_until + self.grace_s
+
+    def release(self, camera_id: str) -> None:
+        claim = self._claims.pop(camera_id, None)
+        if claim is not None:
+            held = self._held.get(claim.quota)
+            if held is not None:
+                held.discard(camera_id)
+                if not held:
+                    del self._held[claim.quota]
+
+    def expire(self) -> list[str]:
+        """Drop every hold that has lapsed; returns their ids."""
+        now = self._clock()
+        gone = [cid for cid, claim in self._claims.items() if claim.until <= now]
+        for cid in gone:
+            self.release(cid)
+        return gone

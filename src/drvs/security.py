@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import functools
 import hmac
 import logging
 from collections.abc import Awaitable, Callable, Mapping, Sequence
@@ -23,7 +24,7 @@ import grpc
 from grpc import aio
 
 from drvs import _grpc
-from drvs.errors import InvalidArgument
+from drvs.errors import InvalidArgument, PermissionDenied
 
 log = logging.getLogger(__name__)
 
@@ -31,6 +32,10 @@ log = logging.getLogger(__name__)
 MIN_TOKEN_LENGTH = 16
 CAMERA = "camera"
 ROBOT = "robot"
+SERVER = "server"
+#: A certificate's role is its subject's organizational unit (OU=camera, robot or server);
+#: drvs-certs writes it, and any CA can.
+ROLES = (SERVER, CAMERA, ROBOT)
 
 _PREFIX = "/drvs.v1."
 #: Which credential each method needs; methods not listed (health, reflection) are open.
@@ -241,4 +246,55 @@ def caller_identity(context: aio.ServicerContext[Any, Any], authority: TokenAuth
     names = list(context.auth_context().get("x509_common_name", ()))
     if names:
         return "cert:" + bytes(names[0]).decode(errors="replace")
+    return ""
+
+
+@functools.lru_cache(maxsize=1024)
+def certificate_fields(pem: bytes) -> tuple[str, str]:
+    """(common name, DRVS role or "") of a PEM certificate; a role is an OU naming one of ROLES."""
+    from cryptography import x509
+    from cryptography.x509.oid import NameOID
+
+    try:
+        cert = x509.load_pem_x509_certificate(pem)
+    except ValueError:
+        return "", ""
+    cns = cert.subject.get_attributes_for_oid(NameOID.COMMON_NAME)
+    units = [str(a.value) for a in cert.subject.get_attributes_for_oid(NameOID.ORGANIZATIONAL_UNIT_NAME)]
+    roles = [u for u in units if u in ROLES]
+    return (str(cns[0].value) if cns else ""), (roles[0] if len(roles) == 1 else "")
+
+
+def client_certificate(context: aio.ServicerContext[Any, Any]) -> tuple[str, str] | None:
+    """The verified client certificate's (common name, role), or None without one."""
+    auth = context.auth_context()
+    pems = list(auth.get("x509_pem_cert", ()))
+    if pems:
+        return certificate_fields(bytes(pems[0]))
+    names = list(auth.get("x509_common_name", ()))
+    return (bytes(names[0]).decode(errors="replace"), "") if names else None
+
+
+def camera_identity(
+    context: aio.ServicerContext[Any, Any], authority: TokenAuthority, client_auth: bool, method: str
+) -> str:
+    """Who is registering a camera: `token:NAME`, or `cert:CN` for a client certificate with the
+    camera role, or "" (anonymous). Only mutual TLS proves a certificate: TLS without client
+    authentication gives no identity. A certificate made for another role may not act for a camera."""
+    name = authority.check(CAMERA, list(context.invocation_metadata() or ()))
+    if name:
+        return f"token:{name}"
+    if not client_auth:
+        return ""
+    cert = client_certificate(context)
+    if cert is None:
+        return ""
+    common_name, role = cert
+    if role == CAMERA:
+        return f"cert:{common_name}"
+    if role:
+        raise PermissionDenied(
+            f"{method}: the client certificate {common_name!r} has the role {role} (OU={role}); "
+            "cameras register with a certificate whose role is camera (OU=camera)"
+        )
     return ""

@@ -6,6 +6,7 @@ import asyncio
 import hmac
 import logging
 import math
+import secrets
 import time
 from collections.abc import AsyncIterator
 from typing import Any
@@ -108,6 +109,11 @@ class CameraNode(Lifecycle):
         self._callbacks = CallbackSender(security=self.security)
         self._analyses: Analyses | None = None
         self._stopped = False
+        # Handed to the server at registration; the server presents it on every forward, so this
+        # node takes requests only from the server it registered with (see _ServerFacing).
+        self.forward_secret = secrets.token_urlsafe(24)
+        # The current registration's secret, from the server: heartbeats and deregistration carry it.
+        self.registration_secret = ""
 
     @property
     def port(self) -> int:
@@ -153,6 +159,12 @@ class CameraNode(Lifecycle):
         )
         await self._endpoint.start()
         log.info("camera %s listening on %s (advertised as %s)", self.camera_id, self._endpoint.address, self.address)
+        if self.serve_frames and not self.security.token:
+            log.warning(
+                "camera %s: --serve-frames without --token-file: frames go only to a caller that presents "
+                "this camera's token, so nobody can stream them",
+                self.camera_id,
+            )
         self._channel = self.security.channel(self.server_address)
         self._registrar = asyncio.get_running_loop().create_task(self._keep_registered(image_size))
         self._watchdog = asyncio.get_running_loop().create_task(self._watch_frames())
@@ -169,7 +181,9 @@ class CameraNode(Lifecycle):
             try:
                 stub = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
                 await stub.Deregister(
-                    registry_pb2.DeregisterRequest(camera_id=self.camera_id),
+                    registry_pb2.DeregisterRequest(
+                        camera_id=self.camera_id, registration_secret=self.registration_secret
+                    ),
                     timeout=1.0,
                     metadata=self.security.metadata(),
                 )
@@ -232,6 +246,7 @@ class CameraNode(Lifecycle):
             image_height=image_size[1],
             max_range_m=self.max_range_m,
             detector_kinds=list(self.detectors),
+            forward_secret=self.forward_secret,
         )
         interval = 1.0
         backoff = 0.2
@@ -240,7 +255,10 @@ class CameraNode(Lifecycle):
         while True:
             try:
                 if not registered:
+                    # The previous registration's secret proves this is the same camera coming back.
+                    register.registration_secret = self.registration_secret
                     reply = await stub.Register(register, timeout=5.0, metadata=self.security.metadata())
+                    self.registration_secret = reply.registration_secret
                     registered = True
                     interval = self._heartbeat_interval(reply.lease_ttl_s)
                     log.info(
@@ -255,7 +273,9 @@ class CameraNode(Lifecycle):
                     self.registered.set()
                 else:
                     reply_hb = await stub.Heartbeat(
-                        registry_pb2.HeartbeatRequest(camera_id=self.camera_id),
+                        registry_pb2.HeartbeatRequest(
+                            camera_id=self.camera_id, registration_secret=self.registration_secret
+                        ),
                         timeout=interval,
                         metadata=self.security.metadata(),
                     )
@@ -271,7 +291,26 @@ class CameraNode(Lifecycle):
                     )
                     registered = False
                     continue
-                if code == grpc.StatusCode.INVALID_ARGUMENT:
+                if code == grpc.StatusCode.FAILED_PRECONDITION and registered:
+                    log.warning(
+                        "camera %s: the server says another registration replaced ours (%s); registering again",
+                        self.camera_id,
+                        _details(exc),
+                    )
+                    registered = False
+                    continue
+                if code == grpc.StatusCode.PERMISSION_DENIED:
+                    registered = False
+                    log.error(
+                        "camera %s: CONFLICT: the server gives camera id %s to another registration: %s; "
+                        "retrying in %.1f s",
+                        self.camera_id,
+                        self.camera_id,
+                        _details(exc),
+                        backoff,
+                    )
+                elif code in (grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.UNAUTHENTICATED):
+                    registered = False
                     log.error("camera %s: server refused registration: %s", self.camera_id, _details(exc))
                 else:
                     log.warning(
@@ -281,7 +320,9 @@ class CameraNode(Lifecycle):
                         _details(exc),
                     )
                 await asyncio.sleep(backoff)
-                backoff = min(backoff * 2, interval)
+                # A conflict lasts at least a lease: ask again, but not more often than every 5 s.
+                conflict = code == grpc.StatusCode.PERMISSION_DENIED
+                backoff = min(backoff * 2, max(interval, 5.0) if conflict else interval)
 
     # --- serving requests --------------------------------------------------------------------
 
@@ -410,13 +451,7 @@ class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=[self._node.camera_id])
 
     async def _check_caller(self, context: aio.ServicerContext[Any, Any]) -> None:
-        """With a token, the camera takes requests only from whoever knows it: the server it
-        registered with (which presents it back), not any host that finds the port."""
-        token = self._node.security.token
-        if token and not hmac.compare_digest(bearer_token(list(context.invocation_metadata() or ())), token):
-            await context.abort(
-                grpc.StatusCode.UNAUTHENTICATED, "requests need this camera's token: send them via the server"
-            )
+        await check_caller(self._node, context, "requests")
 
     @_grpc.servicer_method
     async def DetectObjects(
@@ -444,6 +479,25 @@ class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
             yield replies
 
 
+def presents_secret(node: CameraNode, metadata: list[tuple[str, Any]]) -> bool:
+    """Does a call present what only this node's server knows: the secret the node handed it at
+    registration, or the node's own token? Both compared in constant time."""
+    given = bearer_token(metadata).encode()
+    ok = hmac.compare_digest(given, node.forward_secret.encode())
+    token = node.security.token
+    return ok | (bool(token) and hmac.compare_digest(given, token.encode()))
+
+
+async def check_caller(node: CameraNode, context: aio.ServicerContext[Any, Any], what: str) -> None:
+    """The camera takes requests only from the server it registered with (which presents the
+    secret back), not from any host or process that finds its port."""
+    if not presents_secret(node, list(context.invocation_metadata() or ())):
+        await context.abort(
+            grpc.StatusCode.UNAUTHENTICATED,
+            f"{what} need the secret this camera gave its server, or its token: send them via the server",
+        )
+
+
 def encode_frame(image: NDArray[np.uint8], encoding: int, quality: int) -> bytes:
     if encoding == stream_pb2.FRAME_ENCODING_RAW_BGR:
         return image.tobytes()
@@ -462,6 +516,8 @@ class _FrameStreaming(stream_pb2_grpc.FrameStreamServicer):
     async def StreamFrames(
         self, request: stream_pb2.StreamFramesRequest, context: aio.ServicerContext[Any, Any]
     ) -> AsyncIterator[stream_pb2.VideoFrame]:
+        # Frames obey the same rule as requests: only for whoever holds this camera's token.
+        await check_caller(self._node, context, "frame streams")
         encodings = (stream_pb2.FRAME_ENCODING_RAW_BGR, stream_pb2.FRAME_ENCODING_JPEG)
         if request.encoding not in encodings:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "encoding: must be RAW_BGR or JPEG")

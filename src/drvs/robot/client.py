@@ -441,20 +441,25 @@ class DrvsClient:
         msg = registry_pb2.ListCamerasRequest()
         if region is not None:
             msg.region.CopyFrom(self._regions.get(region)[1])
-        try:
-            reply = await self._registry.ListCameras(msg, timeout=rpc_timeout_s, metadata=self.security.metadata())
-        except grpc.RpcError as exc:
-            raise _grpc.from_rpc_error(exc, f"server {self.server}") from None
-        return [
-            CameraInfo(
-                camera_id=c.camera_id,
-                address=c.address,
-                field_of_view=polygon_from_pb(c.field_of_view, "field_of_view"),
-                detector_kinds=tuple(c.detector_kinds),
-                lease_remaining_s=c.lease_remaining_s,
+        found: list[CameraInfo] = []
+        while True:  # the server answers a page at a time: follow next_page_token to the end
+            try:
+                reply = await self._registry.ListCameras(msg, timeout=rpc_timeout_s, metadata=self.security.metadata())
+            except grpc.RpcError as exc:
+                raise _grpc.from_rpc_error(exc, f"server {self.server}") from None
+            found.extend(
+                CameraInfo(
+                    camera_id=c.camera_id,
+                    address=c.address,
+                    field_of_view=polygon_from_pb(c.field_of_view, "field_of_view"),
+                    detector_kinds=tuple(c.detector_kinds),
+                    lease_remaining_s=c.lease_remaining_s,
+                )
+                for c in reply.cameras
             )
-            for c in reply.cameras
-        ]
+            if not reply.next_page_token or reply.next_page_token == msg.page_token:
+                return found
+            msg.page_token = reply.next_page_token
 
 
 class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):

@@ -20,7 +20,13 @@ from drvs._cli import (
 from drvs.errors import DrvsError
 from drvs.metrics import DEFAULT_METRICS_HOST, parse_metrics_address, serve_metrics
 from drvs.net import parse_address
-from drvs.registry import DEFAULT_LEASE_TTL_S
+from drvs.registry import (
+    DEFAULT_GRACE_S,
+    DEFAULT_LEASE_TTL_S,
+    DEFAULT_MAX_CAMERAS_PER_IDENTITY,
+    DEFAULT_MAX_FOV_AREA_M2,
+    DEFAULT_MAX_FOV_RANGE_M,
+)
 from drvs.security import load_tokens
 from drvs.server.policy import (
     DEFAULT_FORWARD_BYTES_PER_S,
@@ -35,6 +41,7 @@ log = logging.getLogger("drvs.server")
 
 ENV_LISTEN = "DRVS_SERVER_LISTEN"
 ENV_LEASE_TTL = "DRVS_LEASE_TTL"
+ENV_TRUST_NETWORK = "DRVS_TRUST_NETWORK"
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -137,6 +144,39 @@ def build_parser() -> argparse.ArgumentParser:
         default=_grpc.DEFAULT_MAX_CONNECTION_AGE_GRACE_S,
         metavar="SECONDS",
         help="then end the old connection's calls this much later (default %(default)g)",
+        "--trust-network",
+        action="store_const",
+        const=True,
+        help="let cameras register without a credential although --listen is beyond this host: everyone who "
+        f"can reach the port is trusted (env {ENV_TRUST_NETWORK}=1; default: only on loopback)",
+    )
+    p.add_argument(
+        "--registration-grace",
+        type=float,
+        default=DEFAULT_GRACE_S,
+        metavar="SECONDS",
+        help="a camera id stays with whoever registered it this long after its lease ran out (default %(default)s)",
+    )
+    p.add_argument(
+        "--max-cameras-per-identity",
+        type=int,
+        default=DEFAULT_MAX_CAMERAS_PER_IDENTITY,
+        metavar="N",
+        help="camera ids one credential (without one: one IP address) may hold (default %(default)s)",
+    )
+    p.add_argument(
+        "--max-fov-range",
+        type=float,
+        default=DEFAULT_MAX_FOV_RANGE_M,
+        metavar="M",
+        help="largest max_range_m a camera may register with, metres (default %(default)s)",
+    )
+    p.add_argument(
+        "--max-fov-area",
+        type=float,
+        default=DEFAULT_MAX_FOV_AREA_M2,
+        metavar="M2",
+        help="largest field of view one camera may register, square metres (default %(default)s)",
     )
     add_security_arguments(p, "unused by the server (it checks tokens, it presents none)")
     add_observability_arguments(p)
@@ -157,6 +197,11 @@ async def serve(args: argparse.Namespace) -> None:
         robot_tokens=args.robot_token_table,
         limits=args.limits,
         connection_limits=args.connection_limits,
+        trust_network=args.trust_network,
+        registration_grace_s=args.registration_grace,
+        max_cameras_per_identity=args.max_cameras_per_identity,
+        max_fov_range_m=args.max_fov_range,
+        max_fov_area_m2=args.max_fov_area,
     )
     await server.start()
     if args.metrics is not None:
@@ -215,6 +260,19 @@ def main(argv: list[str] | None = None) -> int:
             max_age_s=args.max_connection_age,
             age_grace_s=args.max_connection_age_grace,
         )
+        if args.trust_network is None:
+            trust = (env(ENV_TRUST_NETWORK) or "0").strip().lower()
+            if trust not in ("1", "true", "yes", "on", "0", "false", "no", "off"):
+                raise DrvsError(f"{ENV_TRUST_NETWORK}: {trust!r} is not true or false")
+            args.trust_network = trust in ("1", "true", "yes", "on")
+        if not 0 <= args.registration_grace <= 86400:
+            raise DrvsError(f"--registration-grace: {args.registration_grace} must be in [0, 86400]")
+        if not 1 <= args.max_cameras_per_identity <= 1_000_000:
+            raise DrvsError(f"--max-cameras-per-identity: {args.max_cameras_per_identity} must be in [1, 1000000]")
+        if not 15 <= args.max_fov_range <= 10_000:
+            raise DrvsError(f"--max-fov-range: {args.max_fov_range} must be in [15, 10000] metres")
+        if not 1 <= args.max_fov_area <= 1e8:
+            raise DrvsError(f"--max-fov-area: {args.max_fov_area} must be in [1, 1e8] square metres")
         args.security = security_from(vars(args))
         for role in ("camera", "robot"):
             path = getattr(args, f"{role}_tokens") or env(f"DRVS_{role.upper()}_TOKENS")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import bisect
 import dataclasses
 import functools
 import logging
@@ -28,16 +29,34 @@ from drvs.errors import (
     DeadlineExceeded,
     DrvsError,
     InvalidArgument,
-    PermissionDenied,
     ResourceExhausted,
+    Unauthenticated,
     Unavailable,
 )
 from drvs.geometry import DEFAULT_MAX_RANGE_M
 from drvs.model import DetectionReport, DetectionRequest, check_id
 from drvs.net import host_of, is_loopback_host
-from drvs.registry import DEFAULT_LEASE_TTL_S, CameraEntry, Registry
+from drvs.registry import (
+    DEFAULT_GRACE_S,
+    DEFAULT_LEASE_TTL_S,
+    DEFAULT_MAX_CAMERAS_PER_IDENTITY,
+    DEFAULT_MAX_FOV_AREA_M2,
+    DEFAULT_MAX_FOV_RANGE_M,
+    CameraEntry,
+    Claims,
+    Registry,
+)
 from drvs.request_stream import BatchSender, serve_request_stream
-from drvs.security import CAMERA, ROBOT, Security, TokenAuthority, TokenInterceptor, bearer_token, caller_identity
+from drvs.security import (
+    CAMERA,
+    ROBOT,
+    Security,
+    TokenAuthority,
+    TokenInterceptor,
+    bearer_token,
+    caller_identity,
+    camera_identity,
+)
 from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits, peer_ip
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
 
@@ -49,6 +68,13 @@ DEFAULT_FORWARD_TIMEOUT_S = 2.0
 #: Forwards to one camera waiting for its acceptance at once; past this the server sheds load:
 #: the robot gets an error report for that camera at once (RESOURCE_EXHAUSTED, "busy").
 DEFAULT_MAX_QUEUED_FORWARDS = 64
+#: ListCameras: cameras per reply unless the caller asks for fewer, and the most it may ask for.
+#: A camera's entry is at most about 4 kB (id, address, 16 detector kinds, a field of view of at
+#: most about 70 vertices): 500 of them stay far below the 4 MB message limit.
+DEFAULT_PAGE_SIZE = 500
+MAX_PAGE_SIZE = 500
+#: Longest secret a camera may hand over (it travels as call metadata on every forward).
+MAX_SECRET_LENGTH = 256
 SERVICE_NAMES = (
     detection_pb2.DESCRIPTOR.services_by_name["DetectObjectBoundary"].full_name,
     registry_pb2.DESCRIPTOR.services_by_name["RegisterVisionService"].full_name,
@@ -109,18 +135,29 @@ class DrvsServer(Lifecycle):
         robot_tokens: Mapping[str, str] | None = None,
         limits: RequestLimits | None = None,
         connection_limits: _grpc.ConnectionLimits | None = None,
+        trust_network: bool = False,
+        registration_grace_s: float = DEFAULT_GRACE_S,
+        max_cameras_per_identity: int = DEFAULT_MAX_CAMERAS_PER_IDENTITY,
+        max_fov_range_m: float = DEFAULT_MAX_FOV_RANGE_M,
+        max_fov_area_m2: float = DEFAULT_MAX_FOV_AREA_M2,
     ) -> None:
         self.callback_policy = CallbackPolicy(allow_callback, allow_any_callback)
         self.security = security or Security()
         self.tokens = TokenAuthority(camera_tokens, robot_tokens)
         self.limits = limits or RequestLimits()
         self.connection_limits = connection_limits or _grpc.ConnectionLimits()
-        # camera id -> the identity that registered it (token name or certificate name): another
-        # identity may not re-register, renew or deregister it.
-        self.owners: dict[str, str] = {}
-        # camera id -> the token it registered with, presented back when forwarding to it.
+        self.trust_network = trust_network
+        # camera id -> the secret its current registration handed over (or the token it carried),
+        # presented back when forwarding to it; replaced, never inherited, at every registration.
         self._camera_tokens: dict[str, str] = {}
-        self.registry = Registry(lease_ttl_s)
+        if default_max_range_m > max_fov_range_m:
+            raise InvalidArgument(
+                f"default_max_range_m: {default_max_range_m:g} m is beyond max_fov_range_m {max_fov_range_m:g} m"
+            )
+        self.registry = Registry(lease_ttl_s, max_fov_range_m=max_fov_range_m, max_fov_area_m2=max_fov_area_m2)
+        # camera id -> who holds it (token name, certificate name, or an anonymous registration's
+        # secret): another identity may not re-register, renew or deregister it.
+        self.claims = Claims(registration_grace_s, max_cameras_per_identity)
         self.forward_timeout_s = forward_timeout_s
         if max_queued_forwards < 1:
             raise InvalidArgument(f"max_queued_forwards: {max_queued_forwards} must be at least 1")
@@ -158,6 +195,11 @@ class DrvsServer(Lifecycle):
         await self._endpoint.start()
         self._sweeper = asyncio.get_running_loop().create_task(self._sweep_leases())
         log.info("security: %s", self.describe_security())
+        log.log(
+            logging.INFO if self.anonymous_cameras or self._camera_credentials else logging.ERROR,
+            "registration: %s",
+            self.describe_registration(),
+        )
         log.info("drvs-server listening on %s (lease %.1f s)", self.address, self.registry.lease_ttl_s)
 
     def describe_security(self) -> str:
@@ -171,9 +213,38 @@ class DrvsServer(Lifecycle):
             return ", ".join(parts)
         if is_loopback_host(host_of(self.address)):
             return "none (plain TCP, no tokens): serving this host only; configure TLS or tokens to serve others"
+        return f"NONE on a non-loopback address: anyone who can reach {self.address} can " + (
+            "register cameras and ask for detections" if self.trust_network else "ask for detections"
+        )
+
+    @property
+    def anonymous_cameras(self) -> bool:
+        """May a camera register without a credential? On loopback, or when the operator says the
+        network is trusted: elsewhere anyone who reaches the port could claim camera ids."""
+        return self.trust_network or is_loopback_host(host_of(self.address))
+
+    @property
+    def _camera_credentials(self) -> bool:
+        return self.tokens.tables[CAMERA] is not None or self.security.require_client_cert
+
+    def describe_registration(self) -> str:
+        kinds = []
+        if self.tokens.tables[CAMERA] is not None:
+            kinds.append("a camera token")
+        if self.security.require_client_cert:
+            kinds.append("a client certificate with the camera role (OU=camera)")
+        credential = " or ".join(kinds)
+        if self.anonymous_cameras and not kinds:
+            why = "--trust-network" if self.trust_network else "loopback only"
+            return f"open to cameras without a credential ({why}); an id is held by its registration's secret"
+        if self.anonymous_cameras and self.tokens.tables[CAMERA] is None:
+            why = "--trust-network" if self.trust_network else "loopback only"
+            return f"cameras identify with {credential}, or register without one ({why})"
+        if kinds:
+            return f"cameras need {credential}"
         return (
-            "NONE on a non-loopback address: anyone who can reach "
-            f"{self.address} can register cameras and ask for detections"
+            f"REFUSED: {self.address} is beyond this host and no camera credential is configured; give "
+            "--camera-tokens or --tls-client-auth, or --trust-network if everyone on this network is trusted"
         )
 
     async def stop(self, grace: float = 2.0) -> None:
@@ -319,6 +390,9 @@ class DrvsServer(Lifecycle):
                 log.info("camera %s left routing: lease expired", entry.camera_id)
                 self._forget(entry.camera_id)
                 metrics.CAMERAS.set(len(self.registry))
+            for camera_id in self.claims.expire():
+                if camera_id not in self.registry:
+                    log.info("camera id %s is free: its lease and grace ran out", camera_id)
 
 
 class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
@@ -416,13 +490,15 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
     def __init__(self, server: DrvsServer) -> None:
         self._s = server
 
-    def _owner(self, camera_id: str, context: aio.ServicerContext[Any, Any]) -> str:
-        """The caller's identity, if it may act for `camera_id`: nobody takes over a camera id
-        registered under another credential, or deregisters it."""
-        who = caller_identity(context, self._s.tokens, CAMERA)
-        owner = self._s.owners.get(camera_id)
-        if owner is not None and owner != who:
-            raise PermissionDenied(f"camera_id: {camera_id!r} belongs to another credential")
+    def _identity(self, context: aio.ServicerContext[Any, Any], method: str) -> str:
+        """The caller's identity ("" anonymous), or UNAUTHENTICATED where anonymity is not allowed."""
+        who = camera_identity(context, self._s.tokens, self._s.security.require_client_cert, method)
+        if not who and not self._s.anonymous_cameras:
+            raise Unauthenticated(
+                f"{method}: this server serves {self._s.address}, beyond this host: a camera needs a camera "
+                "token or a client certificate with the camera role (the server's --trust-network allows "
+                "cameras without one)"
+            )
         return who
 
     @_grpc.servicer_method
@@ -431,7 +507,15 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
     ) -> registry_pb2.RegisterReply:
         if not message.HasField("homography"):
             raise InvalidArgument("homography: missing")
-        owner = self._owner(message.camera_id, context)
+        for name in ("registration_secret", "forward_secret"):
+            value = getattr(message, name)
+            if len(value) > MAX_SECRET_LENGTH or not (value.isascii() and value.isprintable()) or " " in value:
+                raise InvalidArgument(f"{name}: at most {MAX_SECRET_LENGTH} printable ASCII characters, no spaces")
+        check_id(message.camera_id, "camera_id")
+        owner = self._identity(context, "Register")
+        quota = owner or f"the anonymous caller at {peer_ip(context.peer()) or context.peer()}"
+        claims = self._s.claims
+        claims.check_register(message.camera_id, owner, message.registration_secret, quota, message.forward_secret)
         max_range = message.max_range_m or self._s.default_max_range_m
         entry = self._s.registry.register(
             camera_id=message.camera_id,
@@ -441,22 +525,27 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
             detector_kinds=set(message.detector_kinds),
             max_range_m=max_range,
         )
-        self._s.owners[entry.camera_id] = owner
+        expires = self._s.registry.expires_at(entry.camera_id)
+        secret = claims.grant(entry.camera_id, owner, quota, expires, message.forward_secret)
         metrics.CAMERAS.set(len(self._s.registry))
-        token = bearer_token(list(context.invocation_metadata() or ()))
-        if token:
-            self._s._camera_tokens[entry.camera_id] = token
+        # What the server presents on forwards: this registration's own secret (or token), never
+        # the previous registration's, which could hand one camera's credential to another address.
+        presented = message.forward_secret or bearer_token(list(context.invocation_metadata() or ()))
+        self._s._camera_tokens[entry.camera_id] = presented
         self._s._unreachable.discard(entry.camera_id)
         self._s._link(entry)
         log.info(
-            "camera %s registered at %s: field of view %.1f m², detectors %s",
+            "camera %s registered at %s by %s: field of view %.1f m², detectors %s",
             entry.camera_id,
             entry.address,
+            owner or "an anonymous caller",
             entry.field_of_view.area,
             ",".join(sorted(entry.detector_kinds)),
         )
         return registry_pb2.RegisterReply(
-            lease_ttl_s=self._s.registry.lease_ttl_s, field_of_view=polygon_to_pb(entry.field_of_view)
+            lease_ttl_s=self._s.registry.lease_ttl_s,
+            field_of_view=polygon_to_pb(entry.field_of_view),
+            registration_secret=secret,
         )
 
     @_grpc.servicer_method
@@ -464,8 +553,10 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
         self, message: registry_pb2.HeartbeatRequest, context: aio.ServicerContext[Any, Any]
     ) -> registry_pb2.HeartbeatReply:
         check_id(message.camera_id, "camera_id")
-        self._owner(message.camera_id, context)
+        owner = self._identity(context, "Heartbeat")
+        self._s.claims.check(message.camera_id, owner, message.registration_secret)
         self._s.registry.renew(message.camera_id)
+        self._s.claims.renew(message.camera_id, self._s.registry.expires_at(message.camera_id))
         self._s._unreachable.discard(message.camera_id)
         return registry_pb2.HeartbeatReply(lease_ttl_s=self._s.registry.lease_ttl_s)
 
@@ -474,9 +565,11 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
         self, message: registry_pb2.DeregisterRequest, context: aio.ServicerContext[Any, Any]
     ) -> registry_pb2.DeregisterReply:
         check_id(message.camera_id, "camera_id")
-        self._owner(message.camera_id, context)
-        self._s.registry.remove(message.camera_id)
-        self._s.owners.pop(message.camera_id, None)
+        owner = self._identity(context, "Deregister")
+        self._s.claims.check(message.camera_id, owner, message.registration_secret)
+        self._s.claims.release(message.camera_id)
+        if message.camera_id in self._s.registry:
+            self._s.registry.remove(message.camera_id)
         self._s._forget(message.camera_id)
         metrics.CAMERAS.set(len(self._s.registry))
         log.info("camera %s deregistered", message.camera_id)
@@ -487,12 +580,20 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
         self, message: registry_pb2.ListCamerasRequest, context: aio.ServicerContext[Any, Any]
     ) -> registry_pb2.ListCamerasReply:
         entries: list[CameraEntry]
+        if message.page_token:
+            check_id(message.page_token, "page_token")
+        size = min(message.page_size or DEFAULT_PAGE_SIZE, MAX_PAGE_SIZE)
         if message.HasField("region"):
             region: Polygon = region_from_pb(message.region)
             entries = self._s.registry.cameras_seeing(region)
         else:
             entries = self._s.registry.cameras()
+        # Both lists are sorted by camera id: a page starts after the id its token names.
+        start = bisect.bisect_right([e.camera_id for e in entries], message.page_token) if message.page_token else 0
+        more = len(entries) > start + size
+        entries = entries[start : start + size]
         return registry_pb2.ListCamerasReply(
+            next_page_token=entries[-1].camera_id if more else "",
             cameras=[
                 registry_pb2.CameraInfo(
                     camera_id=e.camera_id,
@@ -502,5 +603,5 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
                     lease_remaining_s=self._s.registry.remaining_s(e.camera_id),
                 )
                 for e in entries
-            ]
+            ],
         )

@@ -72,10 +72,12 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
             robot_args.append("--no-drvs")
             say("DRVS       off: the paper's baseline, the robot learns obstacles by touching them")
         else:
-            tls: dict[str, list[str]] = {"server": [], "camera": [], "robot": []}
+            tls: dict[str, list[str]] = {"server": [], "robot": [], **{f"camera-{c.id}": [] for c in scenario.cameras}}
             if args.tls:
                 certs = out / "certs"
-                for role, (cert, key) in make_all(certs, list(tls), []).items():
+                # One certificate per camera: each camera its own identity, so none can take over another's id.
+                made = make_all(certs, ["server", "robot"], [], cameras=[c.id for c in scenario.cameras])
+                for role, (cert, key) in made.items():
                     tls[role] = ["--tls-cert", str(cert), "--tls-key", str(key), "--tls-ca", str(certs / "ca.pem"),
                                  "--tls-client-auth"]  # fmt: skip
                 say(f"TLS        mutual TLS on every hop; certificates from drvs-certs in {certs}")
@@ -89,7 +91,7 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
                 save_homography(hfile, cam.homography, image_size=list(cam.resolution))
                 proc = await start_camera(
                     cam.id, f"sim://{world_address}", hfile, server_address, "--max-range", str(cam.max_range_m),
-                    *tls["camera"], echo=echo,
+                    *tls[f"camera-{cam.id}"], echo=echo,
                 )  # fmt: skip
                 procs.append(proc)
                 say(f"camera     {cam.id} registered ({cam.field_of_view.floor.area:.1f} m² of floor)")

@@ -14,7 +14,7 @@ class Homography(_message.Message):
     def __init__(self, m: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class RegisterRequest(_message.Message):
-    __slots__ = ("camera_id", "address", "homography", "image_width", "image_height", "max_range_m", "detector_kinds")
+    __slots__ = ("camera_id", "address", "homography", "image_width", "image_height", "max_range_m", "detector_kinds", "registration_secret", "forward_secret")
     CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
     ADDRESS_FIELD_NUMBER: _ClassVar[int]
     HOMOGRAPHY_FIELD_NUMBER: _ClassVar[int]
@@ -22,6 +22,8 @@ class RegisterRequest(_message.Message):
     IMAGE_HEIGHT_FIELD_NUMBER: _ClassVar[int]
     MAX_RANGE_M_FIELD_NUMBER: _ClassVar[int]
     DETECTOR_KINDS_FIELD_NUMBER: _ClassVar[int]
+    REGISTRATION_SECRET_FIELD_NUMBER: _ClassVar[int]
+    FORWARD_SECRET_FIELD_NUMBER: _ClassVar[int]
     camera_id: str
     address: str
     homography: Homography
@@ -29,21 +31,27 @@ class RegisterRequest(_message.Message):
     image_height: int
     max_range_m: float
     detector_kinds: _containers.RepeatedScalarFieldContainer[str]
-    def __init__(self, camera_id: _Optional[str] = ..., address: _Optional[str] = ..., homography: _Optional[_Union[Homography, _Mapping]] = ..., image_width: _Optional[int] = ..., image_height: _Optional[int] = ..., max_range_m: _Optional[float] = ..., detector_kinds: _Optional[_Iterable[str]] = ...) -> None: ...
+    registration_secret: str
+    forward_secret: str
+    def __init__(self, camera_id: _Optional[str] = ..., address: _Optional[str] = ..., homography: _Optional[_Union[Homography, _Mapping]] = ..., image_width: _Optional[int] = ..., image_height: _Optional[int] = ..., max_range_m: _Optional[float] = ..., detector_kinds: _Optional[_Iterable[str]] = ..., registration_secret: _Optional[str] = ..., forward_secret: _Optional[str] = ...) -> None: ...
 
 class RegisterReply(_message.Message):
-    __slots__ = ("lease_ttl_s", "field_of_view")
+    __slots__ = ("lease_ttl_s", "field_of_view", "registration_secret")
     LEASE_TTL_S_FIELD_NUMBER: _ClassVar[int]
     FIELD_OF_VIEW_FIELD_NUMBER: _ClassVar[int]
+    REGISTRATION_SECRET_FIELD_NUMBER: _ClassVar[int]
     lease_ttl_s: float
     field_of_view: _geometry_pb2.Polygon
-    def __init__(self, lease_ttl_s: _Optional[float] = ..., field_of_view: _Optional[_Union[_geometry_pb2.Polygon, _Mapping]] = ...) -> None: ...
+    registration_secret: str
+    def __init__(self, lease_ttl_s: _Optional[float] = ..., field_of_view: _Optional[_Union[_geometry_pb2.Polygon, _Mapping]] = ..., registration_secret: _Optional[str] = ...) -> None: ...
 
 class HeartbeatRequest(_message.Message):
-    __slots__ = ("camera_id",)
+    __slots__ = ("camera_id", "registration_secret")
     CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
+    REGISTRATION_SECRET_FIELD_NUMBER: _ClassVar[int]
     camera_id: str
-    def __init__(self, camera_id: _Optional[str] = ...) -> None: ...
+    registration_secret: str
+    def __init__(self, camera_id: _Optional[str] = ..., registration_secret: _Optional[str] = ...) -> None: ...
 
 class HeartbeatReply(_message.Message):
     __slots__ = ("lease_ttl_s",)
@@ -52,20 +60,26 @@ class HeartbeatReply(_message.Message):
     def __init__(self, lease_ttl_s: _Optional[float] = ...) -> None: ...
 
 class DeregisterRequest(_message.Message):
-    __slots__ = ("camera_id",)
+    __slots__ = ("camera_id", "registration_secret")
     CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
+    REGISTRATION_SECRET_FIELD_NUMBER: _ClassVar[int]
     camera_id: str
-    def __init__(self, camera_id: _Optional[str] = ...) -> None: ...
+    registration_secret: str
+    def __init__(self, camera_id: _Optional[str] = ..., registration_secret: _Optional[str] = ...) -> None: ...
 
 class DeregisterReply(_message.Message):
     __slots__ = ()
     def __init__(self) -> None: ...
 
 class ListCamerasRequest(_message.Message):
-    __slots__ = ("region",)
+    __slots__ = ("region", "page_size", "page_token")
     REGION_FIELD_NUMBER: _ClassVar[int]
+    PAGE_SIZE_FIELD_NUMBER: _ClassVar[int]
+    PAGE_TOKEN_FIELD_NUMBER: _ClassVar[int]
     region: _geometry_pb2.Region
-    def __init__(self, region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ...) -> None: ...
+    page_size: int
+    page_token: str
+    def __init__(self, region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., page_size: _Optional[int] = ..., page_token: _Optional[str] = ...) -> None: ...
 
 class CameraInfo(_message.Message):
     __slots__ = ("camera_id", "address", "field_of_view", "detector_kinds", "lease_remaining_s")
@@ -82,7 +96,9 @@ class CameraInfo(_message.Message):
     def __init__(self, camera_id: _Optional[str] = ..., address: _Optional[str] = ..., field_of_view: _Optional[_Union[_geometry_pb2.Polygon, _Mapping]] = ..., detector_kinds: _Optional[_Iterable[str]] = ..., lease_remaining_s: _Optional[float] = ...) -> None: ...
 
 class ListCamerasReply(_message.Message):
-    __slots__ = ("cameras",)
+    __slots__ = ("cameras", "next_page_token")
     CAMERAS_FIELD_NUMBER: _ClassVar[int]
+    NEXT_PAGE_TOKEN_FIELD_NUMBER: _ClassVar[int]
     cameras: _containers.RepeatedCompositeFieldContainer[CameraInfo]
-    def __init__(self, cameras: _Optional[_Iterable[_Union[CameraInfo, _Mapping]]] = ...) -> None: ...
+    next_page_token: str
+    def __init__(self, cameras: _Optional[_Iterable[_Union[CameraInfo, _Mapping]]] = ..., next_page_token: _Optional[str] = ...) -> None: ...

@@ -62,13 +62,16 @@ class RegisterVisionServiceServicer(object):
     """
 
     def Register(self, request, context):
-        """Missing associated documentation comment in .proto file."""
+        """PERMISSION_DENIED when another identity holds the id (until its lease and grace run out);
+        INVALID_ARGUMENT when the field of view is larger than the server allows.
+        """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
     def Heartbeat(self, request, context):
         """NOT_FOUND when the server does not know the camera (e.g. it restarted): register again.
+        FAILED_PRECONDITION when registration_secret is not the id's current registration.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
