@@ -43,9 +43,11 @@ ALLOWED = {
     grpc.StatusCode.PERMISSION_DENIED,
     grpc.StatusCode.RESOURCE_EXHAUSTED,
     grpc.StatusCode.NOT_FOUND,
+    grpc.StatusCode.FAILED_PRECONDITION,  # a heartbeat without the current registration's secret
 }
 FIELDS = ("request_id", "robot_id", "filter_def", "region", "callback_address", "continuous", "camera_id",
-          "address", "homography", "field_of_view", "detector_kinds", "rate", "forwarded bytes")  # fmt: skip
+          "address", "homography", "field_of_view", "detector_kinds", "rate", "forwarded bytes", "max_range_m",
+          "registration_secret", "registrations")  # fmt: skip
 
 
 def meta(name: str) -> tuple[tuple[str, str], ...]:

@@ -144,6 +144,8 @@ def build_parser() -> argparse.ArgumentParser:
         default=_grpc.DEFAULT_MAX_CONNECTION_AGE_GRACE_S,
         metavar="SECONDS",
         help="then end the old connection's calls this much later (default %(default)g)",
+    )
+    p.add_argument(
         "--trust-network",
         action="store_const",
         const=True,
