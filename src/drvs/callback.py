@@ -21,7 +21,7 @@ from drvs.convert import report_to_pb
 from drvs.errors import Unavailable
 from drvs.model import DetectionReport
 from drvs.security import Security
-from drvs.v1 import detection_pb2_grpc
+from drvs.v1 import detection_pb2, detection_pb2_grpc
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +34,9 @@ WRITE_TIMEOUT_S = 5.0
 STALLED = f"robot did not take a report within {WRITE_TIMEOUT_S:g} s"
 #: Cancelled request ids remembered per link.
 MAX_CANCELLED = 4096
+#: (request, camera) pairs whose report key this link has presented, remembered per link (a pair is
+#: forgotten with its final report; past this, the oldest, and its key is presented again).
+MAX_KEYED = 4096
 
 
 class RobotLink:
@@ -45,6 +48,7 @@ class RobotLink:
         self._call: Any = detection_pb2_grpc.CallbackCoordinatesStub(self._channel).ReportDetections()
         self._write_lock = asyncio.Lock()
         self._cancelled: OrderedDict[str, None] = OrderedDict()
+        self._keyed: OrderedDict[tuple[str, str], None] = OrderedDict()
         self._reader = asyncio.get_running_loop().create_task(self._read_controls())
         self.broken: str | None = None
         self.last_used = asyncio.get_running_loop().time()
@@ -67,8 +71,9 @@ class RobotLink:
             self.broken = "closed"
             raise
 
-    async def send(self, report: DetectionReport, outlines: bool = True) -> bool:
-        """Send one report; False when the robot no longer wants this request's reports."""
+    async def send(self, report: DetectionReport, outlines: bool = True, key: bytes = b"") -> bool:
+        """Send one report; False when the robot no longer wants this request's reports. `key`: the
+        request's report key for this camera, presented with the first report on this link."""
         if self.cancelled(report.request_id):
             return False
         if self.broken:
@@ -77,6 +82,8 @@ class RobotLink:
         loop = asyncio.get_running_loop()
         try:
             message = report_to_pb(report, outlines)
+            if key:
+                self._present_key(message, key)
             async with self._write_lock:
                 # A timer, not asyncio.wait_for: that would cost a task for every report.
                 stall = loop.call_later(WRITE_TIMEOUT_S, self._stalled)
@@ -97,6 +104,20 @@ class RobotLink:
             self.sending -= 1
             self.last_used = loop.time()
         return True
+
+    def _present_key(self, message: detection_pb2.DetectionReport, key: bytes) -> None:
+        """The robot binds (request, camera) to the stream that first presents the key: once per
+        link, not on every report (a new link, after a break, presents it again)."""
+        pair = (message.request_id, message.camera_id)
+        if pair in self._keyed:
+            if message.final:
+                del self._keyed[pair]
+            return
+        if not message.final:
+            self._keyed[pair] = None
+            while len(self._keyed) > MAX_KEYED:
+                self._keyed.popitem(last=False)
+        message.report_key = key
 
     def _stalled(self) -> None:
         """The robot has not taken a report for WRITE_TIMEOUT_S: break the link (the pending write
@@ -147,11 +168,11 @@ class CallbackSender:
         self._evict()
         return link
 
-    async def send(self, address: str, report: DetectionReport, outlines: bool = True) -> bool:
+    async def send(self, address: str, report: DetectionReport, outlines: bool = True, key: bytes = b"") -> bool:
         known = self._links.get(address)
         if known is not None and known.cancelled(report.request_id):
             return False  # not even a new connection for a request the robot stopped
-        return await self.link(address).send(report, outlines)
+        return await self.link(address).send(report, outlines, key)
 
     def _evict(self) -> None:
         now = asyncio.get_running_loop().time()

@@ -7,10 +7,13 @@ import dataclasses
 import logging
 import time
 import uuid
+from collections import OrderedDict
 from collections.abc import AsyncIterator, Iterable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import grpc
+import shapely
 from grpc import aio
 from shapely.geometry import Polygon
 
@@ -23,6 +26,7 @@ from drvs.convert import (
     region_from_pb,
     request_from_pb,
 )
+from drvs.report_auth import MAX_SECRET_BYTES, report_key
 from drvs.errors import (
     DeadlineExceeded,
     DrvsError,
@@ -48,10 +52,26 @@ DEFAULT_FORWARD_TIMEOUT_S = 2.0
 #: Forwards to one camera waiting for its acceptance at once; past this the server sheds load:
 #: the robot gets an error report for that camera at once (RESOURCE_EXHAUSTED, "busy").
 DEFAULT_MAX_QUEUED_FORWARDS = 64
+#: A camera whose lease ran out without it deregistering is remembered this long (at most MAX_LOST
+#: of them): requests whose region it sees name it as missing until it registers again.
+LOST_MEMORY_S = 3600.0
+MAX_LOST = 1024
+#: Uncovered parts smaller than this (m²) are slivers along field-of-view edges, not reported.
+MIN_UNCOVERED_M2 = 0.01
 SERVICE_NAMES = (
     detection_pb2.DESCRIPTOR.services_by_name["DetectObjectBoundary"].full_name,
     registry_pb2.DESCRIPTOR.services_by_name["RegisterVisionService"].full_name,
 )
+
+
+@dataclass(frozen=True)
+class MissingCamera:
+    """A camera that sees a request's region and runs its detector, but is not asked."""
+
+    camera_id: str
+    code: str
+    message: str
+    field_of_view: Polygon
 
 
 class _CameraLink:
@@ -91,6 +111,7 @@ class DrvsServer(Lifecycle):
         camera_tokens: Mapping[str, str] | None = None,
         robot_tokens: Mapping[str, str] | None = None,
         limits: RequestLimits | None = None,
+        warm_up_s: float | None = None,
     ) -> None:
         self.callback_policy = CallbackPolicy(allow_callback, allow_any_callback)
         self.security = security or Security()
@@ -117,6 +138,14 @@ class DrvsServer(Lifecycle):
         self._links: dict[str, _CameraLink] = {}
         # Cameras whose last forward failed: skipped until their next heartbeat proves them alive.
         self._unreachable: set[str] = set()
+        self._unreachable_why: dict[str, str] = {}
+        # Cameras whose lease ran out without deregistering: id -> (entry, when, why).
+        self._lost: OrderedDict[str, tuple[CameraEntry, float, str]] = OrderedDict()
+        # After a start, cameras registered with a previous run may not be back yet for this long.
+        self.warm_up_s = lease_ttl_s if warm_up_s is None else warm_up_s
+        if not (self.warm_up_s >= 0):
+            raise InvalidArgument(f"warm_up_s: {warm_up_s} must be >= 0")
+        self._started_at = time.monotonic()
         self._tasks: set[asyncio.Task[None]] = set()
         self._sweeper: asyncio.Task[None] | None = None
         self._callbacks = CallbackSender(security=self.security)
@@ -136,6 +165,7 @@ class DrvsServer(Lifecycle):
 
     async def start(self) -> None:
         await self._endpoint.start()
+        self._started_at = time.monotonic()
         self._sweeper = asyncio.get_running_loop().create_task(self._sweep_leases())
         log.info("security: %s", self.describe_security())
         log.info("drvs-server listening on %s (lease %.1f s)", self.address, self.registry.lease_ttl_s)
@@ -178,13 +208,48 @@ class DrvsServer(Lifecycle):
 
     def route(self, request: DetectionRequest) -> list[CameraEntry]:
         """The live cameras that see the request's region, run its detector and are reachable."""
-        seeing = self.registry.cameras_seeing(request.region, request.kind)
-        return [c for c in seeing if c.camera_id not in self._unreachable]
+        return self.plan(request)[0]
 
-    def dispatch(self, request: DetectionRequest, message: detection_pb2.DetectionRequest) -> list[str]:
-        cameras = self.route(request)
+    def plan(self, request: DetectionRequest) -> tuple[list[CameraEntry], list[MissingCamera]]:
+        """The cameras to ask, and those that see the region and run the detector but will not be
+        asked: skipped after a failed forward, or gone without deregistering."""
+        seeing = self.registry.cameras_seeing(request.region, request.kind)
+        if not self._unreachable and not self._lost:
+            return seeing, []  # the common case costs nothing more
+        cameras = [c for c in seeing if c.camera_id not in self._unreachable]
+        missing = [
+            MissingCamera(
+                c.camera_id,
+                "UNAVAILABLE",
+                f"skipped until it heartbeats: {self._unreachable_why.get(c.camera_id, 'its last forward failed')}",
+                c.field_of_view,
+            )
+            for c in seeing
+            if c.camera_id in self._unreachable
+        ]
+        now = time.monotonic()
+        for camera_id, (entry, since, why) in list(self._lost.items()):
+            if camera_id in self.registry or now - since > LOST_MEMORY_S:
+                del self._lost[camera_id]  # back (routed or refused as itself), or forgotten
+            elif request.kind in entry.detector_kinds and shapely.relate_pattern(
+                entry.field_of_view, request.region, "T********"
+            ):
+                missing.append(MissingCamera(camera_id, "UNAVAILABLE", f"{why} {now - since:.0f} s ago", entry.field_of_view))
+        return cameras, missing
+
+    def coverage_uncertain_s(self) -> float:
+        """How much longer cameras registered with a previous run of the server may still be on
+        their way back (0 once a lease has passed since the start)."""
+        return max(0.0, self._started_at + self.warm_up_s - time.monotonic())
+
+    def dispatch(
+        self, request: DetectionRequest, message: detection_pb2.DetectionRequest, secret: bytes = b""
+    ) -> detection_pb2.DetectionReply:
+        """Forward to every camera planned and answer the robot: whom it asked, whom it could not, and
+        what part of the region nobody looks at. `secret`: the robot's report secret."""
+        cameras, missing = self.plan(request)
         for camera in cameras:
-            self._forward(camera, request, message)
+            self._forward(camera, request, message, secret)
         log.debug(
             "request %s from robot %r (%s): dispatched to %s",
             request.request_id,
@@ -192,7 +257,16 @@ class DrvsServer(Lifecycle):
             request.filter_def,
             ", ".join(c.camera_id for c in cameras) or "no camera",
         )
-        return [c.camera_id for c in cameras]
+        reply = detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=[c.camera_id for c in cameras])
+        if missing:
+            for m in missing:
+                reply.missing_cameras.add(camera_id=m.camera_id, code=m.code, message=m.message)
+            for part in _uncovered(request.region, cameras, missing):
+                reply.uncovered.append(polygon_to_pb(part))
+        uncertain = self.coverage_uncertain_s()
+        if uncertain:
+            reply.coverage_uncertain_s = uncertain
+        return reply
 
     def _spawn(self, coro: Any) -> None:
         task = asyncio.get_running_loop().create_task(coro)
@@ -209,7 +283,14 @@ class DrvsServer(Lifecycle):
             self._links[camera.camera_id] = link
         return link
 
-    def _forward(self, camera: CameraEntry, request: DetectionRequest, message: detection_pb2.DetectionRequest) -> None:
+    def _forward(
+        self,
+        camera: CameraEntry,
+        request: DetectionRequest,
+        message: detection_pb2.DetectionRequest,
+        secret: bytes = b"",
+    ) -> None:
+        key = report_key(secret, request.request_id, camera.camera_id)
         link = self._link(camera)
         if link.requests.in_flight >= self.max_queued_forwards:
             # Shed load at once rather than queue until the forward timeout: the robot hears
@@ -221,31 +302,40 @@ class DrvsServer(Lifecycle):
                     f"busy: {link.requests.in_flight} requests already waiting for it "
                     f"(limit {self.max_queued_forwards}); try again later"
                 ),
+                key,
             )
             return
         started = time.perf_counter()
 
         def done(result: detection_pb2.DetectionReply | DrvsError) -> None:
             if isinstance(result, DrvsError):
-                self._not_accepted(camera, request, result)
+                self._not_accepted(camera, request, result, key)
             else:
                 metrics.ROUTED_OK.inc()
                 metrics.STAGE_FORWARD.observe(time.perf_counter() - started)
 
+        if key:
+            # Each camera gets its own key, and only its own: a copy of the request per camera.
+            forwarded = detection_pb2.DetectionRequest()
+            forwarded.CopyFrom(message)
+            forwarded.report_key = key
+            message = forwarded
         link.requests.submit(message, done)
 
-    def _not_accepted(self, camera: CameraEntry, request: DetectionRequest, exc: DrvsError) -> None:
+    def _not_accepted(self, camera: CameraEntry, request: DetectionRequest, exc: DrvsError, key: bytes = b"") -> None:
         """The camera will not report on this request: tell the robot in the camera's name, so it
         need not wait for it. A camera that could not be reached is skipped until it heartbeats."""
         if self._stopped:
             return  # the server's own shutdown closed the links: nobody is waiting to hear
         metrics.ROUTED_FAILED.inc()
-        reason = f"camera {camera.camera_id} did not accept the request: {_grpc.status_of(exc).name} {exc}"
+        code = _grpc.status_of(exc).name
+        reason = f"camera {camera.camera_id} did not accept the request: {code} {exc}"
         token = logs.request_id.set(request.request_id)
         try:
             log.warning("request %s: %s", request.request_id, reason)
             if isinstance(exc, (Unavailable, DeadlineExceeded)):
                 self._unreachable.add(camera.camera_id)
+                self._unreachable_why[camera.camera_id] = f"{code} {exc}"
             report = DetectionReport(
                 request_id=request.request_id,
                 camera_id=camera.camera_id,
@@ -253,19 +343,22 @@ class DrvsServer(Lifecycle):
                 sequence=0,
                 final=True,
                 error=reason,
+                error_code=code,
             )
-            self._spawn(self._tell_robot(request, report))
+            self._spawn(self._tell_robot(request, report, key))
         finally:
             logs.request_id.reset(token)
 
-    async def _tell_robot(self, request: DetectionRequest, report: DetectionReport) -> None:
+    async def _tell_robot(self, request: DetectionRequest, report: DetectionReport, key: bytes = b"") -> None:
         try:
-            await self._callbacks.send(request.callback_address, report)
+            await self._callbacks.send(request.callback_address, report, key=key)
         except Exception as exc:
             log.warning("request %s: could not tell the robot: %s", request.request_id, exc)
 
     def _forget(self, camera_id: str) -> None:
         self._unreachable.discard(camera_id)
+        self._unreachable_why.pop(camera_id, None)
+        self._lost.pop(camera_id, None)
         self._camera_tokens.pop(camera_id, None)
         link = self._links.pop(camera_id, None)
         if link is not None:
@@ -278,6 +371,10 @@ class DrvsServer(Lifecycle):
             for entry in self.registry.expire():
                 log.info("camera %s left routing: lease expired", entry.camera_id)
                 self._forget(entry.camera_id)
+                # It did not deregister: requests whose region it saw say it is missing.
+                self._lost[entry.camera_id] = (entry, time.monotonic(), "its lease ran out without it deregistering")
+                while len(self._lost) > MAX_LOST:
+                    self._lost.popitem(last=False)
                 metrics.CAMERAS.set(len(self.registry))
 
 
@@ -290,7 +387,7 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         return caller_identity(context, self._s.tokens, ROBOT) or context.peer()
 
     async def _answer(
-        self, message: detection_pb2.DetectionRequest, peer: IPAddress | None, allowed: set[str], robot: str
+        self, message: detection_pb2.DetectionRequest, peer: IPAddress | None, allowed: dict[str, str], robot: str
     ) -> detection_pb2.DetectionReply:
         """Validate, check the callback (once per address per call), dispatch, reply at once."""
         started = time.perf_counter()
@@ -307,25 +404,35 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         return reply
 
     async def _dispatch(
-        self, message: detection_pb2.DetectionRequest, peer: IPAddress | None, allowed: set[str], robot: str
+        self, message: detection_pb2.DetectionRequest, peer: IPAddress | None, allowed: dict[str, str], robot: str
     ) -> detection_pb2.DetectionReply:
         request = request_from_pb(message, require_request_id=False)
+        secret = message.report_secret
+        if len(secret) > MAX_SECRET_BYTES:
+            raise InvalidArgument(f"report_secret: longer than {MAX_SECRET_BYTES} bytes")
+        # The robot's secret stays here; keys are the server's to make, one per camera.
+        message.ClearField("report_secret")
+        message.ClearField("report_key")
         self._s.limits.admit(robot, request.continuous.duration_s)
-        if request.callback_address not in allowed:
-            await self._s.callback_policy.check(request.callback_address, peer)
-            allowed.add(request.callback_address)
+        verified = allowed.get(request.callback_address)
+        if verified is None:
+            verified = await self._s.callback_policy.check(request.callback_address, peer)
+            allowed[request.callback_address] = verified
+        if verified != request.callback_address:
+            # Cameras dial the address that was checked, not a name that may resolve anew.
+            request = dataclasses.replace(request, callback_address=verified)
+            message.callback_address = verified
         if not request.request_id:
             request = dataclasses.replace(request, request_id=uuid.uuid4().hex)
             message.request_id = request.request_id
             logs.request_id.set(request.request_id)
-        camera_ids = self._s.dispatch(request, message)
-        return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=camera_ids)
+        return self._s.dispatch(request, message, secret)
 
     @_grpc.servicer_method
     async def DetectObjects(
         self, message: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
     ) -> detection_pb2.DetectionReply:
-        return await self._answer(message, peer_ip(context.peer()), set(), self._robot(context))
+        return await self._answer(message, peer_ip(context.peer()), {}, self._robot(context))
 
     async def DetectStream(
         self,
@@ -333,7 +440,7 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         context: aio.ServicerContext[Any, Any],
     ) -> AsyncIterator[detection_pb2.DetectionReply]:
         peer = peer_ip(context.peer())
-        allowed: set[str] = set()
+        allowed: dict[str, str] = {}
         robot = self._robot(context)
 
         async def answer(message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
@@ -448,3 +555,16 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
                 for e in entries
             ]
         )
+
+
+def _uncovered(region: Polygon, cameras: list[CameraEntry], missing: list[MissingCamera]) -> list[Polygon]:
+    """The parts of `region` that a missing camera sees and no dispatched camera does, each as its
+    outer ring (a hole, seen by someone, is counted as unseen: the robot errs on the safe side)."""
+    lost = shapely.intersection(shapely.union_all([m.field_of_view for m in missing]), region)
+    if cameras:
+        lost = shapely.difference(lost, shapely.union_all([c.field_of_view for c in cameras]))
+    parts = []
+    for part in shapely.get_parts(lost):
+        if isinstance(part, Polygon) and part.area >= MIN_UNCOVERED_M2:
+            parts.append(Polygon(part.exterior.coords))
+    return parts
