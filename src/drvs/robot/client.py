@@ -125,6 +125,8 @@ class DetectionResult:
     reports: list[DetectionReport] = field(default_factory=list)
     #: Cameras the server named in its reply as seeing the region but not asked.
     skipped: dict[str, CameraError] = field(default_factory=dict)
+    #: Dispatched cameras whose report stream ended before their final report.
+    interrupted: set[str] = field(default_factory=set)
     uncovered: list[Polygon] = field(default_factory=list)
     coverage_uncertain_s: float = 0.0
 
@@ -146,7 +148,12 @@ class DetectionResult:
         """Every camera whose answer is missing, and why."""
         errors = dict(self.skipped)
         for camera_id in self.unfinished_cameras:
-            errors[camera_id] = CameraError("DEADLINE_EXCEEDED", f"camera {camera_id}: no final report in time")
+            if camera_id in self.interrupted:
+                errors[camera_id] = CameraError(
+                    "UNAVAILABLE", f"camera {camera_id}: its report stream ended before its final report"
+                )
+            else:
+                errors[camera_id] = CameraError("DEADLINE_EXCEEDED", f"camera {camera_id}: no final report in time")
         for r in self.reports:
             if r.final and r.error:
                 errors[r.camera_id] = CameraError(r.error_code or "UNKNOWN", r.error)
@@ -189,6 +196,7 @@ class Subscription:
         self.result = DetectionResult(request.request_id, ())
         # camera id -> the report stream that presented its key: the only one its reports come on.
         self._streams: dict[str, object] = {}
+        self._finals: set[str] = set()  # cameras whose final report arrived
         #: camera id -> when (loop time) its latest report arrived: a continuous request's camera
         #: that falls silent is a camera that stopped looking.
         self.last_report_at: dict[str, float] = {}
@@ -220,6 +228,21 @@ class Subscription:
         self._streams[camera_id] = stream
         return True
 
+    def _streams_ended(self, stream: object) -> None:
+        """A report stream ended: cameras it carried that have not sent their final report are
+        interrupted (a camera that reconnects presents its key again and reports on)."""
+        for camera_id, bound in list(self._streams.items()):
+            if bound is stream:
+                del self._streams[camera_id]
+                if camera_id not in self._finals:
+                    self.result.interrupted.add(camera_id)
+
+    @property
+    def interrupted(self) -> set[str]:
+        """Dispatched cameras whose report stream ended before their final report, and that have not
+        reported since: they stopped looking (crashed, or cut off)."""
+        return self.result.interrupted
+
     async def _deliver(self, report: DetectionReport) -> bool:
         """Queue a report; waits while MAX_QUEUED_REPORTS are unread, so a slow robot pushes back
         on the camera instead of buffering without bound. False once the subscription is closed."""
@@ -230,6 +253,9 @@ class Subscription:
             return False
         self._pending.append(report)
         self.last_report_at[report.camera_id] = asyncio.get_running_loop().time()
+        self.result.interrupted.discard(report.camera_id)
+        if report.final:
+            self._finals.add(report.camera_id)
         self._wake()
         return True
 
@@ -560,3 +586,5 @@ class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):
                     await asyncio.wait_for(context.write(control), 0.5)
         finally:
             client._report_streams.discard(task)
+            for sub in list(client._subscriptions.values()):
+                sub._streams_ended(stream)

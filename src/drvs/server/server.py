@@ -26,7 +26,6 @@ from drvs.convert import (
     region_from_pb,
     request_from_pb,
 )
-from drvs.report_auth import MAX_SECRET_BYTES, report_key
 from drvs.errors import (
     DeadlineExceeded,
     DrvsError,
@@ -39,6 +38,7 @@ from drvs.geometry import DEFAULT_MAX_RANGE_M
 from drvs.model import DetectionReport, DetectionRequest, check_id
 from drvs.net import host_of, is_loopback_host
 from drvs.registry import DEFAULT_LEASE_TTL_S, CameraEntry, Registry
+from drvs.report_auth import MAX_SECRET_BYTES, report_key
 from drvs.request_stream import BatchSender, serve_request_stream
 from drvs.security import CAMERA, ROBOT, Security, TokenAuthority, TokenInterceptor, bearer_token, caller_identity
 from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits, peer_ip
@@ -234,7 +234,8 @@ class DrvsServer(Lifecycle):
             elif request.kind in entry.detector_kinds and shapely.relate_pattern(
                 entry.field_of_view, request.region, "T********"
             ):
-                missing.append(MissingCamera(camera_id, "UNAVAILABLE", f"{why} {now - since:.0f} s ago", entry.field_of_view))
+                message = f"{why} {now - since:.0f} s ago"
+                missing.append(MissingCamera(camera_id, "UNAVAILABLE", message, entry.field_of_view))
         return cameras, missing
 
     def coverage_uncertain_s(self) -> float:
