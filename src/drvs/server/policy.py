@@ -8,7 +8,7 @@ import ipaddress
 import socket
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Iterable
+from collections.abc import Awaitable, Callable, Iterable
 
 from drvs.errors import InvalidArgument, PermissionDenied, ResourceExhausted
 from drvs.net import format_address, parse_address
@@ -33,8 +33,14 @@ class CallbackPolicy:
     """Reports go to the requesting robot's own address, or to networks the operator allowed, so
     nobody can point every camera at a third party (a traffic amplifier)."""
 
-    def __init__(self, allowed: Iterable[str] = (), allow_any: bool = False) -> None:
+    def __init__(
+        self,
+        allowed: Iterable[str] = (),
+        allow_any: bool = False,
+        resolve: Callable[[str, int], Awaitable[list[IPAddress]]] | None = None,
+    ) -> None:
         self.allow_any = allow_any
+        self._resolve = resolve or _resolve
         self.allowed = []
         for cidr in allowed:
             try:
@@ -50,7 +56,10 @@ class CallbackPolicy:
         if self.allow_any:
             return callback_address
         host, port = parse_address(callback_address, "callback_address")
-        addresses = await _resolve(host, port)
+        try:
+            addresses: list[IPAddress] = [ipaddress.ip_address(host)]
+        except ValueError:
+            addresses = await self._resolve(host, port)
         refused = [a for a in addresses if not self._allowed(a, peer)]
         if refused:
             what = host if str(refused[0]) == host else f"{host} (resolves to {refused[0]})"
