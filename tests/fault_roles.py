@@ -177,6 +177,7 @@ async def probe_robot(args: argparse.Namespace) -> None:
                 line |= {
                     "cameras": sorted(result.camera_ids),
                     "complete": result.complete,
+                    "missing": sorted(result.missing_cameras),
                     "reported": sorted(result.finished_cameras),
                     "detections": len(result.detections),
                     "errors": result.errors,
