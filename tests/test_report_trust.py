@@ -26,7 +26,7 @@ from drvs.server.policy import CallbackPolicy, IPAddress
 from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
-from .conftest import CAM1_REGION, MAX_RANGE, YELLOW
+from .conftest import CAM1_REGION, CAM2_REGION, MAX_RANGE, YELLOW
 from .test_server import register_message
 
 
@@ -92,10 +92,11 @@ async def _write_reports(callback: str, reports: list[Any]) -> list[str]:
 async def test_reports_only_from_dispatched_cameras_on_their_own_streams(
     recorded: dict[str, RecordedCamera],
 ) -> None:
-    """A real camera (cam1) and a hostile registered one (evil) see the same floor. evil gets its own
-    key for the request and nothing more: in cam1's name, in an undispatched camera's name, or
-    without a key, its reports are rejected, and so are a stranger's; a forged final in cam1's name
-    does not end cam1's part. Only the server's key, in evil's own name, is taken."""
+    """A real camera (cam1) and a hostile registered one (evil, 20 m away) report to one robot. evil,
+    dispatched a request once, holds its own key and nothing more: in cam1's name, in another
+    camera's name, or without a key on its stream, its reports are rejected, and so is a stranger's
+    with a guessed key; in its own name, for a request that was not dispatched to it, its report is
+    ignored. A forged final in cam1's name ends nothing."""
     procs: list[ManagedProcess] = []
     evil = _CapturingCamera()
     evil_server, evil_address = await _camera_server(evil)
@@ -105,43 +106,45 @@ async def test_reports_only_from_dispatched_cameras_on_their_own_streams(
         rec = recorded["cam1"]
         procs.append(await start_camera("cam1", rec.video, rec.homography_file, address, "--max-range", MAX_RANGE))
         async with aio.insecure_channel(address) as channel:
-            registration = register_message("evil")
+            registration = register_message("evil", x=20.0)
             registration.address = evil_address
             await registry_pb2_grpc.RegisterVisionServiceStub(channel).Register(registration)
         async with DrvsClient(address, robot_id="r", listen="127.0.0.1:0") as robot:
-            sub = await robot.subscribe(YELLOW, CAM1_REGION, rate_hz=2, duration_s=2, timeout_s=10)
-            assert sorted(sub.camera_ids) == ["cam1", "evil"]
+            lure = await robot.subscribe(YELLOW, CAM2_REGION, timeout_s=10)
+            assert lure.camera_ids == ("evil",)
             forwarded = await asyncio.wait_for(evil.requests.get(), 10)
-            # evil learns its own key for this request, never the robot's secret.
-            assert forwarded.request_id == sub.request_id and not forwarded.report_secret
+            # evil learns its own key, never the robot's secret.
+            assert forwarded.request_id == lure.request_id and not forwarded.report_secret
             evil_key = forwarded.report_key
             assert len(evil_key) == KEY_BYTES
             # The callback cameras dial is the one the server checked.
             assert forwarded.callback_address == robot.callback_address
+            sub = await robot.subscribe(YELLOW, CAM1_REGION, rate_hz=2, duration_s=2, timeout_s=10)
+            assert sub.camera_ids == ("cam1",)
             rid = sub.request_id
             refused = await _write_reports(
                 forwarded.callback_address,
                 [
                     _report(rid, "cam1", 9, True, evil_key),  # cam1's name, evil's key: a forged final
-                    _report(rid, "cam1", 9, True),  # no key at all
-                    _report(rid, "cam2", 0, True, evil_key),  # a camera the request was not dispatched to
-                    _report(rid, "evil", 0, True, evil_key, x=-0.5),  # its own name and key: taken
+                    _report(rid, "cam1", 9, True),  # cam1's name, no key: not cam1's stream
+                    _report(rid, "cam2", 0, True, evil_key),  # another camera's name
+                    _report(rid, "evil", 0, True, evil_key),  # its own name: not dispatched this request
+                    _report(lure.request_id, "evil", 0, True, x=21.0),  # its own request: taken
                 ],
             )
             stranger = await _write_reports(
                 forwarded.callback_address, [_report(rid, "cam1", 9, True, secrets.token_bytes(KEY_BYTES))]
             )
             result = await sub.collect()
-        assert rid in refused and stranger == [rid]  # the senders are told to stop, as for unknown ids
-        assert robot.reports_rejected == 4
+            lured = await lure.collect()
+        assert refused == [rid] * 3 and stranger == [rid]  # told to stop, as for unknown requests
+        assert robot.reports_rejected == 5
         cam1 = [r for r in result.reports if r.camera_id == "cam1"]
         # cam1's own five reports, in order, the last one final: the forged final ended nothing.
         assert [r.sequence for r in cam1] == [0, 1, 2, 3, 4] and [r.final for r in cam1] == [False] * 4 + [True]
-        assert all(len(r.detections) == 2 for r in cam1)
-        evil_reports = [r for r in result.reports if r.camera_id == "evil"]
-        assert len(evil_reports) == 1 and evil_reports[0].detections[0].centroid_xy == (-0.5, 5.0)
-        assert {r.camera_id for r in result.reports} == {"cam1", "evil"} and result.complete
+        assert all(len(r.detections) == 2 for r in cam1) and len(result.reports) == 5 and result.complete
         assert all(d.centroid_xy != (0.5, 5.0) for d in result.detections)
+        assert lured.complete and [d.centroid_xy for d in lured.detections] == [(21.0, 5.0)]
     finally:
         await evil_server.stop(0)
         for p in reversed(procs):
@@ -171,7 +174,7 @@ async def test_server_rewrites_a_callback_name_to_the_address_it_checked() -> No
             forwarded = await asyncio.wait_for(evil.requests.get(), 10)
             host, port = parse_address(forwarded.callback_address)
             assert ipaddress.ip_address(host).is_loopback and port == 4321
-            assert forwarded.report_key == report_key(b"s" * 16, "named", "cam1") and not forwarded.report_secret
+            assert forwarded.report_key == report_key(b"s" * 16, "cam1") and not forwarded.report_secret
             # A secret longer than 64 bytes is refused, naming the field.
             request.request_id, request.report_secret = "long", b"s" * 65
             with pytest.raises(aio.AioRpcError) as err:

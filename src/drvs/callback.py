@@ -34,8 +34,7 @@ WRITE_TIMEOUT_S = 5.0
 STALLED = f"robot did not take a report within {WRITE_TIMEOUT_S:g} s"
 #: Cancelled request ids remembered per link.
 MAX_CANCELLED = 4096
-#: (request, camera) pairs whose report key this link has presented, remembered per link (a pair is
-#: forgotten with its final report; past this, the oldest, and its key is presented again).
+#: Cameras whose report key a link remembers having presented (past this it starts over).
 MAX_KEYED = 4096
 
 
@@ -48,7 +47,7 @@ class RobotLink:
         self._call: Any = detection_pb2_grpc.CallbackCoordinatesStub(self._channel).ReportDetections()
         self._write_lock = asyncio.Lock()
         self._cancelled: OrderedDict[str, None] = OrderedDict()
-        self._keyed: OrderedDict[tuple[str, str], None] = OrderedDict()
+        self._presented: dict[str, bytes] = {}  # camera id -> the report key presented on this link
         self._reader = asyncio.get_running_loop().create_task(self._read_controls())
         self.broken: str | None = None
         self.last_used = asyncio.get_running_loop().time()
@@ -73,7 +72,7 @@ class RobotLink:
 
     async def send(self, report: DetectionReport, outlines: bool = True, key: bytes = b"") -> bool:
         """Send one report; False when the robot no longer wants this request's reports. `key`: the
-        request's report key for this camera, presented with the first report on this link."""
+        camera's report key for this robot, presented with the camera's first report on this link."""
         if self.cancelled(report.request_id):
             return False
         if self.broken:
@@ -106,17 +105,14 @@ class RobotLink:
         return True
 
     def _present_key(self, message: detection_pb2.DetectionReport, key: bytes) -> None:
-        """The robot binds (request, camera) to the stream that first presents the key: once per
-        link, not on every report (a new link, after a break, presents it again)."""
-        pair = (message.request_id, message.camera_id)
-        if pair in self._keyed:
-            if message.final:
-                del self._keyed[pair]
+        """The robot takes a camera's reports on the stream that presented its key: once per link,
+        not on every report (a new link, after a break, presents it again)."""
+        camera_id = message.camera_id
+        if self._presented.get(camera_id) == key:
             return
-        if not message.final:
-            self._keyed[pair] = None
-            while len(self._keyed) > MAX_KEYED:
-                self._keyed.popitem(last=False)
+        if len(self._presented) >= MAX_KEYED:
+            self._presented.clear()
+        self._presented[camera_id] = key
         message.report_key = key
 
     def _stalled(self) -> None:

@@ -194,8 +194,6 @@ class Subscription:
         self._timeout_s = timeout_s
         self.closed = False
         self.result = DetectionResult(request.request_id, ())
-        # camera id -> the report stream that presented its key: the only one its reports come on.
-        self._streams: dict[str, object] = {}
         self._finals: set[str] = set()  # cameras whose final report arrived
         #: camera id -> when (loop time) its latest report arrived: a continuous request's camera
         #: that falls silent is a camera that stopped looking.
@@ -218,24 +216,13 @@ class Subscription:
         if self._wakeup is not None and not self._wakeup.done():
             self._wakeup.set_result(None)
 
-    def _accepts(self, message: detection_pb2.DetectionReport, stream: object) -> bool:
-        """A report counts only on the stream that presented its camera's key for this request."""
-        camera_id = message.camera_id
-        if self._streams.get(camera_id) is stream:
-            return True
-        if not key_matches(self._client._report_secret, self.request_id, camera_id, message.report_key):
-            return False
-        self._streams[camera_id] = stream
-        return True
-
-    def _streams_ended(self, stream: object) -> None:
-        """A report stream ended: cameras it carried that have not sent their final report are
-        interrupted (a camera that reconnects presents its key again and reports on)."""
-        for camera_id, bound in list(self._streams.items()):
-            if bound is stream:
-                del self._streams[camera_id]
-                if camera_id not in self._finals:
-                    self.result.interrupted.add(camera_id)
+    def _stream_ended(self, cameras: set[str]) -> None:
+        """The report stream of `cameras` ended: those this request went to that have not sent
+        their final report are interrupted (a camera that reconnects presents its key again and
+        reports on)."""
+        for camera_id in cameras:
+            if camera_id in self.camera_ids and camera_id not in self._finals:
+                self.result.interrupted.add(camera_id)
 
     @property
     def interrupted(self) -> set[str]:
@@ -279,6 +266,7 @@ class Subscription:
                 if report is None:
                     break
                 if report.camera_id not in self.camera_ids:
+                    self._client.reports_rejected += 1
                     log.warning(
                         "request %s: report from undispatched camera %s ignored",
                         self.request_id,
@@ -343,6 +331,8 @@ class DrvsClient:
         self.reports_rejected = 0
         # Proves reports (drvs.report_auth): the server derives each camera's key from it.
         self._report_secret = new_secret()
+        # camera id -> the report stream that presented its key: the only one its reports count on.
+        self._camera_streams: dict[str, object] = {}
         self._closing = False
         self._open_at_close: list[str] = []
         self._report_streams: set[asyncio.Task[Any]] = set()
@@ -398,6 +388,16 @@ class DrvsClient:
         self._requests = RequestStream(self._detect, f"server {self.server}", metadata=self.security.metadata())
         self._registry = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
         log.debug("robot %r listening for reports on %s", self.robot_id, self.callback_address)
+
+    def _accepts(self, message: detection_pb2.DetectionReport, stream: object) -> bool:
+        """A camera's reports count only on the stream that last presented its key."""
+        camera_id = message.camera_id
+        if message.report_key:
+            if not key_matches(self._report_secret, camera_id, message.report_key):
+                return False
+            self._camera_streams[camera_id] = stream
+            return True
+        return self._camera_streams.get(camera_id) is stream
 
     def new_request_id(self) -> str:
         return f"{self._id_prefix}{next(self._id_counter):x}"
@@ -558,13 +558,13 @@ class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):
         try:
             async for message in request_iterator:
                 sub = client._subscriptions.get(message.request_id)
-                if sub is not None and not sub._accepts(message, stream):
+                if not client._accepts(message, stream):
                     client.reports_rejected += 1
                     if not warned:  # once per stream: a hostile peer does not flood the log
                         warned = True
                         log.warning(
                             "report for request %s in camera %r's name from %s rejected: no valid report key "
-                            "for this stream (not a camera the request was dispatched to, or not its stream)",
+                            "for this stream (not a camera the server dispatched to, or not its stream)",
                             message.request_id,
                             message.camera_id[:40],
                             context.peer(),
@@ -586,5 +586,9 @@ class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):
                     await asyncio.wait_for(context.write(control), 0.5)
         finally:
             client._report_streams.discard(task)
-            for sub in list(client._subscriptions.values()):
-                sub._streams_ended(stream)
+            cameras = {c for c, bound in client._camera_streams.items() if bound is stream}
+            for camera_id in cameras:
+                del client._camera_streams[camera_id]
+            if cameras:
+                for sub in list(client._subscriptions.values()):
+                    sub._stream_ended(cameras)

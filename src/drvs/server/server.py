@@ -291,7 +291,7 @@ class DrvsServer(Lifecycle):
         message: detection_pb2.DetectionRequest,
         secret: bytes = b"",
     ) -> None:
-        key = report_key(secret, request.request_id, camera.camera_id)
+        key = report_key(secret, camera.camera_id)
         link = self._link(camera)
         if link.requests.in_flight >= self.max_queued_forwards:
             # Shed load at once rather than queue until the forward timeout: the robot hears
