@@ -228,12 +228,15 @@ class DrvsServer(Lifecycle):
             if c.camera_id in self._unreachable
         ]
         now = time.monotonic()
+        x0, y0, x1, y1 = request.region.bounds
         for camera_id, (entry, since, why) in list(self._lost.items()):
             if camera_id in self.registry or now - since > LOST_MEMORY_S:
                 del self._lost[camera_id]  # back (routed or refused as itself), or forgotten
-            elif request.kind in entry.detector_kinds and shapely.relate_pattern(
-                entry.field_of_view, request.region, "T********"
-            ):
+                continue
+            fx0, fy0, fx1, fy1 = entry.field_of_view.bounds  # cheap test first: most are far away
+            if fx0 >= x1 or fx1 <= x0 or fy0 >= y1 or fy1 <= y0 or request.kind not in entry.detector_kinds:
+                continue
+            if shapely.relate_pattern(entry.field_of_view, request.region, "T********"):
                 message = f"{why} {now - since:.0f} s ago"
                 missing.append(MissingCamera(camera_id, "UNAVAILABLE", message, entry.field_of_view))
         return cameras, missing
