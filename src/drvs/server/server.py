@@ -42,7 +42,7 @@ from drvs.report_auth import MAX_SECRET_BYTES, report_key
 from drvs.request_stream import BatchSender, serve_request_stream
 from drvs.security import CAMERA, ROBOT, Security, TokenAuthority, TokenInterceptor, bearer_token, caller_identity
 from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits, peer_ip
-from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
+from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 log = logging.getLogger("drvs.server")
 
@@ -58,6 +58,7 @@ LOST_MEMORY_S = 3600.0
 MAX_LOST = 1024
 #: Uncovered parts smaller than this (m²) are slivers along field-of-view edges, not reported.
 MIN_UNCOVERED_M2 = 0.01
+UNCOVERED_CACHE_SIZE = 256
 SERVICE_NAMES = (
     detection_pb2.DESCRIPTOR.services_by_name["DetectObjectBoundary"].full_name,
     registry_pb2.DESCRIPTOR.services_by_name["RegisterVisionService"].full_name,
@@ -141,6 +142,10 @@ class DrvsServer(Lifecycle):
         self._unreachable_why: dict[str, str] = {}
         # Cameras whose lease ran out without deregistering: id -> (entry, when, why).
         self._lost: OrderedDict[str, tuple[CameraEntry, float, str]] = OrderedDict()
+        # ids of (region, fields of view asked and missing) -> (region, fields of view, unseen parts)
+        self._uncovered_cache: dict[
+            tuple[int, ...], tuple[Polygon, tuple[Polygon, ...], list[geometry_pb2.Polygon]]
+        ] = {}
         # After a start, cameras registered with a previous run may not be back yet for this long.
         self.warm_up_s = lease_ttl_s if warm_up_s is None else warm_up_s
         if not (self.warm_up_s >= 0):
@@ -241,6 +246,22 @@ class DrvsServer(Lifecycle):
                 missing.append(MissingCamera(camera_id, "UNAVAILABLE", message, entry.field_of_view))
         return cameras, missing
 
+    def _uncovered(
+        self, region: Polygon, cameras: list[CameraEntry], missing: list[MissingCamera]
+    ) -> list[geometry_pb2.Polygon]:
+        """`_uncovered`, encoded, kept per region object and cameras: while a camera is gone, robots
+        ask about the same regions again and again."""
+        fovs = tuple(c.field_of_view for c in cameras) + tuple(m.field_of_view for m in missing)
+        key = (id(region), *map(id, fovs))
+        hit = self._uncovered_cache.get(key)
+        if hit is not None and hit[0] is region and all(a is b for a, b in zip(hit[1], fovs, strict=True)):
+            return hit[2]
+        parts = [polygon_to_pb(part) for part in _uncovered(region, cameras, missing)]
+        if len(self._uncovered_cache) >= UNCOVERED_CACHE_SIZE:
+            del self._uncovered_cache[next(iter(self._uncovered_cache))]
+        self._uncovered_cache[key] = (region, fovs, parts)  # held: their ids stay theirs
+        return parts
+
     def coverage_uncertain_s(self) -> float:
         """How much longer cameras registered with a previous run of the server may still be on
         their way back (0 once a lease has passed since the start)."""
@@ -265,8 +286,7 @@ class DrvsServer(Lifecycle):
         if missing:
             for m in missing:
                 reply.missing_cameras.add(camera_id=m.camera_id, code=m.code, message=m.message)
-            for part in _uncovered(request.region, cameras, missing):
-                reply.uncovered.append(polygon_to_pb(part))
+            reply.uncovered.extend(self._uncovered(request.region, cameras, missing))
         uncertain = self.coverage_uncertain_s()
         if uncertain:
             reply.coverage_uncertain_s = uncertain
