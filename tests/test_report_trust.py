@@ -270,3 +270,62 @@ async def test_a_restarted_server_says_coverage_is_uncertain_for_a_lease() -> No
         assert "--warm-up: -1.0 must be in [0, 3600]" in proc.output()
     finally:
         await proc.stop()
+
+
+class _LateCamera(_CapturingCamera):
+    """Accepts each request after `delay` seconds."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.delay = 0.0
+
+    async def DetectBatches(
+        self,
+        request_iterator: AsyncIterator[detection_pb2.DetectionRequests],
+        context: aio.ServicerContext[Any, Any],
+    ) -> AsyncIterator[detection_pb2.DetectionReplies]:
+        async for batch in request_iterator:
+            await asyncio.sleep(self.delay)
+            for message in batch.requests:
+                self.requests.put_nowait(message)
+            yield detection_pb2.DetectionReplies(
+                replies=[detection_pb2.DetectionReply(request_id=m.request_id) for m in batch.requests]
+            )
+
+
+async def test_a_camera_the_server_answered_for_keeps_its_own_stream() -> None:
+    """The server answers for a camera that accepted too late, on its own stream and with the
+    camera's key; the camera's own stream, which presented the key before, still counts after."""
+    camera = _LateCamera()
+    camera_server, camera_address = await _camera_server(camera)
+    try:
+        async with (
+            DrvsServer("127.0.0.1:0", forward_timeout_s=0.5) as server,
+            aio.insecure_channel(server.address) as channel,
+            DrvsClient(server.address, robot_id="r", listen="127.0.0.1:0") as robot,
+            aio.insecure_channel(robot.callback_address) as to_robot,
+        ):
+            registry = registry_pb2_grpc.RegisterVisionServiceStub(channel)
+            registration = register_message("cam1")
+            registration.address = camera_address
+            await registry.Register(registration)
+            reports = detection_pb2_grpc.CallbackCoordinatesStub(to_robot).ReportDetections()
+            first = await robot.subscribe(YELLOW, CAM1_REGION, timeout_s=5)
+            key = (await asyncio.wait_for(camera.requests.get(), 5)).report_key
+            await reports.write(_report(first.request_id, "cam1", 0, True, key))
+            assert (await first.collect()).complete
+            camera.delay = 1.0  # past the forward timeout: the server answers for it
+            late = await (await robot.subscribe(YELLOW, CAM1_REGION, timeout_s=5)).collect()
+            assert late.camera_errors["cam1"].code == "DEADLINE_EXCEEDED"
+            camera.delay = 0.0
+            await camera.requests.get()  # the late one, accepted after all
+            await registry.Heartbeat(registry_pb2.HeartbeatRequest(camera_id="cam1"))  # routable again
+            third = await robot.subscribe(YELLOW, CAM1_REGION, timeout_s=5)
+            assert (await asyncio.wait_for(camera.requests.get(), 5)).request_id == third.request_id
+            await reports.write(_report(third.request_id, "cam1", 0, True))  # key already presented
+            result = await third.collect()
+            assert result.complete and [r.detections[0].centroid_xy for r in result.reports] == [(0.5, 5.0)]
+            assert robot.reports_rejected == 0
+            await reports.done_writing()
+    finally:
+        await camera_server.stop(0)

@@ -331,8 +331,9 @@ class DrvsClient:
         self.reports_rejected = 0
         # Proves reports (drvs.report_auth): the server derives each camera's key from it.
         self._report_secret = new_secret()
-        # camera id -> the report stream that presented its key: the only one its reports count on.
-        self._camera_streams: dict[str, object] = {}
+        # camera id -> the report streams that presented its key: the only ones its reports count on
+        # (its own, and the server's when it answered for the camera).
+        self._camera_streams: dict[str, set[object]] = {}
         self._closing = False
         self._open_at_close: list[str] = []
         self._report_streams: set[asyncio.Task[Any]] = set()
@@ -390,14 +391,14 @@ class DrvsClient:
         log.debug("robot %r listening for reports on %s", self.robot_id, self.callback_address)
 
     def _accepts(self, message: detection_pb2.DetectionReport, stream: object) -> bool:
-        """A camera's reports count only on the stream that last presented its key."""
+        """A camera's reports count only on a stream that presented its key."""
         camera_id = message.camera_id
         if message.report_key:
             if not key_matches(self._report_secret, camera_id, message.report_key):
                 return False
-            self._camera_streams[camera_id] = stream
+            self._camera_streams.setdefault(camera_id, set()).add(stream)
             return True
-        return self._camera_streams.get(camera_id) is stream
+        return stream in self._camera_streams.get(camera_id, ())
 
     def new_request_id(self) -> str:
         return f"{self._id_prefix}{next(self._id_counter):x}"
@@ -586,9 +587,13 @@ class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):
                     await asyncio.wait_for(context.write(control), 0.5)
         finally:
             client._report_streams.discard(task)
-            cameras = {c for c, bound in client._camera_streams.items() if bound is stream}
-            for camera_id in cameras:
-                del client._camera_streams[camera_id]
+            cameras = set()  # cameras that reported only on this stream: now they have none
+            for camera_id, streams in list(client._camera_streams.items()):
+                if stream in streams:
+                    streams.discard(stream)
+                    if not streams:
+                        del client._camera_streams[camera_id]
+                        cameras.add(camera_id)
             if cameras:
                 for sub in list(client._subscriptions.values()):
                     sub._stream_ended(cameras)
