@@ -199,7 +199,10 @@ class SimRobot:
         for sub, since in self._watching:
             for camera_id in sub.interrupted:
                 self.lose(camera_id, "its report stream ended")
+            done = sub.result.finished_cameras  # a camera that sent its final report is not silent
             for camera_id in sub.camera_ids:
+                if camera_id in done:
+                    continue
                 last = sub.last_report_at.get(camera_id, since)
                 if now - last > SILENT_AFTER_S:
                     self.lose(camera_id, f"no report for {now - last:.1f} s")
