@@ -115,7 +115,7 @@ async def detect(args: argparse.Namespace) -> int:
             print(f"drvs-robot: no answer from {camera_id}: {error.code} {error.message}", file=sys.stderr)
         if result.uncovered:
             print(f"drvs-robot: {sum(p.area for p in result.uncovered):.1f} m² of the region unseen", file=sys.stderr)
-        if result.coverage_uncertain_s:
+        if result.coverage_uncertain_s and not args.json:  # a notice, not a failure: JSON lines stay reports
             print(
                 f"drvs-robot: the server restarted recently; for {result.coverage_uncertain_s:.0f} s more "
                 "it may not know every camera",
