@@ -78,9 +78,11 @@ class _SlowCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
         self.jobs: set[asyncio.Task[None]] = set()
         self.callback = ""
 
-    async def _report_later(self, request_id: str, callback: str) -> None:
+    async def _report_later(self, request_id: str, callback: str, key: bytes) -> None:
         await asyncio.sleep(self.report_delay)  # the "detection" that takes seconds
-        report = detection_pb2.DetectionReport(request_id=request_id, camera_id=self.camera_id, sequence=0, final=True)
+        report = detection_pb2.DetectionReport(
+            request_id=request_id, camera_id=self.camera_id, sequence=0, final=True, report_key=key
+        )
         report.capture_time.FromNanoseconds(time.time_ns())
         try:
             await self.reporter.send(callback, report)
@@ -94,7 +96,9 @@ class _SlowCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
         print(f"REQUEST {message.request_id}", flush=True)
         if self.accept_delay:
             await asyncio.sleep(self.accept_delay)
-        job = asyncio.get_running_loop().create_task(self._report_later(message.request_id, self.callback))
+        job = asyncio.get_running_loop().create_task(
+            self._report_later(message.request_id, self.callback, message.report_key)
+        )
         self.jobs.add(job)
         job.add_done_callback(self.jobs.discard)
         return detection_pb2.DetectionReply(request_id=message.request_id, camera_ids=[self.camera_id])
@@ -208,6 +212,7 @@ async def probe_robot(args: argparse.Namespace) -> None:
                 line |= {
                     "cameras": sorted(result.camera_ids),
                     "complete": result.complete,
+                    "missing": sorted(result.missing_cameras),
                     "reported": sorted(result.finished_cameras),
                     "detections": len(result.detections),
                     "errors": result.errors,

@@ -5,6 +5,8 @@ from __future__ import annotations
 import re
 
 import pytest
+from shapely.geometry import box
+from shapely.ops import unary_union
 
 from drvs.errors import Unavailable
 from drvs.robot import DrvsClient
@@ -117,21 +119,32 @@ async def test_robot_that_closes_mid_request_stops_the_cameras_quietly(office: O
 
 async def test_dead_camera_does_not_hold_up_the_other_and_leaves_routing(office: Office) -> None:
     cam2 = office.cameras["cam2"]
-    cam2.kill()  # a crash: no deregistration
-    await cam2.wait()
     async with DrvsClient(office.address) as robot:
+        cam2_floor = next(c.field_of_view for c in await robot.cameras() if c.camera_id == "cam2")
+        cam2.kill()  # a crash: no deregistration
+        await cam2.wait()
         result = await robot.detect(YELLOW, BOTH_REGION, timeout_s=10)
         by_camera = {r.camera_id: r for r in result.reports}
         assert len(by_camera["cam1"].detections) == 2 and not by_camera["cam1"].error
         if "cam2" in result.camera_ids:
             # Dispatched before the server knew: it answers for the camera at once.
             assert by_camera["cam2"].final and "cam2" in by_camera["cam2"].error
-        assert result.complete
+        # Never a complete answer with nothing there: cam2's part of the floor was not looked at.
+        assert not result.complete and result.missing_cameras == {"cam2"}
+        assert result.camera_errors["cam2"].code == "UNAVAILABLE"
 
         await office.server.wait_for_line(r"camera cam2 left routing: lease expired", timeout=10)
         assert [c.camera_id for c in await robot.cameras()] == ["cam1"]
         after = await robot.detect(YELLOW, BOTH_REGION, timeout_s=10)
-        assert after.camera_ids == ("cam1",) and after.complete
+        # Gone from routing, not from the answer: the server names it and what only it saw.
+        assert after.camera_ids == ("cam1",) and not after.complete and after.missing_cameras == {"cam2"}
+        error = after.camera_errors["cam2"]
+        assert error.code == "UNAVAILABLE" and "lease ran out without it deregistering" in error.message
+        cam2_floor = cam2_floor.intersection(box(*BOTH_REGION))
+        unseen = unary_union(after.uncovered)
+        assert unseen.symmetric_difference(cam2_floor).area < 0.05 * cam2_floor.area
+        # A region only cam1 sees is complete.
+        assert (await robot.detect(YELLOW, CAM1_REGION, timeout_s=10)).complete
 
 
 async def test_camera_deregisters_on_sigterm(office: Office) -> None:

@@ -158,11 +158,16 @@ async def test_links_cut_and_restored_recover_without_restarts(
         pids = [p.pid for p in procs]
 
         # 1. The camera's cable is cut: it leaves routing when its lease runs out, and requests go
-        #    around it (to no camera) instead of failing.
+        #    around it (to no camera) instead of failing, saying cam1 did not look.
         await network.cut("cam")
         await server.wait_for_line(r"camera cam1 left routing: lease expired", timeout=LEASE_S + 3)
         await camera.wait_for_line(rf"camera cam1: server {address} unreachable", timeout=5)
-        await wait_result(probe, lambda r: r.get("cameras") == [] and r["complete"], 5, "routed around cam1")
+        await wait_result(
+            probe,
+            lambda r: r.get("cameras") == [] and r["missing"] == ["cam1"] and not r["complete"],
+            5,
+            "routed around cam1, naming it missing",
+        )
         #    Plugged back in: the camera finds it was forgotten, registers again by itself, and reports.
         await network.restore("cam")
         await camera.wait_for_line(r"camera cam1 re-registered", timeout=15)

@@ -2,17 +2,20 @@
 
 from __future__ import annotations
 
+import itertools
 import json
+import math
 from pathlib import Path
 from typing import Any
 
 import cv2
-from shapely.geometry import LineString, Polygon, box
+from shapely.geometry import LineString, Point, Polygon, box
 
 from drvs.launch import ManagedProcess
 from drvs.sim.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
 
 SMALL_ROOM = Path(__file__).parent / "scenarios" / "small_room.yaml"
+TWO_CAMERAS = Path(__file__).parent / "scenarios" / "two_cameras.yaml"
 
 
 async def run_office(out: Path, *args: str) -> tuple[int, dict[str, Any], str]:
@@ -116,3 +119,26 @@ async def test_same_seed_same_run(tmp_path: Path) -> None:
     a, b = runs
     assert a["path"] == b["path"] and a["planned_paths"] == b["planned_paths"]
     assert a["detections"] == b["detections"] and a["replans"] == b["replans"]
+
+
+async def test_robot_slows_where_a_killed_camera_looked(tmp_path: Path) -> None:
+    """cam-east crashes one second into the mission. The robot learns it at once (its report stream
+    breaks), and where only cam-east looked it creeps instead of driving through at full speed: no
+    detections there mean nobody looked, not that the way is clear."""
+    code, result, log = await run_office(tmp_path, "--scenario", str(TWO_CAMERAS), "--kill-camera", "cam-east@1")
+    assert code == 0, log
+    scenario = load_scenario(TWO_CAMERAS)
+    assert result["reached_goal"] is True and result["collisions"] == 0
+    lost = [e for e in result["coverage_events"] if e["event"] == "lost"]
+    assert [e["camera_id"] for e in lost] == ["cam-east"], result["coverage_events"]
+    assert 1.0 <= lost[0]["t"] <= 4.0, lost  # within three seconds of the crash
+    fov = {c.id: c.field_of_view.floor for c in scenario.cameras}
+    east_only = fov["cam-east"].difference(fov["cam-west"])
+    path = result["path"]
+    full_step = scenario.robot.speed_mps * 0.1
+    steps = [(Point(a), math.dist(a, b)) for a, b in itertools.pairwise(path)]
+    before = [d for i, (p, d) in enumerate(steps) if i < lost[0]["step"] and not east_only.contains(p)]
+    after = [d for i, (p, d) in enumerate(steps) if i >= lost[0]["step"] and east_only.contains(p)]
+    assert before and max(before) > 0.9 * full_step  # full speed where cam-west looks
+    assert len(after) > 20 and max(after) <= 0.25 * full_step + 1e-6, max(after)
+    assert result["blind_steps"] >= len(after)

@@ -307,7 +307,8 @@ async def test_server_sheds_load_when_a_camera_has_too_many_requests_waiting() -
                 waiting = [await robot.subscribe(YELLOW, (-1, 0, 1, 5), timeout_s=30) for _ in range(2)]
                 # The third finds two forwards waiting for cam1: it is told at once that cam1 is busy.
                 shed = await robot.detect(YELLOW, (-1, 0, 1, 5), timeout_s=30)
-                assert shed.complete and shed.camera_ids == ("cam1",)
+                assert not shed.complete and shed.camera_ids == ("cam1",)
+                assert shed.camera_errors["cam1"].code == "RESOURCE_EXHAUSTED"
                 assert len(shed.errors) == 1 and "RESOURCE_EXHAUSTED busy: 2 requests already waiting" in shed.errors[0]
                 assert "cam1" not in server._unreachable  # busy is not gone: it stays in routing
                 for sub in waiting:

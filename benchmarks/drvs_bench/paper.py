@@ -276,7 +276,9 @@ async def run_paper(out: Path, requests: int, rate: float, rounds: int = FULL_RO
     with tempfile.TemporaryDirectory(prefix="drvs-bench-") as tmp:
         scene = record_scene(Path(tmp))
         try:
-            server, address = await start_server()
+            # A new site: no previous run whose cameras could still be on their way back, so replies
+            # carry no coverage_uncertain_s (5 bytes each for a lease after a restart).
+            server, address = await start_server("--warm-up", "0")
             procs.append(server)
             cameras: dict[str, tuple[str, Path]] = {}
             camera_pids: list[int] = []

@@ -21,7 +21,7 @@ from drvs.convert import report_to_pb
 from drvs.errors import Unavailable
 from drvs.model import DetectionReport
 from drvs.security import Security
-from drvs.v1 import detection_pb2_grpc
+from drvs.v1 import detection_pb2, detection_pb2_grpc
 
 log = logging.getLogger(__name__)
 
@@ -34,6 +34,8 @@ WRITE_TIMEOUT_S = 5.0
 STALLED = f"robot did not take a report within {WRITE_TIMEOUT_S:g} s"
 #: Cancelled request ids remembered per link.
 MAX_CANCELLED = 4096
+#: Cameras whose report key a link remembers having presented (past this it starts over).
+MAX_KEYED = 4096
 
 
 class RobotLink:
@@ -45,6 +47,7 @@ class RobotLink:
         self._call: Any = detection_pb2_grpc.CallbackCoordinatesStub(self._channel).ReportDetections()
         self._write_lock = asyncio.Lock()
         self._cancelled: OrderedDict[str, None] = OrderedDict()
+        self._presented: dict[str, bytes] = {}  # camera id -> the report key presented on this link
         self._reader = asyncio.get_running_loop().create_task(self._read_controls())
         self.broken: str | None = None
         self.last_used = asyncio.get_running_loop().time()
@@ -67,8 +70,9 @@ class RobotLink:
             self.broken = "closed"
             raise
 
-    async def send(self, report: DetectionReport, outlines: bool = True) -> bool:
-        """Send one report; False when the robot no longer wants this request's reports."""
+    async def send(self, report: DetectionReport, outlines: bool = True, key: bytes = b"") -> bool:
+        """Send one report; False when the robot no longer wants this request's reports. `key`: the
+        camera's report key for this robot, presented with the camera's first report on this link."""
         if self.cancelled(report.request_id):
             return False
         if self.broken:
@@ -77,6 +81,8 @@ class RobotLink:
         loop = asyncio.get_running_loop()
         try:
             message = report_to_pb(report, outlines)
+            if key:
+                self._present_key(message, key)
             async with self._write_lock:
                 # A timer, not asyncio.wait_for: that would cost a task for every report.
                 stall = loop.call_later(WRITE_TIMEOUT_S, self._stalled)
@@ -97,6 +103,17 @@ class RobotLink:
             self.sending -= 1
             self.last_used = loop.time()
         return True
+
+    def _present_key(self, message: detection_pb2.DetectionReport, key: bytes) -> None:
+        """The robot takes a camera's reports on the stream that presented its key: once per link,
+        not on every report (a new link, after a break, presents it again)."""
+        camera_id = message.camera_id
+        if self._presented.get(camera_id) == key:
+            return
+        if len(self._presented) >= MAX_KEYED:
+            self._presented.clear()
+        self._presented[camera_id] = key
+        message.report_key = key
 
     def _stalled(self) -> None:
         """The robot has not taken a report for WRITE_TIMEOUT_S: break the link (the pending write
@@ -147,11 +164,11 @@ class CallbackSender:
         self._evict()
         return link
 
-    async def send(self, address: str, report: DetectionReport, outlines: bool = True) -> bool:
+    async def send(self, address: str, report: DetectionReport, outlines: bool = True, key: bytes = b"") -> bool:
         known = self._links.get(address)
         if known is not None and known.cancelled(report.request_id):
             return False  # not even a new connection for a request the robot stopped
-        return await self.link(address).send(report, outlines)
+        return await self.link(address).send(report, outlines, key)
 
     def _evict(self) -> None:
         now = asyncio.get_running_loop().time()

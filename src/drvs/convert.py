@@ -142,6 +142,7 @@ def request_from_pb(msg: detection_pb2.DetectionRequest, *, require_request_id: 
         callback_address=msg.callback_address,
         continuous=ContinuousMode(msg.continuous.rate_hz, msg.continuous.duration_s),
         omit_outlines=msg.omit_outlines,
+        report_key=msg.report_key,
     )
     req.validate(require_request_id=require_request_id)
     return req
@@ -200,6 +201,7 @@ def report_to_pb(r: DetectionReport, outlines: bool = True) -> detection_pb2.Det
         final=r.final,
         detections=[detection_to_pb(d, outlines) for d in r.detections],
         error=r.error,
+        error_code=r.error_code,
     )
     if r.capture_time:
         msg.capture_time.FromNanoseconds(round(r.capture_time * 1e9))
@@ -217,6 +219,7 @@ def report_from_pb(msg: detection_pb2.DetectionReport, filter_def: str) -> Detec
         final=msg.final,
         detections=tuple(detection_from_pb(d, msg.camera_id, capture_time, filter_def) for d in msg.detections),
         error=msg.error,
+        error_code=msg.error_code,
     )
 
 

@@ -100,7 +100,8 @@ async def run(args: argparse.Namespace) -> int:
                             f"-> {name}, {err * 100:.1f} cm from the truth"
                         )
                     if not result.complete:
-                        print(f"  missing final reports from {', '.join(sorted(result.missing_cameras))}")
+                        for camera_id, error in sorted(result.camera_errors.items()):
+                            print(f"  no answer from {camera_id}: {error.code} {error.message}")
                         return 1
                 print("\ncontinuous: yellow near the hall camera at 5 Hz for 1 s")
                 sub = await robot.subscribe(YELLOW, (14.0, 0.0, 26.0, 10.0), rate_hz=5, duration_s=1.0)

@@ -18,6 +18,7 @@ from drvs.net import parse_address
 MAX_RATE_HZ = 100.0
 MAX_DURATION_S = 3600.0
 MAX_ID_LENGTH = 128
+MAX_KEY_BYTES = 64
 
 
 @dataclass(frozen=True, slots=True)
@@ -68,6 +69,8 @@ class DetectionReport:
     final: bool
     detections: tuple[Detection, ...] = ()
     error: str = ""
+    #: With error: the gRPC status name that types it (UNAVAILABLE, DEADLINE_EXCEEDED ...).
+    error_code: str = ""
 
 
 @dataclass(frozen=True)
@@ -152,6 +155,8 @@ class DetectionRequest:
     callback_address: str
     continuous: ContinuousMode = field(default_factory=ContinuousMode)
     omit_outlines: bool = False
+    #: What the camera presents to the robot for this request (see drvs.report_auth); from the server.
+    report_key: bytes = b""
 
     def validate(self, *, require_request_id: bool = True) -> None:
         """Everything but the region, which is validated when it is built."""
@@ -162,6 +167,8 @@ class DetectionRequest:
         validate_filter_def(self.filter_def)
         parse_address(self.callback_address, "callback_address")
         self.continuous.validate()
+        if len(self.report_key) > MAX_KEY_BYTES:
+            raise InvalidArgument(f"report_key: longer than {MAX_KEY_BYTES} bytes")
 
     @property
     def kind(self) -> str:

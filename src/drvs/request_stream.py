@@ -360,8 +360,11 @@ def _expire(future: asyncio.Future[Reply], peer: str, timeout_s: float) -> None:
 
 
 #: Fields a sender may leave out when they repeat the previous request on the same stream: who
-#: asks and where reports go, and, for a robot asking again and again, what and where to look.
-REPEATABLE = ("robot_id", "callback_address", "filter_def")
+#: asks and where reports go, and, for a robot asking again and again, what and where to look; and
+#: the robot's report secret, which it sends once per stream.
+REPEATABLE = ("robot_id", "callback_address", "filter_def", "report_secret")
+#: What an absent repeatable field is (report_secret is bytes).
+_EMPTY: dict[str, str | bytes] = {"robot_id": "", "callback_address": "", "filter_def": "", "report_secret": b""}
 
 
 class StreamContext:
@@ -370,14 +373,14 @@ class StreamContext:
     whatever its fate, so their views never part."""
 
     def __init__(self) -> None:
-        self.values = dict.fromkeys(REPEATABLE, "")
+        self.values: dict[str, str | bytes] = dict(_EMPTY)
         self.region: geometry_pb2.Region | None = None
 
     def elide(self, message: Request) -> None:
         for name in REPEATABLE:
             value = getattr(message, name)
             if value and value == self.values[name]:
-                setattr(message, name, "")
+                setattr(message, name, _EMPTY[name])
             else:
                 self.values[name] = value
         if message.HasField("region"):

@@ -385,7 +385,9 @@ class CameraNode(Lifecycle):
                     await asyncio.sleep(delay)
                 report = await self._look(request, sequence, final=sequence == last)
                 sending = time.perf_counter()
-                sent = await self._callbacks.send(request.callback_address, report, not request.omit_outlines)
+                sent = await self._callbacks.send(
+                    request.callback_address, report, not request.omit_outlines, request.report_key
+                )
                 metrics.STAGE_REPORT.observe(time.perf_counter() - sending)
                 (metrics.REPORTS_SENT if sent else metrics.REPORTS_DROPPED).inc()
                 if not sent:
@@ -407,6 +409,7 @@ class CameraNode(Lifecycle):
                 sequence=sequence,
                 final=final,
                 error=f"camera {self.camera_id}: no fresh frame ({age})",
+                error_code="UNAVAILABLE",
             )
         assert self.detector is not None and self._analyses is not None
         analysis = self._analyses.for_frame(frame)

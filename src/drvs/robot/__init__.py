@@ -7,6 +7,6 @@ async with DrvsClient("server:50051", robot_id="turtle") as drvs:
 """
 
 from drvs.model import Detection, DetectionReport
-from drvs.robot.client import CameraInfo, DetectionResult, DrvsClient, Subscription
+from drvs.robot.client import CameraError, CameraInfo, DetectionResult, DrvsClient, Subscription
 
-__all__ = ["CameraInfo", "Detection", "DetectionReport", "DetectionResult", "DrvsClient", "Subscription"]
+__all__ = ["CameraError", "CameraInfo", "Detection", "DetectionReport", "DetectionResult", "DrvsClient", "Subscription"]

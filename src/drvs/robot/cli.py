@@ -110,12 +110,18 @@ async def detect(args: argparse.Namespace) -> int:
                 print(json.dumps(report_json(report)), flush=True)
             else:
                 print_report(report)
-        missing = sub.result.missing_cameras
-        if missing:
+        result = sub.result
+        for camera_id, error in sorted(result.camera_errors.items()):
+            print(f"drvs-robot: no answer from {camera_id}: {error.code} {error.message}", file=sys.stderr)
+        if result.uncovered:
+            print(f"drvs-robot: {sum(p.area for p in result.uncovered):.1f} m² of the region unseen", file=sys.stderr)
+        if result.coverage_uncertain_s and not args.json:  # a notice, not a failure: JSON lines stay reports
             print(
-                f"drvs-robot: no final report from {', '.join(sorted(missing))} within the timeout",
+                f"drvs-robot: the server restarted recently; for {result.coverage_uncertain_s:.0f} s more "
+                "it may not know every camera",
                 file=sys.stderr,
             )
+        if result.missing_cameras:
             return 3
     return 0
 

@@ -24,6 +24,7 @@ from drvs.geometry import box_region, polygon_region
 from drvs.meter import CountingRelay
 from drvs.model import ContinuousMode, Detection, DetectionReport, DetectionRequest
 from drvs.net import dialable_address, format_address, host_of, local_ip_towards, parse_address
+from drvs.report_auth import key_matches, new_secret
 from drvs.request_stream import RequestStream
 from drvs.security import Security
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
@@ -98,13 +99,36 @@ class CameraInfo:
     lease_remaining_s: float
 
 
+@dataclass(frozen=True)
+class CameraError:
+    """Why a camera's answer is missing from a result. `code` is a gRPC status name:
+    UNAVAILABLE (could not be reached, skipped after a failure, gone without deregistering, or no
+    fresh frame), DEADLINE_EXCEEDED (no final report within the timeout), RESOURCE_EXHAUSTED (busy)."""
+
+    code: str
+    message: str
+
+
 @dataclass
 class DetectionResult:
-    """Everything one request brought back."""
+    """Everything one request brought back.
+
+    Absence of detections means "nothing there" only where a camera looked: `complete` is False
+    when any camera that sees the region did not answer (`missing_cameras`, each with its
+    `camera_errors` entry), and `uncovered` holds the parts of the region nobody looked at because
+    of that. `coverage_uncertain_s` > 0: the server restarted recently and may not know every
+    camera yet, so parts of the region no dispatched camera sees are not known to be clear.
+    """
 
     request_id: str
     camera_ids: tuple[str, ...]
     reports: list[DetectionReport] = field(default_factory=list)
+    #: Cameras the server named in its reply as seeing the region but not asked.
+    skipped: dict[str, CameraError] = field(default_factory=dict)
+    #: Dispatched cameras whose report stream ended before their final report.
+    interrupted: set[str] = field(default_factory=set)
+    uncovered: list[Polygon] = field(default_factory=list)
+    coverage_uncertain_s: float = 0.0
 
     @property
     def detections(self) -> list[Detection]:
@@ -115,9 +139,31 @@ class DetectionResult:
         return {r.camera_id for r in self.reports if r.final}
 
     @property
-    def missing_cameras(self) -> set[str]:
-        """Dispatched cameras that sent no final report before the timeout."""
+    def unfinished_cameras(self) -> set[str]:
+        """Dispatched cameras that have sent no final report (yet)."""
         return set(self.camera_ids) - self.finished_cameras
+
+    @property
+    def camera_errors(self) -> dict[str, CameraError]:
+        """Every camera whose answer is missing, and why."""
+        errors = dict(self.skipped)
+        for camera_id in self.unfinished_cameras:
+            if camera_id in self.interrupted:
+                errors[camera_id] = CameraError(
+                    "UNAVAILABLE", f"camera {camera_id}: its report stream ended before its final report"
+                )
+            else:
+                errors[camera_id] = CameraError("DEADLINE_EXCEEDED", f"camera {camera_id}: no final report in time")
+        for r in self.reports:
+            if r.final and r.error:
+                errors[r.camera_id] = CameraError(r.error_code or "UNKNOWN", r.error)
+        return errors
+
+    @property
+    def missing_cameras(self) -> set[str]:
+        """Cameras that see the region but did not answer: not asked (skipped, gone), failed, or
+        sent no final report before the timeout."""
+        return set(self.camera_errors)
 
     @property
     def complete(self) -> bool:
@@ -148,10 +194,17 @@ class Subscription:
         self._timeout_s = timeout_s
         self.closed = False
         self.result = DetectionResult(request.request_id, ())
+        self._finals: set[str] = set()  # cameras whose final report arrived
+        #: camera id -> when (loop time) its latest report arrived: a continuous request's camera
+        #: that falls silent is a camera that stopped looking.
+        self.last_report_at: dict[str, float] = {}
 
-    def _dispatched(self, camera_ids: Sequence[str]) -> None:
-        self.camera_ids = tuple(camera_ids)
+    def _dispatched(self, reply: detection_pb2.DetectionReply) -> None:
+        self.camera_ids = tuple(reply.camera_ids)
         self.result.camera_ids = self.camera_ids
+        self.result.skipped = {m.camera_id: CameraError(m.code, m.message) for m in reply.missing_cameras}
+        self.result.uncovered = [polygon_from_pb(p, "uncovered") for p in reply.uncovered]
+        self.result.coverage_uncertain_s = reply.coverage_uncertain_s
         loop = asyncio.get_running_loop()
         self._timer = loop.call_later(self.request.continuous.duration_s + self._timeout_s, self._expire)
 
@@ -163,6 +216,20 @@ class Subscription:
         if self._wakeup is not None and not self._wakeup.done():
             self._wakeup.set_result(None)
 
+    def _stream_ended(self, cameras: set[str]) -> None:
+        """The report stream of `cameras` ended: those this request went to that have not sent
+        their final report are interrupted (a camera that reconnects presents its key again and
+        reports on)."""
+        for camera_id in cameras:
+            if camera_id in self.camera_ids and camera_id not in self._finals:
+                self.result.interrupted.add(camera_id)
+
+    @property
+    def interrupted(self) -> set[str]:
+        """Dispatched cameras whose report stream ended before their final report, and that have not
+        reported since: they stopped looking (crashed, or cut off)."""
+        return self.result.interrupted
+
     async def _deliver(self, report: DetectionReport) -> bool:
         """Queue a report; waits while MAX_QUEUED_REPORTS are unread, so a slow robot pushes back
         on the camera instead of buffering without bound. False once the subscription is closed."""
@@ -172,6 +239,10 @@ class Subscription:
         if self.closed:
             return False
         self._pending.append(report)
+        self.last_report_at[report.camera_id] = asyncio.get_running_loop().time()
+        self.result.interrupted.discard(report.camera_id)
+        if report.final:
+            self._finals.add(report.camera_id)
         self._wake()
         return True
 
@@ -190,11 +261,12 @@ class Subscription:
 
     async def _iterate(self) -> AsyncIterator[DetectionReport]:
         try:
-            while not self.closed and self.result.missing_cameras:
+            while not self.closed and self.result.unfinished_cameras:
                 report = await self._next()
                 if report is None:
                     break
                 if report.camera_id not in self.camera_ids:
+                    self._client.reports_rejected += 1
                     log.warning(
                         "request %s: report from undispatched camera %s ignored",
                         self.request_id,
@@ -255,6 +327,13 @@ class DrvsClient:
         self._listener: aio.Server | None = None
         self._subscriptions: dict[str, Subscription] = {}
         self.reports_received = 0
+        #: Reports refused: not from a camera the request was dispatched to, or not on its stream.
+        self.reports_rejected = 0
+        # Proves reports (drvs.report_auth): the server derives each camera's key from it.
+        self._report_secret = new_secret()
+        # camera id -> the report streams that presented its key: the only ones its reports count on
+        # (its own, and the server's when it answered for the camera).
+        self._camera_streams: dict[str, set[object]] = {}
         self._closing = False
         self._open_at_close: list[str] = []
         self._report_streams: set[asyncio.Task[Any]] = set()
@@ -322,6 +401,16 @@ class DrvsClient:
         self._requests = RequestStream(self._detect, f"server {self.server}", metadata=self.security.metadata())
         self._registry = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
         log.debug("robot %r listening for reports on %s", self.robot_id, self.callback_address)
+
+    def _accepts(self, message: detection_pb2.DetectionReport, stream: object) -> bool:
+        """A camera's reports count only on a stream that presented its key."""
+        camera_id = message.camera_id
+        if message.report_key:
+            if not key_matches(self._report_secret, camera_id, message.report_key):
+                return False
+            self._camera_streams.setdefault(camera_id, set()).add(stream)
+            return True
+        return stream in self._camera_streams.get(camera_id, ())
 
     def new_request_id(self) -> str:
         return f"{self._id_prefix}{next(self._id_counter):x}"
@@ -393,12 +482,14 @@ class DrvsClient:
         sub = Subscription(self, request, timeout_s)
         self._subscriptions[request.request_id] = sub
         assert self._requests is not None
+        message = request_to_pb(request, region=region_pb)
+        message.report_secret = self._report_secret
         try:
-            reply = await self._send(request_to_pb(request, region=region_pb), rpc_timeout_s)
+            reply = await self._send(message, rpc_timeout_s)
         except BaseException:
             sub.close()
             raise
-        sub._dispatched(reply.camera_ids)
+        sub._dispatched(reply)
         return sub
 
     async def _send(
@@ -480,9 +571,23 @@ class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):
         task = asyncio.current_task()
         assert task is not None
         client._report_streams.add(task)
+        stream = object()  # this stream's identity, which a camera's key binds its reports to
+        warned = False
         try:
             async for message in request_iterator:
                 sub = client._subscriptions.get(message.request_id)
+                if not client._accepts(message, stream):
+                    client.reports_rejected += 1
+                    if not warned:  # once per stream: a hostile peer does not flood the log
+                        warned = True
+                        log.warning(
+                            "report for request %s in camera %r's name from %s rejected: no valid report key "
+                            "for this stream (not a camera the server dispatched to, or not its stream)",
+                            message.request_id,
+                            message.camera_id[:40],
+                            context.peer(),
+                        )
+                    sub = None  # answered as an unknown request: the sender learns nothing more
                 if sub is None or not await sub._deliver(report_from_pb(message, sub.request.filter_def)):
                     # Unknown or closed request: tell the camera to stop sending its reports.
                     await context.write(detection_pb2.ReportControl(cancelled_request_ids=[message.request_id]))
@@ -499,3 +604,13 @@ class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):
                     await asyncio.wait_for(context.write(control), 0.5)
         finally:
             client._report_streams.discard(task)
+            cameras = set()  # cameras that reported only on this stream: now they have none
+            for camera_id, streams in list(client._camera_streams.items()):
+                if stream in streams:
+                    streams.discard(stream)
+                    if not streams:
+                        del client._camera_streams[camera_id]
+                        cameras.add(camera_id)
+            if cameras:
+                for sub in list(client._subscriptions.values()):
+                    sub._stream_ended(cameras)

@@ -85,6 +85,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--allow-any-callback", action="store_true", help="send reports wherever a request says (trusted networks only)"
     )
     p.add_argument(
+        "--warm-up",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="after a start, replies say coverage is uncertain for this long: cameras registered with the "
+        "server's previous run may not have registered again yet (default: the lease TTL; 0 for a new site)",
+    )
+    p.add_argument(
         "--camera-tokens",
         metavar="FILE",
         help="registration credentials: lines 'NAME TOKEN'; cameras must present one (env DRVS_CAMERA_TOKENS)",
@@ -204,6 +212,7 @@ async def serve(args: argparse.Namespace) -> None:
         max_cameras_per_identity=args.max_cameras_per_identity,
         max_fov_range_m=args.max_fov_range,
         max_fov_area_m2=args.max_fov_area,
+        warm_up_s=args.warm_up,
     )
     await server.start()
     if args.metrics is not None:
@@ -224,6 +233,8 @@ def main(argv: list[str] | None = None) -> int:
             args.lease_ttl = env_number(ENV_LEASE_TTL, DEFAULT_LEASE_TTL_S)
         if not 0 < args.lease_ttl <= 3600:
             raise DrvsError(f"--lease-ttl: {args.lease_ttl} must be in (0, 3600]")
+        if args.warm_up is not None and not 0 <= args.warm_up <= 3600:
+            raise DrvsError(f"--warm-up: {args.warm_up} must be in [0, 3600]")
         CallbackPolicy(args.allow_callback)  # refuses a malformed network now, not after start
         if not 0 < args.forward_timeout <= 60:
             raise DrvsError(f"--forward-timeout: {args.forward_timeout} must be in (0, 60]")

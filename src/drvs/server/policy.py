@@ -8,10 +8,10 @@ import ipaddress
 import socket
 import time
 from collections import OrderedDict
-from collections.abc import Callable, Iterable
+from collections.abc import Awaitable, Callable, Iterable
 
 from drvs.errors import InvalidArgument, PermissionDenied, ResourceExhausted
-from drvs.net import parse_address
+from drvs.net import format_address, parse_address
 
 IPAddress = ipaddress.IPv4Address | ipaddress.IPv6Address
 
@@ -33,8 +33,14 @@ class CallbackPolicy:
     """Reports go to the requesting robot's own address, or to networks the operator allowed, so
     nobody can point every camera at a third party (a traffic amplifier)."""
 
-    def __init__(self, allowed: Iterable[str] = (), allow_any: bool = False) -> None:
+    def __init__(
+        self,
+        allowed: Iterable[str] = (),
+        allow_any: bool = False,
+        resolve: Callable[[str, int], Awaitable[list[IPAddress]]] | None = None,
+    ) -> None:
         self.allow_any = allow_any
+        self._resolve = resolve or _resolve
         self.allowed = []
         for cidr in allowed:
             try:
@@ -42,19 +48,31 @@ class CallbackPolicy:
             except ValueError:
                 raise InvalidArgument(f"--allow-callback: {cidr!r} is not an IP network (e.g. 10.0.0.0/8)") from None
 
-    async def check(self, callback_address: str, peer: IPAddress | None) -> None:
+    async def check(self, callback_address: str, peer: IPAddress | None) -> str:
+        """The address cameras are to dial: a name is resolved and replaced by an address it resolved
+        to, so cameras dial exactly what was checked (a name that resolves again differently later,
+        DNS rebinding, changes nothing). Every address a name resolves to must pass, not just one:
+        a name that also resolves to a third party is refused. With allow_any, unchanged."""
         if self.allow_any:
-            return
+            return callback_address
         host, port = parse_address(callback_address, "callback_address")
-        addresses = await _resolve(host, port)
-        if peer is not None and any(_same(a, peer) for a in addresses):
-            return
-        if any(a in net for a in addresses for net in self.allowed if a.version == net.version):
-            return
-        raise PermissionDenied(
-            f"callback_address: {host} is not the requesting robot's address ({peer or 'unknown'}); "
-            "reports go back only to the robot that asks, or to networks the server allows (--allow-callback)"
-        )
+        try:
+            addresses: list[IPAddress] = [ipaddress.ip_address(host)]
+        except ValueError:
+            addresses = await self._resolve(host, port)
+        refused = [a for a in addresses if not self._allowed(a, peer)]
+        if refused:
+            what = host if str(refused[0]) == host else f"{host} (resolves to {refused[0]})"
+            raise PermissionDenied(
+                f"callback_address: {what} is not the requesting robot's address ({peer or 'unknown'}); "
+                "reports go back only to the robot that asks, or to networks the server allows (--allow-callback)"
+            )
+        return format_address(str(addresses[0]), port)
+
+    def _allowed(self, address: IPAddress, peer: IPAddress | None) -> bool:
+        if peer is not None and _same(address, peer):
+            return True
+        return any(address in net for net in self.allowed if address.version == net.version)
 
 
 def _same(a: IPAddress, b: IPAddress) -> bool:
@@ -72,7 +90,10 @@ async def _resolve(host: str, port: int) -> list[IPAddress]:
         infos = await asyncio.get_running_loop().getaddrinfo(host, port, type=socket.SOCK_STREAM)
     except OSError:
         raise InvalidArgument(f"callback_address: host {host!r} does not resolve") from None
-    return [ipaddress.ip_address(str(info[4][0]).split("%")[0]) for info in infos]
+    addresses = list(dict.fromkeys(ipaddress.ip_address(str(info[4][0]).split("%")[0]) for info in infos))
+    if not addresses:
+        raise InvalidArgument(f"callback_address: host {host!r} does not resolve")
+    return addresses
 
 
 #: Per robot: requests a second (sustained), the burst above it, and continuous requests running at once.

@@ -9,10 +9,13 @@ import functools
 import logging
 import time
 import uuid
+from collections import OrderedDict
 from collections.abc import AsyncIterator, Callable, Iterable, Mapping
+from dataclasses import dataclass
 from typing import Any
 
 import grpc
+import shapely
 from grpc import aio
 from shapely.geometry import Polygon
 
@@ -46,6 +49,7 @@ from drvs.registry import (
     Claims,
     Registry,
 )
+from drvs.report_auth import MAX_SECRET_BYTES, report_key
 from drvs.request_stream import BatchSender, serve_request_stream
 from drvs.security import (
     CAMERA,
@@ -58,7 +62,7 @@ from drvs.security import (
     camera_identity,
 )
 from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits, peer_ip
-from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
+from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 log = logging.getLogger("drvs.server")
 
@@ -75,6 +79,13 @@ DEFAULT_PAGE_SIZE = 500
 MAX_PAGE_SIZE = 500
 #: Longest secret a camera may hand over (it travels as call metadata on every forward).
 MAX_SECRET_LENGTH = 256
+#: A camera whose lease ran out without it deregistering is remembered this long (at most MAX_LOST
+#: of them): requests whose region it sees name it as missing until it registers again.
+LOST_MEMORY_S = 3600.0
+MAX_LOST = 1024
+#: Uncovered parts smaller than this (m²) are slivers along field-of-view edges, not reported.
+MIN_UNCOVERED_M2 = 0.01
+UNCOVERED_CACHE_SIZE = 256
 SERVICE_NAMES = (
     detection_pb2.DESCRIPTOR.services_by_name["DetectObjectBoundary"].full_name,
     registry_pb2.DESCRIPTOR.services_by_name["RegisterVisionService"].full_name,
@@ -95,6 +106,16 @@ class _Outcome:
         if self.pending == 0 and self.on_none_accepted is not None:
             callback, self.on_none_accepted = self.on_none_accepted, None
             callback()
+
+
+@dataclass(frozen=True)
+class MissingCamera:
+    """A camera that sees a request's region and runs its detector, but is not asked."""
+
+    camera_id: str
+    code: str
+    message: str
+    field_of_view: Polygon
 
 
 class _CameraLink:
@@ -140,6 +161,7 @@ class DrvsServer(Lifecycle):
         max_cameras_per_identity: int = DEFAULT_MAX_CAMERAS_PER_IDENTITY,
         max_fov_range_m: float = DEFAULT_MAX_FOV_RANGE_M,
         max_fov_area_m2: float = DEFAULT_MAX_FOV_AREA_M2,
+        warm_up_s: float | None = None,
     ) -> None:
         self.callback_policy = CallbackPolicy(allow_callback, allow_any_callback)
         self.security = security or Security()
@@ -174,6 +196,18 @@ class DrvsServer(Lifecycle):
         self._links: dict[str, _CameraLink] = {}
         # Cameras whose last forward failed: skipped until their next heartbeat proves them alive.
         self._unreachable: set[str] = set()
+        self._unreachable_why: dict[str, str] = {}
+        # Cameras whose lease ran out without deregistering: id -> (entry, when, why).
+        self._lost: OrderedDict[str, tuple[CameraEntry, float, str]] = OrderedDict()
+        # ids of (region, fields of view asked and missing) -> (region, fields of view, unseen parts)
+        self._uncovered_cache: dict[
+            tuple[int, ...], tuple[Polygon, tuple[Polygon, ...], list[geometry_pb2.Polygon]]
+        ] = {}
+        # After a start, cameras registered with a previous run may not be back yet for this long.
+        self.warm_up_s = lease_ttl_s if warm_up_s is None else warm_up_s
+        if not (self.warm_up_s >= 0):
+            raise InvalidArgument(f"warm_up_s: {warm_up_s} must be >= 0")
+        self._started_at = time.monotonic()
         self._tasks: set[asyncio.Task[None]] = set()
         self._sweeper: asyncio.Task[None] | None = None
         self._callbacks = CallbackSender(security=self.security)
@@ -193,6 +227,7 @@ class DrvsServer(Lifecycle):
 
     async def start(self) -> None:
         await self._endpoint.start()
+        self._started_at = time.monotonic()
         self._sweeper = asyncio.get_running_loop().create_task(self._sweep_leases())
         log.info("security: %s", self.describe_security())
         log.log(
@@ -269,23 +304,76 @@ class DrvsServer(Lifecycle):
 
     def route(self, request: DetectionRequest) -> list[CameraEntry]:
         """The live cameras that see the request's region, run its detector and are reachable."""
+        return self.plan(request)[0]
+
+    def plan(self, request: DetectionRequest) -> tuple[list[CameraEntry], list[MissingCamera]]:
+        """The cameras to ask, and those that see the region and run the detector but will not be
+        asked: skipped after a failed forward, or gone without deregistering."""
         seeing = self.registry.cameras_seeing(request.region, request.kind)
-        return [c for c in seeing if c.camera_id not in self._unreachable]
+        if not self._unreachable and not self._lost:
+            return seeing, []  # the common case costs nothing more
+        cameras = [c for c in seeing if c.camera_id not in self._unreachable]
+        missing = [
+            MissingCamera(
+                c.camera_id,
+                "UNAVAILABLE",
+                f"skipped until it heartbeats: {self._unreachable_why.get(c.camera_id, 'its last forward failed')}",
+                c.field_of_view,
+            )
+            for c in seeing
+            if c.camera_id in self._unreachable
+        ]
+        now = time.monotonic()
+        x0, y0, x1, y1 = request.region.bounds
+        for camera_id, (entry, since, why) in list(self._lost.items()):
+            if camera_id in self.registry or now - since > LOST_MEMORY_S:
+                del self._lost[camera_id]  # back (routed or refused as itself), or forgotten
+                continue
+            fx0, fy0, fx1, fy1 = entry.field_of_view.bounds  # cheap test first: most are far away
+            if fx0 >= x1 or fx1 <= x0 or fy0 >= y1 or fy1 <= y0 or request.kind not in entry.detector_kinds:
+                continue
+            if shapely.relate_pattern(entry.field_of_view, request.region, "T********"):
+                message = f"{why} {now - since:.0f} s ago"
+                missing.append(MissingCamera(camera_id, "UNAVAILABLE", message, entry.field_of_view))
+        return cameras, missing
+
+    def _uncovered(
+        self, region: Polygon, cameras: list[CameraEntry], missing: list[MissingCamera]
+    ) -> list[geometry_pb2.Polygon]:
+        """`_uncovered`, encoded, kept per region object and cameras: while a camera is gone, robots
+        ask about the same regions again and again."""
+        fovs = tuple(c.field_of_view for c in cameras) + tuple(m.field_of_view for m in missing)
+        key = (id(region), *map(id, fovs))
+        hit = self._uncovered_cache.get(key)
+        if hit is not None and hit[0] is region and all(a is b for a, b in zip(hit[1], fovs, strict=True)):
+            return hit[2]
+        parts = [polygon_to_pb(part) for part in _uncovered(region, cameras, missing)]
+        if len(self._uncovered_cache) >= UNCOVERED_CACHE_SIZE:
+            del self._uncovered_cache[next(iter(self._uncovered_cache))]
+        self._uncovered_cache[key] = (region, fovs, parts)  # held: their ids stay theirs
+        return parts
+
+    def coverage_uncertain_s(self) -> float:
+        """How much longer cameras registered with a previous run of the server may still be on
+        their way back (0 once a lease has passed since the start)."""
+        return max(0.0, self._started_at + self.warm_up_s - time.monotonic())
 
     def dispatch(
         self,
         request: DetectionRequest,
         message: detection_pb2.DetectionRequest,
-        cameras: list[CameraEntry] | None = None,
+        secret: bytes = b"",
+        plan: tuple[list[CameraEntry], list[MissingCamera]] | None = None,
         on_none_accepted: Callable[[], None] | None = None,
-    ) -> list[str]:
-        """Forward to `cameras` (by default the ones `route` finds). `on_none_accepted` is called
-        once if every camera refused or failed the request (so it holds no resources anywhere)."""
-        if cameras is None:
-            cameras = self.route(request)
+    ) -> detection_pb2.DetectionReply:
+        """Forward to every camera planned (`plan`, by default the one `plan()` makes) and answer the
+        robot: whom it asked, whom it could not, and what part of the region nobody looks at.
+        `secret`: the robot's report secret. `on_none_accepted` is called once if every camera
+        refused or failed the request (so it holds no resources anywhere)."""
+        cameras, missing = self.plan(request) if plan is None else plan
         outcome = _Outcome(len(cameras), on_none_accepted)
         for camera in cameras:
-            self._forward(camera, request, message, outcome)
+            self._forward(camera, request, message, secret, outcome)
         log.debug(
             "request %s from robot %r (%s): dispatched to %s",
             request.request_id,
@@ -293,7 +381,15 @@ class DrvsServer(Lifecycle):
             request.filter_def,
             ", ".join(c.camera_id for c in cameras) or "no camera",
         )
-        return [c.camera_id for c in cameras]
+        reply = detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=[c.camera_id for c in cameras])
+        if missing:
+            for m in missing:
+                reply.missing_cameras.add(camera_id=m.camera_id, code=m.code, message=m.message)
+            reply.uncovered.extend(self._uncovered(request.region, cameras, missing))
+        uncertain = self.coverage_uncertain_s()
+        if uncertain:
+            reply.coverage_uncertain_s = uncertain
+        return reply
 
     def _spawn(self, coro: Any) -> None:
         task = asyncio.get_running_loop().create_task(coro)
@@ -315,8 +411,10 @@ class DrvsServer(Lifecycle):
         camera: CameraEntry,
         request: DetectionRequest,
         message: detection_pb2.DetectionRequest,
+        secret: bytes = b"",
         outcome: _Outcome | None = None,
     ) -> None:
+        key = report_key(secret, camera.camera_id)
         link = self._link(camera)
         if link.requests.in_flight >= self.max_queued_forwards:
             # Shed load at once rather than queue until the forward timeout: the robot hears
@@ -328,6 +426,7 @@ class DrvsServer(Lifecycle):
                     f"busy: {link.requests.in_flight} requests already waiting for it "
                     f"(limit {self.max_queued_forwards}); try again later"
                 ),
+                key,
             )
             if outcome is not None:
                 outcome.failed()
@@ -336,27 +435,35 @@ class DrvsServer(Lifecycle):
 
         def done(result: detection_pb2.DetectionReply | DrvsError) -> None:
             if isinstance(result, DrvsError):
-                self._not_accepted(camera, request, result)
+                self._not_accepted(camera, request, result, key)
                 if outcome is not None:
                     outcome.failed()
             else:
                 metrics.ROUTED_OK.inc()
                 metrics.STAGE_FORWARD.observe(time.perf_counter() - started)
 
+        if key:
+            # Each camera gets its own key, and only its own: a copy of the request per camera.
+            forwarded = detection_pb2.DetectionRequest()
+            forwarded.CopyFrom(message)
+            forwarded.report_key = key
+            message = forwarded
         link.requests.submit(message, done)
 
-    def _not_accepted(self, camera: CameraEntry, request: DetectionRequest, exc: DrvsError) -> None:
+    def _not_accepted(self, camera: CameraEntry, request: DetectionRequest, exc: DrvsError, key: bytes = b"") -> None:
         """The camera will not report on this request: tell the robot in the camera's name, so it
         need not wait for it. A camera that could not be reached is skipped until it heartbeats."""
         if self._stopped:
             return  # the server's own shutdown closed the links: nobody is waiting to hear
         metrics.ROUTED_FAILED.inc()
-        reason = f"camera {camera.camera_id} did not accept the request: {_grpc.status_of(exc).name} {exc}"
+        code = _grpc.status_of(exc).name
+        reason = f"camera {camera.camera_id} did not accept the request: {code} {exc}"
         token = logs.request_id.set(request.request_id)
         try:
             log.warning("request %s: %s", request.request_id, reason)
             if isinstance(exc, (Unavailable, DeadlineExceeded)):
                 self._unreachable.add(camera.camera_id)
+                self._unreachable_why[camera.camera_id] = f"{code} {exc}"
             report = DetectionReport(
                 request_id=request.request_id,
                 camera_id=camera.camera_id,
@@ -364,19 +471,22 @@ class DrvsServer(Lifecycle):
                 sequence=0,
                 final=True,
                 error=reason,
+                error_code=code,
             )
-            self._spawn(self._tell_robot(request, report))
+            self._spawn(self._tell_robot(request, report, key))
         finally:
             logs.request_id.reset(token)
 
-    async def _tell_robot(self, request: DetectionRequest, report: DetectionReport) -> None:
+    async def _tell_robot(self, request: DetectionRequest, report: DetectionReport, key: bytes = b"") -> None:
         try:
-            await self._callbacks.send(request.callback_address, report)
+            await self._callbacks.send(request.callback_address, report, key=key)
         except Exception as exc:
             log.warning("request %s: could not tell the robot: %s", request.request_id, exc)
 
     def _forget(self, camera_id: str) -> None:
         self._unreachable.discard(camera_id)
+        self._unreachable_why.pop(camera_id, None)
+        self._lost.pop(camera_id, None)
         self._camera_tokens.pop(camera_id, None)
         link = self._links.pop(camera_id, None)
         if link is not None:
@@ -389,6 +499,10 @@ class DrvsServer(Lifecycle):
             for entry in self.registry.expire():
                 log.info("camera %s left routing: lease expired", entry.camera_id)
                 self._forget(entry.camera_id)
+                # It did not deregister: requests whose region it saw say it is missing.
+                self._lost[entry.camera_id] = (entry, time.monotonic(), "its lease ran out without it deregistering")
+                while len(self._lost) > MAX_LOST:
+                    self._lost.popitem(last=False)
                 metrics.CAMERAS.set(len(self.registry))
             for camera_id in self.claims.expire():
                 if camera_id not in self.registry:
@@ -404,7 +518,7 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         return caller_identity(context, self._s.tokens, ROBOT) or context.peer()
 
     async def _answer(
-        self, message: detection_pb2.DetectionRequest, peer: IPAddress | None, allowed: set[str], robot: str
+        self, message: detection_pb2.DetectionRequest, peer: IPAddress | None, allowed: dict[str, str], robot: str
     ) -> detection_pb2.DetectionReply:
         """Validate, check the callback (once per address per call), dispatch, reply at once."""
         started = time.perf_counter()
@@ -421,41 +535,53 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         return reply
 
     async def _dispatch(
-        self, message: detection_pb2.DetectionRequest, peer: IPAddress | None, allowed: set[str], robot: str
+        self, message: detection_pb2.DetectionRequest, peer: IPAddress | None, allowed: dict[str, str], robot: str
     ) -> detection_pb2.DetectionReply:
         request = request_from_pb(message, require_request_id=False)
         # Unknown fields are not forwarded: they would make every camera's copy as large as the sender likes.
         message.DiscardUnknownFields()
+        secret = message.report_secret
+        if len(secret) > MAX_SECRET_BYTES:
+            raise InvalidArgument(f"report_secret: longer than {MAX_SECRET_BYTES} bytes")
+        # The robot's secret stays here; keys are the server's to make, one per camera.
+        message.ClearField("report_secret")
+        message.ClearField("report_key")
         if not request.request_id:
             request = dataclasses.replace(request, request_id=uuid.uuid4().hex)
             message.request_id = request.request_id
             logs.request_id.set(request.request_id)
-        cameras = self._s.route(request)
+        plan = self._s.plan(request)
+        cameras = plan[0]
         # What this request costs the cameras, counted against the robot's budget (not what it
         # cost the robot to send: on a stream a repeated region is left out).
         limits = self._s.limits
         size = message.ByteSize()
         slot = limits.admit(robot, request.continuous.duration_s, size * len(cameras))
         try:
-            if request.callback_address not in allowed:
-                await self._s.callback_policy.check(request.callback_address, peer)
-                allowed.add(request.callback_address)
+            verified = allowed.get(request.callback_address)
+            if verified is None:
+                verified = await self._s.callback_policy.check(request.callback_address, peer)
+                allowed[request.callback_address] = verified
         except BaseException:
             limits.release(robot, slot)
             raise
+        if verified != request.callback_address:
+            # Cameras dial the address that was checked, not a name that may resolve anew.
+            request = dataclasses.replace(request, callback_address=verified)
+            message.callback_address = verified
         if slot is not None and not cameras:
             limits.release(robot, slot)  # nothing runs: the slot is free again at once
-        camera_ids = self._s.dispatch(
-            request, message, cameras, None if slot is None else functools.partial(limits.release, robot, slot)
+        reply = self._s.dispatch(
+            request, message, secret, plan, None if slot is None else functools.partial(limits.release, robot, slot)
         )
-        metrics.FORWARDED_BYTES.inc(size * len(camera_ids))
-        return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=camera_ids)
+        metrics.FORWARDED_BYTES.inc(size * len(reply.camera_ids))
+        return reply
 
     @_grpc.servicer_method
     async def DetectObjects(
         self, message: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
     ) -> detection_pb2.DetectionReply:
-        return await self._answer(message, peer_ip(context.peer()), set(), self._robot(context))
+        return await self._answer(message, peer_ip(context.peer()), {}, self._robot(context))
 
     async def DetectStream(
         self,
@@ -463,7 +589,7 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         context: aio.ServicerContext[Any, Any],
     ) -> AsyncIterator[detection_pb2.DetectionReply]:
         peer = peer_ip(context.peer())
-        allowed: set[str] = set()
+        allowed: dict[str, str] = {}
         robot = self._robot(context)
 
         async def answer(message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
@@ -605,3 +731,16 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
                 for e in entries
             ],
         )
+
+
+def _uncovered(region: Polygon, cameras: list[CameraEntry], missing: list[MissingCamera]) -> list[Polygon]:
+    """The parts of `region` that a missing camera sees and no dispatched camera does, each as its
+    outer ring (a hole, seen by someone, is counted as unseen: the robot errs on the safe side)."""
+    lost = shapely.intersection(shapely.union_all([m.field_of_view for m in missing]), region)
+    if cameras:
+        lost = shapely.difference(lost, shapely.union_all([c.field_of_view for c in cameras]))
+    parts = []
+    for part in shapely.get_parts(lost):
+        if isinstance(part, Polygon) and part.area >= MIN_UNCOVERED_M2:
+            parts.append(Polygon(part.exterior.coords))
+    return parts

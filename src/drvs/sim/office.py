@@ -6,6 +6,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import math
 import re
 import sys
 import time
@@ -59,6 +60,7 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
             print(text, flush=True)
 
     procs: list[ManagedProcess] = []
+    cameras: dict[str, ManagedProcess] = {}
     progress = Progress(args.quiet, sys.stdout)
     try:
         world = await sim_process(
@@ -94,6 +96,7 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
                     *tls[f"camera-{cam.id}"], echo=echo,
                 )  # fmt: skip
                 procs.append(proc)
+                cameras[cam.id] = proc
                 say(f"camera     {cam.id} registered ({cam.field_of_view.floor.area:.1f} m² of floor)")
             robot_args += ["--server", server_address, *tls["robot"]]
         robot = await sim_process("robot", *robot_args, echo=echo).start()
@@ -107,7 +110,12 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
                 break  # the robot exited
             for line in robot.lines[seen:]:
                 if line.startswith(PROGRESS_PREFIX):
-                    progress.show(json.loads(line[len(PROGRESS_PREFIX) :]))
+                    p = json.loads(line[len(PROGRESS_PREFIX) :])
+                    progress.show(p)
+                    if args.kill_camera and args.kill_camera[1] <= p["t"] and args.kill_camera[0] in cameras:
+                        victim = cameras.pop(args.kill_camera[0])
+                        victim.kill()  # a crash: no deregistration, no goodbye to the robot
+                        say(f"\ncamera     {args.kill_camera[0]} killed at t={p['t']:.1f}s")
             seen = len(robot.lines)
         code = await robot.wait(timeout=30)
         progress.done()
@@ -142,6 +150,11 @@ def summarise(result: dict[str, Any], out: Path, quiet: bool) -> None:
     loc = result["localisation"]
     if loc["fixes"]:
         print(f"localisation     {loc['fixes']} DRVS fixes, mean error {loc['mean_error_m'] * 100:.1f} cm")
+    for event in result.get("coverage_events", []):
+        what = "stopped looking" if event["event"] == "lost" else "looks again"
+        print(f"coverage         t={event['t']:.1f}s {event['camera_id']} {what} {event['why']}".rstrip())
+    if result.get("blind_steps"):
+        print(f"blind steps      {result['blind_steps']} (slowed where no camera looks)")
     print(
         f"bytes to robot   {result['bytes_to_robot']:,} TCP payload, "
         f"{result.get('wire_bytes_to_robot', 0):,} on a 1500-MTU Ethernet link"
@@ -150,6 +163,17 @@ def summarise(result: dict[str, Any], out: Path, quiet: bool) -> None:
     if result.get("failure"):
         print(f"failure          {result['failure']}")
     print(f"results          {out / 'result.json'}, {out / 'map.png'}")
+
+
+def parse_kill(text: str) -> tuple[str, float]:
+    camera_id, sep, at = text.rpartition("@")
+    try:
+        seconds = float(at)
+    except ValueError:
+        seconds = math.nan
+    if not sep or not camera_id or not (0 <= seconds < math.inf):
+        raise DrvsError(f"--kill-camera: {text!r} is not ID@SECONDS (e.g. cam-east@1.5)")
+    return camera_id, seconds
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -162,6 +186,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="seed for sensor noise and lighting (default 0)")
     parser.add_argument("--no-drvs", action="store_true", help="the paper's baseline (Fig. 5): no DRVS")
     parser.add_argument("--tls", action="store_true", help="mutual TLS on every hop, with certificates from drvs-certs")
+    parser.add_argument(
+        "--kill-camera",
+        metavar="ID@SECONDS",
+        help="crash this camera (SIGKILL) once the robot has run SECONDS: where only it looked, the robot slows",
+    )
     parser.add_argument("--max-time", type=float, default=120.0, help="give the mission up after this many seconds")
     parser.add_argument("--quiet", "--headless", action="store_true", help="no progress; print only the result path")
     parser.add_argument("--verbose", action="store_true", help="show every process's log")
@@ -169,7 +198,11 @@ def main(argv: list[str] | None = None) -> int:
     scenario_path = args.scenario or DEFAULT_SCENARIO
     out = args.out or Path(time.strftime("drvs-out-%Y%m%d-%H%M%S"))
     try:
+        if args.kill_camera:
+            args.kill_camera = parse_kill(args.kill_camera)
         scenario = load_scenario(scenario_path)
+        if args.kill_camera and args.kill_camera[0] not in {c.id for c in scenario.cameras}:
+            raise DrvsError(f"--kill-camera: the scenario has no camera {args.kill_camera[0]!r}")
         if args.mission and args.mission != scenario.mission:
             # The world, cameras and robot all read the scenario: give them the overridden one.
             out.mkdir(parents=True, exist_ok=True)

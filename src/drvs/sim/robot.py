@@ -17,12 +17,13 @@ from pathlib import Path
 from typing import Any
 
 import grpc
+import shapely
 from shapely.geometry import LineString, Point, Polygon, box
 
 from drvs import _grpc
 from drvs.convert import polygon_from_pb
 from drvs.model import Detection
-from drvs.robot import DrvsClient
+from drvs.robot import DetectionResult, DrvsClient, Subscription
 from drvs.security import Security
 from drvs.sim.planner import NoPath, OccupancyGrid, plan_path
 from drvs.sim.scenario import Scenario
@@ -45,6 +46,12 @@ MARKER_MATCH_M = 0.25
 #: A detection inside a known obstacle grown by this much is the same obstacle seen again (sensor
 #: noise moves outlines by millimetres); it does not change the map or force a re-plan.
 SAME_OBSTACLE_M = 0.05
+#: Where no camera looks any more (a camera failed, went silent, or the server names parts of the
+#: region nobody sees), the robot cannot know the way is clear: it creeps at this fraction of its
+#: speed, as it would with its bumper as its only sensor, until a camera looks there again.
+BLIND_SPEED_FRACTION = 0.25
+#: A camera of a continuous request that has sent nothing for this long has stopped looking.
+SILENT_AFTER_S = 3.0
 
 
 class MissionFailed(Exception):
@@ -82,6 +89,14 @@ class SimRobot:
         self.localisation_errors: list[float] = []
         self.ignore_near: list[tuple[float, float]] = []  # station markers: landmarks, not obstacles
         self._map_changed = False
+        # Coverage: every camera's field of view as first listed, the areas no camera looks at now
+        # (by the camera that stopped), and the continuous requests whose cameras are watched.
+        self.fields_of_view: dict[str, Polygon] = {}
+        self.blind: dict[str, Polygon] = {}
+        self._blind_area: Polygon | None = None
+        self._watching: list[tuple[Subscription, float]] = []
+        self.coverage_events: list[dict[str, Any]] = []
+        self.blind_steps = 0
         self._started = time.monotonic()
         self._last_progress = 0.0
         # The paper's robot knows the obstacle colour model (yellow), not where obstacles are.
@@ -118,10 +133,79 @@ class SimRobot:
         results = await asyncio.gather(*(self.drvs.detect(f, region, timeout_s=5.0) for f in filters))
         found: list[Detection] = []
         for result in results:
-            if result.missing_cameras:
-                log.warning("no answer from %s", ", ".join(sorted(result.missing_cameras)))
+            self.check_coverage(result)
             found.extend(result.detections)
         return found
+
+    # --- coverage: where nobody looks, the way is not known to be clear ---------------------
+
+    async def learn_cameras(self) -> None:
+        """Every camera's field of view, so that when one stops the robot knows where."""
+        assert self.drvs is not None
+        self.fields_of_view = {c.camera_id: c.field_of_view for c in await self.drvs.cameras()}
+
+    def check_coverage(self, result: DetectionResult, *, running: bool = False) -> None:
+        """A camera that did not answer (failed, skipped, gone) leaves its floor unseen. `running`:
+        the request is still under way, so only the cameras the server could not ask count."""
+        unseen = shapely.union_all(result.uncovered) if result.uncovered else None
+        errors = result.skipped if running else result.camera_errors
+        for camera_id, error in sorted(errors.items()):
+            self.lose(camera_id, f"{error.code} {error.message}", unseen)
+        for camera_id in result.finished_cameras - set(result.camera_errors):
+            self.regain(camera_id)
+
+    def lose(self, camera_id: str, why: str, area: Polygon | None = None) -> None:
+        if camera_id in self.blind:
+            return
+        area = self.fields_of_view.get(camera_id, area)
+        if area is None or area.is_empty:
+            return
+        self.blind[camera_id] = area
+        self._blind_area = None
+        log.warning("camera %s stopped looking (%s): slowing down where only it looked", camera_id, why)
+        self.coverage_events.append(self._event(camera_id, "lost", why))
+
+    def regain(self, camera_id: str) -> None:
+        if self.blind.pop(camera_id, None) is not None:
+            self._blind_area = None
+            log.info("camera %s looks again", camera_id)
+            self.coverage_events.append(self._event(camera_id, "regained", ""))
+
+    def _event(self, camera_id: str, what: str, why: str) -> dict[str, Any]:
+        return {
+            "t": round(time.monotonic() - self._started, 2),
+            "step": len(self.path_driven) - 1,
+            "camera_id": camera_id,
+            "event": what,
+            "why": why,
+        }
+
+    def blind_area(self) -> Polygon | None:
+        """Floor that a camera which stopped looking saw and no camera still looking sees."""
+        if not self.blind:
+            return None
+        if self._blind_area is None:
+            seen = [fov for cid, fov in self.fields_of_view.items() if cid not in self.blind]
+            area = shapely.union_all(list(self.blind.values()))
+            if seen:
+                area = area.difference(shapely.union_all(seen))
+            shapely.prepare(area)
+            self._blind_area = area
+        return self._blind_area
+
+    def check_silence(self) -> None:
+        """Cameras of the running continuous requests whose report stream broke, or that fell silent."""
+        now = asyncio.get_running_loop().time()
+        for sub, since in self._watching:
+            for camera_id in sub.interrupted:
+                self.lose(camera_id, "its report stream ended")
+            done = sub.result.finished_cameras  # a camera that sent its final report is not silent
+            for camera_id in sub.camera_ids:
+                if camera_id in done:
+                    continue
+                last = sub.last_report_at.get(camera_id, since)
+                if now - last > SILENT_AFTER_S:
+                    self.lose(camera_id, f"no report for {now - last:.1f} s")
 
     async def watch_obstacles(self, region: Polygon) -> None:
         """Algorithm 1's callback: obstacles stream in while the robot drives."""
@@ -130,14 +214,25 @@ class SimRobot:
             await self.drvs.subscribe(f, region, rate_hz=OBSTACLE_RATE_HZ, duration_s=self.max_time_s)
             for f in self.obstacle_filters
         ]
+        now = asyncio.get_running_loop().time()
+        watched = [(s, now) for s in subs]
+        self._watching.extend(watched)
         try:
+            for sub in subs:
+                self.check_coverage(sub.result, running=True)  # whom the server could not ask
             await asyncio.gather(*(self._consume(s) for s in subs))
         finally:
+            for item in watched:
+                self._watching.remove(item)
             for s in subs:
                 s.close()
 
-    async def _consume(self, sub: Any) -> None:
+    async def _consume(self, sub: Subscription) -> None:
         async for report in sub:
+            if report.error:
+                self.lose(report.camera_id, f"{report.error_code} {report.error}")
+            else:
+                self.regain(report.camera_id)
             self.use_detections(report.detections)
 
     async def watch_self(self) -> None:
@@ -211,7 +306,13 @@ class SimRobot:
     async def step_towards(self, path: list[tuple[float, float]]) -> None:
         target = path[1]
         distance = math.dist(self.pose, target)
-        step = min(self.scenario.robot.speed_mps * TICK_S, distance)
+        speed = self.scenario.robot.speed_mps
+        self.check_silence()
+        blind = self.blind_area()
+        if blind is not None and blind.intersects(Point(self.pose).buffer(self.inflate + speed * TICK_S)):
+            speed *= BLIND_SPEED_FRACTION  # about to drive where nobody looks
+            self.blind_steps += 1
+        step = min(speed * TICK_S, distance)
         x = self.pose[0] + (target[0] - self.pose[0]) * step / distance if distance else target[0]
         y = self.pose[1] + (target[1] - self.pose[1]) * step / distance if distance else target[1]
         heading = math.atan2(target[1] - self.pose[1], target[0] - self.pose[0])
@@ -253,6 +354,7 @@ class SimRobot:
         assert goal is not None
         localiser = None
         if self.drvs is not None:
+            await self.learn_cameras()
             localiser = asyncio.get_running_loop().create_task(self.watch_self())
         try:
             reached = await self.go_to(goal, look=self.drvs is not None)
@@ -266,6 +368,7 @@ class SimRobot:
     async def find_charging_station(self) -> dict[str, Any]:
         if self.drvs is None:
             raise MissionFailed("find_charging_station needs DRVS: the markers are only seen by cameras")
+        await self.learn_cameras()
         colors = self.scenario.colors
         green, yellow = colors["green"].filter_def, colors["yellow"].filter_def
         greens = await self.look([green], box(*self.scenario.bounds))
@@ -364,6 +467,9 @@ async def run_robot(
             "mean_error_m": round(sum(errors) / len(errors), 4) if errors else None,
             "max_error_m": round(max(errors), 4) if errors else None,
         },
+        "coverage_events": robot.coverage_events,
+        "blind_steps": robot.blind_steps,
+        "reports_rejected": client.reports_rejected if client is not None else 0,
         "bytes_to_robot": received,
         "wire_bytes_to_robot": wire_received,
         "robot_cpu_s": round(time.process_time() - cpu_start, 3),

@@ -19,7 +19,7 @@ class ContinuousMode(_message.Message):
     def __init__(self, rate_hz: _Optional[float] = ..., duration_s: _Optional[float] = ...) -> None: ...
 
 class DetectionRequest(_message.Message):
-    __slots__ = ("request_id", "robot_id", "filter_def", "region", "callback_address", "continuous", "omit_outlines")
+    __slots__ = ("request_id", "robot_id", "filter_def", "region", "callback_address", "continuous", "omit_outlines", "report_secret", "report_key")
     REQUEST_ID_FIELD_NUMBER: _ClassVar[int]
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     FILTER_DEF_FIELD_NUMBER: _ClassVar[int]
@@ -27,6 +27,8 @@ class DetectionRequest(_message.Message):
     CALLBACK_ADDRESS_FIELD_NUMBER: _ClassVar[int]
     CONTINUOUS_FIELD_NUMBER: _ClassVar[int]
     OMIT_OUTLINES_FIELD_NUMBER: _ClassVar[int]
+    REPORT_SECRET_FIELD_NUMBER: _ClassVar[int]
+    REPORT_KEY_FIELD_NUMBER: _ClassVar[int]
     request_id: str
     robot_id: str
     filter_def: str
@@ -34,7 +36,9 @@ class DetectionRequest(_message.Message):
     callback_address: str
     continuous: ContinuousMode
     omit_outlines: bool
-    def __init__(self, request_id: _Optional[str] = ..., robot_id: _Optional[str] = ..., filter_def: _Optional[str] = ..., region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., callback_address: _Optional[str] = ..., continuous: _Optional[_Union[ContinuousMode, _Mapping]] = ..., omit_outlines: bool = ...) -> None: ...
+    report_secret: bytes
+    report_key: bytes
+    def __init__(self, request_id: _Optional[str] = ..., robot_id: _Optional[str] = ..., filter_def: _Optional[str] = ..., region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., callback_address: _Optional[str] = ..., continuous: _Optional[_Union[ContinuousMode, _Mapping]] = ..., omit_outlines: bool = ..., report_secret: _Optional[bytes] = ..., report_key: _Optional[bytes] = ...) -> None: ...
 
 class RequestError(_message.Message):
     __slots__ = ("code", "message")
@@ -44,15 +48,31 @@ class RequestError(_message.Message):
     message: str
     def __init__(self, code: _Optional[str] = ..., message: _Optional[str] = ...) -> None: ...
 
+class MissingCamera(_message.Message):
+    __slots__ = ("camera_id", "code", "message")
+    CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
+    CODE_FIELD_NUMBER: _ClassVar[int]
+    MESSAGE_FIELD_NUMBER: _ClassVar[int]
+    camera_id: str
+    code: str
+    message: str
+    def __init__(self, camera_id: _Optional[str] = ..., code: _Optional[str] = ..., message: _Optional[str] = ...) -> None: ...
+
 class DetectionReply(_message.Message):
-    __slots__ = ("request_id", "camera_ids", "error")
+    __slots__ = ("request_id", "camera_ids", "error", "missing_cameras", "uncovered", "coverage_uncertain_s")
     REQUEST_ID_FIELD_NUMBER: _ClassVar[int]
     CAMERA_IDS_FIELD_NUMBER: _ClassVar[int]
     ERROR_FIELD_NUMBER: _ClassVar[int]
+    MISSING_CAMERAS_FIELD_NUMBER: _ClassVar[int]
+    UNCOVERED_FIELD_NUMBER: _ClassVar[int]
+    COVERAGE_UNCERTAIN_S_FIELD_NUMBER: _ClassVar[int]
     request_id: str
     camera_ids: _containers.RepeatedScalarFieldContainer[str]
     error: RequestError
-    def __init__(self, request_id: _Optional[str] = ..., camera_ids: _Optional[_Iterable[str]] = ..., error: _Optional[_Union[RequestError, _Mapping]] = ...) -> None: ...
+    missing_cameras: _containers.RepeatedCompositeFieldContainer[MissingCamera]
+    uncovered: _containers.RepeatedCompositeFieldContainer[_geometry_pb2.Polygon]
+    coverage_uncertain_s: float
+    def __init__(self, request_id: _Optional[str] = ..., camera_ids: _Optional[_Iterable[str]] = ..., error: _Optional[_Union[RequestError, _Mapping]] = ..., missing_cameras: _Optional[_Iterable[_Union[MissingCamera, _Mapping]]] = ..., uncovered: _Optional[_Iterable[_Union[_geometry_pb2.Polygon, _Mapping]]] = ..., coverage_uncertain_s: _Optional[float] = ...) -> None: ...
 
 class DetectionRequests(_message.Message):
     __slots__ = ("requests",)
@@ -87,7 +107,7 @@ class Detection(_message.Message):
     def __init__(self, outline_xy: _Optional[_Iterable[float]] = ..., bounds: _Optional[_Union[_geometry_pb2.FloorBox, _Mapping]] = ..., centroid: _Optional[_Union[_geometry_pb2.FloorPoint, _Mapping]] = ..., ground_contact: _Optional[_Union[_geometry_pb2.FloorPoint, _Mapping]] = ..., pixel_box: _Optional[_Union[_geometry_pb2.PixelBox, _Mapping]] = ..., area_m2: _Optional[float] = ..., area_px: _Optional[float] = ..., score: _Optional[float] = ...) -> None: ...
 
 class DetectionReport(_message.Message):
-    __slots__ = ("request_id", "camera_id", "capture_time", "sequence", "final", "detections", "error")
+    __slots__ = ("request_id", "camera_id", "capture_time", "sequence", "final", "detections", "error", "report_key", "error_code")
     REQUEST_ID_FIELD_NUMBER: _ClassVar[int]
     CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
     CAPTURE_TIME_FIELD_NUMBER: _ClassVar[int]
@@ -95,6 +115,8 @@ class DetectionReport(_message.Message):
     FINAL_FIELD_NUMBER: _ClassVar[int]
     DETECTIONS_FIELD_NUMBER: _ClassVar[int]
     ERROR_FIELD_NUMBER: _ClassVar[int]
+    REPORT_KEY_FIELD_NUMBER: _ClassVar[int]
+    ERROR_CODE_FIELD_NUMBER: _ClassVar[int]
     request_id: str
     camera_id: str
     capture_time: _timestamp_pb2.Timestamp
@@ -102,7 +124,9 @@ class DetectionReport(_message.Message):
     final: bool
     detections: _containers.RepeatedCompositeFieldContainer[Detection]
     error: str
-    def __init__(self, request_id: _Optional[str] = ..., camera_id: _Optional[str] = ..., capture_time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., sequence: _Optional[int] = ..., final: bool = ..., detections: _Optional[_Iterable[_Union[Detection, _Mapping]]] = ..., error: _Optional[str] = ...) -> None: ...
+    report_key: bytes
+    error_code: str
+    def __init__(self, request_id: _Optional[str] = ..., camera_id: _Optional[str] = ..., capture_time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., sequence: _Optional[int] = ..., final: bool = ..., detections: _Optional[_Iterable[_Union[Detection, _Mapping]]] = ..., error: _Optional[str] = ..., report_key: _Optional[bytes] = ..., error_code: _Optional[str] = ...) -> None: ...
 
 class ReportControl(_message.Message):
     __slots__ = ("cancelled_request_ids",)
