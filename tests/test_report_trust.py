@@ -224,7 +224,7 @@ async def test_skipped_and_vanished_cameras_are_missing_with_the_floor_nobody_sa
             DrvsClient(address, robot_id="r", listen="127.0.0.1:0") as robot,
         ):
             registry = registry_pb2_grpc.RegisterVisionServiceStub(channel)
-            await registry.Register(register_message("dead"))  # 127.0.0.1:9: nothing listens there
+            first_reg = await registry.Register(register_message("dead"))  # 127.0.0.1:9: nothing listens there
             dead_floor = next(c.field_of_view for c in await robot.cameras()).intersection(box(*CAM1_REGION))
             first = await robot.detect(YELLOW, CAM1_REGION, timeout_s=5)
             assert first.camera_ids == ("dead",) and not first.complete
@@ -241,8 +241,13 @@ async def test_skipped_and_vanished_cameras_are_missing_with_the_floor_nobody_sa
             assert abs(sum(p.area for p in gone.uncovered) - dead_floor.area) < 0.02 * dead_floor.area
             # A region it never saw is complete; a camera that registers again and deregisters is gone.
             assert (await robot.detect(YELLOW, (30, 0, 31, 1), timeout_s=5)).complete
-            await registry.Register(register_message("dead"))
-            await registry.Deregister(registry_pb2.DeregisterRequest(camera_id="dead"))
+            # (The same anonymous registration, proving itself with its secret: the id is still held.)
+            again = register_message("dead")
+            again.registration_secret = first_reg.registration_secret
+            reg = await registry.Register(again)
+            await registry.Deregister(
+                registry_pb2.DeregisterRequest(camera_id="dead", registration_secret=reg.registration_secret)
+            )
             assert (await robot.detect(YELLOW, CAM1_REGION, timeout_s=5)).complete
     finally:
         await server.stop()
@@ -285,9 +290,10 @@ class _LateCamera(_CapturingCamera):
         context: aio.ServicerContext[Any, Any],
     ) -> AsyncIterator[detection_pb2.DetectionReplies]:
         async for batch in request_iterator:
-            await asyncio.sleep(self.delay)
+            # Seen on arrival: the server may cut a stream whose acceptance is overdue.
             for message in batch.requests:
                 self.requests.put_nowait(message)
+            await asyncio.sleep(self.delay)
             yield detection_pb2.DetectionReplies(
                 replies=[detection_pb2.DetectionReply(request_id=m.request_id) for m in batch.requests]
             )
@@ -308,7 +314,7 @@ async def test_a_camera_the_server_answered_for_keeps_its_own_stream() -> None:
             registry = registry_pb2_grpc.RegisterVisionServiceStub(channel)
             registration = register_message("cam1")
             registration.address = camera_address
-            await registry.Register(registration)
+            registered = await registry.Register(registration)
             reports = detection_pb2_grpc.CallbackCoordinatesStub(to_robot).ReportDetections()
             first = await robot.subscribe(YELLOW, CAM1_REGION, timeout_s=5)
             key = (await asyncio.wait_for(camera.requests.get(), 5)).report_key
@@ -318,8 +324,11 @@ async def test_a_camera_the_server_answered_for_keeps_its_own_stream() -> None:
             late = await (await robot.subscribe(YELLOW, CAM1_REGION, timeout_s=5)).collect()
             assert late.camera_errors["cam1"].code == "DEADLINE_EXCEEDED"
             camera.delay = 0.0
-            await camera.requests.get()  # the late one, accepted after all
-            await registry.Heartbeat(registry_pb2.HeartbeatRequest(camera_id="cam1"))  # routable again
+            await camera.requests.get()  # the late one
+            heartbeat = registry_pb2.HeartbeatRequest(
+                camera_id="cam1", registration_secret=registered.registration_secret
+            )
+            await registry.Heartbeat(heartbeat)  # routable again
             third = await robot.subscribe(YELLOW, CAM1_REGION, timeout_s=5)
             assert (await asyncio.wait_for(camera.requests.get(), 5)).request_id == third.request_id
             await reports.write(_report(third.request_id, "cam1", 0, True))  # key already presented
