@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import re
 
 import pytest
@@ -184,6 +185,16 @@ async def test_boxes_only_reports_keep_positions_and_drop_outlines(office: Offic
     for d in boxes.detections:
         assert d.outline.is_empty
         assert nearest(YELLOW, d.centroid.x, d.centroid.y)[1] < 0.03
-    # Two requests may see two different (noisy) frames: the same boxes to within a centimetre.
-    for a, b in zip(sorted(d.bounds for d in boxes.detections), sorted(d.bounds for d in full.detections), strict=True):
-        assert max(abs(u - v) for u, v in zip(a, b, strict=True)) < 0.01
+    # Two requests may see two different (noisy) frames, whose blobs may differ by a pixel at an
+    # edge: the same boxes to within the floor footprint of one pixel there (about 1-2 cm here).
+    h = office.recorded["cam1"].homography
+    pairs = zip(
+        sorted(boxes.detections, key=lambda d: d.bounds), sorted(full.detections, key=lambda d: d.bounds), strict=True
+    )
+    for a, b in pairs:
+        px = a.pixel_box
+        corners = [(px.x + dx, px.y + dy) for dx in (0, px.width) for dy in (0, px.height)]
+        steps = [(u + du, v + dv) for u, v in corners for du, dv in ((1, 0), (0, 1))]
+        floor = h.apply([c for c in corners for _ in (0, 1)])
+        pixel_m = max(math.dist(p, q) for p, q in zip(floor, h.apply(steps), strict=True))
+        assert max(abs(u - v) for u, v in zip(a.bounds, b.bounds, strict=True)) <= 1.5 * pixel_m, pixel_m
