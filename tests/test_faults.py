@@ -116,7 +116,9 @@ async def _killed_mid_request(office: Office) -> None:
 
         # Timed by the server's own log, so the test process's scheduling does not count.
         gone_after = log_time((await leaving).string) - killed_at
-        assert gone_after <= LEASE_S + 0.3, f"cam2 left routing {gone_after:.2f} s after it was killed"
+        # The lease runs out at most LEASE_S after the kill, and the server's sweep finds it within
+        # one sweep period (a quarter of the lease) after that.
+        assert gone_after <= LEASE_S + LEASE_S / 4 + 0.3, f"cam2 left routing {gone_after:.2f} s after it was killed"
         assert await _routes_only(robot, ["cam1"])
         after = await robot.detect(YELLOW, BOTH_REGION, timeout_s=5)
         assert after.camera_ids == ("cam1",) and len(after.detections) == 2

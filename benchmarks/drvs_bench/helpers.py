@@ -121,6 +121,9 @@ async def register(args: argparse.Namespace) -> None:
                         image_height=480,
                         max_range_m=6.0,
                         detector_kinds=["hsv"],
+                        # The same fake camera each time: registering it again (the routing warm-up
+                        # does) proves it is the same one, as a camera whose reply was lost does.
+                        forward_secret=f"drvs-bench-fake-camera-{i}",
                     ),
                     timeout=30,
                 )
