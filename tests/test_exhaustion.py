@@ -236,12 +236,37 @@ async def test_continuous_caps_per_robot_on_server_and_camera_and_their_slots_co
             await camera.wait_for_line(r"cancelled by the robot", timeout=10, start=mark)
             _, error = await _error_of_first_report(robot)
             assert error == ""
-            # The server's own cap. It does not hear of a robot's cancel (that goes to the cameras),
-            # so the cancelled request's slot lasts its duration there: two now, and the limit is two.
-            with pytest.raises(
-                ResourceExhausted, match=r"continuous: 2 continuous requests already running \(limit 2\)"
-            ):
+            # The server heard of the cancel too (on the robot's request stream, before any later
+            # request): one running there now, of its limit of two, so the next is the camera's to
+            # refuse (without the cancel the server would refuse it: two of two).
+            _, error = await _error_of_first_report(robot)
+            assert "RESOURCE_EXHAUSTED camera cam1: continuous: 1 continuous requests already running" in error
+    finally:
+        await camera.stop()
+        await server.stop()
+
+
+async def test_a_cancelled_continuous_request_frees_its_place_at_the_server(
+    recorded: dict[str, RecordedCamera],
+) -> None:
+    """Server cap 1 per robot. While one continuous request runs a second is refused; once the robot
+    stops listening to the first (the server hears it on the robot's request stream) a new one runs.
+    Without the cancel reaching the server, the slot would last the request's 60 s."""
+    server, address = await start_server("--max-continuous", "1")
+    rec = recorded["cam1"]
+    camera = await start_camera("cam1", rec.video, rec.homography_file, address, "--max-range", MAX_RANGE)
+    try:
+        async with DrvsClient(address, robot_id="r", listen="127.0.0.1:0") as robot:
+            first, error = await _error_of_first_report(robot)
+            assert error == ""
+            with pytest.raises(ResourceExhausted, match=r"continuous: 1 continuous requests already running"):
                 await robot.subscribe(YELLOW, CAM1_REGION, rate_hz=1.0, duration_s=60.0)
+            first.close()
+            second, error = await _error_of_first_report(robot)
+            assert error == ""
+            with pytest.raises(ResourceExhausted, match=r"continuous: 1 continuous requests already running"):
+                await robot.subscribe(YELLOW, CAM1_REGION, rate_hz=1.0, duration_s=60.0)
+            second.close()
     finally:
         await camera.stop()
         await server.stop()

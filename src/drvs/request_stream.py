@@ -10,6 +10,7 @@ waits for the camera when it can write goes as one message, answered by one mess
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import logging
 from collections import deque
 from collections.abc import AsyncIterator, Awaitable, Callable
@@ -56,6 +57,8 @@ class RequestStream:
         self._pending: dict[str, asyncio.Future[Reply]] = {}
         self._write_lock = asyncio.Lock()
         self._sent = StreamContext()
+        self._due_cancels: list[str] = []
+        self._flusher: asyncio.Task[None] | None = None
 
     @property
     def in_flight(self) -> int:
@@ -102,6 +105,8 @@ class RequestStream:
                 # A request whose time ran out while it waited for its turn is not sent: the peer
                 # would work on a request whose sender has already given up on it.
                 if not future.done():
+                    if self._due_cancels:
+                        await self._write_cancels()
                     call = self._call or self._open()
                     self._sent.elide(message)
                     try:
@@ -124,7 +129,32 @@ class RequestStream:
             raise _grpc.error_from_code(reply.error.code, reply.error.message)
         return reply
 
+    def cancel_soon(self, request_id: str) -> None:
+        """Tell the peer to stop the continuous request `request_id`, sent earlier on this stream:
+        written before any request sent after this call. Best effort: no reply is awaited, and when
+        the stream that carried it has ended there is nothing to tell (the peer forgot its requests)."""
+        self._due_cancels.append(request_id)
+        if self._flusher is None or self._flusher.done():
+            self._flusher = asyncio.get_running_loop().create_task(self.flush_cancels())
+
+    async def flush_cancels(self) -> None:
+        """Write the cancels that are due now."""
+        async with self._write_lock:
+            await self._write_cancels()
+
+    async def _write_cancels(self) -> None:
+        due, self._due_cancels = self._due_cancels, []
+        call = self._call
+        if call is None:
+            return
+        for request_id in due:
+            # Not elided: it carries no repeatable field, so the stream's context stays as it is.
+            with contextlib.suppress(grpc.RpcError, asyncio.InvalidStateError):
+                await call.write(Request(request_id=request_id, cancel=True))
+
     async def close(self) -> None:
+        if self._flusher is not None:
+            await asyncio.gather(self._flusher, return_exceptions=True)
         call, reader = self._call, self._reader
         self._call = None
         if call is not None:

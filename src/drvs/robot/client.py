@@ -284,9 +284,12 @@ class Subscription:
         return self.result
 
     def close(self) -> None:
-        """Stop listening: cameras still streaming for this request are told to stop."""
+        """Stop listening: cameras still streaming for this request are told to stop, and the
+        server frees the request's place among the robot's running continuous requests."""
         if not self.closed:
             self.closed = True
+            if self.request.continuous.duration_s > 0 and not self._expired and self.result.unfinished_cameras:
+                self._client._cancel_at_server(self.request_id)
             if self._timer is not None:
                 self._timer.cancel()
             self._wake()
@@ -415,6 +418,10 @@ class DrvsClient:
     def new_request_id(self) -> str:
         return f"{self._id_prefix}{next(self._id_counter):x}"
 
+    def _cancel_at_server(self, request_id: str) -> None:
+        if self._requests is not None:
+            self._requests.cancel_soon(request_id)
+
     async def close(self) -> None:
         self._closing = True
         # Requests still open: each report stream tells its camera to stop them before it ends,
@@ -425,6 +432,7 @@ class DrvsClient:
         for task in list(self._report_streams):
             task.cancel()
         if self._requests is not None:
+            await self._requests.flush_cancels()
             await self._requests.close()
         if self._listener is not None:
             await self._listener.stop(0.5)

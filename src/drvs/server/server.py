@@ -108,6 +108,30 @@ class _Outcome:
             callback()
 
 
+class _Slots:
+    """The continuous requests one robot runs on one DetectStream, by request id: freed at once when
+    the robot cancels one, or when no camera took it, instead of when its duration runs out."""
+
+    __slots__ = ("_held", "limits", "robot")
+
+    def __init__(self, limits: RequestLimits, robot: str) -> None:
+        self.limits = limits
+        self.robot = robot
+        self._held: dict[str, float] = {}
+
+    def hold(self, request_id: str, slot: float) -> None:
+        now = time.monotonic()
+        if len(self._held) >= 64:  # forget the ones whose time ran out (RequestLimits did already)
+            self._held = {k: end for k, end in self._held.items() if end > now}
+        self._held[request_id] = slot
+
+    def release(self, request_id: str) -> None:
+        """Free `request_id`'s slot, once; an unknown or already freed id changes nothing."""
+        slot = self._held.pop(request_id, None)
+        if slot is not None:
+            self.limits.release(self.robot, slot)
+
+
 @dataclass(frozen=True)
 class MissingCamera:
     """A camera that sees a request's region and runs its detector, but is not asked."""
@@ -518,13 +542,18 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         return caller_identity(context, self._s.tokens, ROBOT) or context.peer()
 
     async def _answer(
-        self, message: detection_pb2.DetectionRequest, peer: IPAddress | None, allowed: dict[str, str], robot: str
+        self,
+        message: detection_pb2.DetectionRequest,
+        peer: IPAddress | None,
+        allowed: dict[str, str],
+        robot: str,
+        slots: _Slots | None = None,
     ) -> detection_pb2.DetectionReply:
         """Validate, check the callback (once per address per call), dispatch, reply at once."""
         started = time.perf_counter()
         token = logs.request_id.set(message.request_id)
         try:
-            reply = await self._dispatch(message, peer, allowed, robot)
+            reply = await self._dispatch(message, peer, allowed, robot, slots)
         except DrvsError:
             metrics.REFUSED.inc()
             raise
@@ -535,7 +564,12 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         return reply
 
     async def _dispatch(
-        self, message: detection_pb2.DetectionRequest, peer: IPAddress | None, allowed: dict[str, str], robot: str
+        self,
+        message: detection_pb2.DetectionRequest,
+        peer: IPAddress | None,
+        allowed: dict[str, str],
+        robot: str,
+        slots: _Slots | None,
     ) -> detection_pb2.DetectionReply:
         request = request_from_pb(message, require_request_id=False)
         # Unknown fields are not forwarded: they would make every camera's copy as large as the sender likes.
@@ -569,11 +603,15 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
             # Cameras dial the address that was checked, not a name that may resolve anew.
             request = dataclasses.replace(request, callback_address=verified)
             message.callback_address = verified
+        on_none_accepted: Callable[[], None] | None = None
         if slot is not None and not cameras:
             limits.release(robot, slot)  # nothing runs: the slot is free again at once
-        reply = self._s.dispatch(
-            request, message, secret, plan, None if slot is None else functools.partial(limits.release, robot, slot)
-        )
+        elif slot is not None and slots is not None:
+            slots.hold(request.request_id, slot)  # until it ends, is cancelled, or no camera takes it
+            on_none_accepted = functools.partial(slots.release, request.request_id)
+        elif slot is not None:
+            on_none_accepted = functools.partial(limits.release, robot, slot)
+        reply = self._s.dispatch(request, message, secret, plan, on_none_accepted)
         metrics.FORWARDED_BYTES.inc(size * len(reply.camera_ids))
         return reply
 
@@ -581,6 +619,8 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
     async def DetectObjects(
         self, message: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
     ) -> detection_pb2.DetectionReply:
+        if message.cancel:
+            raise InvalidArgument("cancel: only a request stream (DetectStream) can cancel its continuous requests")
         return await self._answer(message, peer_ip(context.peer()), {}, self._robot(context))
 
     async def DetectStream(
@@ -591,11 +631,15 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         peer = peer_ip(context.peer())
         allowed: dict[str, str] = {}
         robot = self._robot(context)
+        slots = _Slots(self._s.limits, robot)
 
         async def answer(message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
             if not message.request_id:
                 raise InvalidArgument("request_id: empty; a streamed request needs its own id")
-            return await self._answer(message, peer, allowed, robot)
+            if message.cancel:
+                slots.release(message.request_id)
+                return detection_pb2.DetectionReply(request_id=message.request_id)
+            return await self._answer(message, peer, allowed, robot, slots)
 
         async for reply in serve_request_stream(request_iterator, answer, "drvs-server"):
             yield reply

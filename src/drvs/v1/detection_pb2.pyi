@@ -19,7 +19,7 @@ class ContinuousMode(_message.Message):
     def __init__(self, rate_hz: _Optional[float] = ..., duration_s: _Optional[float] = ...) -> None: ...
 
 class DetectionRequest(_message.Message):
-    __slots__ = ("request_id", "robot_id", "filter_def", "region", "callback_address", "continuous", "omit_outlines", "report_secret", "report_key")
+    __slots__ = ("request_id", "robot_id", "filter_def", "region", "callback_address", "continuous", "omit_outlines", "report_secret", "report_key", "cancel")
     REQUEST_ID_FIELD_NUMBER: _ClassVar[int]
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     FILTER_DEF_FIELD_NUMBER: _ClassVar[int]
@@ -29,6 +29,7 @@ class DetectionRequest(_message.Message):
     OMIT_OUTLINES_FIELD_NUMBER: _ClassVar[int]
     REPORT_SECRET_FIELD_NUMBER: _ClassVar[int]
     REPORT_KEY_FIELD_NUMBER: _ClassVar[int]
+    CANCEL_FIELD_NUMBER: _ClassVar[int]
     request_id: str
     robot_id: str
     filter_def: str
@@ -38,7 +39,8 @@ class DetectionRequest(_message.Message):
     omit_outlines: bool
     report_secret: bytes
     report_key: bytes
-    def __init__(self, request_id: _Optional[str] = ..., robot_id: _Optional[str] = ..., filter_def: _Optional[str] = ..., region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., callback_address: _Optional[str] = ..., continuous: _Optional[_Union[ContinuousMode, _Mapping]] = ..., omit_outlines: bool = ..., report_secret: _Optional[bytes] = ..., report_key: _Optional[bytes] = ...) -> None: ...
+    cancel: bool
+    def __init__(self, request_id: _Optional[str] = ..., robot_id: _Optional[str] = ..., filter_def: _Optional[str] = ..., region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., callback_address: _Optional[str] = ..., continuous: _Optional[_Union[ContinuousMode, _Mapping]] = ..., omit_outlines: bool = ..., report_secret: _Optional[bytes] = ..., report_key: _Optional[bytes] = ..., cancel: bool = ...) -> None: ...
 
 class RequestError(_message.Message):
     __slots__ = ("code", "message")
