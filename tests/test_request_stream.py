@@ -52,6 +52,26 @@ def test_elided_requests_come_back_whole(
         assert received == original
 
 
+@given(requests)
+def test_an_elided_request_restored_goes_whole_on_a_new_stream(
+    sequence: list[tuple[str, str, str, tuple[float, float, float, float]]],
+) -> None:
+    """A request whose stream ended is sent again on a new one, whose receiver has seen nothing:
+    restored, it carries every field again (a retry once sent a region-less request)."""
+    sender = StreamContext()
+    for i, fields in enumerate(sequence):
+        original = message(i, *fields)
+        wire = detection_pb2.DetectionRequest()
+        wire.CopyFrom(original)
+        restore = sender.elide(wire)
+        restore()
+        assert wire == original
+        fresh = StreamContext()
+        received = detection_pb2.DetectionRequest.FromString(wire.SerializeToString())
+        fresh.fill(received)
+        assert received == original
+
+
 def test_a_repeated_request_is_little_more_than_its_id() -> None:
     sender = StreamContext()
     first = message(1, "turtle", "10.0.0.5:7000", FILTERS[0], (-6.0, 0.0, 26.0, 10.0))

@@ -100,6 +100,7 @@ class RequestStream:
         future: asyncio.Future[Reply] = loop.create_future()
         self._pending[message.request_id] = future
         timer = loop.call_later(timeout_s, _expire, future, self._peer, timeout_s)
+        restore: Callable[[], None] | None = None
         try:
             async with self._write_lock:
                 # A request whose time ran out while it waited for its turn is not sent: the peer
@@ -108,7 +109,7 @@ class RequestStream:
                     if self._due_cancels:
                         await self._write_cancels()
                     call = self._call or self._open()
-                    self._sent.elide(message)
+                    restore = self._sent.elide(message)
                     try:
                         await call.write(message)
                     except (grpc.RpcError, asyncio.InvalidStateError) as exc:
@@ -118,6 +119,11 @@ class RequestStream:
                             raise _grpc.from_rpc_error(exc, self._peer) from None
                         raise errors.Unavailable(f"{self._peer}: the request stream ended") from None
             reply = await future
+        except errors.Unavailable:
+            # The stream ended: whoever sends this message again sends it whole, on a new stream.
+            if restore is not None:
+                restore()
+            raise
         finally:
             timer.cancel()
             self._pending.pop(message.request_id, None)
@@ -406,19 +412,33 @@ class StreamContext:
         self.values: dict[str, str | bytes] = dict(_EMPTY)
         self.region: geometry_pb2.Region | None = None
 
-    def elide(self, message: Request) -> None:
+    def elide(self, message: Request) -> Callable[[], None]:
+        """Leave out what repeats; returns what puts it back, for sending the message again on
+        another stream (a retry after this one ended), whose receiver has seen none of it."""
+        elided: list[tuple[str, str | bytes]] = []
         for name in REPEATABLE:
             value = getattr(message, name)
             if value and value == self.values[name]:
                 setattr(message, name, _EMPTY[name])
+                elided.append((name, value))
             else:
                 self.values[name] = value
+        region: geometry_pb2.Region | None = None
         if message.HasField("region"):
             if self.region is not None and message.region == self.region:
+                region = self.region
                 message.ClearField("region")
             else:
                 self.region = geometry_pb2.Region()
                 self.region.CopyFrom(message.region)
+
+        def restore() -> None:
+            for name, value in elided:
+                setattr(message, name, value)
+            if region is not None:
+                message.region.CopyFrom(region)
+
+        return restore
 
     def fill(self, message: Request) -> None:
         for name in REPEATABLE:
