@@ -170,7 +170,7 @@ def test_valid_message_is_accepted() -> None:
         ({"robot_id": "robot/7"}, r"^robot_id: 'robot/7' may hold only"),
         ({"filter_def": ""}, r"^filter_def: empty"),
         ({"filter_def": "hsv_180110130035225200"}, r"^filter_def: H low = 180"),
-        ({"filter_def": "rgb_1"}, r"^filter_def: unknown detector kind"),
+        ({"filter_def": "rgb_1"}, r"^filter_def: unknown object type"),
     ],
 )
 def test_request_from_pb_names_the_bad_field(changes: dict[str, object], message: str) -> None:

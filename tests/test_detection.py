@@ -12,7 +12,7 @@ import pytest
 from numpy.typing import NDArray
 from shapely.geometry import Point
 
-from drvs.detection import DEFAULT_MIN_AREA_PX, FrameAnalysis, HsvDetector
+from drvs.detection import DEFAULT_MIN_AREA_PX, CameraView, FrameAnalysis, HsvDetector
 from drvs.detection import Frame as DetFrame
 from drvs.filters import HsvRange
 from drvs.geometry import FieldOfView, Homography, box_region, homography_from_pose
@@ -60,7 +60,7 @@ def camera() -> Homography:
 
 def detector(h: Homography, max_range_m: float = 15.0, min_area_px: float = DEFAULT_MIN_AREA_PX) -> HsvDetector:
     fov = FieldOfView.compute(h, SIZE, max_range_m)
-    return HsvDetector(h, fov, SIZE, camera_id="cam1", min_area_px=min_area_px)
+    return HsvDetector(CameraView(h, fov, SIZE, camera_id="cam1", min_area_px=min_area_px))
 
 
 def render(discs: list[Disc], noise_sigma: float = 0.0) -> NDArray[np.uint8]:

@@ -148,13 +148,14 @@ def test_validate_filter_def_checks_the_whole_string() -> None:
 
 def test_detector_kind() -> None:
     assert detector_kind(YELLOW) == "hsv"
-    # The kind is the prefix only: the numbers are checked by the detector's own parser.
-    assert detector_kind("hsv_x") == "hsv"
+    # The kind comes from the detector's own parser, which checks the whole string.
+    with pytest.raises(InvalidArgument, match=r"'hsv_x' is not 'hsv_' followed by 18 digits"):
+        detector_kind("hsv_x")
     with pytest.raises(InvalidArgument, match=r"filter_def: empty"):
         detector_kind("")
-    with pytest.raises(InvalidArgument, match=r"filter_def: unknown detector kind .*known kinds: hsv"):
+    with pytest.raises(InvalidArgument, match=r"filter_def: unknown object type 'rgb' .*known types: hsv"):
         detector_kind("rgb_014110130035225200")
-    with pytest.raises(InvalidArgument, match=r"filter_def: unknown detector kind"):
+    with pytest.raises(InvalidArgument, match=r"filter_def: 'hsv' does not start with 'hsv_'"):
         detector_kind("hsv")
-    with pytest.raises(InvalidArgument, match=r"filter_def: unknown detector kind"):
+    with pytest.raises(InvalidArgument, match=r"filter_def: unknown object type 'HSV'"):
         detector_kind("HSV_014110130035225200")

@@ -36,7 +36,7 @@ class _Frames:
 
 def test_a_filter_looked_up_on_one_frame_is_found_on_the_next_before_anyone_asks() -> None:
     frames = _Frames(render(BIG))
-    analyses = Analyses(frames, detector(camera()), "cam1")  # type: ignore[arg-type]
+    analyses = Analyses(frames, detector(camera()).blobs, "cam1")  # type: ignore[arg-type]
     analyses.start()
     try:
         first = analyses.for_frame(frames.push(1))
@@ -62,7 +62,7 @@ def test_a_filter_looked_up_on_one_frame_is_found_on_the_next_before_anyone_asks
 
 def test_one_analysis_per_frame_whoever_asks_first() -> None:
     frames = _Frames(render(BIG))
-    analyses = Analyses(frames, detector(camera()), "cam1")  # type: ignore[arg-type]
+    analyses = Analyses(frames, detector(camera()).blobs, "cam1")  # type: ignore[arg-type]
     frame = frames.push(5)
     assert analyses.for_frame(frame) is analyses.for_frame(frame)
     assert analyses.for_frame(frames.push(6)).frame.sequence == 6

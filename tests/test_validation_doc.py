@@ -114,8 +114,8 @@ INVALID, DENIED, NOT_FOUND = "INVALID_ARGUMENT", "PERMISSION_DENIED", "NOT_FOUND
 GRPC_CASES = [
     Case(INVALID, "request_id: longer than 128 characters", detect(request_id="a" * 129)),
     Case(INVALID, "robot_id: '…' may hold only letters, digits and - _ . :", detect(robot_id="robot with spaces")),
-    Case(INVALID, "filter_def: empty; expected e.g. 'hsv_014110130035225200'", detect(filter_def="")),
-    Case(INVALID, "filter_def: unknown detector kind in '…'; known kinds: hsv", detect(filter_def="rgb_0141")),
+    Case(INVALID, "filter_def: empty; expected e.g. 'hsv_014110130035225200'…", detect(filter_def="")),
+    Case(INVALID, "filter_def: unknown object type '…' in '…'; known types: …", detect(filter_def="rgb_0141")),
     Case(
         INVALID,
         "filter_def: '…' is not 'hsv_' followed by 18 digits (six zero-padded 3-digit numbers HloSloVloHhiShiVhi)",

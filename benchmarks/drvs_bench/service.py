@@ -26,7 +26,7 @@ import numpy as np
 from shapely.geometry import box
 
 from drvs.camera.source import VideoSource
-from drvs.detection import Frame, FrameAnalysis, HsvDetector
+from drvs.detection import CameraView, Frame, FrameAnalysis, HsvDetector
 from drvs.geometry import FieldOfView
 from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.registry import Registry
@@ -167,7 +167,7 @@ async def measure_latency(quick: bool, out: dict[str, Any]) -> None:
             frame = await source.wait_first_frame(10)
             source.stop()
             fov = FieldOfView.compute(rec.homography, frame.size, 6.0)
-            detector = HsvDetector(rec.homography, fov, frame.size)
+            detector = HsvDetector(CameraView(rec.homography, fov, frame.size))
             times = []
             for i in range(200):
                 t0 = time.perf_counter()

@@ -23,7 +23,7 @@ from grpc import aio
 from shapely.geometry import box
 
 from drvs.camera.homography_file import load_homography
-from drvs.detection import Frame, FrameAnalysis, HsvDetector
+from drvs.detection import CameraView, Frame, FrameAnalysis, HsvDetector
 from drvs.errors import DrvsError
 from drvs.geometry import FieldOfView
 from drvs.robot import DrvsClient
@@ -133,7 +133,7 @@ async def stream_mode(args: argparse.Namespace) -> dict[str, object]:
     detectors = []
     for hfile in args.homography:
         h = load_homography(hfile)
-        detectors.append(HsvDetector(h, FieldOfView.compute(h, IMAGE_SIZE, 6.0), IMAGE_SIZE))
+        detectors.append(HsvDetector(CameraView(h, FieldOfView.compute(h, IMAGE_SIZE, 6.0), IMAGE_SIZE)))
     region = box(*BOTH_REGION)
     duration = args.requests / args.rate
     print("READY 0", flush=True)

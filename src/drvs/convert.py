@@ -165,6 +165,13 @@ def detection_to_pb(d: Detection, outline: bool = True) -> detection_pb2.Detecti
         msg.pixel_box.x, msg.pixel_box.y = d.pixel_box.x, d.pixel_box.y
         msg.pixel_box.width, msg.pixel_box.height = d.pixel_box.width, d.pixel_box.height
         msg.area_m2, msg.area_px, msg.score = d.area_m2, d.area_px, d.score
+    # What a marker or a class is travels even without outlines: it is what the robot asked for.
+    if d.marker_id is not None:
+        msg.marker_id = d.marker_id
+    if d.heading_deg is not None:
+        msg.heading_deg = d.heading_deg
+    if d.label:
+        msg.label = d.label
     return msg
 
 
@@ -190,6 +197,9 @@ def detection_from_pb(msg: detection_pb2.Detection, camera_id: str, capture_time
         filter_def=filter_def,
         camera_id=camera_id,
         capture_time=capture_time,
+        marker_id=msg.marker_id if msg.HasField("marker_id") else None,
+        heading_deg=msg.heading_deg if msg.HasField("heading_deg") else None,
+        label=msg.label,
     )
 
 

@@ -1,122 +1,40 @@
-"""The paper's colour model: ``filter_def`` strings such as ``hsv_014110130035225200``."""
+"""filter_def strings: which object type a robot asks for (``hsv_014110130035225200``,
+``aruco_4x4_50_7``, ``people``, ``foreground``, ``model_yolo_person``).
+
+Parsing belongs to each detector plug-in (`drvs.detectors`); this module is the entry point the
+request model, the server and the client use.
+"""
 
 from __future__ import annotations
 
 import functools
-import re
-from dataclasses import dataclass
 
-import cv2
-import numpy as np
-from numpy.typing import NDArray
+from drvs.detectors import HsvRange, ObjectType, parse_object_type, prefixes
+from drvs.detectors.hsv import HSV_PREFIX
 
-from drvs.errors import InvalidArgument
+__all__ = ["DETECTOR_KINDS", "HSV_PREFIX", "HsvRange", "detector_kind", "object_type", "validate_filter_def"]
 
-HSV_PREFIX = "hsv_"
-_HSV_RE = re.compile(r"hsv_([0-9]{18})")
-_LIMITS = {"H": 179, "S": 255, "V": 255}
-
-#: Detector kinds this package can run, keyed by the filter_def prefix.
-DETECTOR_KINDS = ("hsv",)
+#: The filter_def prefixes this package can parse, in registration order.
+DETECTOR_KINDS = prefixes()
 
 
 def validate_filter_def(filter_def: str) -> str:
-    """The detector kind of a well-formed filter_def; InvalidArgument says what is wrong."""
+    """The routing kind of a well-formed filter_def; InvalidArgument says what is wrong."""
+    return object_type(filter_def).kind
+
+
+def object_type(filter_def: str) -> ObjectType:
+    """The parsed filter_def; InvalidArgument naming the part that is wrong."""
     if isinstance(filter_def, str) and len(filter_def) <= 64:
-        return _validated_kind(filter_def)  # robots ask for the same few objects again and again
-    return _validate(filter_def)
+        return _parsed(filter_def)  # robots ask for the same few objects again and again
+    return parse_object_type(filter_def)
 
 
 @functools.lru_cache(maxsize=1024)
-def _validated_kind(filter_def: str) -> str:
-    return _validate(filter_def)  # lru_cache keeps answers only: a bad filter_def raises every time
-
-
-def _validate(filter_def: str) -> str:
-    kind = detector_kind(filter_def)
-    if kind == "hsv":
-        HsvRange.parse(filter_def)
-    return kind
+def _parsed(filter_def: str) -> ObjectType:
+    return parse_object_type(filter_def)  # lru_cache keeps answers only: a bad filter_def raises every time
 
 
 def detector_kind(filter_def: str) -> str:
-    """The detector kind a filter_def asks for (its prefix), or InvalidArgument."""
-    if not isinstance(filter_def, str) or not filter_def:
-        raise InvalidArgument("filter_def: empty; expected e.g. 'hsv_014110130035225200'")
-    kind = filter_def.split("_", 1)[0]
-    if kind not in DETECTOR_KINDS or "_" not in filter_def:
-        raise InvalidArgument(
-            f"filter_def: unknown detector kind in {filter_def[:40]!r}; known kinds: {', '.join(DETECTOR_KINDS)}"
-        )
-    return kind
-
-
-@dataclass(frozen=True, slots=True)
-class HsvRange:
-    """An OpenCV HSV threshold box (H 0-179, S and V 0-255). h_lo > h_hi wraps through 0 (red)."""
-
-    h_lo: int
-    s_lo: int
-    v_lo: int
-    h_hi: int
-    s_hi: int
-    v_hi: int
-
-    @classmethod
-    def parse(cls, filter_def: str) -> HsvRange:
-        """Parse ``hsv_`` + six zero-padded 3-digit numbers ``HloSloVloHhiShiVhi``."""
-        if not isinstance(filter_def, str) or not filter_def.startswith(HSV_PREFIX):
-            raise InvalidArgument(f"filter_def: {str(filter_def)[:40]!r} does not start with 'hsv_'")
-        m = _HSV_RE.fullmatch(filter_def)
-        if m is None:
-            raise InvalidArgument(
-                f"filter_def: {filter_def[:40]!r} is not 'hsv_' followed by 18 digits "
-                "(six zero-padded 3-digit numbers HloSloVloHhiShiVhi)"
-            )
-        digits = m.group(1)
-        values = [int(digits[i : i + 3]) for i in range(0, 18, 3)]
-        names = ("H", "S", "V", "H", "S", "V")
-        for i, (name, value) in enumerate(zip(names, values, strict=True)):
-            bound = "low" if i < 3 else "high"
-            if value > _LIMITS[name]:
-                raise InvalidArgument(
-                    f"filter_def: {name} {bound} = {value} is out of range 0-{_LIMITS[name]} in {filter_def!r}"
-                )
-        h_lo, s_lo, v_lo, h_hi, s_hi, v_hi = values
-        if s_lo > s_hi:
-            raise InvalidArgument(f"filter_def: S low {s_lo} > S high {s_hi} in {filter_def!r}")
-        if v_lo > v_hi:
-            raise InvalidArgument(f"filter_def: V low {v_lo} > V high {v_hi} in {filter_def!r}")
-        return cls(h_lo, s_lo, v_lo, h_hi, s_hi, v_hi)
-
-    @property
-    def wraps(self) -> bool:
-        return self.h_lo > self.h_hi
-
-    def to_filter_def(self) -> str:
-        values = (self.h_lo, self.s_lo, self.v_lo, self.h_hi, self.s_hi, self.v_hi)
-        return HSV_PREFIX + "".join(f"{v:03d}" for v in values)
-
-    def mask(self, hsv: NDArray[np.uint8]) -> NDArray[np.uint8]:
-        """Binary mask (0/255) of the pixels of an HSV image inside this range."""
-        if not self.wraps:
-            return np.asarray(
-                cv2.inRange(hsv, (self.h_lo, self.s_lo, self.v_lo), (self.h_hi, self.s_hi, self.v_hi)), dtype=np.uint8
-            )
-        upper = cv2.inRange(hsv, (self.h_lo, self.s_lo, self.v_lo), (179, self.s_hi, self.v_hi))
-        lower = cv2.inRange(hsv, (0, self.s_lo, self.v_lo), (self.h_hi, self.s_hi, self.v_hi))
-        return np.asarray(cv2.bitwise_or(upper, lower), dtype=np.uint8)
-
-    def centre_hsv(self) -> tuple[int, int, int]:
-        """An HSV colour in the middle of the range (useful to paint test objects)."""
-        if self.wraps:
-            span = (179 - self.h_lo + 1) + self.h_hi
-            h = (self.h_lo + span // 2) % 180
-        else:
-            h = (self.h_lo + self.h_hi) // 2
-        return h, (self.s_lo + self.s_hi) // 2, (self.v_lo + self.v_hi) // 2
-
-    def centre_bgr(self) -> tuple[int, int, int]:
-        hsv = np.array([[self.centre_hsv()]], dtype=np.uint8)
-        b, g, r = cv2.cvtColor(hsv, cv2.COLOR_HSV2BGR)[0, 0]
-        return int(b), int(g), int(r)
+    """The routing kind a filter_def asks for (what cameras register), or InvalidArgument."""
+    return object_type(filter_def).kind

@@ -11,7 +11,6 @@ from typing import overload
 from shapely.geometry import Point, Polygon
 
 from drvs.errors import InvalidArgument
-from drvs.filters import detector_kind, validate_filter_def
 from drvs.net import parse_address
 
 #: Continuous requests are bounded so one request cannot keep cameras busy forever.
@@ -48,6 +47,13 @@ class Detection:
     filter_def: str
     camera_id: str = ""
     capture_time: float = 0.0
+    #: Fiducial markers (aruco_...): the marker's id in its dictionary, else None.
+    marker_id: int | None = None
+    #: Fiducial markers: the marker's heading on the floor, degrees counter-clockwise from the
+    #: world x axis to the marker's x axis, in (-180, 180]; else None.
+    heading_deg: float | None = None
+    #: Models and people: the class label ("person", a model's class name); else "".
+    label: str = ""
 
     @functools.cached_property
     def centroid(self) -> Point:
@@ -164,6 +170,8 @@ class DetectionRequest:
             raise InvalidArgument("request_id: empty")
         check_id(self.request_id, "request_id", allow_empty=not require_request_id)
         check_id(self.robot_id, "robot_id", allow_empty=True)
+        from drvs.filters import validate_filter_def  # drvs.filters imports the detectors, which use this module
+
         validate_filter_def(self.filter_def)
         parse_address(self.callback_address, "callback_address")
         self.continuous.validate()
@@ -172,6 +180,9 @@ class DetectionRequest:
 
     @property
     def kind(self) -> str:
+        """The routing kind of the filter_def (hsv, aruco, people, foreground, model_<name>)."""
+        from drvs.filters import detector_kind
+
         return detector_kind(self.filter_def)
 
 

@@ -3,12 +3,14 @@
 from __future__ import annotations
 
 import asyncio
+import concurrent.futures
 import hmac
 import logging
 import math
+import os
 import secrets
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Mapping
 from typing import Any
 
 import cv2
@@ -21,10 +23,11 @@ from drvs import _grpc, logs, metrics
 from drvs._service import Endpoint, Lifecycle
 from drvs.callback import CallbackSender
 from drvs.convert import homography_to_pb, request_from_pb
-from drvs.detection import DEFAULT_MIN_AREA_PX, HsvDetector
+from drvs.detectors import DEFAULT_MIN_AREA_PX, REGISTRY, CameraView, Detector, FrameAnalysis, ObjectType, select
 from drvs.errors import DrvsError, FailedPrecondition, InvalidArgument, ResourceExhausted
+from drvs.filters import object_type
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
-from drvs.model import DetectionReport, DetectionRequest, check_id
+from drvs.model import Detection, DetectionReport, DetectionRequest, check_id
 from drvs.net import dialable_address, parse_address
 from drvs.request_stream import serve_request_batches, serve_request_stream
 from drvs.security import Security, bearer_token
@@ -47,6 +50,14 @@ MAX_ACTIVE_REQUESTS = 512
 #: own) may have running on this camera at once: the server's per-robot cap counts a robot per
 #: credential or connection, and a robot with many connections would otherwise take every slot.
 DEFAULT_MAX_CONTINUOUS_PER_ROBOT = 32
+#: Threads that run heavy detectors (people, models: about 100 ms a frame here). Bounded: a burst
+#: of requests queues for them instead of starting a thread per request.
+DEFAULT_HEAVY_WORKERS = max(1, min(2, (os.cpu_count() or 1) - 1))
+
+
+def default_detectors() -> tuple[str, ...]:
+    """Every built-in detector prefix (models serve nothing until a camera configures one)."""
+    return tuple(REGISTRY)
 
 
 class CameraNode(Lifecycle):
@@ -67,7 +78,9 @@ class CameraNode(Lifecycle):
         max_frame_age_s: float = DEFAULT_MAX_FRAME_AGE_S,
         serve_frames: bool = False,
         resolution: tuple[int, int] | None = None,
-        detectors: tuple[str, ...] = ("hsv",),
+        detectors: tuple[str, ...] | None = None,
+        detector_options: Mapping[str, Mapping[str, Any]] | None = None,
+        heavy_workers: int = DEFAULT_HEAVY_WORKERS,
         heartbeat_s: float | None = None,
         security: Security | None = None,
         max_continuous_per_robot: int = DEFAULT_MAX_CONTINUOUS_PER_ROBOT,
@@ -79,7 +92,19 @@ class CameraNode(Lifecycle):
         # callback address -> continuous requests of that robot running here
         self._continuous: dict[str, int] = {}
         self.resolution = resolution
-        self.detectors = detectors
+        #: Detector prefixes to run (default: every built-in); options per prefix from the config.
+        self.detectors = default_detectors() if detectors is None else tuple(detectors)
+        unknown = [d for d in self.detectors if d not in REGISTRY]
+        if unknown or not self.detectors:
+            raise InvalidArgument(f"detectors: {unknown or 'none'}; must be some of {', '.join(REGISTRY)}")
+        self.detector_options = dict(detector_options or {})
+        if heavy_workers < 1:
+            raise InvalidArgument(f"heavy_workers: {heavy_workers} must be at least 1")
+        self.heavy_workers = heavy_workers
+        self._heavy_pool: concurrent.futures.ThreadPoolExecutor | None = None
+        #: Running detector instances by prefix, and by the routing kinds they serve.
+        self.runners: dict[str, Detector] = {}
+        self.kinds: dict[str, Detector] = {}
         self.heartbeat_s = heartbeat_s
         self.camera_id = check_id(camera_id, "camera_id")
         self.source = source
@@ -95,7 +120,7 @@ class CameraNode(Lifecycle):
         self.min_area_px = min_area_px
         self.first_frame_timeout_s = first_frame_timeout_s
         self.max_frame_age_s = max_frame_age_s
-        self.detector: HsvDetector | None = None
+        self.view: CameraView | None = None
         self.field_of_view: FieldOfView | None = None
         self.registered = asyncio.Event()
         self.serve_frames = serve_frames
@@ -141,14 +166,13 @@ class CameraNode(Lifecycle):
                 f"{self.resolution[0]}x{self.resolution[1]}; the homography belongs to one image size"
             )
         self.field_of_view = FieldOfView.compute(self.homography, image_size, self.max_range_m)
-        self.detector = HsvDetector(
-            self.homography,
-            self.field_of_view,
-            image_size,
-            camera_id=self.camera_id,
-            min_area_px=self.min_area_px,
+        self.view = CameraView(
+            self.homography, self.field_of_view, image_size, camera_id=self.camera_id, min_area_px=self.min_area_px
         )
-        self._analyses = Analyses(self.source, self.detector, self.camera_id)
+        self._start_detectors(self.view)
+        self._heavy_pool = concurrent.futures.ThreadPoolExecutor(self.heavy_workers, f"detect:{self.camera_id}")
+        observers = [d for d in self.runners.values() if d.observes]
+        self._analyses = Analyses(self.source, self._prefetch, self.camera_id, observers=observers)
         self._analyses.start()
         log.info(
             "camera %s: source %s gives %dx%d; field of view %.1f m²",
@@ -199,6 +223,10 @@ class CameraNode(Lifecycle):
             await self._channel.close()
         if self._analyses is not None:
             await asyncio.to_thread(self._analyses.stop)
+        if self._heavy_pool is not None:
+            self._heavy_pool.shutdown(wait=False, cancel_futures=True)
+        for runner in self.runners.values():
+            runner.close()
         await asyncio.to_thread(self.source.stop)
         log.info("camera %s stopped", self.camera_id)
 
@@ -245,7 +273,7 @@ class CameraNode(Lifecycle):
             image_width=image_size[0],
             image_height=image_size[1],
             max_range_m=self.max_range_m,
-            detector_kinds=list(self.detectors),
+            detector_kinds=list(self.kinds),
             forward_secret=self.forward_secret,
         )
         interval = 1.0
@@ -324,11 +352,50 @@ class CameraNode(Lifecycle):
                 conflict = code == grpc.StatusCode.PERMISSION_DENIED
                 backoff = min(backoff * 2, max(interval, 5.0) if conflict else interval)
 
+    # --- detectors ---------------------------------------------------------------------------
+
+    def _start_detectors(self, view: CameraView) -> None:
+        """Build every configured detector; one that cannot run stops the camera here, at start."""
+        for prefix in self.detectors:
+            runner = REGISTRY[prefix](view, self.detector_options.get(prefix))
+            self.runners[prefix] = runner
+            for kind in runner.kinds():
+                self.kinds[kind] = runner
+        if not self.kinds:
+            raise InvalidArgument(f"detectors: camera {self.camera_id} would serve no object type")
+        log.info("camera %s serves %s", self.camera_id, ", ".join(self.kinds))
+
+    async def _find(self, runner: Detector, analysis: FrameAnalysis, wanted: ObjectType) -> tuple[Detection, ...]:
+        """The frame's objects of the key, found once: a request that arrives while another is
+        finding them waits for that result instead of starting another search."""
+        pending = analysis.pending.get(wanted.key)
+        if pending is None:
+            loop = asyncio.get_running_loop()
+            pool = self._heavy_pool if runner.heavy else None
+            pending = loop.run_in_executor(pool, analysis.found, wanted.key, lambda: runner.find(analysis, wanted))
+            analysis.pending[wanted.key] = pending
+            pending.add_done_callback(lambda _f: analysis.pending.pop(wanted.key, None))
+        found: tuple[Detection, ...] = await asyncio.shield(pending)
+        return found
+
+    def _prefetch(self, analysis: FrameAnalysis, filter_def: str) -> None:
+        """The prefetcher's work for one filter on a new frame (light detectors only)."""
+        wanted = object_type(filter_def)
+        runner = self.kinds.get(wanted.kind)
+        if runner is not None and not runner.heavy:
+            analysis.found(wanted.key, lambda: runner.find(analysis, wanted))
+
     # --- serving requests --------------------------------------------------------------------
 
     def accept(self, request: DetectionRequest) -> None:
-        if request.kind not in self.detectors:
-            raise InvalidArgument(f"filter_def: camera {self.camera_id} does not run detector {request.kind!r}")
+        wanted = object_type(request.filter_def)
+        runner = self.kinds.get(wanted.kind)
+        if runner is None:
+            raise InvalidArgument(
+                f"filter_def: camera {self.camera_id} does not serve {wanted.kind!r} "
+                f"(it serves {', '.join(self.kinds) or 'nothing'})"
+            )
+        runner.check(wanted)
         if len(self._jobs) >= MAX_ACTIVE_REQUESTS:
             raise ResourceExhausted(f"camera {self.camera_id}: {len(self._jobs)} requests active; try later")
         robot = request.callback_address
@@ -411,17 +478,19 @@ class CameraNode(Lifecycle):
                 error=f"camera {self.camera_id}: no fresh frame ({age})",
                 error_code="UNAVAILABLE",
             )
-        assert self.detector is not None and self._analyses is not None
+        assert self._analyses is not None
+        wanted = object_type(request.filter_def)
+        runner = self.kinds[wanted.kind]
         analysis = self._analyses.for_frame(frame)
-        self._analyses.want(analysis, request.filter_def)
+        if not runner.heavy:
+            self._analyses.want(analysis, request.filter_def)
         started = time.perf_counter()
-        cached = analysis.cached_blobs(request.filter_def)
-        if cached is not None:
-            # The prefetcher or another request already found this frame's blobs: selecting them
-            # is microseconds, so it is done here rather than paying a hop to a thread and back.
-            detections = self.detector.select(cached, request.region)
-        else:
-            detections = await asyncio.to_thread(self.detector.detect, analysis, request.filter_def, request.region)
+        found = analysis.cached_blobs(wanted.key)
+        if found is None:
+            found = await self._find(runner, analysis, wanted)
+        # Selecting what the frame holds is microseconds: done here, on the event loop, rather than
+        # paying a hop to a thread and back.
+        detections = select(runner.narrow(found, wanted), request.region)
         metrics.STAGE_DETECT.observe(time.perf_counter() - started)
         return DetectionReport(
             request_id=request.request_id,
@@ -447,7 +516,7 @@ class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         return self._accept(message)
 
     def _accept(self, message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
-        if self._node.detector is None:
+        if self._node.view is None:
             raise FailedPrecondition(f"camera {self._node.camera_id} is not started")
         request = request_from_pb(message, require_request_id=True)
         self._node.accept(request)

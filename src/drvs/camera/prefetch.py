@@ -10,14 +10,20 @@ event loop, in microseconds.
 A filter that nobody looked up on the previous frame is not prefetched, so for a filter asked
 about rarely prefetching costs at most one extra detection per frame asked about, and for a
 filter asked about on every frame (a robot following objects, many robots) it costs nothing extra.
+Heavy detectors (people, models) are never prefetched: at about 100 ms a frame, finding objects
+in frames nobody may look at again would take a core.
+
+Detectors that keep a model of the scene (foreground's background model) see every new frame on
+a second thread, whether or not requests look.
 """
 
 from __future__ import annotations
 
 import logging
 import threading
+from collections.abc import Callable, Sequence
 
-from drvs.detection import Frame, FrameAnalysis, HsvDetector
+from drvs.detectors import Detector, Frame, FrameAnalysis
 
 from .source import FrameSource
 
@@ -28,9 +34,20 @@ POLL_S = 0.002
 
 
 class Analyses:
-    def __init__(self, source: FrameSource, detector: HsvDetector, name: str = "") -> None:
+    def __init__(
+        self,
+        source: FrameSource,
+        prefetch: Callable[[FrameAnalysis, str], None],
+        name: str = "",
+        *,
+        observers: Sequence[Detector] = (),
+    ) -> None:
         self._source = source
-        self._detector = detector
+        self._prefetch = prefetch
+        self._observers = tuple(observers)
+        self._observer_thread = (
+            threading.Thread(target=self._observe, name=f"observe:{name}", daemon=True) if self._observers else None
+        )
         self._lock = threading.Lock()
         self._current: FrameAnalysis | None = None
         self._wanted = threading.Event()
@@ -42,12 +59,15 @@ class Analyses:
 
     def start(self) -> None:
         self._thread.start()
+        if self._observer_thread is not None:
+            self._observer_thread.start()
 
     def stop(self) -> None:
         self._stop.set()
         self._wanted.set()
-        if self._thread.is_alive():
-            self._thread.join(timeout=5)
+        for thread in (self._thread, self._observer_thread):
+            if thread is not None and thread.is_alive():
+                thread.join(timeout=5)
 
     def for_frame(self, frame: Frame) -> FrameAnalysis:
         """The one analysis of `frame`, made by whoever asks first (a request or the prefetcher)."""
@@ -88,9 +108,24 @@ class Analyses:
                 continue
             for filter_def in sorted(analysis.inherited):
                 try:
-                    self._detector.blobs(analysis, filter_def)  # waits if a request is finding them
+                    self._prefetch(analysis, filter_def)  # waits if a request is finding them
                 except Exception:  # a frame the detector refuses: the request path reports it
                     log.debug("prefetching %s failed", filter_def, exc_info=True)
             with self._done:
                 self.prefetched += 1
                 self._done.notify_all()
+
+    def _observe(self) -> None:
+        """Hand every new frame to the detectors that model the scene, in order, on this thread."""
+        handled = -1
+        while not self._stop.is_set():
+            frame = self._source.latest()
+            if frame is None or frame.sequence == handled:
+                self._stop.wait(POLL_S)
+                continue
+            handled = frame.sequence
+            for detector in self._observers:
+                try:
+                    detector.observe(frame)
+                except Exception:  # one bad frame must not end the camera's scene model
+                    log.warning("%s: observing frame %d failed", type(detector).__name__, frame.sequence, exc_info=True)

@@ -54,6 +54,9 @@ def detection_json(d: Detection) -> dict[str, Any]:
         "area_px": d.area_px,
         "pixel_box": [d.pixel_box.x, d.pixel_box.y, d.pixel_box.width, d.pixel_box.height],
         "score": round(d.score, 3),
+        "marker_id": d.marker_id,
+        "heading_deg": None if d.heading_deg is None else round(d.heading_deg, 2),
+        "label": d.label,
     }
 
 

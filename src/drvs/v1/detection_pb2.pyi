@@ -89,7 +89,7 @@ class DetectionReplies(_message.Message):
     def __init__(self, replies: _Optional[_Iterable[_Union[DetectionReply, _Mapping]]] = ...) -> None: ...
 
 class Detection(_message.Message):
-    __slots__ = ("outline_xy", "bounds", "centroid", "ground_contact", "pixel_box", "area_m2", "area_px", "score")
+    __slots__ = ("outline_xy", "bounds", "centroid", "ground_contact", "pixel_box", "area_m2", "area_px", "score", "marker_id", "heading_deg", "label")
     OUTLINE_XY_FIELD_NUMBER: _ClassVar[int]
     BOUNDS_FIELD_NUMBER: _ClassVar[int]
     CENTROID_FIELD_NUMBER: _ClassVar[int]
@@ -98,6 +98,9 @@ class Detection(_message.Message):
     AREA_M2_FIELD_NUMBER: _ClassVar[int]
     AREA_PX_FIELD_NUMBER: _ClassVar[int]
     SCORE_FIELD_NUMBER: _ClassVar[int]
+    MARKER_ID_FIELD_NUMBER: _ClassVar[int]
+    HEADING_DEG_FIELD_NUMBER: _ClassVar[int]
+    LABEL_FIELD_NUMBER: _ClassVar[int]
     outline_xy: _containers.RepeatedScalarFieldContainer[float]
     bounds: _geometry_pb2.FloorBox
     centroid: _geometry_pb2.FloorPoint
@@ -106,7 +109,10 @@ class Detection(_message.Message):
     area_m2: float
     area_px: float
     score: float
-    def __init__(self, outline_xy: _Optional[_Iterable[float]] = ..., bounds: _Optional[_Union[_geometry_pb2.FloorBox, _Mapping]] = ..., centroid: _Optional[_Union[_geometry_pb2.FloorPoint, _Mapping]] = ..., ground_contact: _Optional[_Union[_geometry_pb2.FloorPoint, _Mapping]] = ..., pixel_box: _Optional[_Union[_geometry_pb2.PixelBox, _Mapping]] = ..., area_m2: _Optional[float] = ..., area_px: _Optional[float] = ..., score: _Optional[float] = ...) -> None: ...
+    marker_id: int
+    heading_deg: float
+    label: str
+    def __init__(self, outline_xy: _Optional[_Iterable[float]] = ..., bounds: _Optional[_Union[_geometry_pb2.FloorBox, _Mapping]] = ..., centroid: _Optional[_Union[_geometry_pb2.FloorPoint, _Mapping]] = ..., ground_contact: _Optional[_Union[_geometry_pb2.FloorPoint, _Mapping]] = ..., pixel_box: _Optional[_Union[_geometry_pb2.PixelBox, _Mapping]] = ..., area_m2: _Optional[float] = ..., area_px: _Optional[float] = ..., score: _Optional[float] = ..., marker_id: _Optional[int] = ..., heading_deg: _Optional[float] = ..., label: _Optional[str] = ...) -> None: ...
 
 class DetectionReport(_message.Message):
     __slots__ = ("request_id", "camera_id", "capture_time", "sequence", "final", "detections", "error", "report_key", "error_code")

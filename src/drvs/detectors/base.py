@@ -1,0 +1,351 @@
+"""What every detector shares: frames, per-frame caches, mapping to the floor, and the registry.
+
+A detector is a plug-in keyed by the prefix of the `filter_def` strings it serves (``hsv``,
+``aruco``, ``people``, ``foreground``, ``model``), as frigate's detectors are keyed by type: one
+file defines a `Detector` subclass decorated with `@register`, and `drvs.detectors` imports it.
+The class parses and validates its strings (pure, cheap: the server calls it on every request);
+an instance runs on one camera and finds objects in frames. Mapping pixels to the floor
+(`CameraView`), selecting by region and sharing one frame's work among requests stay common.
+
+Each `filter_def` parses to an `ObjectType` with three names:
+- `kind`: what a camera registers and the server routes by (``hsv``, ``aruco``, ``model_yolo``);
+- `key`: the per-frame work it shares with other types (``aruco_4x4_50`` serves every id of that
+  dictionary; ``model_yolo`` serves every class of that model);
+- `filter_def` itself, which `Detector.narrow` uses to keep what this type asks for.
+"""
+
+from __future__ import annotations
+
+import threading
+import time
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, TypeVar
+
+import cv2
+import numpy as np
+import shapely
+from numpy.typing import NDArray
+from shapely.geometry import Polygon
+
+from drvs.errors import InvalidArgument
+from drvs.geometry import FieldOfView, Homography
+from drvs.model import Detection, PixelBox
+
+#: Blobs smaller than this many pixels are noise.
+DEFAULT_MIN_AREA_PX = 30.0
+#: Outlines are simplified (Douglas-Peucker) to within this many pixels before they are mapped:
+#: a contour lists every boundary pixel, and reports would carry ten times the points for
+#: no information the image resolution supports.
+OUTLINE_TOLERANCE_PX = 1.0
+#: filter_def strings are short; longer ones are refused before any parsing.
+MAX_FILTER_DEF_LENGTH = 64
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A captured image (BGR) with its capture time (Unix seconds, for reports) and a per-source
+    sequence number. `captured_at` is the same instant on the monotonic clock: a frame's age is
+    measured on it, so a wall clock that steps (NTP, an operator) never makes a stale frame look
+    fresh or a fresh one stale."""
+
+    image: NDArray[np.uint8]
+    capture_time: float
+    sequence: int
+    captured_at: float = field(default_factory=time.monotonic)
+
+    def age_s(self) -> float:
+        """Seconds since capture, on the monotonic clock."""
+        return time.monotonic() - self.captured_at
+
+    @property
+    def size(self) -> tuple[int, int]:
+        return int(self.image.shape[1]), int(self.image.shape[0])
+
+
+@dataclass
+class FrameAnalysis:
+    """Per-frame caches shared by all requests served from this frame.
+
+    `found(key, compute)` runs `compute` once per key and frame; a second caller of the same key
+    waits for the first caller's result, and callers of other keys are not held up by it (one lock
+    per key: a 100 ms people search never delays a colour request on the same frame).
+    """
+
+    frame: Frame
+    _hsv: NDArray[np.uint8] | None = None
+    _gray: NDArray[np.uint8] | None = None
+    _blobs: dict[str, tuple[Detection, ...]] = field(default_factory=dict)
+    _lock: threading.Lock = field(default_factory=threading.Lock)
+    _key_locks: dict[str, threading.Lock] = field(default_factory=dict)
+    #: Filters requests looked up on this frame, and on the frame before it (see drvs.camera.prefetch).
+    wanted: set[str] = field(default_factory=set)
+    inherited: frozenset[str] = frozenset()
+    #: In-flight computations by key, for requests on the event loop (see drvs.camera.node).
+    pending: dict[str, Any] = field(default_factory=dict)
+
+    def cached_blobs(self, key: str) -> tuple[Detection, ...] | None:
+        """This key's detections if someone already found them (a complete entry or none: the
+        entry is stored whole, once), without waiting for a thread that is finding them."""
+        return self._blobs.get(key)
+
+    def found(self, key: str, compute: Callable[[], tuple[Detection, ...]]) -> tuple[Detection, ...]:
+        """`compute()` for this frame and key, run once; later callers get the same tuple."""
+        cached = self._blobs.get(key)
+        if cached is not None:
+            return cached
+        with self._lock:
+            lock = self._key_locks.setdefault(key, threading.Lock())
+        with lock:
+            cached = self._blobs.get(key)
+            if cached is None:
+                cached = compute()
+                self._blobs[key] = cached
+            return cached
+
+    def hsv(self) -> NDArray[np.uint8]:
+        if self._hsv is None:
+            self._hsv = np.asarray(cv2.cvtColor(self.frame.image, cv2.COLOR_BGR2HSV), dtype=np.uint8)
+        return self._hsv
+
+    def gray(self) -> NDArray[np.uint8]:
+        if self._gray is None:
+            image = self.frame.image
+            self._gray = np.asarray(
+                image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), dtype=np.uint8
+            )
+        return self._gray
+
+
+@dataclass(frozen=True)
+class ObjectType:
+    """A parsed, valid filter_def (see the module docstring for kind and key)."""
+
+    filter_def: str
+    prefix: str
+    kind: str
+    key: str
+    #: What the detector parsed out of the string (an HsvRange, a marker id, a class name ...).
+    params: Any = None
+
+
+class CameraView:
+    """One camera's geometry: image size, image->floor homography and field of view, and the
+    mapping of pixel shapes to floor detections every detector uses."""
+
+    def __init__(
+        self,
+        homography: Homography,
+        field_of_view: FieldOfView,
+        image_size: tuple[int, int],
+        *,
+        camera_id: str = "",
+        min_area_px: float = DEFAULT_MIN_AREA_PX,
+    ) -> None:
+        self.homography = homography
+        self.field_of_view = field_of_view
+        self.image_size = image_size
+        self.camera_id = camera_id
+        self.min_area_px = min_area_px
+        width, height = image_size
+        # Only pixels that map into the field of view may become detections: above the horizon the
+        # homography maps to points behind the camera or at infinity.
+        self.fov_mask = np.zeros((height, width), dtype=np.uint8)
+        ring = np.round(np.asarray(field_of_view.image.exterior.coords)[:-1]).astype(np.int32)
+        cv2.fillPoly(self.fov_mask, [ring], 255)
+
+    def check_frame(self, frame: Frame) -> None:
+        if frame.size != self.image_size:
+            raise ValueError(f"frame size {frame.size} differs from the calibrated size {self.image_size}")
+
+    def in_view(self, u: float, v: float) -> bool:
+        """Is pixel (u, v) inside the field of view (so its floor point means something)?"""
+        x, y = round(u), round(v)
+        h, w = self.fov_mask.shape
+        return 0 <= x < w and 0 <= y < h and bool(self.fov_mask[y, x])
+
+    def floor_outline(self, pixel_points: NDArray[Any]) -> Polygon | None:
+        """A pixel polygon (N x 2) mapped onto the floor as a valid polygon, or None."""
+        pts = np.asarray(pixel_points, dtype=np.float64).reshape(-1, 2)
+        if len(pts) < 3:
+            return None
+        floor_pts = self.homography.apply(pts)
+        if not np.all(np.isfinite(floor_pts)):
+            return None
+        outline = Polygon(floor_pts)
+        if not outline.is_valid:
+            fixed = shapely.make_valid(outline)
+            polys = [g for g in getattr(fixed, "geoms", [fixed]) if isinstance(g, Polygon) and not g.is_empty]
+            if not polys:
+                return None
+            outline = max(polys, key=lambda g: g.area)
+        if outline.is_empty or outline.area <= 0:
+            return None
+        return outline
+
+    def to_floor(self, pixel_xy: Sequence[float]) -> tuple[float, float]:
+        x, y = self.homography.apply([list(pixel_xy)])[0]
+        return float(x), float(y)
+
+    def detection(
+        self,
+        pixel_outline: NDArray[Any],
+        object_type: ObjectType | str,
+        capture_time: float,
+        *,
+        score: float,
+        area_px: float | None = None,
+        contact_px: tuple[float, float] | None = None,
+        centre_px: tuple[float, float] | None = None,
+        marker_id: int | None = None,
+        heading_deg: float | None = None,
+        label: str = "",
+    ) -> Detection | None:
+        """A floor detection from a pixel outline (N x 2), or None when it does not map.
+
+        `contact_px` defaults to the bottom centre of the pixel box (where an upright object meets
+        the floor); `centre_px`, when given, is mapped as the centroid (a marker's centre) instead
+        of the floor outline's centroid.
+        """
+        pts = np.asarray(pixel_outline, dtype=np.float64).reshape(-1, 2)
+        outline = self.floor_outline(pts)
+        if outline is None:
+            return None
+        x0, y0 = np.floor(pts.min(axis=0))
+        x1, y1 = np.ceil(pts.max(axis=0))
+        x, y, w, h = int(x0), int(y0), max(1, int(x1 - x0)), max(1, int(y1 - y0))
+        if contact_px is None:
+            contact_px = (x + (w - 1) / 2.0, y + h - 1.0)
+        contact = self.to_floor(contact_px)
+        if centre_px is not None:
+            centroid_xy = self.to_floor(centre_px)
+        else:
+            c = outline.centroid
+            centroid_xy = (float(c.x), float(c.y))
+        filter_def = object_type if isinstance(object_type, str) else object_type.filter_def
+        return Detection(
+            outline=outline,
+            bounds=tuple(float(v) for v in outline.bounds),  # type: ignore[arg-type]
+            centroid_xy=centroid_xy,
+            ground_contact_xy=contact,
+            pixel_box=PixelBox(x, y, w, h),
+            area_m2=float(outline.area),
+            area_px=float(cv2.contourArea(pts.astype(np.float32))) if area_px is None else area_px,
+            score=float(score),
+            filter_def=filter_def,
+            camera_id=self.camera_id,
+            capture_time=capture_time,
+            marker_id=marker_id,
+            heading_deg=heading_deg,
+            label=label,
+        )
+
+    def simplified(self, contour: NDArray[Any]) -> NDArray[np.float64]:
+        """A contour simplified to OUTLINE_TOLERANCE_PX (the contour itself if that degenerates)."""
+        simplified = cv2.approxPolyDP(contour, OUTLINE_TOLERANCE_PX, True)
+        return (simplified if len(simplified) >= 3 else contour).reshape(-1, 2).astype(np.float64)
+
+
+def select(found: Sequence[Detection], region: Polygon | None) -> list[Detection]:
+    """The detections whose floor outline meets `region` (all of them when None): microseconds."""
+    if region is None:
+        return list(found)
+    shapely.prepare(region)
+    return [d for d in found if region.intersects(d.outline)]
+
+
+class Detector(ABC):
+    """A detector plug-in: subclass, set `prefix`, implement `parse` and `find`, and `@register`.
+
+    One instance runs on one camera. `find` runs in a worker thread (a bounded pool when `heavy`),
+    at most once per frame and key however many requests ask; it must be thread-safe with respect
+    to other keys. Raise DrvsError subclasses (InvalidArgument, FailedPrecondition ...) with a
+    message naming what is wrong; a configuration a detector cannot run with is refused in
+    `__init__`, when the camera starts, never later request by request.
+    """
+
+    #: The filter_def prefix this detector serves ("hsv", "aruco", ...): the registry's key.
+    prefix: ClassVar[str]
+    #: One example filter_def, for error messages and docs.
+    example: ClassVar[str]
+    #: About 100 ms a frame or more: run in the camera's bounded worker pool, never prefetched.
+    heavy: ClassVar[bool] = False
+    #: Sees every frame through `observe` (a background model), not only frames requests look at.
+    observes: ClassVar[bool] = False
+
+    def __init__(self, view: CameraView, options: Mapping[str, Any] | None = None) -> None:
+        self.view = view
+        self.options: Mapping[str, Any] = options or {}
+
+    @classmethod
+    @abstractmethod
+    def parse(cls, filter_def: str) -> ObjectType:
+        """Validate a filter_def with this prefix; InvalidArgument naming the part that is wrong."""
+
+    def kinds(self) -> tuple[str, ...]:
+        """The routing kinds this instance serves (what the camera registers)."""
+        return (self.prefix,)
+
+    def check(self, object_type: ObjectType) -> None:
+        """Refuse (InvalidArgument) a well-formed type this camera's instance cannot serve."""
+        return None
+
+    @abstractmethod
+    def find(self, analysis: FrameAnalysis, object_type: ObjectType) -> tuple[Detection, ...]:
+        """Every object of `object_type.key` in the frame, mapped to the floor."""
+
+    def narrow(self, found: tuple[Detection, ...], object_type: ObjectType) -> tuple[Detection, ...]:
+        """Of what `find` returned for the key, what this filter_def asks for (cheap)."""
+        return found
+
+    def observe(self, frame: Frame) -> None:
+        """Called with new frames when `observes` is set, from one thread."""
+        return None
+
+    def close(self) -> None:
+        """Free what the detector holds (models, threads)."""
+        return None
+
+
+D = TypeVar("D", bound=type[Detector])
+
+#: Detector classes by prefix, in registration order.
+REGISTRY: dict[str, type[Detector]] = {}
+
+
+def register(cls: D) -> D:
+    """Class decorator: make a Detector subclass serve filter_defs starting with its prefix."""
+    prefix = cls.prefix
+    if not prefix.isalpha() or not prefix.islower():
+        raise ValueError(f"detector prefix {prefix!r} must be lower-case letters")
+    if prefix in REGISTRY and REGISTRY[prefix] is not cls:
+        raise ValueError(f"two detectors claim prefix {prefix!r}: {REGISTRY[prefix].__name__} and {cls.__name__}")
+    REGISTRY[prefix] = cls
+    return cls
+
+
+def prefixes() -> tuple[str, ...]:
+    return tuple(REGISTRY)
+
+
+def parse_object_type(filter_def: str) -> ObjectType:
+    """The ObjectType a filter_def names; InvalidArgument naming what is wrong."""
+    if not isinstance(filter_def, str) or not filter_def:
+        raise InvalidArgument(f"filter_def: empty; expected e.g. {_examples()}")
+    if len(filter_def) > MAX_FILTER_DEF_LENGTH:
+        raise InvalidArgument(
+            f"filter_def: {len(filter_def)} characters; at most {MAX_FILTER_DEF_LENGTH} (e.g. {_examples()})"
+        )
+    prefix = filter_def.split("_", 1)[0]
+    cls = REGISTRY.get(prefix)
+    if cls is None:
+        raise InvalidArgument(
+            f"filter_def: unknown object type {prefix[:40]!r} in {filter_def[:40]!r}; "
+            f"known types: {', '.join(REGISTRY)} (e.g. {_examples()})"
+        )
+    return cls.parse(filter_def)
+
+
+def _examples() -> str:
+    return ", ".join(repr(cls.example) for cls in REGISTRY.values())
