@@ -9,10 +9,18 @@ from __future__ import annotations
 
 import functools
 
-from drvs.detectors import HsvRange, ObjectType, parse_object_type, prefixes
+from drvs.detectors import REGISTRY, HsvRange, ObjectType, parse_object_type, prefixes
 from drvs.detectors.hsv import HSV_PREFIX
 
-__all__ = ["DETECTOR_KINDS", "HSV_PREFIX", "HsvRange", "detector_kind", "object_type", "validate_filter_def"]
+__all__ = [
+    "DETECTOR_KINDS",
+    "HSV_PREFIX",
+    "HsvRange",
+    "detector_kind",
+    "is_known_type",
+    "object_type",
+    "validate_filter_def",
+]
 
 #: The filter_def prefixes this package can parse, in registration order.
 DETECTOR_KINDS = prefixes()
@@ -38,3 +46,8 @@ def _parsed(filter_def: str) -> ObjectType:
 def detector_kind(filter_def: str) -> str:
     """The routing kind a filter_def asks for (what cameras register), or InvalidArgument."""
     return object_type(filter_def).kind
+
+
+def is_known_type(filter_def: str) -> bool:
+    """Does this process have a detector plug-in for the filter_def's prefix?"""
+    return isinstance(filter_def, str) and filter_def.split("_", 1)[0] in REGISTRY

@@ -168,9 +168,11 @@ class ManagedProcess:
         return self.process.returncode
 
 
-async def start_server(*args: str, echo: TextIO | None = None) -> tuple[ManagedProcess, str]:
+async def start_server(
+    *args: str, echo: TextIO | None = None, env: dict[str, str] | None = None
+) -> tuple[ManagedProcess, str]:
     proc = await ManagedProcess.entry_point(
-        "server", "drvs-server", "--listen", "127.0.0.1:0", *args, echo=echo
+        "server", "drvs-server", "--listen", "127.0.0.1:0", *args, echo=echo, env=env
     ).start()
     m = await proc.wait_for_line(SERVER_READY)
     return proc, m.group(1)
@@ -183,6 +185,7 @@ async def start_camera(
     server: str,
     *args: str,
     echo: TextIO | None = None,
+    env: dict[str, str] | None = None,
 ) -> ManagedProcess:
     proc = ManagedProcess.entry_point(
         camera_id,
@@ -199,6 +202,7 @@ async def start_camera(
         "127.0.0.1:0",
         *args,
         echo=echo,
+        env=env,
     )
     await proc.start()
     await proc.wait_for_line(CAMERA_REGISTERED.format(id=re.escape(camera_id)))

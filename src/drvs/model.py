@@ -164,15 +164,20 @@ class DetectionRequest:
     #: What the camera presents to the robot for this request (see drvs.report_auth); from the server.
     report_key: bytes = b""
 
-    def validate(self, *, require_request_id: bool = True) -> None:
-        """Everything but the region, which is validated when it is built."""
+    def validate(self, *, require_request_id: bool = True, unknown_types: bool = False) -> None:
+        """Everything but the region, which is validated when it is built. unknown_types=True (the
+        robot's side): a filter_def whose type this process has no detector plug-in for is left to
+        the server, which knows what its cameras serve; types it knows are checked here."""
         if require_request_id and not self.request_id:
             raise InvalidArgument("request_id: empty")
         check_id(self.request_id, "request_id", allow_empty=not require_request_id)
         check_id(self.robot_id, "robot_id", allow_empty=True)
-        from drvs.filters import validate_filter_def  # drvs.filters imports the detectors, which use this module
+        from drvs.filters import is_known_type, validate_filter_def  # drvs.filters imports the detectors
 
-        validate_filter_def(self.filter_def)
+        if not (unknown_types and self.filter_def and not is_known_type(self.filter_def)):
+            validate_filter_def(self.filter_def)
+        elif len(self.filter_def) > MAX_ID_LENGTH:
+            raise InvalidArgument(f"filter_def: longer than {MAX_ID_LENGTH} characters")
         parse_address(self.callback_address, "callback_address")
         self.continuous.validate()
         if len(self.report_key) > MAX_KEY_BYTES:

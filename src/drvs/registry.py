@@ -177,6 +177,12 @@ class Registry:
     def cameras(self) -> list[CameraEntry]:
         return sorted((e for e in self._entries.values() if self.is_live(e.camera_id)), key=lambda e: e.camera_id)
 
+    def kinds_served(self) -> set[str]:
+        """Every object type (routing kind) some live camera serves."""
+        now = self._clock()
+        live = (e for e in self._entries.values() if self._expires.get(e.camera_id, 0.0) > now)
+        return {kind for e in live for kind in e.detector_kinds}
+
     def cameras_seeing(self, region: Polygon, kind: str | None = None) -> list[CameraEntry]:
         """Live cameras whose field of view meets `region` with positive area (and run `kind`)."""
         now = self._clock()

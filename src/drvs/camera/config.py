@@ -164,10 +164,15 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
         if name == "detectors":
             kinds = raw if isinstance(raw, list) else str(raw).split(",")
             kinds = [str(k).strip() for k in kinds if str(k).strip()]
+            if not kinds:
+                raise InvalidArgument(f"{where}: {raw!r}: name at least one of {', '.join(DETECTOR_KINDS)}")
             unknown = [k for k in kinds if k not in DETECTOR_KINDS]
-            if not kinds or unknown:
-                raise InvalidArgument(f"{where}: {raw!r}: detectors must be some of {', '.join(DETECTOR_KINDS)}")
-            return tuple(kinds)
+            if unknown:
+                raise InvalidArgument(
+                    f"{where}: {', '.join(map(repr, unknown))} is not an installed detector; "
+                    f"installed: {', '.join(DETECTOR_KINDS)}"
+                )
+            return tuple(dict.fromkeys(kinds))
         if name in ("max_range_m", "min_area_px", "max_frame_age_s", "fps", "heartbeat_s"):
             value = float(raw) if not isinstance(raw, bool) else math.nan
             limits = {

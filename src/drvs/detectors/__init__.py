@@ -1,10 +1,15 @@
 """Detector plug-ins, keyed by the prefix of the filter_def strings they serve.
 
-A new detector is one module here: a `Detector` subclass decorated with `@register`, imported
-below. See `drvs.detectors.base` for what a detector implements and what stays common.
+A new detector is one module: a `Detector` subclass decorated with `@register`, either here
+(imported below) or in any installed package that names the module under the "drvs.detectors"
+entry-point group. Servers and cameras both load it: the server parses filter_defs with it.
+See `drvs.detectors.base` for what a detector implements and what stays common.
 """
 
 from __future__ import annotations
+
+import importlib.metadata
+import logging
 
 from .base import (
     DEFAULT_MIN_AREA_PX,
@@ -40,3 +45,24 @@ __all__ = [
     "register",
     "select",
 ]
+
+
+#: The entry-point group a package names its detector modules in, e.g. in its pyproject.toml:
+#: [project.entry-points."drvs.detectors"] stripes = "my_package.stripes"
+ENTRY_POINT_GROUP = "drvs.detectors"
+log = logging.getLogger(__name__)
+
+
+def _load_plugins() -> None:
+    """Import the detector modules installed packages name; each registers itself. A broken
+    plug-in is logged and skipped: it must not take down the cameras and servers that never use it."""
+    for entry in importlib.metadata.entry_points(group=ENTRY_POINT_GROUP):
+        try:
+            entry.load()
+        except Exception as exc:  # a third party's import error, whatever it is
+            log.error(
+                "detector plug-in %s (%s) failed to load: %s: %s", entry.name, entry.value, type(exc).__name__, exc
+            )
+
+
+_load_plugins()

@@ -151,7 +151,8 @@ async def cameras(args: argparse.Namespace) -> int:
             x0, y0, x1, y1 = c.field_of_view.bounds
             print(
                 f"{c.camera_id:12s} {c.address:22s} field of view {c.field_of_view.area:6.1f} m² "
-                f"within [{x0:.1f}, {y0:.1f}, {x1:.1f}, {y1:.1f}]  lease {c.lease_remaining_s:.1f} s"
+                f"within [{x0:.1f}, {y0:.1f}, {x1:.1f}, {y1:.1f}]  lease {c.lease_remaining_s:.1f} s  "
+                f"serves {','.join(c.detector_kinds)}"
             )
     return 0
 

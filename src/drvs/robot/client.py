@@ -483,7 +483,7 @@ class DrvsClient:
             continuous=ContinuousMode(float(rate_hz), float(duration_s)),
             omit_outlines=not outlines,
         )
-        request.validate()
+        request.validate(unknown_types=True)
         if request.request_id in self._subscriptions:
             raise InvalidArgument(f"request_id: {request.request_id!r} is already in use")
         # Registered before sending: a camera may report before the server's reply arrives.

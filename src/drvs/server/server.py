@@ -31,6 +31,7 @@ from drvs.convert import (
 from drvs.errors import (
     DeadlineExceeded,
     DrvsError,
+    FailedPrecondition,
     InvalidArgument,
     ResourceExhausted,
     Unauthenticated,
@@ -361,6 +362,17 @@ class DrvsServer(Lifecycle):
                 missing.append(MissingCamera(camera_id, "UNAVAILABLE", message, entry.field_of_view))
         return cameras, missing
 
+    def refuse_unserved(self, request: DetectionRequest) -> None:
+        """FailedPrecondition when cameras are up but none serves the request's object type: the
+        robot hears that nobody can answer it, not an empty answer it may read as "nothing there".
+        (With no camera up at all the answer stays empty, as the paper's protocol has it.)"""
+        served = self.registry.kinds_served()
+        if served and request.kind not in served:
+            raise FailedPrecondition(
+                f"filter_def: no camera serves {request.kind!r} (asked for {request.filter_def[:64]!r}); "
+                f"the cameras serve {', '.join(sorted(served))}"
+            )
+
     def _uncovered(
         self, region: Polygon, cameras: list[CameraEntry], missing: list[MissingCamera]
     ) -> list[geometry_pb2.Polygon]:
@@ -586,6 +598,8 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
             logs.request_id.set(request.request_id)
         plan = self._s.plan(request)
         cameras = plan[0]
+        if not cameras and not plan[1]:
+            self._s.refuse_unserved(request)
         # What this request costs the cameras, counted against the robot's budget (not what it
         # cost the robot to send: on a stream a repeated region is left out).
         limits = self._s.limits

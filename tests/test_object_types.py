@@ -1,0 +1,131 @@
+"""Object types end to end, with real processes: a camera registers the types it serves, the server
+routes a request only to cameras that serve its type, a type nobody serves is refused by name, a
+malformed filter_def is refused naming the wrong part, and a detector plug-in installed from
+outside the drvs package (an entry point, as a third party would ship it) runs in a real camera."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from collections.abc import AsyncIterator
+from pathlib import Path
+
+import pytest
+import pytest_asyncio
+
+from drvs.errors import FailedPrecondition, InvalidArgument
+from drvs.launch import ManagedProcess, start_camera, start_server
+from drvs.robot import DrvsClient
+from drvs.sim.scene import RecordedCamera
+
+from .conftest import CAM1_REGION, MAX_RANGE, OBJECTS, YELLOW
+
+PLUGINS = Path(__file__).parent / "plugins"
+
+
+def plugin_env(tmp: Path) -> dict[str, str]:
+    """An environment in which Python finds tests/plugins/drvs_test_colours.py as an installed
+    package's "drvs.detectors" entry points (a .dist-info beside it, as pip would write)."""
+    site = tmp / "site"
+    info = site / "drvs_test_colours-1.0.dist-info"
+    info.mkdir(parents=True)
+    (info / "METADATA").write_text("Metadata-Version: 2.1\nName: drvs-test-colours\nVersion: 1.0\n")
+    (info / "entry_points.txt").write_text("[drvs.detectors]\ncolours = drvs_test_colours\n")
+    path = os.pathsep.join([str(site), str(PLUGINS), os.environ.get("PYTHONPATH", "")])
+    return {**os.environ, "PYTHONPATH": path}
+
+
+class Floor:
+    def __init__(self, server: ManagedProcess, address: str, cameras: list[ManagedProcess]) -> None:
+        self.server, self.address, self.cameras = server, address, cameras
+
+
+@pytest_asyncio.fixture
+async def floor(recorded: dict[str, RecordedCamera], tmp_path: Path) -> AsyncIterator[Floor]:
+    """A server and two cameras on the same view: `colour` runs only hsv; `plug` runs hsv and the
+    plug-in's `yellowish` (the plug-in also offers `greenish`, which no camera runs)."""
+    env = plugin_env(tmp_path)
+    rec = recorded["cam1"]
+    server, address = await start_server(env=env)
+    floor = Floor(server, address, [])
+    try:
+        for camera_id, detectors in (("colour", "hsv"), ("plug", "hsv,yellowish")):
+            floor.cameras.append(
+                await start_camera(
+                    camera_id,
+                    rec.video,
+                    rec.homography_file,
+                    address,
+                    "--max-range",
+                    MAX_RANGE,
+                    "--detectors",
+                    detectors,
+                    env=env,
+                )
+            )
+        yield floor
+    finally:
+        for proc in floor.cameras:
+            await proc.stop()
+        await server.stop()
+
+
+async def test_requests_go_only_to_cameras_that_serve_their_type(floor: Floor) -> None:
+    async with DrvsClient(floor.address, robot_id="r1") as client:
+        kinds = {c.camera_id: set(c.detector_kinds) for c in await client.cameras()}
+        assert kinds == {"colour": {"hsv"}, "plug": {"hsv", "yellowish"}}
+
+        colour = await client.detect(YELLOW, CAM1_REGION, timeout_s=20)
+        assert sorted(colour.camera_ids) == ["colour", "plug"] and colour.complete
+
+        plugged = await client.detect("yellowish_30", CAM1_REGION, timeout_s=20)
+        assert plugged.camera_ids == ("plug",) and plugged.complete
+        # The plug-in's own code found the yellow discs on the real pixels; the common code mapped them.
+        yellow = [o for o in OBJECTS if o.filter_def == YELLOW and o.center[0] < 5]
+        assert len(plugged.detections) == len(yellow)
+        for d in plugged.detections:
+            assert d.label == "yellowish" and d.filter_def == "yellowish_30"
+            assert min(math.dist(d.centroid_xy, o.center) for o in yellow) < 0.15
+
+        with pytest.raises(FailedPrecondition, match=r"filter_def: no camera serves 'greenish' .*'greenish_30'"):
+            await client.detect("greenish_30", CAM1_REGION, timeout_s=20)
+        with pytest.raises(InvalidArgument, match=r"filter_def: 'yellowish_x' is not 'yellowish_' and a minimum"):
+            await client.detect("yellowish_x", CAM1_REGION, timeout_s=20)
+        with pytest.raises(InvalidArgument, match=r"filter_def: unknown object type 'purple' .*known types: hsv"):
+            await client.detect("purple_1", CAM1_REGION, timeout_s=20)
+
+
+async def test_drvs_robot_cameras_shows_each_cameras_types(floor: Floor) -> None:
+    proc = await ManagedProcess.entry_point("robot", "drvs-robot", "cameras", "--server", floor.address).start()
+    assert await proc.wait() == 0, proc.output()
+    lines = {line.split()[0]: line for line in proc.lines if line.strip()}
+    assert lines["colour"].endswith("serves hsv") and lines["plug"].endswith("serves hsv,yellowish"), proc.output()
+    proc = await ManagedProcess.entry_point(
+        "robot", "drvs-robot", "cameras", "--json", "--server", floor.address
+    ).start()
+    assert await proc.wait() == 0, proc.output()
+    rows = {r["camera_id"]: r["detector_kinds"] for r in map(json.loads, proc.lines)}
+    assert rows == {"colour": ["hsv"], "plug": ["hsv", "yellowish"]}
+
+
+async def test_a_camera_asked_for_a_detector_that_is_not_installed_stops_at_start(
+    recorded: dict[str, RecordedCamera],
+) -> None:
+    rec = recorded["cam1"]
+    proc = await ManagedProcess.entry_point(
+        "cam",
+        "drvs-camera",
+        "--id",
+        "cam",
+        "--source",
+        str(rec.video),
+        "--homography",
+        str(rec.homography_file),
+        "--server",
+        "127.0.0.1:1",
+        "--detectors",
+        "hsv,yellowish",  # the plug-in is not on this process's path
+    ).start()
+    assert await proc.wait() != 0
+    assert "'yellowish' is not an installed detector; installed: hsv" in proc.output(), proc.output()
