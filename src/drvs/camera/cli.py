@@ -77,6 +77,11 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"detectors to run, comma-separated prefixes (default: every one installed; {e['detectors']})",
     )
     p.add_argument(
+        "--detect-workers",
+        metavar="N",
+        help=f"threads for heavy detectors (people, models); requests beyond them queue ({e['detect_workers']})",
+    )
+    p.add_argument(
         "--heartbeat", dest="heartbeat_s", type=float, metavar="S", help="heartbeat interval (default: lease / 3)"
     )
     p.add_argument(
@@ -341,6 +346,7 @@ def main(argv: list[str] | None = None) -> int:
             serve_frames=config.serve_frames,
             resolution=config.resolution,
             detectors=config.detectors,
+            heavy_workers=config.detect_workers,
             heartbeat_s=config.heartbeat_s,
             max_continuous_per_robot=config.max_continuous,
             security=config.security(),

@@ -7,6 +7,7 @@ default. Unknown keys and bad values are errors that name the key and where it c
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Mapping
 from dataclasses import dataclass, fields
 from pathlib import Path
@@ -28,6 +29,8 @@ DEFAULT_SERVER = "127.0.0.1:50051"
 DEFAULT_LISTEN = "127.0.0.1:0"
 DEFAULT_MAX_FRAME_AGE_S = 2.0
 DEFAULT_MAX_CONTINUOUS_PER_ROBOT = 32  # as drvs.camera.node's
+#: As drvs.camera.node's DEFAULT_HEAVY_WORKERS: one thread on two cores, leaving one for the rest.
+DEFAULT_DETECT_WORKERS = max(1, min(2, (os.cpu_count() or 1) - 1))
 
 #: Every environment variable a camera node reads, by setting.
 ENVIRONMENT = {
@@ -47,6 +50,7 @@ ENVIRONMENT = {
     "detectors": "DRVS_CAMERA_DETECTORS",
     "heartbeat_s": "DRVS_CAMERA_HEARTBEAT",
     "max_continuous": "DRVS_CAMERA_MAX_CONTINUOUS",
+    "detect_workers": "DRVS_CAMERA_DETECT_WORKERS",
     "log_level": "DRVS_LOG_LEVEL",
     "log_format": "DRVS_LOG_FORMAT",
     "metrics_port": "DRVS_METRICS_PORT",
@@ -77,6 +81,8 @@ class CameraConfig:
     heartbeat_s: float | None = None
     #: Continuous requests one robot (callback address) may have running on this camera at once.
     max_continuous: int = DEFAULT_MAX_CONTINUOUS_PER_ROBOT
+    #: Threads that run heavy detectors (people, models); requests beyond them queue.
+    detect_workers: int = DEFAULT_DETECT_WORKERS
     log_level: str | None = None
     #: text, or json (one object per line, with the request id).
     log_format: str | None = None
@@ -108,7 +114,8 @@ _FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max
           "detectors": "--detectors", "heartbeat_s": "--heartbeat", "tls_cert": "--tls-cert",
           "tls_key": "--tls-key", "tls_ca": "--tls-ca", "tls_client_auth": "--tls-client-auth",
           "token_file": "--token-file", "log_format": "--log-format", "metrics_port": "--metrics-port",
-          "metrics_host": "--metrics-host", "max_continuous": "--max-continuous"}  # fmt: skip
+          "metrics_host": "--metrics-host", "max_continuous": "--max-continuous",
+          "detect_workers": "--detect-workers"}  # fmt: skip
 
 
 def load_config(
@@ -185,10 +192,11 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
             if not (math.isfinite(value) and limits[0] <= value <= limits[1]):
                 raise InvalidArgument(f"{where}: {raw!r} must be a number from {limits[0]:g} to {limits[1]:g}")
             return value
-        if name == "max_continuous":
+        if name in ("max_continuous", "detect_workers"):
             count = int(raw) if not isinstance(raw, bool) and str(raw).strip().isdecimal() else 0
-            if not 1 <= count <= 1_000_000:
-                raise InvalidArgument(f"{where}: {raw!r} must be a whole number from 1 to 1000000")
+            top = 1_000_000 if name == "max_continuous" else 64
+            if not 1 <= count <= top:
+                raise InvalidArgument(f"{where}: {raw!r} must be a whole number from 1 to {top}")
             return count
         if name == "metrics_port":
             port = int(raw) if not isinstance(raw, bool) and str(raw).strip().isdecimal() else -1
