@@ -27,6 +27,14 @@ FORWARDED_BYTES = Counter(
 )
 CAMERAS = Gauge("drvs_cameras_registered", "Cameras in the server's routing table")
 DETECTIONS = Counter("drvs_detections_sent_total", "Detections a camera node sent to robots")
+DETECTOR_RUNS = Counter(
+    "drvs_detector_runs_total",
+    "Searches of a frame a camera node ran, by detector (one serves every request on it)",
+    ["detector"],
+)
+DETECTOR_SECONDS = Counter(
+    "drvs_detector_seconds_total", "Seconds a camera node spent searching frames, by detector", ["detector"]
+)
 REPORTS = Counter(
     "drvs_reports_sent_total", "Reports a camera node sent to robots, by outcome (sent or dropped)", ["outcome"]
 )

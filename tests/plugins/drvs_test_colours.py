@@ -55,4 +55,18 @@ class Greenish(_BgrBlobs):
     bounds = ((0, 100, 0), (110, 255, 90))
 
 
-__all__ = ["Greenish", "Yellowish"]
+@register
+class SlowYellowish(Yellowish):
+    """`yellowish` behind a deliberately expensive, real image operation (a wide blur, repeated), so
+    one search of a frame takes a few hundred milliseconds, as a people detector or a model does."""
+
+    prefix = "slowyellowish"
+    example = "slowyellowish_30"
+    heavy = True
+
+    def find(self, analysis: FrameAnalysis, object_type: ObjectType) -> tuple[Detection, ...]:
+        image = analysis.frame.image
+        for _ in range(25):
+            image = cv2.GaussianBlur(image, (41, 41), 0)
+        assert image.shape == analysis.frame.image.shape
+        return super().find(analysis, object_type)

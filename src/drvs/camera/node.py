@@ -105,6 +105,8 @@ class CameraNode(Lifecycle):
         #: Running detector instances by prefix, and by the routing kinds they serve.
         self.runners: dict[str, Detector] = {}
         self.kinds: dict[str, Detector] = {}
+        #: Heavy searches running now, by key: the analysis (frame) each is finding objects in.
+        self._heavy_running: dict[str, FrameAnalysis] = {}
         self.heartbeat_s = heartbeat_s
         self.camera_id = check_id(camera_id, "camera_id")
         self.source = source
@@ -372,9 +374,17 @@ class CameraNode(Lifecycle):
         if pending is None:
             loop = asyncio.get_running_loop()
             pool = self._heavy_pool if runner.heavy else None
-            pending = loop.run_in_executor(pool, analysis.found, wanted.key, lambda: runner.find(analysis, wanted))
+            pending = loop.run_in_executor(pool, analysis.found, wanted.key, lambda: _run(runner, analysis, wanted))
             analysis.pending[wanted.key] = pending
-            pending.add_done_callback(lambda _f: analysis.pending.pop(wanted.key, None))
+            if runner.heavy:
+                self._heavy_running[wanted.key] = analysis
+
+            def finished(_f: object) -> None:
+                analysis.pending.pop(wanted.key, None)
+                if self._heavy_running.get(wanted.key) is analysis:
+                    del self._heavy_running[wanted.key]
+
+            pending.add_done_callback(finished)
         found: tuple[Detection, ...] = await asyncio.shield(pending)
         return found
 
@@ -383,7 +393,7 @@ class CameraNode(Lifecycle):
         wanted = object_type(filter_def)
         runner = self.kinds.get(wanted.kind)
         if runner is not None and not runner.heavy:
-            analysis.found(wanted.key, lambda: runner.find(analysis, wanted))
+            analysis.found(wanted.key, lambda: _run(runner, analysis, wanted))
 
     # --- serving requests --------------------------------------------------------------------
 
@@ -484,6 +494,12 @@ class CameraNode(Lifecycle):
         analysis = self._analyses.for_frame(frame)
         if not runner.heavy:
             self._analyses.want(analysis, request.filter_def)
+        elif analysis.cached_blobs(wanted.key) is None:
+            # One heavy search per key at a time: a request that arrives while one runs on an older
+            # frame takes its result (tens of milliseconds older) instead of queueing another search
+            # behind it, which would delay every answer and keep the pool busy for nobody.
+            analysis = self._heavy_running.get(wanted.key, analysis)
+            frame = analysis.frame
         started = time.perf_counter()
         found = analysis.cached_blobs(wanted.key)
         if found is None:
@@ -500,6 +516,16 @@ class CameraNode(Lifecycle):
             final=final,
             detections=tuple(detections),
         )
+
+
+def _run(runner: Detector, analysis: FrameAnalysis, wanted: ObjectType) -> tuple[Detection, ...]:
+    """One search of a frame, counted and timed per detector (drvs_detector_runs_total)."""
+    started = time.perf_counter()
+    try:
+        return runner.find(analysis, wanted)
+    finally:
+        metrics.DETECTOR_RUNS.labels(runner.prefix).inc()
+        metrics.DETECTOR_SECONDS.labels(runner.prefix).inc(time.perf_counter() - started)
 
 
 def _details(exc: grpc.RpcError) -> str:
