@@ -65,8 +65,8 @@ class SlowYellowish(Yellowish):
     heavy = True
 
     def find(self, analysis: FrameAnalysis, object_type: ObjectType) -> tuple[Detection, ...]:
-        image = analysis.frame.image
+        blurred = analysis.frame.image
         for _ in range(25):
-            image = cv2.GaussianBlur(image, (41, 41), 0)
-        assert image.shape == analysis.frame.image.shape
+            blurred = cv2.GaussianBlur(blurred, (41, 41), 0)
+        assert blurred.shape == analysis.frame.image.shape
         return super().find(analysis, object_type)
