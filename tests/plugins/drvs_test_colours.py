@@ -5,7 +5,7 @@ from its own code on real pixels, mapped to the floor by the common code."""
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import cv2
 
@@ -65,7 +65,7 @@ class SlowYellowish(Yellowish):
     heavy = True
 
     def find(self, analysis: FrameAnalysis, object_type: ObjectType) -> tuple[Detection, ...]:
-        blurred = analysis.frame.image
+        blurred: Any = analysis.frame.image
         for _ in range(25):
             blurred = cv2.GaussianBlur(blurred, (41, 41), 0)
         assert blurred.shape == analysis.frame.image.shape
