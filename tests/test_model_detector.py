@@ -32,7 +32,14 @@ from typing import Any
 import numpy as np
 import pytest
 import yaml
-from drvs_bench.onnx_models import COLOUR_CLASSES, classifier_model, colour_box_model, vector_model, yolo_sized_model
+from drvs_bench.onnx_models import (
+    COLOUR_CLASSES,
+    classifier_model,
+    colour_box_model,
+    odd_model,
+    vector_model,
+    yolo_sized_model,
+)
 
 from drvs.camera.config import load_config
 from drvs.detectors import CameraView, Frame, FrameAnalysis
@@ -256,6 +263,18 @@ def test_a_classifier_is_not_a_detection_model(tmp_path: Path) -> None:
 
 def test_a_model_without_an_image_input_is_refused(tmp_path: Path) -> None:
     refused(vector_model, r"input 'x' has shape \[1, 10\]; expected an image \[1, 3, height, width\]", tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("oddity", "message"),
+    [
+        ("uint8", r"input 'images' is tensor\(uint8\); expected an image of float or float16$"),
+        ("two-inputs", r"has 2 inputs \(images, scale\); a detection model takes one image \[1, 3, H, W\]$"),
+        ("int-output", r"output is int64, not boxes and scores \(floats\)$"),
+    ],
+)
+def test_models_that_do_not_take_an_image_or_give_boxes_are_refused(tmp_path: Path, oddity: str, message: str) -> None:
+    refused(lambda p: odd_model(p, oddity), message, tmp_path)
 
 
 @pytest.mark.parametrize("classes", [["red", "green"], ["red", "green", "blue", "cyan", "pink"]])

@@ -139,6 +139,24 @@ def vector_model(path: Path) -> Path:
     return save(graph, path)
 
 
+def odd_model(path: Path, oddity: str) -> Path:
+    """Image-ish models a detector must refuse: "uint8" (a uint8 image input), "two-inputs" (an image
+    and a second input), "int-output" (a [1, 7, 3] output of int64)."""
+    image_type = TensorProto.UINT8 if oddity == "uint8" else TensorProto.FLOAT
+    inputs = [helper.make_tensor_value_info("images", image_type, [1, 3, 32, 32])]
+    if oddity == "two-inputs":
+        inputs.append(helper.make_tensor_value_info("scale", TensorProto.FLOAT, [1]))
+    g = _Graph()
+    pooled = g.op("GlobalAveragePool", g.op("Cast", "images", to=TensorProto.FLOAT))  # [1, 3, 1, 1]
+    shaped = g.op("Reshape", g.op("Tile", pooled, g.const([1, 7, 1, 1], np.int64)), g.const([1, 7, 3], np.int64))
+    out_type = TensorProto.INT64 if oddity == "int-output" else TensorProto.FLOAT
+    g.nodes.append(helper.make_node("Cast", [shaped], ["output0"], to=out_type))
+    graph = helper.make_graph(
+        g.nodes, "odd", inputs, [helper.make_tensor_value_info("output0", out_type, [1, 7, 3])], g.initializers
+    )
+    return save(graph, path)
+
+
 def save(graph: onnx.GraphProto, path: Path) -> Path:
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
     model.ir_version = 8

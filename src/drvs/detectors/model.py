@@ -315,6 +315,8 @@ def load_model(spec: ModelSpec) -> LoadedModel:
         output = np.asarray(session.run(None, {source.name: blank})[0])
     except Exception as exc:
         raise _fail(spec, f"fails on a {size[0]}x{size[1]} image ({_first_line(exc)})") from None
+    if not np.issubdtype(output.dtype, np.floating):
+        raise _fail(spec, f"output is {output.dtype}, not boxes and scores (floats)")
     layout = _layout(output.shape, len(spec.classes))
     if layout is None:
         nc = len(spec.classes)
