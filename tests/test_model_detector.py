@@ -24,6 +24,8 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
@@ -347,6 +349,17 @@ def test_unknown_detector_option_is_refused() -> None:
 def test_no_models_serve_nothing_and_load_nothing() -> None:
     det = ModelDetector(view(), None)
     assert det.kinds() == () and det.models == {}
+    # A camera without models never imports onnxruntime (about 15 MB): checked in a fresh interpreter.
+    code = (
+        "import sys\n"
+        "from drvs.camera.node import CameraNode\n"
+        "from tests.test_model_detector import view\n"
+        "from drvs.detectors.model import ModelDetector\n"
+        "ModelDetector(view(), None)\n"
+        "sys.exit('onnxruntime' in sys.modules)\n"
+    )
+    root = Path(__file__).resolve().parents[1]
+    assert subprocess.run([sys.executable, "-c", code], cwd=root, timeout=60).returncode == 0
 
 
 # --- filter_def syntax -------------------------------------------------------------------------
