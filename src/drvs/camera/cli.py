@@ -347,6 +347,7 @@ def main(argv: list[str] | None = None) -> int:
             resolution=config.resolution,
             detectors=config.detectors,
             heavy_workers=config.detect_workers,
+            detector_options={"model": {"models": config.models}} if config.models else None,
             heartbeat_s=config.heartbeat_s,
             max_continuous_per_robot=config.max_continuous,
             security=config.security(),
