@@ -68,11 +68,11 @@ class MarkerType:
 
 
 def _unknown_dictionary(name: str, filter_def: str) -> InvalidArgument:
-    hint = " (dictionary names are lower case)" if name.lower() in DICTIONARIES and name != name.lower() else ""
+    hint = "; dictionary names are lower case" if name.lower() in DICTIONARIES and name != name.lower() else ""
     return InvalidArgument(
-        f"filter_def: unknown ArUco dictionary {name[:40]!r} in {filter_def[:64]!r}{hint}; "
+        f"filter_def: unknown ArUco dictionary {name[:40]!r} in {filter_def[:64]!r}; "
         f"OpenCV's dictionaries are {', '.join(DICTIONARIES)} "
-        f"(e.g. 'aruco_4x4_50' for every marker, 'aruco_4x4_50_7' for marker 7)"
+        f"(e.g. 'aruco_4x4_50' for every marker, 'aruco_4x4_50_7' for marker 7){hint}"
     )
 
 
