@@ -23,7 +23,16 @@ from drvs import _grpc, logs, metrics
 from drvs._service import Endpoint, Lifecycle
 from drvs.callback import CallbackSender
 from drvs.convert import homography_to_pb, request_from_pb
-from drvs.detectors import DEFAULT_MIN_AREA_PX, REGISTRY, CameraView, Detector, FrameAnalysis, ObjectType, select
+from drvs.detectors import (
+    DEFAULT_MIN_AREA_PX,
+    REGISTRY,
+    CameraView,
+    Detector,
+    FrameAnalysis,
+    ObjectType,
+    prefixes,
+    select,
+)
 from drvs.errors import DrvsError, FailedPrecondition, InvalidArgument, ResourceExhausted
 from drvs.filters import object_type
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
@@ -57,7 +66,7 @@ DEFAULT_HEAVY_WORKERS = max(1, min(2, (os.cpu_count() or 1) - 1))
 
 def default_detectors() -> tuple[str, ...]:
     """Every built-in detector prefix (models serve nothing until a camera configures one)."""
-    return tuple(REGISTRY)
+    return prefixes()
 
 
 class CameraNode(Lifecycle):
@@ -96,7 +105,7 @@ class CameraNode(Lifecycle):
         self.detectors = default_detectors() if detectors is None else tuple(detectors)
         unknown = [d for d in self.detectors if d not in REGISTRY]
         if unknown or not self.detectors:
-            raise InvalidArgument(f"detectors: {unknown or 'none'}; must be some of {', '.join(REGISTRY)}")
+            raise InvalidArgument(f"detectors: {unknown or 'none'}; must be some of {', '.join(prefixes())}")
         self.detector_options = dict(detector_options or {})
         if heavy_workers < 1:
             raise InvalidArgument(f"heavy_workers: {heavy_workers} must be at least 1")

@@ -11,6 +11,7 @@ from __future__ import annotations
 import importlib.metadata
 import logging
 
+from .aruco import ArucoDetector as ArucoDetector
 from .base import (
     DEFAULT_MIN_AREA_PX,
     OUTLINE_TOLERANCE_PX,

@@ -325,8 +325,14 @@ def register(cls: D) -> D:
     return cls
 
 
+#: The built-in detectors in the order messages and defaults list them (plug-ins follow).
+BUILTIN_ORDER = ("hsv", "aruco", "people", "foreground", "model")
+
+
 def prefixes() -> tuple[str, ...]:
-    return tuple(REGISTRY)
+    """Every registered prefix: the built-ins in BUILTIN_ORDER, then plug-ins as they registered."""
+    rank = {prefix: i for i, prefix in enumerate(BUILTIN_ORDER)}
+    return tuple(sorted(REGISTRY, key=lambda p: rank.get(p, len(rank))))
 
 
 def parse_object_type(filter_def: str) -> ObjectType:
@@ -342,10 +348,10 @@ def parse_object_type(filter_def: str) -> ObjectType:
     if cls is None:
         raise InvalidArgument(
             f"filter_def: unknown object type {prefix[:40]!r} in {filter_def[:40]!r}; "
-            f"known types: {', '.join(REGISTRY)} (e.g. {_examples()})"
+            f"known types: {', '.join(prefixes())} (e.g. {_examples()})"
         )
     return cls.parse(filter_def)
 
 
 def _examples() -> str:
-    return ", ".join(repr(cls.example) for cls in REGISTRY.values())
+    return ", ".join(repr(REGISTRY[prefix].example) for prefix in prefixes())
