@@ -334,13 +334,21 @@ REGISTRATION_CLI_CASES = [
 ]
 
 
+#: Commands run at once: each imports OpenCV, numpy and shapely, and forty at once on two cores
+#: took longer than their 30 s each when the machine was busy.
+_CLI_AT_ONCE = 6
+_slots: dict[asyncio.AbstractEventLoop, asyncio.Semaphore] = {}
+
+
 async def run_cli(command: str, args: tuple[str, ...], env: tuple[tuple[str, str], ...] = ()) -> ManagedProcess:
     environ = {k: v for k, v in os.environ.items() if not k.startswith("DRVS_")} | dict(env)
-    proc = await ManagedProcess.entry_point(command, command, *args, env=environ).start()
-    try:
-        await proc.wait(timeout=30)
-    finally:
-        await proc.stop()
+    slots = _slots.setdefault(asyncio.get_running_loop(), asyncio.Semaphore(_CLI_AT_ONCE))
+    async with slots:
+        proc = await ManagedProcess.entry_point(command, command, *args, env=environ).start()
+        try:
+            await proc.wait(timeout=30)
+        finally:
+            await proc.stop()
     return proc
 
 
