@@ -123,6 +123,11 @@ GRPC_CASES = [
     ),
     Case(INVALID, "filter_def: H low = 200 is out of range 0-179 in '…'", detect(filter_def="hsv_200110130035225200")),
     Case(INVALID, "filter_def: S low … > S high … in '…'", detect(filter_def="hsv_014210130035100200")),
+    Case(
+        INVALID,
+        "filter_def: '…': the people type takes no parameters; write 'people'",
+        detect(filter_def="people_adult"),
+    ),
     Case(INVALID, "region: missing; give a box or a polygon", detect(region=None)),
     Case(INVALID, "region.box.x_lower: nan is not finite", detect(region=box(math.nan, 0, 1, 1))),
     Case(INVALID, "region.box.x_upper: 1e+300 is beyond ±1e+06 m", detect(region=box(0, 0, 1e300, 1))),
@@ -283,9 +288,7 @@ def cli_cases(tmp: Path) -> list[CliCase]:
             (*camera, "--heartbeat", "0.01"),
             "heartbeat_s (from …): … must be a number from 0.05 to 3600",
         ),
-        CliCase(
-            "drvs-camera", (*camera, "--detectors", "rgb"), "detectors (from …): '…': detectors must be some of hsv"
-        ),
+        CliCase("drvs-camera", (*camera, "--detectors", "rgb"), "detectors (from …): '…': detectors must be some of …"),
         CliCase(
             "drvs-camera",
             (*camera, "--max-continuous", "0"),
