@@ -46,10 +46,16 @@ def draw_map(scenario: Scenario, result: dict[str, Any], path: Path, seed: int =
         ax.plot([cx], [cy], "ks", ms=8)
         ax.text(cx, cy - 0.45 if cy > y0 + 1 else cy + 0.3, cam.id, fontsize=8, ha="center")
     for obj in scenario.objects:
-        if obj.color is None:
+        if obj.aruco is not None and obj.kind == "marker":
+            ax.add_patch(_patch(obj.shape, facecolor="black", edgecolor="white", lw=0.8))
+            ax.text(
+                *obj.shape.centroid.coords[0], str(obj.aruco.id), color="white", fontsize=6, ha="center", va="center"
+            )
+            continue
+        if obj.paint is None:
             ax.add_patch(_patch(obj.shape, fill=False, edgecolor="tab:purple", ls=":", lw=1.5))
             continue
-        b, g, r = obj.color.bgr
+        b, g, r = obj.paint
         ax.add_patch(_patch(obj.shape, facecolor=(r / 255, g / 255, b / 255), alpha=0.45, edgecolor="none"))
     for d in result.get("detections", []):
         ax.add_patch(MplPolygon(d["outline"], closed=True, fill=False, edgecolor="red", lw=1.4))
