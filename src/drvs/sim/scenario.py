@@ -17,6 +17,7 @@ import yaml
 from numpy.typing import NDArray
 from shapely.geometry import Point, Polygon, box
 
+from drvs.detectors.aruco import DICTIONARIES, DICTIONARY_SIZES
 from drvs.errors import InvalidArgument
 from drvs.filters import HsvRange
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography, homography_from_pose, polygon_region
@@ -68,7 +69,7 @@ class ArucoDef:
     to the robot (its x axis points where the robot drives)."""
 
     id: int
-    dictionary: str  # OpenCV's name in lower case without DICT_: "4x4_50", "apriltag_36h11"
+    dictionary: str  # as in filter_defs: "4x4_50", "apriltag_36h11" (drvs.detectors.aruco.DICTIONARIES)
     size: float
     center: tuple[float, float] = (0.0, 0.0)
     heading_deg: float = 0.0
@@ -80,7 +81,7 @@ class ArucoDef:
 
     @property
     def cv_dictionary(self) -> cv2.aruco.Dictionary:
-        return cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, "DICT_" + self.dictionary.upper()))
+        return cv2.aruco.getPredefinedDictionary(DICTIONARIES[self.dictionary])
 
     @property
     def cells(self) -> int:
@@ -487,13 +488,12 @@ def _aruco(obj: _Obj, *, centered: bool) -> ArucoDef:
     """An ArUco marker's id and dictionary, and with `centered` its place on the floor and size."""
     p = obj.path
     dictionary = obj.take("dictionary", "4x4_50")
-    if (
-        not isinstance(dictionary, str)
-        or dictionary != dictionary.lower()
-        or not isinstance(getattr(cv2.aruco, "DICT_" + dictionary.upper(), None), int)
-    ):
-        raise ScenarioError(f"{p}.dictionary: {dictionary!r} is not an OpenCV ArUco dictionary (e.g. 4x4_50)")
-    size = int(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, "DICT_" + dictionary.upper())).bytesList.shape[0])
+    if not isinstance(dictionary, str) or dictionary not in DICTIONARIES:
+        raise ScenarioError(
+            f"{p}.dictionary: {str(dictionary)[:40]!r} is not an OpenCV ArUco dictionary "
+            f"(one of {', '.join(DICTIONARIES)})"
+        )
+    size = DICTIONARY_SIZES[dictionary]
     marker_id = obj.take("aruco")
     if isinstance(marker_id, bool) or not isinstance(marker_id, int) or not 0 <= marker_id < size:
         raise ScenarioError(f"{p}.aruco: {str(marker_id)[:40]} is not a marker id of {dictionary} (0 to {size - 1})")
