@@ -48,9 +48,8 @@ def draw_map(scenario: Scenario, result: dict[str, Any], path: Path, seed: int =
     for obj in scenario.objects:
         if obj.aruco is not None and obj.kind == "marker":
             ax.add_patch(_patch(obj.shape, facecolor="black", edgecolor="white", lw=0.8))
-            ax.text(
-                *obj.shape.centroid.coords[0], str(obj.aruco.id), color="white", fontsize=6, ha="center", va="center"
-            )
+            mx, my = obj.shape.centroid.x, obj.shape.centroid.y
+            ax.text(mx, my, str(obj.aruco.id), color="white", fontsize=6, ha="center", va="center")
             continue
         if obj.paint is None:
             ax.add_patch(_patch(obj.shape, fill=False, edgecolor="tab:purple", ls=":", lw=1.5))
