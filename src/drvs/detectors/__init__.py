@@ -25,6 +25,9 @@ from .base import (
 # Built-in detectors register themselves on import.
 from .hsv import HsvDetector, HsvRange
 
+# isort: split
+from .foreground import ForegroundDetector  # noqa: F401  (registers "foreground")
+
 __all__ = [
     "DEFAULT_MIN_AREA_PX",
     "OUTLINE_TOLERANCE_PX",
