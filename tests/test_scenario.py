@@ -112,15 +112,15 @@ def test_markers_plain_paint_and_the_robots_marker() -> None:
     dock = s.charging_stations[0].aruco
     assert dock is not None and dock.filter_def == "aruco_4x4_50_7"
     robot = s.robot.marker
-    assert robot is not None and (robot.id, robot.size, robot.filter_def) == (1, 0.3, "aruco_4x4_50_1")
+    assert robot is not None and (robot.id, robot.size, robot.filter_def) == (1, 0.25, "aruco_4x4_50_1")
     # A marker's shape is its black square: corner 0 -> corner 1 points along its heading.
     corners = s.aruco_markers[0].corners()
     edge = corners[1] - corners[0]
     assert math.isclose(math.degrees(math.atan2(edge[1], edge[0])), 30.0)
     assert math.isclose(float(np.hypot(*edge)), 0.25) and np.allclose(corners.mean(axis=0), (6.0, 3.2))
     assert math.isclose(s.objects[3].shape.area, 0.25**2)
-    # The printed square adds a quiet zone one cell wide: 4x4 bits + border = 6 cells, 8 printed.
-    assert math.isclose(robot.printed_size, 0.3 * 8 / 6)
+    # The printed square adds a quiet zone two cells wide: 4x4 bits + border = 6 cells, 10 printed.
+    assert math.isclose(robot.printed_size, 0.25 * 10 / 6)
 
 
 def any_colour_with(path: str, value: object) -> str:
@@ -160,7 +160,7 @@ def any_colour_with(path: str, value: object) -> str:
         ("objects[2].aruco", 8, r"objects\[2\]\.aruco: no marker with aruco 8 \(4x4_50\) marks this dock"),
         ("objects[2].aruco", 9, r"objects\[2\]\.aruco: its marker objects\[5\] does not lie inside the charging"),
         ("robot.marker.aruco", 9, r"robot\.marker\.aruco: 9 is also the id of objects\[5\]"),
-        ("robot.marker.size", 0.35, r"robot\.marker\.size: 0\.35 m does not fit on the robot's top plate"),
+        ("robot.marker.size", 0.3, r"robot\.marker\.size: 0\.3 m does not fit on the robot's top plate"),
         ("robot.marker.heading", 10, r"robot\.marker\.heading: unknown key"),
         ("robot.marker.aruco", KeyError, r"robot\.marker\.aruco: missing"),
     ],

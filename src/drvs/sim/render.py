@@ -13,7 +13,7 @@ from numpy.typing import NDArray
 from shapely.geometry import Point, Polygon
 
 from drvs.geometry import FieldOfView
-from drvs.sim.scenario import ArucoDef, CameraDef, Scenario
+from drvs.sim.scenario import QUIET_ZONE_CELLS, ArucoDef, CameraDef, Scenario
 from drvs.sim.scene import fill_floor_shape, fill_polygon
 
 FLOOR_BGR = (128, 132, 136)
@@ -145,10 +145,11 @@ def _floor_texture(scenario: Scenario, seed: int = 0) -> tuple[NDArray[np.uint8]
 
 @functools.lru_cache(maxsize=64)
 def marker_image(marker: ArucoDef, cell_px: int = _MARKER_CELL_PX) -> NDArray[np.uint8]:
-    """OpenCV's image of the marker with a white quiet zone one cell wide, grey levels of ink and paper."""
+    """OpenCV's image of the marker with its white quiet zone, in grey levels of ink and paper."""
     cells = marker.cells
     bits = cv2.aruco.generateImageMarker(marker.cv_dictionary, marker.id, cells * cell_px)
-    printed = cv2.copyMakeBorder(bits, cell_px, cell_px, cell_px, cell_px, cv2.BORDER_CONSTANT, value=255)
+    zone = QUIET_ZONE_CELLS * cell_px
+    printed = cv2.copyMakeBorder(bits, zone, zone, zone, zone, cv2.BORDER_CONSTANT, value=255)
     return np.asarray(INK_BGR + (printed.astype(np.uint16) * (PAPER_BGR - INK_BGR) // 255), dtype=np.uint8)
 
 
@@ -162,7 +163,7 @@ def draw_marker_image(image: NDArray[np.uint8], marker: ArucoDef, corners_px: ND
     if x0 >= x1 or y0 >= y1:
         return
     longest = float(np.max(np.linalg.norm(corners_px - np.roll(corners_px, 1, axis=0), axis=1)))
-    cell_px = min(_MARKER_CELL_PX, max(2, math.ceil(2 * longest / (marker.cells + 2))))
+    cell_px = min(_MARKER_CELL_PX, max(2, math.ceil(2 * longest / (marker.cells + 2 * QUIET_ZONE_CELLS))))
     printed = marker_image(marker, cell_px)
     side = printed.shape[0]
     # Pixel centres are at integers: the image's outer edges are at -0.5 and side - 0.5.

@@ -26,6 +26,11 @@ from drvs.model import check_id
 DEFAULT_SCENARIO = Path(__file__).parent / "scenarios" / "office.yaml"
 MISSIONS = ("navigate", "find_charging_station")
 OBJECT_KINDS = ("obstacle", "marker", "charging_station")
+#: White margin around a printed ArUco marker, in marker cells. Two, not OpenCV's minimum of one:
+#: the aruco detector's sub-pixel corner window reaches up to 0.8 cell past the black square,
+#: and further along the diagonal of a turned marker; past the paper the robot's blue plate pulled
+#: its corners by up to 2.6 cm (measured with one cell).
+QUIET_ZONE_CELLS = 2
 
 
 class ScenarioError(InvalidArgument):
@@ -63,7 +68,7 @@ class CameraDef:
 @dataclass(frozen=True)
 class ArucoDef:
     """A printed ArUco marker lying flat: `size` is the side of its black square (what OpenCV calls
-    the marker's side), printed with a white quiet zone one cell wide around it. Corner 0 (the
+    the marker's side), printed with a white quiet zone QUIET_ZONE_CELLS cells wide around it. Corner 0 (the
     top-left of OpenCV's marker image) to corner 1 is the marker's x axis, `heading_deg`
     counter-clockwise from the world x axis; on the robot, `center` and `heading_deg` are relative
     to the robot (its x axis points where the robot drives)."""
@@ -91,7 +96,7 @@ class ArucoDef:
     @property
     def printed_size(self) -> float:
         """Side of the printed square, quiet zone included."""
-        return self.size * (self.cells + 2) / self.cells
+        return self.size * (self.cells + 2 * QUIET_ZONE_CELLS) / self.cells
 
     def corners(
         self, at: tuple[float, float] = (0.0, 0.0), turn_deg: float = 0.0, side: float | None = None
