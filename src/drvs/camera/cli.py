@@ -73,7 +73,6 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--fps", type=float, help=f"frame rate to ask of a device or stream ({e['fps']})")
     p.add_argument("--detectors", help=f"detector kinds to run, comma-separated (default hsv; {e['detectors']})")
-    p.add_argument("--background", help="picture of the empty floor, for foreground")
     p.add_argument(
         "--heartbeat", dest="heartbeat_s", type=float, metavar="S", help="heartbeat interval (default: lease / 3)"
     )
@@ -339,7 +338,6 @@ def main(argv: list[str] | None = None) -> int:
             serve_frames=config.serve_frames,
             resolution=config.resolution,
             detectors=config.detectors,
-            detector_options={"foreground": {"background": str(config.background)}} if config.background else None,
             heartbeat_s=config.heartbeat_s,
             max_continuous_per_robot=config.max_continuous,
             security=config.security(),

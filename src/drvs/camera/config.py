@@ -45,7 +45,6 @@ ENVIRONMENT = {
     "resolution": "DRVS_CAMERA_RESOLUTION",
     "fps": "DRVS_CAMERA_FPS",
     "detectors": "DRVS_CAMERA_DETECTORS",
-    "background": "DRVS_CAMERA_BACKGROUND",
     "heartbeat_s": "DRVS_CAMERA_HEARTBEAT",
     "max_continuous": "DRVS_CAMERA_MAX_CONTINUOUS",
     "log_level": "DRVS_LOG_LEVEL",
@@ -74,8 +73,6 @@ class CameraConfig:
     resolution: tuple[int, int] | None = None
     fps: float | None = None
     detectors: tuple[str, ...] = DETECTOR_KINDS
-    #: A picture of the empty floor for the foreground detector.
-    background: Path | None = None
     #: Heartbeat interval; by default a third of the lease the server grants.
     heartbeat_s: float | None = None
     #: Continuous requests one robot (callback address) may have running on this camera at once.
@@ -108,7 +105,7 @@ _FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max
           "min_area_px": "--min-area", "max_frame_age_s": "--max-frame-age", "loop": "--no-loop",
           "serve_frames": "--serve-frames", "log_level": "--log-level", "server": "--server",
           "listen": "--listen", "advertise": "--advertise", "resolution": "--resolution", "fps": "--fps",
-          "detectors": "--detectors", "background": "--background", "heartbeat_s": "--heartbeat", "tls_cert": "--tls-cert",
+          "detectors": "--detectors", "heartbeat_s": "--heartbeat", "tls_cert": "--tls-cert",
           "tls_key": "--tls-key", "tls_ca": "--tls-ca", "tls_client_auth": "--tls-client-auth",
           "token_file": "--token-file", "log_format": "--log-format", "metrics_port": "--metrics-port",
           "metrics_host": "--metrics-host", "max_continuous": "--max-continuous"}  # fmt: skip
@@ -221,7 +218,7 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
             except InvalidArgument:
                 raise InvalidArgument(f"{where}: {text[:80]!r} is not a host name or IP address") from None
             return text.strip("[]")
-        elif name in ("homography", "tls_cert", "tls_key", "tls_ca", "token_file", "background"):
+        elif name in ("homography", "tls_cert", "tls_key", "tls_ca", "token_file"):
             path = Path(text)
             return path if path.is_absolute() else base / path
         elif name == "source" and not text.strip():
