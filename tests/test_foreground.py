@@ -63,11 +63,11 @@ class Scene:
         region by `darken` with a soft edge, the same for every channel (chromaticity unchanged)."""
         image = render_view(camera(), SIZE, patches).astype(np.float32) * gain
         if shadow is not None:
-            mask = np.zeros(image.shape[:2], dtype=np.float32)
+            hard = np.zeros(image.shape[:2], dtype=np.float32)
             ring = camera().inverse().apply(np.asarray(shadow.exterior.coords)[:-1])
-            cv2.fillPoly(mask, [np.round(ring).astype(np.int32)], 1.0)
-            mask = cv2.GaussianBlur(mask, (0, 0), 3.0)  # a penumbra a few pixels wide
-            image *= (1.0 - darken * mask)[:, :, None]
+            cv2.fillPoly(hard, [np.round(ring).astype(np.int32)], 1.0)
+            soft = np.asarray(cv2.GaussianBlur(hard, (0, 0), 3.0), dtype=np.float32)  # a penumbra of a few pixels
+            image *= (1.0 - darken * soft)[:, :, None]
         image += self.rng.normal(0.0, NOISE_SIGMA, image.shape).astype(np.float32)
         return np.clip(np.round(image), 0, 255).astype(np.uint8)
 
