@@ -3,6 +3,7 @@ Figs. 5-8), and one frame from each camera with its detections drawn."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from pathlib import Path
 from typing import Any
@@ -90,9 +91,12 @@ def draw_map(scenario: Scenario, result: dict[str, Any], path: Path, seed: int =
     ax.set_ylabel("y (m)")
 
     final = tuple(result["path"][-1]) if result.get("path") else scenario.robot.start
+    moves = [(b[0] - a[0], b[1] - a[1]) for a, b in itertools.pairwise(result.get("path", []))]
+    moves = [m for m in moves if m != (0, 0)]
+    heading = math.atan2(moves[-1][1], moves[-1][0]) if moves else 0.0  # as the robot drove its last step
     for i, cam in enumerate(cams):
         sub = fig.add_subplot(grid[1 + i // 3, i % 3])
-        frame = CameraRenderer(scenario, cam, seed=seed).render(final, len(result.get("path", [])))
+        frame = CameraRenderer(scenario, cam, seed=seed).render(final, len(result.get("path", [])), heading)
         to_image = cam.homography.inverse()
         for d in result.get("detections", []):
             if d["camera_id"] == cam.id:
