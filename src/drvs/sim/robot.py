@@ -125,10 +125,17 @@ class SimRobot:
 
     # --- map --------------------------------------------------------------------------------
 
-    def mark(self, outline: Polygon) -> bool:
-        """The pessimistic union: every detection is occupied. True when the map changed."""
+    def mark(self, outline: Polygon, ragged: bool = False) -> bool:
+        """The pessimistic union: every detection is occupied. True when the map changed.
+
+        `ragged`: a foreground outline, traced on a noisy mask's edge: spikes of it that stick out of
+        the known obstacles by less than SELF_SLIVER_M2 in all are that obstacle seen again."""
         if any(known.buffer(SAME_OBSTACLE_M).contains(outline) for known in self.known_obstacles):
             return False
+        if ragged and self.known_obstacles:
+            known = shapely.union_all([k.buffer(SAME_OBSTACLE_M) for k in self.known_obstacles])
+            if outline.difference(known).area < SELF_SLIVER_M2:
+                return False
         changed = self.grid.add_polygon(outline, self.inflate)
         if changed:
             self.known_obstacles.append(outline)
@@ -140,7 +147,7 @@ class SimRobot:
             if any(d.centroid.distance(Point(p)) < MARKER_MATCH_M for p in self.ignore_near):
                 continue
             if d.filter_def == "foreground":
-                if any(self.mark(piece) for piece in self.not_myself(d.outline)):
+                if any([self.mark(piece, ragged=True) for piece in self.not_myself(d.outline)]):
                     self.detections_used.append(d)
             elif self.mark(d.outline):
                 self.detections_used.append(d)
