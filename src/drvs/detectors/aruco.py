@@ -68,11 +68,11 @@ class MarkerType:
 
 
 def _unknown_dictionary(name: str, filter_def: str) -> InvalidArgument:
-    hint = " (dictionary names are lower case)" if name.lower() in DICTIONARIES and name != name.lower() else ""
+    hint = "; dictionary names are lower case" if name.lower() in DICTIONARIES and name != name.lower() else ""
     return InvalidArgument(
-        f"filter_def: unknown ArUco dictionary {name[:40]!r} in {filter_def[:64]!r}{hint}; "
+        f"filter_def: unknown ArUco dictionary {name[:40]!r} in {filter_def[:64]!r}; "
         f"OpenCV's dictionaries are {', '.join(DICTIONARIES)} "
-        f"(e.g. 'aruco_4x4_50' for every marker, 'aruco_4x4_50_7' for marker 7)"
+        f"(e.g. 'aruco_4x4_50' for every marker, 'aruco_4x4_50_7' for marker 7){hint}"
     )
 
 
@@ -153,10 +153,10 @@ class ArucoDetector(Detector):
             # Sub-pixel corners (cornerSubPix): positions, outlines and headings come from them.
             # The window's half-size is 0.8 of a module (a marker cell), so that it stays within
             # the marker's black border and the white around it, whatever the marker's size in
-            # the image. Measured on rendered markers 17-50 px wide, blurred, noisy and JPEG
-            # compressed (tests/test_aruco_detector.py), OpenCV's default of 0.3 left corners up to
-            # 2.3 px off (3.7 degrees of heading); 0.8 keeps them within 0.6 px (0.9 degrees).
-            # CORNER_REFINE_CONTOUR placed the corners 0.5-0.7 px inside the marker.
+            # the image. On 50 markers 17-50 px wide, rendered as tests/test_aruco_detector.py
+            # renders them, then blurred, noisy and JPEG compressed, OpenCV's default of 0.3 left
+            # corners up to 2.3 px off (3.7 degrees of heading); 0.8 kept them within 0.6 px
+            # (0.9 degrees). CORNER_REFINE_CONTOUR placed corners 0.5-0.7 px inside the marker.
             params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
             params.relativeCornerRefinmentWinSize = 0.8
             detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(DICTIONARIES[dictionary]), params)
