@@ -357,6 +357,12 @@ def test_snapshot_refuses_what_it_cannot_write(tmp_path: Path, capsys: pytest.Ca
     assert snapshot_main(["--source", str(video), "--out", str(out)]) == 0
     image = cv2.imread(str(out))
     assert image is not None and image.shape == (480, 640, 3)
+    # From the camera's config (whose background does not exist yet: this is how it is made).
+    config = tmp_path / "cam.yaml"
+    config.write_text(yaml.safe_dump({"id": "c", "source": str(video), "homography": "h.yaml", "background": "e.png"}))
+    assert snapshot_main(["--config", str(config), "--out", str(tmp_path / "e.png")]) == 0
+    assert cv2.imread(str(tmp_path / "e.png")).shape == (480, 640, 3)
+    assert f"e.png: 640x480 from {video}" in capsys.readouterr().out
 
 
 # --- end to end -------------------------------------------------------------------------------
