@@ -361,7 +361,8 @@ def test_snapshot_refuses_what_it_cannot_write(tmp_path: Path, capsys: pytest.Ca
     config = tmp_path / "cam.yaml"
     config.write_text(yaml.safe_dump({"id": "c", "source": str(video), "homography": "h.yaml", "background": "e.png"}))
     assert snapshot_main(["--config", str(config), "--out", str(tmp_path / "e.png")]) == 0
-    assert cv2.imread(str(tmp_path / "e.png")).shape == (480, 640, 3)
+    again = cv2.imread(str(tmp_path / "e.png"))
+    assert again is not None and again.shape == (480, 640, 3)
     assert f"e.png: 640x480 from {video}" in capsys.readouterr().out
 
 
