@@ -186,6 +186,27 @@ def test_a_moving_object_is_found_at_once_without_a_background_picture() -> None
         assert_found(step(det, scene, scene.image([disc])), [disc])
 
 
+def test_a_thing_that_stops_fades_from_the_motion_model_but_not_from_the_picture(tmp_path: Path) -> None:
+    scene = Scene(8)
+    empty = write_empty_floor(tmp_path / "empty.png", scene)
+    motion_only, with_picture = ForegroundDetector(view()), ForegroundDetector(view(), {"background": str(empty)})
+    for _ in range(20):
+        image = scene.image()
+        assert step(motion_only, scene, image) == step(with_picture, scene, image) == ()
+    disc = FloorPatch.disc((0.0, 4.0), 0.3, (60, 160, 60))  # arrives, and stays
+    gone = None
+    for i in range(100):
+        image = scene.image([disc])
+        assert_found(step(with_picture, scene, image), [disc])
+        found = step(motion_only, scene, image)
+        if i < 40:
+            assert_found(found, [disc])
+        elif gone is None and not found:
+            gone = i
+    # It learns at 1/HISTORY_FRAMES a frame; MOG2 counts a mode as background above 10 % weight.
+    assert gone is not None and 40 <= gone <= 70, gone
+
+
 def test_a_request_on_a_frame_not_yet_observed_uses_the_model_without_teaching_it(tmp_path: Path) -> None:
     scene = Scene(4)
     det = ForegroundDetector(view())
