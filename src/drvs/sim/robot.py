@@ -469,11 +469,16 @@ class SimRobot:
         if self.drvs is None:
             raise MissionFailed("find_charging_station needs DRVS: the markers are only seen by cameras")
         await self.learn_cameras()
-        docks = sorted({o.aruco.filter_def for o in self.scenario.charging_stations if o.aruco is not None})
+        stations = self.scenario.charging_stations
+        docks = sorted({o.aruco.filter_def for o in stations if o.aruco is not None})
+        candidates: list[tuple[float, float]] = []
+        used: list[Detection] = []
         if docks:
             candidates, used = await self.dock_markers(docks)
-        else:
-            candidates, used = await self.colour_stations()
+        if any(o.aruco is None for o in stations):  # the paper's: between a green and a yellow marker
+            paired, pair_used = await self.colour_stations()
+            candidates += paired
+            used += pair_used
         self.detections_used.extend(used)
         candidates.sort(key=lambda c: math.dist(c, self.pose))
         log.info("%d station candidate(s)", len(candidates))
