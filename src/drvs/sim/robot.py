@@ -104,7 +104,6 @@ class SimRobot:
         self.heading_errors: list[float] = []
         #: (Unix time the move was sent, x, y, theta) of every pose: what a frame captured then shows.
         self.history: list[tuple[float, float, float, float]] = [(time.time(), *robot.start, 0.0)]
-        self.theta = 0.0
         self._swept: tuple[int, Polygon] | None = None
         self.ignore_near: list[tuple[float, float]] = []  # station markers: landmarks, not obstacles
         self._map_changed = False
@@ -392,7 +391,6 @@ class SimRobot:
         sent = time.time()
         reply = await self.world.Move(sim_pb2.MoveRequest(pose=sim_pb2.RobotPose(x=x, y=y, theta=heading)))
         self.pose = (reply.pose.x, reply.pose.y)
-        self.theta = reply.pose.theta
         self.history.append((sent, reply.pose.x, reply.pose.y, reply.pose.theta))
         self.path_driven.append(self.pose)
         if reply.collided:
