@@ -284,7 +284,7 @@ def cli_cases(tmp: Path) -> list[CliCase]:
             "heartbeat_s (from …): … must be a number from 0.05 to 3600",
         ),
         CliCase(
-            "drvs-camera", (*camera, "--detectors", "rgb"), "detectors (from …): '…': detectors must be some of hsv"
+            "drvs-camera", (*camera, "--detectors", "rgb"), "detectors (from …): '…': detectors must be some of hsv, …"
         ),
         CliCase(
             "drvs-camera",
