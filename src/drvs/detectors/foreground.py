@@ -52,7 +52,10 @@ VAR_THRESHOLD = 25.0
 WARMUP_FRAMES = 5
 #: A pixel whose colour direction departs from the floor's by more than this (the tangent of the
 #: angle between the two colour vectors) is not floor, whatever its brightness. Sensor noise of
-#: sigma 3 grey levels, MJPG-compressed, halved by a shadow, reaches 0.02 at the working scale.
+#: sigma 3 grey levels (also MJPG-compressed, also halved by a shadow) reaches 0.03 at the working
+#: scale; real shadows on grass under a blue sky shift it by 0.04-0.09 (vtest.avi), so some of
+#: those become objects, and an object whose colour is within 0.06 of the floor's is found only
+#: when it is brighter or far darker than the floor.
 CHROMA_THRESHOLD = 0.06
 #: Brightness relative to the floor (after the global gain): above HIGH is an object (a shadow
 #: never brightens; noise moves it 2 %), below SHADOW_MIN_BRIGHTNESS is darker than any shadow
