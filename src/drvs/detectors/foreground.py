@@ -15,8 +15,11 @@ light moves nothing. What is left is compared colour vector by colour vector in 
 detectors do (Horprasert et al. 1999): a pixel is a *shadow* (not an object) when its colour points
 the same way as the floor's (chromaticity distortion small) and it is darker, down to
 `SHADOW_MIN_BRIGHTNESS` of the floor's brightness; it is an *object* when its colour points
-elsewhere, or it is brighter than the floor, or darker than any shadow. The price: an object of
-exactly the floor's hue and a little darker is a shadow to this detector while it stands still.
+elsewhere, or it is brighter than the floor, or darker than any shadow. Where the picture has
+texture, a patch whose texture no longer correlates with the picture's and has faded is an object
+too (a shadow or a change of light scales texture, an object hides it). The price: on a floor
+without texture, an object of exactly the floor's hue and a little darker is a shadow to this
+detector while it stands still.
 
 All the pixel work runs at a reduced scale (at most `WORK_WIDTH` pixels wide); outlines are traced
 on the mask brought back to the frame's size.
