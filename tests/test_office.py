@@ -45,7 +45,7 @@ async def test_navigate_with_drvs_avoids_the_unknown_obstacle(tmp_path: Path) ->
     code, result, log = await run_office(tmp_path, "--scenario", str(SMALL_ROOM))
     assert code == 0, log
     scenario = load_scenario(SMALL_ROOM)
-    assert result["mission"] == "navigate" and result["drvs"] is True
+    assert result["mission"] == "navigate" and result["drvs"] is True and result["detector"] == "hsv"
     assert result["reached_goal"] is True and result["collisions"] == 0
     assert clearance(result["path"], solids(scenario)) >= scenario.robot.radius - 1e-6
     assert result["path"][0] == list(scenario.robot.start)
@@ -142,3 +142,50 @@ async def test_robot_slows_where_a_killed_camera_looked(tmp_path: Path) -> None:
     assert before and max(before) > 0.9 * full_step  # full speed where cam-west looks
     assert len(after) > 20 and max(after) <= 0.25 * full_step + 1e-6, max(after)
     assert result["blind_steps"] >= len(after)
+
+
+ANY_COLOUR = Path(__file__).parent / "scenarios" / "any_colour.yaml"
+
+
+async def test_foreground_avoids_obstacles_of_any_colour_and_localises_by_marker(tmp_path: Path) -> None:
+    """--detector foreground: a brown box on the straight line and a grey trolley, colours no
+    filter matches, are found as anything-not-empty-floor and driven around without a touch; the
+    robot is not among what it avoids (it would otherwise block its own start), and its ArUco
+    marker fixes its position and heading."""
+    code, result, log = await run_office(tmp_path, "--scenario", str(ANY_COLOUR), "--detector", "foreground")
+    assert code == 0, log
+    scenario = load_scenario(ANY_COLOUR)
+    assert result["detector"] == "foreground" and result["reached_goal"] is True
+    assert result["collisions"] == 0 and result["contacts"] == []
+    assert clearance(result["path"], solids(scenario)) >= scenario.robot.radius - 1e-6
+    assert (tmp_path / "cameras" / "ceiling.empty.png").exists()
+    # Each obstacle is outlined within 10 cm; nothing else was taken for an obstacle: not the
+    # robot, not the markers on the floor (they are in the picture of the empty floor).
+    assert {d["filter_def"] for d in result["detections"]} == {"foreground"}
+    obstacles = [o.shape for o in scenario.obstacles]
+    for d in result["detections"]:
+        seen = Polygon(d["outline"])
+        nearest = max(obstacles, key=lambda o: o.intersection(seen).area)
+        assert seen.hausdorff_distance(nearest) < 0.10, d
+        assert seen.intersection(nearest).area > 0.8 * nearest.area
+    assert len(result["detections"]) == len(obstacles) and result["replans"] >= 1
+    loc = result["localisation"]
+    assert loc["filter_def"] == "aruco_4x4_50_1" and loc["fixes"] >= 5
+    assert loc["max_error_m"] < 0.02 and loc["max_heading_error_deg"] < 3.0, loc
+    check_map(tmp_path)
+
+
+async def test_charging_station_marked_by_an_aruco_id(tmp_path: Path) -> None:
+    """The dock is the marker with id 7; markers 3 and 9 lie elsewhere. The robot finds only id 7,
+    docks there, and with foreground goes round the box of no known colour on its way."""
+    code, result, log = await run_office(
+        tmp_path, "--scenario", str(ANY_COLOUR), "--mission", "find_charging_station", "--detector", "foreground"
+    )
+    assert code == 0, log
+    scenario = load_scenario(ANY_COLOUR)
+    station = scenario.charging_stations[0].shape.centroid
+    assert result["reached_goal"] is True and len(result["candidates"]) == 1
+    assert station.distance(box(*result["charging_station"], *result["charging_station"])) < 0.01
+    assert result["collisions"] == 0
+    docks = [d for d in result["detections"] if d["filter_def"] == "aruco_4x4_50_7"]
+    assert [d["marker_id"] for d in docks] == [7] and abs(docks[0]["heading_deg"] - 30.0) < 2.0

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
+import math
 import re
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
 
@@ -92,3 +94,77 @@ def test_unreadable_and_malformed_files(tmp_path: Path) -> None:
     bad.write_text("- a list\n")
     with pytest.raises(ScenarioError, match="expected a mapping"):
         load_scenario(bad)
+
+
+ANY_COLOUR = Path(__file__).parent / "scenarios" / "any_colour.yaml"
+
+
+def test_markers_plain_paint_and_the_robots_marker() -> None:
+    s = load_scenario(ANY_COLOUR)
+    box_, trolley = s.obstacles
+    assert box_.color is None and box_.bgr == (40, 60, 150) and box_.paint == (40, 60, 150)
+    assert trolley.bgr == (200, 200, 200)
+    assert [(m.id, m.dictionary, m.size, m.center, m.heading_deg) for m in s.aruco_markers] == [
+        (7, "4x4_50", 0.25, (6.0, 3.2), 30.0),
+        (3, "4x4_50", 0.25, (2.5, 3.1), 0.0),
+        (9, "4x4_50", 0.25, (7.2, 0.8), -90.0),
+    ]
+    dock = s.charging_stations[0].aruco
+    assert dock is not None and dock.filter_def == "aruco_4x4_50_7"
+    robot = s.robot.marker
+    assert robot is not None and (robot.id, robot.size, robot.filter_def) == (1, 0.25, "aruco_4x4_50_1")
+    # A marker's shape is its black square: corner 0 -> corner 1 points along its heading.
+    corners = s.aruco_markers[0].corners()
+    edge = corners[1] - corners[0]
+    assert math.isclose(math.degrees(math.atan2(edge[1], edge[0])), 30.0)
+    assert math.isclose(float(np.hypot(*edge)), 0.25) and np.allclose(corners.mean(axis=0), (6.0, 3.2))
+    assert math.isclose(s.objects[3].shape.area, 0.25**2)
+    # The printed square adds a quiet zone two cells wide: 4x4 bits + border = 6 cells, 10 printed.
+    assert math.isclose(robot.printed_size, 0.25 * 10 / 6)
+
+
+def any_colour_with(path: str, value: object) -> str:
+    data = yaml.safe_load(ANY_COLOUR.read_text())
+    node = data
+    keys = [int(k) if k.isdigit() else k for k in re.split(r"[.\[\]]+", path) if k]
+    for k in keys[:-1]:
+        node = node.setdefault(k, {}) if isinstance(node, dict) else node[k]
+    if value is KeyError:
+        del node[keys[-1]]
+    else:
+        node[keys[-1]] = value
+    return yaml.safe_dump(data)
+
+
+@pytest.mark.parametrize(
+    ("path", "value", "message"),
+    [
+        ("objects[0].bgr", [40, 60], r"objects\[0\]\.bgr: expected \[b, g, r\]"),
+        ("objects[0].bgr", [40, 60, 300], r"objects\[0\]\.bgr\[2\]: 300 must be between 0 and 255"),
+        ("objects[0].color", "yellow", r"objects\[0\]\.bgr: give either color .* or bgr .*, not both"),
+        ("objects[0].bgr", KeyError, r"objects\[0\]\.color: missing"),
+        ("objects[4].bgr", [1, 2, 3], r"objects\[4\]\.bgr: an ArUco marker is given by aruco"),
+        ("objects[3].aruco", 50, r"objects\[3\]\.aruco: 50 is not a marker id of 4x4_50 \(0 to 49\)"),
+        ("objects[3].aruco", "seven", r"objects\[3\]\.aruco: seven is not a marker id"),
+        ("objects[3].dictionary", "4x4_51", r"objects\[3\]\.dictionary: '4x4_51' is not an OpenCV ArUco dictionary"),
+        ("objects[3].dictionary", "DICT_4X4_50", r"objects\[3\]\.dictionary: 'DICT_4X4_50' is not an OpenCV"),
+        ("objects[3].size", KeyError, r"objects\[3\]\.size: missing"),
+        ("objects[3].size", 0, r"objects\[3\]\.size: 0 must be between 0\.02 and 5"),
+        ("objects[3].center", KeyError, r"objects\[3\]\.center: missing"),
+        ("objects[3].heading", "north", r"objects\[3\]\.heading: north is not a finite number"),
+        ("objects[3].radius", 0.1, r"objects\[3\]\.radius: an ArUco marker is given by aruco"),
+        ("objects[0].size", 0.1, r"objects\[0\]\.size: only for a marker given by aruco"),
+        ("objects[0].aruco", 4, r"objects\[0\]\.aruco: only for a marker or a charging station"),
+        ("objects[0].dictionary", "4x4_50", r"objects\[0\]\.dictionary: only with aruco"),
+        ("objects[4].aruco", 7, r"objects\[2\]\.aruco: 2 markers carry aruco 7; a dock's id must be unique"),
+        ("objects[2].aruco", 8, r"objects\[2\]\.aruco: no marker with aruco 8 \(4x4_50\) marks this dock"),
+        ("objects[2].aruco", 9, r"objects\[2\]\.aruco: its marker objects\[5\] does not lie inside the charging"),
+        ("robot.marker.aruco", 9, r"robot\.marker\.aruco: 9 is also the id of objects\[5\]"),
+        ("robot.marker.size", 0.3, r"robot\.marker\.size: 0\.3 m does not fit on the robot's top plate"),
+        ("robot.marker.heading", 10, r"robot\.marker\.heading: unknown key"),
+        ("robot.marker.aruco", KeyError, r"robot\.marker\.aruco: missing"),
+    ],
+)
+def test_bad_markers_and_paint_name_the_key(path: str, value: object, message: str) -> None:
+    with pytest.raises(ScenarioError, match=message):
+        parse_scenario(any_colour_with(path, value), "any_colour.yaml")

@@ -32,6 +32,9 @@ from .hsv import HsvDetector, HsvRange
 from .model import ModelDetector  # noqa: F401
 from .people import PeopleDetector  # noqa: F401
 
+# isort: split
+from .foreground import ForegroundDetector  # noqa: F401  (registers "foreground")
+
 __all__ = [
     "DEFAULT_MIN_AREA_PX",
     "OUTLINE_TOLERANCE_PX",

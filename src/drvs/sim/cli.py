@@ -34,6 +34,7 @@ def robot_main(args: argparse.Namespace) -> int:
                 progress=progress,
                 max_time_s=args.max_time,
                 security=security_from(vars(args)),
+                detector=args.detector,
             )
         )
     except DrvsError as exc:
@@ -55,6 +56,12 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--no-drvs", action="store_true", help="the paper's baseline: no DRVS, learn by touching")
     r.add_argument("--out", default=".", help="folder for result.json")
     r.add_argument("--max-time", type=float, default=120.0, help="give up after this many seconds")
+    r.add_argument(
+        "--detector",
+        choices=["hsv", "foreground"],
+        default="hsv",
+        help="find obstacles by the scenario's colours (hsv, the paper's) or as anything not empty floor",
+    )
     r.add_argument("--log-level", default=None)
     add_security_arguments(r, "file holding the robot's client token")
     r.set_defaults(func=robot_main)

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import dataclasses
 import json
 import math
 import re
@@ -13,18 +14,43 @@ import time
 from pathlib import Path
 from typing import Any, TextIO
 
+import cv2
+import yaml
+
 from drvs.camera.homography_file import save_homography
 from drvs.certs import make_all
 from drvs.errors import DrvsError
 from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.sim.cli import PROGRESS_PREFIX
-from drvs.sim.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
+from drvs.sim.scenario import DEFAULT_SCENARIO, CameraDef, Scenario, load_scenario
 
 WORLD_READY = re.compile(r"sim world .* listening on (\S+)")
 
 
 def sim_process(name: str, *args: str, echo: TextIO | None = None) -> ManagedProcess:
     return ManagedProcess.entry_point(name, "drvs-sim", *args, echo=echo)
+
+
+def empty_floor(scenario: Scenario, camera: CameraDef, seed: int) -> Any:
+    """What `drvs-camera snapshot` takes of the empty floor before the mission: this camera's view
+    of the world without its obstacles (the unknown objects) and without the robot."""
+    from drvs.sim.render import CameraRenderer
+
+    empty = dataclasses.replace(scenario, objects=tuple(o for o in scenario.objects if o.kind != "obstacle"))
+    return CameraRenderer(empty, camera, seed=seed).render(None, 0)
+
+
+def camera_config(cams_dir: Path, scenario: Scenario, camera: CameraDef, detector: str, seed: int) -> list[str]:
+    """Extra drvs-camera arguments for this detector: with `foreground`, a config file naming a
+    picture of the empty floor (written next to it)."""
+    if detector != "foreground":
+        return []
+    picture = cams_dir / f"{camera.id}.empty.png"
+    if not cv2.imwrite(str(picture), empty_floor(scenario, camera, seed)):
+        raise OSError(f"cannot write {picture}")
+    config = cams_dir / f"{camera.id}.camera.yaml"
+    config.write_text(yaml.safe_dump({"background": str(picture.resolve())}))
+    return ["--config", str(config)]
 
 
 class Progress:
@@ -70,6 +96,7 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
         world_address = (await world.wait_for_line(WORLD_READY)).group(1)
         say(f"world      {scenario.name!r} on {world_address}")
         robot_args = ["robot", "--world", world_address, "--out", str(out), "--max-time", str(args.max_time)]
+        robot_args += ["--detector", args.detector]
         if args.no_drvs:
             robot_args.append("--no-drvs")
             say("DRVS       off: the paper's baseline, the robot learns obstacles by touching them")
@@ -86,6 +113,8 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
             server, server_address = await start_server(*tls["server"], echo=echo)
             procs.append(server)
             say(f"server     drvs-server on {server_address}")
+            if args.detector == "foreground":
+                say("detector   foreground: obstacles are anything not in each camera's picture of the empty floor")
             cams_dir = out / "cameras"
             cams_dir.mkdir(parents=True, exist_ok=True)
             for cam in scenario.cameras:
@@ -93,7 +122,8 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
                 save_homography(hfile, cam.homography, image_size=list(cam.resolution))
                 proc = await start_camera(
                     cam.id, f"sim://{world_address}", hfile, server_address, "--max-range", str(cam.max_range_m),
-                    *tls[f"camera-{cam.id}"], echo=echo,
+                    *tls[f"camera-{cam.id}"], *camera_config(cams_dir, scenario, cam, args.detector, args.seed),
+                    echo=echo,
                 )  # fmt: skip
                 procs.append(proc)
                 cameras[cam.id] = proc
@@ -141,6 +171,8 @@ def summarise(result: dict[str, Any], out: Path, quiet: bool) -> None:
         return
     print()
     print(f"mission          {result['mission']} {'with DRVS' if result['drvs'] else 'without DRVS (baseline)'}")
+    if result.get("detector", "hsv") != "hsv":
+        print(f"detector         {result['detector']}")
     print(f"reached goal     {'yes' if result['reached_goal'] else 'NO'}")
     if result["mission"] == "find_charging_station":
         print(f"charging station {result['charging_station']} (candidates {result['candidates']})")
@@ -149,7 +181,12 @@ def summarise(result: dict[str, Any], out: Path, quiet: bool) -> None:
     print(f"detections used  {len(result['detections'])}")
     loc = result["localisation"]
     if loc["fixes"]:
-        print(f"localisation     {loc['fixes']} DRVS fixes, mean error {loc['mean_error_m'] * 100:.1f} cm")
+        heading = loc.get("mean_heading_error_deg")
+        print(
+            f"localisation     {loc['fixes']} DRVS fixes, mean error {loc['mean_error_m'] * 100:.1f} cm"
+            + (f", heading {heading:.1f}°" if heading is not None else "")
+            + (f" ({loc['filter_def']})" if loc.get("filter_def", "").startswith("aruco") else "")
+        )
     for event in result.get("coverage_events", []):
         what = "stopped looking" if event["event"] == "lost" else "looks again"
         print(f"coverage         t={event['t']:.1f}s {event['camera_id']} {what} {event['why']}".rstrip())
@@ -186,6 +223,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seed", type=int, default=0, help="seed for sensor noise and lighting (default 0)")
     parser.add_argument("--no-drvs", action="store_true", help="the paper's baseline (Fig. 5): no DRVS")
     parser.add_argument("--tls", action="store_true", help="mutual TLS on every hop, with certificates from drvs-certs")
+    parser.add_argument(
+        "--detector",
+        choices=["hsv", "foreground"],
+        default="hsv",
+        help="how obstacles are found: hsv, the scenario's obstacle colours (the paper's, default); "
+        "foreground, anything that is not the empty floor (each camera gets a picture of it)",
+    )
     parser.add_argument(
         "--kill-camera",
         metavar="ID@SECONDS",

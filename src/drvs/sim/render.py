@@ -1,8 +1,10 @@
 """Render a simulated camera's frames: the floor plan and its objects seen through the camera's
-pinhole model (pose -> homography, OpenCV warp), the robot's marker, lighting and sensor noise."""
+pinhole model (pose -> homography, OpenCV warp), printed ArUco markers on the floor and on the
+robot's top plate, the robot, lighting and sensor noise."""
 
 from __future__ import annotations
 
+import functools
 import math
 
 import cv2
@@ -11,7 +13,7 @@ from numpy.typing import NDArray
 from shapely.geometry import Point, Polygon
 
 from drvs.geometry import FieldOfView
-from drvs.sim.scenario import CameraDef, Scenario
+from drvs.sim.scenario import QUIET_ZONE_CELLS, ArucoDef, CameraDef, Scenario
 from drvs.sim.scene import fill_floor_shape, fill_polygon
 
 FLOOR_BGR = (128, 132, 136)
@@ -19,6 +21,12 @@ WALL_BGR = (72, 72, 72)
 BEYOND_BGR = (205, 200, 196)  # above the horizon and outside the building
 TEXTURE_PX_PER_M = 100.0
 _NOISE_BANK = 8
+#: A printed marker's black and its paper's white (not 0 and 255: ink and paper under room light).
+INK_BGR = 28
+PAPER_BGR = 232
+#: At most this many pixels per marker cell in the image warped onto the floor; it gets about two
+#: of its pixels per camera pixel, so that bilinear warping does not alias.
+_MARKER_CELL_PX = 24
 
 
 class CameraRenderer:
@@ -39,18 +47,24 @@ class CameraRenderer:
         self._fov_floor = fov.floor
         texture, world_to_texture = _floor_texture(scenario, seed)
         image_to_texture = world_to_texture @ self.homography.matrix
-        static = cv2.warpPerspective(
-            texture,
-            image_to_texture,
-            (width, height),
-            flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=BEYOND_BGR,
+        static = np.asarray(
+            cv2.warpPerspective(
+                texture,
+                image_to_texture,
+                (width, height),
+                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                borderMode=cv2.BORDER_CONSTANT,
+                borderValue=BEYOND_BGR,
+            ),
+            dtype=np.uint8,
         )
         # Above the horizon the warp would show the floor behind the camera: paint it as distance.
         mask = np.zeros((height, width), dtype=np.uint8)
         fill_polygon(mask, np.asarray(fov.image.exterior.coords)[:-1], 255)
         static[mask == 0] = BEYOND_BGR
+        self._ahead = float(np.sign(self._to_image.projective_scale(np.asarray(fov.floor.centroid.coords))[0]))
+        for marker in scenario.aruco_markers:
+            self.draw_marker(static, marker)
         # Uneven lighting across the image (a window on one side), fixed per camera.
         rng = np.random.default_rng([seed, _stable_hash(camera.id)])
         swing = scenario.render.lighting
@@ -65,15 +79,28 @@ class CameraRenderer:
             self._noise_up.append(np.clip(n, 0, 255).astype(np.uint8))
             self._noise_down.append(np.clip(-n, 0, 255).astype(np.uint8))
 
-    def render(self, robot_xy: tuple[float, float] | None, version: int) -> NDArray[np.uint8]:
-        """A BGR frame of world state `version` with the robot's marker at robot_xy (None: no robot).
+    def draw_marker(
+        self, image: NDArray[np.uint8], marker: ArucoDef, at: tuple[float, float] = (0.0, 0.0), turn_deg: float = 0.0
+    ) -> None:
+        """Paint a printed marker (its quiet zone included) where it lies on the floor: OpenCV's marker
+        image warped through floor -> image, blended at its edges. Skipped if any of it is behind the camera."""
+        paper = marker.corners(at, turn_deg, side=marker.printed_size)
+        if np.any(np.sign(self._to_image.projective_scale(paper)) != self._ahead):
+            return
+        draw_marker_image(image, marker, self._to_image.apply(paper))
+
+    def render(self, robot_xy: tuple[float, float] | None, version: int, robot_theta: float = 0.0) -> NDArray[np.uint8]:
+        """A BGR frame of world state `version` with the robot at robot_xy (None: no robot), heading
+        robot_theta (radians CCW from x; it turns the marker on its top plate).
 
         Lighting drifts and the sensor noise changes as the world state advances.
         """
         image = self._static.copy()
         if robot_xy is not None:
-            marker = Point(robot_xy).buffer(self.scenario.robot.radius, quad_segs=16)
-            fill_floor_shape(image, marker, self._to_image, self._fov_floor, self.scenario.robot.color.bgr)
+            plate = Point(robot_xy).buffer(self.scenario.robot.radius, quad_segs=16)
+            fill_floor_shape(image, plate, self._to_image, self._fov_floor, self.scenario.robot.color.bgr)
+            if self.scenario.robot.marker is not None:
+                self.draw_marker(image, self.scenario.robot.marker, robot_xy, math.degrees(robot_theta))
         gain = 1.0 + self.scenario.render.lighting * math.sin(2 * math.pi * version / 70.0 + self._phase)
         image = cv2.convertScaleAbs(image, alpha=gain)
         if self._noise_up:
@@ -111,9 +138,45 @@ def _floor_texture(scenario: Scenario, seed: int = 0) -> tuple[NDArray[np.uint8]
     for wall in scenario.walls:
         fill(wall, WALL_BGR)
     for obj in scenario.objects:
-        if obj.color is not None:
-            fill(obj.shape, obj.color.bgr)
+        if obj.paint is not None:
+            fill(obj.shape, obj.paint)
     return texture, world_to_texture
+
+
+@functools.lru_cache(maxsize=64)
+def marker_image(marker: ArucoDef, cell_px: int = _MARKER_CELL_PX) -> NDArray[np.uint8]:
+    """OpenCV's image of the marker with its white quiet zone, in grey levels of ink and paper."""
+    cells = marker.cells
+    bits = cv2.aruco.generateImageMarker(marker.cv_dictionary, marker.id, cells * cell_px)
+    zone = QUIET_ZONE_CELLS * cell_px
+    printed = cv2.copyMakeBorder(bits, zone, zone, zone, zone, cv2.BORDER_CONSTANT, value=255)
+    return np.asarray(INK_BGR + (printed.astype(np.uint16) * (PAPER_BGR - INK_BGR) // 255), dtype=np.uint8)
+
+
+def draw_marker_image(image: NDArray[np.uint8], marker: ArucoDef, corners_px: NDArray[np.float64]) -> None:
+    """Warp the printed marker so that its paper's corners (OpenCV order) land on `corners_px`, and
+    blend it in by its warped coverage (anti-aliased edges). Works on the bounding box only."""
+    height, width = image.shape[:2]
+    x0, y0 = np.floor(corners_px.min(axis=0)).astype(int) - 1
+    x1, y1 = np.ceil(corners_px.max(axis=0)).astype(int) + 2
+    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+    if x0 >= x1 or y0 >= y1:
+        return
+    longest = float(np.max(np.linalg.norm(corners_px - np.roll(corners_px, 1, axis=0), axis=1)))
+    cell_px = min(_MARKER_CELL_PX, max(2, math.ceil(2 * longest / (marker.cells + 2 * QUIET_ZONE_CELLS))))
+    printed = marker_image(marker, cell_px)
+    side = printed.shape[0]
+    # Pixel centres are at integers: the image's outer edges are at -0.5 and side - 0.5.
+    src = np.array([[-0.5, -0.5], [side - 0.5, -0.5], [side - 0.5, side - 0.5], [-0.5, side - 0.5]], np.float32)
+    dst = (corners_px - np.array([x0, y0])).astype(np.float32)
+    warp = cv2.getPerspectiveTransform(src, dst)
+    size = (x1 - x0, y1 - y0)
+    grey = cv2.warpPerspective(printed, warp, size, flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+    cover = cv2.warpPerspective(np.full_like(printed, 255), warp, size, flags=cv2.INTER_LINEAR)
+    roi = image[y0:y1, x0:x1].astype(np.float32)
+    alpha = cover.astype(np.float32)[:, :, None] / 255.0
+    roi = roi * (1.0 - alpha) + grey.astype(np.float32)[:, :, None] * alpha
+    image[y0:y1, x0:x1] = np.clip(roi + 0.5, 0, 255).astype(np.uint8)
 
 
 def _stable_hash(text: str) -> int:

@@ -3,6 +3,7 @@ Figs. 5-8), and one frame from each camera with its detections drawn."""
 
 from __future__ import annotations
 
+import itertools
 import math
 from pathlib import Path
 from typing import Any
@@ -46,10 +47,15 @@ def draw_map(scenario: Scenario, result: dict[str, Any], path: Path, seed: int =
         ax.plot([cx], [cy], "ks", ms=8)
         ax.text(cx, cy - 0.45 if cy > y0 + 1 else cy + 0.3, cam.id, fontsize=8, ha="center")
     for obj in scenario.objects:
-        if obj.color is None:
+        if obj.aruco is not None and obj.kind == "marker":
+            ax.add_patch(_patch(obj.shape, facecolor="black", edgecolor="white", lw=0.8))
+            mx, my = obj.shape.centroid.x, obj.shape.centroid.y
+            ax.text(mx, my, str(obj.aruco.id), color="white", fontsize=6, ha="center", va="center")
+            continue
+        if obj.paint is None:
             ax.add_patch(_patch(obj.shape, fill=False, edgecolor="tab:purple", ls=":", lw=1.5))
             continue
-        b, g, r = obj.color.bgr
+        b, g, r = obj.paint
         ax.add_patch(_patch(obj.shape, facecolor=(r / 255, g / 255, b / 255), alpha=0.45, edgecolor="none"))
     for d in result.get("detections", []):
         ax.add_patch(MplPolygon(d["outline"], closed=True, fill=False, edgecolor="red", lw=1.4))
@@ -85,9 +91,12 @@ def draw_map(scenario: Scenario, result: dict[str, Any], path: Path, seed: int =
     ax.set_ylabel("y (m)")
 
     final = tuple(result["path"][-1]) if result.get("path") else scenario.robot.start
+    moves = [(b[0] - a[0], b[1] - a[1]) for a, b in itertools.pairwise(result.get("path", []))]
+    moves = [m for m in moves if m != (0, 0)]
+    heading = math.atan2(moves[-1][1], moves[-1][0]) if moves else 0.0  # as the robot drove its last step
     for i, cam in enumerate(cams):
         sub = fig.add_subplot(grid[1 + i // 3, i % 3])
-        frame = CameraRenderer(scenario, cam, seed=seed).render(final, len(result.get("path", [])))
+        frame = CameraRenderer(scenario, cam, seed=seed).render(final, len(result.get("path", [])), heading)
         to_image = cam.homography.inverse()
         for d in result.get("detections", []):
             if d["camera_id"] == cam.id:

@@ -1,7 +1,9 @@
 """The simulated robot: the paper's Algorithm 1 over DRVS, or its baseline without DRVS.
 
 The robot knows the floor plan, its own pose (odometry) and which colours obstacles and charging
-station markers have. Everything else it learns from DRVS, or, in the baseline, by touching it.
+station markers have (or, with the `foreground` detector, nothing of the obstacles: anything on
+the floor that is not the empty floor is one; and the ArUco ids of its own marker and its dock).
+Everything else it learns from DRVS, or, in the baseline, by touching it.
 """
 
 from __future__ import annotations
@@ -52,6 +54,14 @@ SAME_OBSTACLE_M = 0.05
 BLIND_SPEED_FRACTION = 0.25
 #: A camera of a continuous request that has sent nothing for this long has stopped looking.
 SILENT_AFTER_S = 3.0
+#: Detectors the robot can find obstacles with: the paper's colours, or anything not empty floor.
+DETECTORS = ("hsv", "foreground")
+#: With `foreground` the robot sees itself: what lies within this much of the floor it has driven
+#: over (its own disc, and where it stood, which a motion model shows for a while as changed floor)
+#: is not an obstacle. A piece of a detection cut off by it that is smaller than SELF_SLIVER_M2 is
+#: the edge of the robot's own blob, not an obstacle.
+SELF_MARGIN_M = 0.1
+SELF_SLIVER_M2 = 0.01
 
 
 class MissionFailed(Exception):
@@ -67,8 +77,12 @@ class SimRobot:
         *,
         progress: Callable[[dict[str, Any]], None] = lambda p: None,
         max_time_s: float = 120.0,
+        detector: str = "hsv",
     ) -> None:
+        if detector not in DETECTORS:
+            raise ValueError(f"detector {detector!r} is not one of {', '.join(DETECTORS)}")
         self.scenario = scenario
+        self.detector = detector
         self.world = world
         self.drvs = drvs
         self.progress = progress
@@ -87,6 +101,10 @@ class SimRobot:
         self.known_obstacles: list[Polygon] = []
         self.contacts: list[Polygon] = []
         self.localisation_errors: list[float] = []
+        self.heading_errors: list[float] = []
+        #: (Unix time the move was sent, x, y, theta) of every pose: what a frame captured then shows.
+        self.history: list[tuple[float, float, float, float]] = [(time.time(), *robot.start, 0.0)]
+        self._swept: tuple[int, Polygon] | None = None
         self.ignore_near: list[tuple[float, float]] = []  # station markers: landmarks, not obstacles
         self._map_changed = False
         # Coverage: every camera's field of view as first listed, the areas no camera looks at now
@@ -101,13 +119,22 @@ class SimRobot:
         self._last_progress = 0.0
         # The paper's robot knows the obstacle colour model (yellow), not where obstacles are.
         self.obstacle_filters = sorted({o.color.filter_def for o in scenario.obstacles if o.color is not None})
+        if detector == "foreground":
+            self.obstacle_filters = ["foreground"]
 
     # --- map --------------------------------------------------------------------------------
 
-    def mark(self, outline: Polygon) -> bool:
-        """The pessimistic union: every detection is occupied. True when the map changed."""
+    def mark(self, outline: Polygon, ragged: bool = False) -> bool:
+        """The pessimistic union: every detection is occupied. True when the map changed.
+
+        `ragged`: a foreground outline, traced on a noisy mask's edge: spikes of it that stick out of
+        the known obstacles by less than SELF_SLIVER_M2 in all are that obstacle seen again."""
         if any(known.buffer(SAME_OBSTACLE_M).contains(outline) for known in self.known_obstacles):
             return False
+        if ragged and self.known_obstacles:
+            known = shapely.union_all([k.buffer(SAME_OBSTACLE_M) for k in self.known_obstacles])
+            if outline.difference(known).area < SELF_SLIVER_M2:
+                return False
         changed = self.grid.add_polygon(outline, self.inflate)
         if changed:
             self.known_obstacles.append(outline)
@@ -118,8 +145,29 @@ class SimRobot:
         for d in detections:
             if any(d.centroid.distance(Point(p)) < MARKER_MATCH_M for p in self.ignore_near):
                 continue
-            if self.mark(d.outline):
+            if d.filter_def == "foreground":
+                if any([self.mark(piece, ragged=True) for piece in self.not_myself(d.outline)]):
+                    self.detections_used.append(d)
+            elif self.mark(d.outline):
                 self.detections_used.append(d)
+
+    def swept(self) -> Polygon:
+        """The floor the robot has covered on its way so far, grown by SELF_MARGIN_M."""
+        if self._swept is None or self._swept[0] != len(self.path_driven):
+            line = LineString(self.path_driven) if len(self.path_driven) > 1 else Point(self.path_driven[0])
+            area = line.buffer(self.scenario.robot.radius + SELF_MARGIN_M, quad_segs=8)
+            shapely.prepare(area)
+            self._swept = (len(self.path_driven), area)
+        return self._swept[1]
+
+    def not_myself(self, outline: Polygon) -> list[Polygon]:
+        """A foreground outline without the robot: the parts off the floor it has driven over.
+        Nothing the robot could hit can lie where it has been (the world's obstacles stand still)."""
+        swept = self.swept()
+        if not swept.intersects(outline):
+            return [outline]
+        rest = outline.difference(swept)
+        return [p for p in getattr(rest, "geoms", [rest]) if isinstance(p, Polygon) and p.area >= SELF_SLIVER_M2]
 
     def corridor(self, path: Sequence[tuple[float, float]]) -> Polygon:
         line = LineString(path) if len(path) > 1 else Point(path[0])
@@ -235,22 +283,45 @@ class SimRobot:
                 self.regain(report.camera_id)
             self.use_detections(report.detections)
 
+    @property
+    def self_filter(self) -> str:
+        """What finds the robot: its ArUco marker (position and heading), else its colour."""
+        marker = self.scenario.robot.marker
+        return marker.filter_def if marker is not None else self.scenario.robot.color.filter_def
+
     async def watch_self(self) -> None:
         """Localise: the cameras that see the robot's own marker report where it is."""
         assert self.drvs is not None
         sub = await self.drvs.subscribe(
-            self.scenario.robot.color.filter_def,
+            self.self_filter,
             box(*self.scenario.bounds),
             rate_hz=SELF_RATE_HZ,
             duration_s=self.max_time_s,
         )
         try:
             async for report in sub:
-                if report.detections:
+                if not report.detections:
+                    continue
+                if self.scenario.robot.marker is not None:
+                    self.fix_by_marker(report.detections)
+                else:
                     near = min(report.detections, key=lambda d: d.centroid.distance(Point(self.pose)))
                     self.localisation_errors.append(near.centroid.distance(Point(self.pose)))
         finally:
             sub.close()
+
+    def fix_by_marker(self, detections: Sequence[Detection]) -> None:
+        """A fix from the robot's own ArUco marker (its id is unique in the building), against the
+        pose the frame shows: the last one sent before the frame's capture time, or the one before
+        it if the frame was rendered while that move was in flight (whichever is nearer)."""
+        for d in detections:
+            t = d.capture_time
+            before = [h for h in self.history if h[0] <= t][-2:] or self.history[:1]
+            best = min(before, key=lambda h: math.dist(d.centroid_xy, h[1:3]))
+            self.localisation_errors.append(math.dist(d.centroid_xy, best[1:3]))
+            if d.heading_deg is not None:
+                error = (d.heading_deg - math.degrees(best[3]) + 180.0) % 360.0 - 180.0
+                self.heading_errors.append(abs(error))
 
     # --- driving ----------------------------------------------------------------------------
 
@@ -317,8 +388,10 @@ class SimRobot:
         y = self.pose[1] + (target[1] - self.pose[1]) * step / distance if distance else target[1]
         heading = math.atan2(target[1] - self.pose[1], target[0] - self.pose[0])
         tick = asyncio.get_running_loop().create_task(asyncio.sleep(TICK_S))
+        sent = time.time()
         reply = await self.world.Move(sim_pb2.MoveRequest(pose=sim_pb2.RobotPose(x=x, y=y, theta=heading)))
         self.pose = (reply.pose.x, reply.pose.y)
+        self.history.append((sent, reply.pose.x, reply.pose.y, reply.pose.theta))
         self.path_driven.append(self.pose)
         if reply.collided:
             self.collisions += 1
@@ -365,10 +438,15 @@ class SimRobot:
                     await localiser
         return {"reached_goal": reached, "charging_station": None, "candidates": []}
 
-    async def find_charging_station(self) -> dict[str, Any]:
-        if self.drvs is None:
-            raise MissionFailed("find_charging_station needs DRVS: the markers are only seen by cameras")
-        await self.learn_cameras()
+    async def dock_markers(self, docks: Sequence[str]) -> tuple[list[tuple[float, float]], list[Detection]]:
+        """Docks marked by an ArUco id: where each dock's marker lies is a station. The marker lies
+        flat (no obstacle), and its id tells it from every other marker on the floor."""
+        found = await self.look(docks, box(*self.scenario.bounds))
+        self.ignore_near.extend((d.centroid.x, d.centroid.y) for d in found)
+        return [(d.centroid.x, d.centroid.y) for d in found], found
+
+    async def colour_stations(self) -> tuple[list[tuple[float, float]], list[Detection]]:
+        """The paper's stations: a green and a yellow marker close together."""
         colors = self.scenario.colors
         green, yellow = colors["green"].filter_def, colors["yellow"].filter_def
         greens = await self.look([green], box(*self.scenario.bounds))
@@ -382,9 +460,26 @@ class SimRobot:
                     candidates.append(((gx + y.centroid.x) / 2, (gy + y.centroid.y) / 2))
                     used.extend([g, y])
                     self.ignore_near.extend([(gx, gy), (y.centroid.x, y.centroid.y)])
+        log.info("%d green marker(s)", len(greens))
+        return candidates, used
+
+    async def find_charging_station(self) -> dict[str, Any]:
+        if self.drvs is None:
+            raise MissionFailed("find_charging_station needs DRVS: the markers are only seen by cameras")
+        await self.learn_cameras()
+        stations = self.scenario.charging_stations
+        docks = sorted({o.aruco.filter_def for o in stations if o.aruco is not None})
+        candidates: list[tuple[float, float]] = []
+        used: list[Detection] = []
+        if docks:
+            candidates, used = await self.dock_markers(docks)
+        if any(o.aruco is None for o in stations):  # the paper's: between a green and a yellow marker
+            paired, pair_used = await self.colour_stations()
+            candidates += paired
+            used += pair_used
         self.detections_used.extend(used)
         candidates.sort(key=lambda c: math.dist(c, self.pose))
-        log.info("%d green marker(s), %d station candidate(s)", len(greens), len(candidates))
+        log.info("%d station candidate(s)", len(candidates))
         for candidate in candidates:
             if not await self.go_to(candidate, look=True):
                 continue
@@ -403,13 +498,18 @@ class SimRobot:
 
 
 def detection_record(d: Detection) -> dict[str, Any]:
-    return {
+    record: dict[str, Any] = {
         "filter_def": d.filter_def,
         "camera_id": d.camera_id,
         "bounds": [round(v, 4) for v in d.bounds],
         "centroid": [round(d.centroid.x, 4), round(d.centroid.y, 4)],
         "outline": [[round(x, 4), round(y, 4)] for x, y in list(d.outline.exterior.coords)[:-1]],
     }
+    if d.marker_id is not None:
+        record["marker_id"] = d.marker_id
+    if d.heading_deg is not None:
+        record["heading_deg"] = round(d.heading_deg, 2)
+    return record
 
 
 async def run_robot(
@@ -420,6 +520,7 @@ async def run_robot(
     progress: Callable[[dict[str, Any]], None],
     max_time_s: float = 120.0,
     security: Security | None = None,
+    detector: str = "hsv",
 ) -> dict[str, Any]:
     from drvs.sim.scenario import parse_scenario
 
@@ -434,7 +535,7 @@ async def run_robot(
         if client is not None:
             await client.start()
         try:
-            robot = SimRobot(scenario, world, client, progress=progress, max_time_s=max_time_s)
+            robot = SimRobot(scenario, world, client, progress=progress, max_time_s=max_time_s, detector=detector)
             mission = getattr(robot, scenario.mission)
             try:
                 outcome = await mission()
@@ -449,10 +550,12 @@ async def run_robot(
             if client is not None:
                 await client.close()
     errors = robot.localisation_errors
+    headings = robot.heading_errors
     result: dict[str, Any] = {
         "scenario": scenario.name,
         "mission": scenario.mission,
         "drvs": client is not None,
+        "detector": detector,
         **outcome,
         "collisions": robot.collisions,
         "replans": robot.replans,
@@ -466,6 +569,9 @@ async def run_robot(
             "fixes": len(errors),
             "mean_error_m": round(sum(errors) / len(errors), 4) if errors else None,
             "max_error_m": round(max(errors), 4) if errors else None,
+            "filter_def": robot.self_filter,
+            "mean_heading_error_deg": round(sum(headings) / len(headings), 3) if headings else None,
+            "max_heading_error_deg": round(max(headings), 3) if headings else None,
         },
         "coverage_events": robot.coverage_events,
         "blind_steps": robot.blind_steps,

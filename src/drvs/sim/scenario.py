@@ -14,8 +14,10 @@ from typing import Any
 import cv2
 import numpy as np
 import yaml
+from numpy.typing import NDArray
 from shapely.geometry import Point, Polygon, box
 
+from drvs.detectors.aruco import DICTIONARIES, DICTIONARY_SIZES
 from drvs.errors import InvalidArgument
 from drvs.filters import HsvRange
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography, homography_from_pose, polygon_region
@@ -24,6 +26,11 @@ from drvs.model import check_id
 DEFAULT_SCENARIO = Path(__file__).parent / "scenarios" / "office.yaml"
 MISSIONS = ("navigate", "find_charging_station")
 OBJECT_KINDS = ("obstacle", "marker", "charging_station")
+#: White margin around a printed ArUco marker, in marker cells. Two, not OpenCV's minimum of one:
+#: the aruco detector's sub-pixel corner window reaches up to 0.8 cell past the black square,
+#: and further along the diagonal of a turned marker; past the paper the robot's blue plate pulled
+#: its corners by up to 2.6 cm (measured with one cell).
+QUIET_ZONE_CELLS = 2
 
 
 class ScenarioError(InvalidArgument):
@@ -59,12 +66,72 @@ class CameraDef:
 
 
 @dataclass(frozen=True)
+class ArucoDef:
+    """A printed ArUco marker lying flat: `size` is the side of its black square (what OpenCV calls
+    the marker's side), printed with a white quiet zone QUIET_ZONE_CELLS cells wide around it. Corner 0 (the
+    top-left of OpenCV's marker image) to corner 1 is the marker's x axis, `heading_deg`
+    counter-clockwise from the world x axis; on the robot, `center` and `heading_deg` are relative
+    to the robot (its x axis points where the robot drives)."""
+
+    id: int
+    dictionary: str  # as in filter_defs: "4x4_50", "apriltag_36h11" (drvs.detectors.aruco.DICTIONARIES)
+    size: float
+    center: tuple[float, float] = (0.0, 0.0)
+    heading_deg: float = 0.0
+
+    @property
+    def filter_def(self) -> str:
+        """The filter_def that finds this one marker."""
+        return f"aruco_{self.dictionary}_{self.id}"
+
+    @property
+    def cv_dictionary(self) -> cv2.aruco.Dictionary:
+        return cv2.aruco.getPredefinedDictionary(DICTIONARIES[self.dictionary])
+
+    @property
+    def cells(self) -> int:
+        """Cells across the black square: the marker's bits plus its black border."""
+        return int(self.cv_dictionary.markerSize) + 2
+
+    @property
+    def printed_size(self) -> float:
+        """Side of the printed square, quiet zone included."""
+        return self.size * (self.cells + 2 * QUIET_ZONE_CELLS) / self.cells
+
+    def corners(
+        self, at: tuple[float, float] = (0.0, 0.0), turn_deg: float = 0.0, side: float | None = None
+    ) -> NDArray[np.float64]:
+        """Floor corners of a square of `side` (default the black square) in OpenCV's corner order
+        (top-left, top-right, bottom-right, bottom-left of the marker image), the marker placed at
+        `at` turned by `turn_deg` (the robot's pose; the origin and 0 for a marker on the floor)."""
+        half = (self.size if side is None else side) / 2
+        local = np.array([[-half, half], [half, half], [half, -half], [-half, -half]])  # image v is down
+        turn = math.radians(turn_deg)
+        c, s = math.cos(turn), math.sin(turn)
+        centre = np.array(at) + np.array(
+            [c * self.center[0] - s * self.center[1], s * self.center[0] + c * self.center[1]]
+        )
+        h = math.radians(self.heading_deg + turn_deg)
+        rot = np.array([[math.cos(h), -math.sin(h)], [math.sin(h), math.cos(h)]])
+        return np.asarray(local @ rot.T + centre, dtype=np.float64)
+
+
+@dataclass(frozen=True)
 class ObjectDef:
     """A flat patch on the floor that is not on the floor plan: only cameras can see it."""
 
     kind: str
     shape: Polygon
-    color: ColorDef | None  # None for a charging station: it is found by its markers
+    color: ColorDef | None  # None for a charging station (found by its markers) and plain paint
+    #: Paint no filter of the scenario is meant to match (obstacles given by `bgr`).
+    bgr: tuple[int, int, int] | None = None
+    #: A printed ArUco marker (kind marker), or the marker that marks a charging station's dock.
+    aruco: ArucoDef | None = None
+
+    @property
+    def paint(self) -> tuple[int, int, int] | None:
+        """The BGR it is painted in; None when it is not a plain patch (markers, stations)."""
+        return self.color.bgr if self.color is not None else self.bgr
 
 
 @dataclass(frozen=True)
@@ -74,6 +141,8 @@ class RobotDef:
     radius: float
     color: ColorDef
     speed_mps: float = 1.0
+    #: An ArUco marker on the robot's top plate, centred, its x axis along the robot's heading.
+    marker: ArucoDef | None = None
 
 
 @dataclass(frozen=True)
@@ -107,6 +176,11 @@ class Scenario:
     @property
     def charging_stations(self) -> list[ObjectDef]:
         return [o for o in self.objects if o.kind == "charging_station"]
+
+    @property
+    def aruco_markers(self) -> list[ArucoDef]:
+        """The ArUco markers lying on the floor."""
+        return [o.aruco for o in self.objects if o.kind == "marker" and o.aruco is not None]
 
     def camera(self, camera_id: str) -> CameraDef:
         for cam in self.cameras:
@@ -236,6 +310,7 @@ def _build(root: _Obj, text: str) -> Scenario:
     robot = _robot(_Obj(root.take("robot"), "robot"), colors, bounds, walls, mission)
     if mission == "find_charging_station" and not any(o.kind == "charging_station" for o in objects):
         raise ScenarioError("objects: mission find_charging_station needs an object of kind charging_station")
+    _check_docks(objects, robot)
 
     render_raw = root.take("render", {})
     rend = _Obj(render_raw, "render")
@@ -323,10 +398,21 @@ def _camera(obj: _Obj, floor: Polygon) -> CameraDef:
 
 def _object(obj: _Obj, colors: Mapping[str, ColorDef]) -> ObjectDef:
     p = obj.path
-    obj.check_keys(["kind", "color", "polygon", "center", "radius"])
+    obj.check_keys(["kind", "color", "bgr", "polygon", "center", "radius", "aruco", "dictionary", "size", "heading"])
     kind = obj.take("kind")
     if kind not in OBJECT_KINDS:
         raise ScenarioError(f"{p}.kind: {kind!r} is not one of {', '.join(OBJECT_KINDS)}")
+    for key in ("size", "heading"):
+        if key in obj.value and not (kind == "marker" and "aruco" in obj.value):
+            raise ScenarioError(f"{p}.{key}: only for a marker given by aruco")
+    if "dictionary" in obj.value and "aruco" not in obj.value:
+        raise ScenarioError(f"{p}.dictionary: only with aruco")
+    if kind == "marker" and "aruco" in obj.value:
+        for key in ("color", "bgr", "polygon", "radius"):
+            if key in obj.value:
+                raise ScenarioError(f"{p}.{key}: an ArUco marker is given by aruco, dictionary, center, size, heading")
+        marker = _aruco(obj, centered=True)
+        return ObjectDef(kind, Polygon(marker.corners()), None, aruco=marker)
     has_polygon, has_center = "polygon" in obj.value, "center" in obj.value
     if has_polygon == has_center:
         raise ScenarioError(f"{p}: give either polygon or center (with radius)")
@@ -339,15 +425,89 @@ def _object(obj: _Obj, colors: Mapping[str, ColorDef]) -> ObjectDef:
         radius = _number(obj.take("radius", 0.3 if kind == "charging_station" else ...), f"{p}.radius", 0.01, 100)
         shape = Point(cx, cy).buffer(radius, quad_segs=16)
     color: ColorDef | None = None
+    bgr: tuple[int, int, int] | None = None
+    dock: ArucoDef | None = None
     if kind == "charging_station":
-        if "color" in obj.value:
-            raise ScenarioError(f"{p}.color: a charging station is found by its markers and has no colour")
+        for key in ("color", "bgr"):
+            if key in obj.value:
+                raise ScenarioError(f"{p}.{key}: a charging station is found by its markers and has no colour")
+        if "aruco" in obj.value:
+            dock = _aruco(obj, centered=False)
     else:
-        cname = obj.take("color")
-        if cname not in colors:
-            raise ScenarioError(f"{p}.color: {cname!r} has no definition in colors")
-        color = colors[cname]
-    return ObjectDef(kind, shape, color)
+        if "aruco" in obj.value:
+            raise ScenarioError(f"{p}.aruco: only for a marker or a charging station")
+        if kind == "obstacle" and "bgr" in obj.value:
+            if "color" in obj.value:
+                raise ScenarioError(f"{p}.bgr: give either color (a filter finds it) or bgr (plain paint), not both")
+            bgr = _bgr(obj.take("bgr"), f"{p}.bgr")
+        else:
+            if "bgr" in obj.value:
+                raise ScenarioError(f"{p}.bgr: only an obstacle may be plain paint; a marker is found by its color")
+            cname = obj.take("color")
+            if cname not in colors:
+                raise ScenarioError(f"{p}.color: {cname!r} has no definition in colors")
+            color = colors[cname]
+    return ObjectDef(kind, shape, color, bgr=bgr, aruco=dock)
+
+
+def _check_docks(objects: Sequence[ObjectDef], robot: RobotDef) -> None:
+    """A dock marked by an ArUco id needs that marker on the floor inside it, and no other marker
+    (nor the robot) may carry the id, or the robot could drive to the wrong one; nor may a marker
+    on the floor carry the robot's id, or the robot would take it for itself."""
+    if robot.marker is not None:
+        mine = (robot.marker.id, robot.marker.dictionary)
+        for j, o in enumerate(objects):
+            if o.kind == "marker" and o.aruco is not None and (o.aruco.id, o.aruco.dictionary) == mine:
+                raise ScenarioError(f"robot.marker.aruco: {robot.marker.id} is also the id of objects[{j}]")
+    for i, obj in enumerate(objects):
+        dock = obj.aruco
+        if obj.kind != "charging_station" or dock is None:
+            continue
+        key = (dock.id, dock.dictionary)
+        same = [
+            (j, o)
+            for j, o in enumerate(objects)
+            if o.kind == "marker" and o.aruco is not None and (o.aruco.id, o.aruco.dictionary) == key
+        ]
+        if not same:
+            raise ScenarioError(
+                f"objects[{i}].aruco: no marker with aruco {dock.id} ({dock.dictionary}) marks this dock"
+            )
+        if len(same) > 1:
+            raise ScenarioError(
+                f"objects[{i}].aruco: {len(same)} markers carry aruco {dock.id}; a dock's id must be unique"
+            )
+        j, marker = same[0]
+        if not obj.shape.contains(Point(marker.shape.centroid)):
+            raise ScenarioError(f"objects[{i}].aruco: its marker objects[{j}] does not lie inside the charging station")
+
+
+def _bgr(value: Any, path: str) -> tuple[int, int, int]:
+    if not isinstance(value, list) or len(value) != 3:
+        raise ScenarioError(f"{path}: expected [b, g, r], three integers 0-255")
+    b, g, r = (int(_number(v, f"{path}[{i}]", 0, 255)) for i, v in enumerate(value))
+    return b, g, r
+
+
+def _aruco(obj: _Obj, *, centered: bool) -> ArucoDef:
+    """An ArUco marker's id and dictionary, and with `centered` its place on the floor and size."""
+    p = obj.path
+    dictionary = obj.take("dictionary", "4x4_50")
+    if not isinstance(dictionary, str) or dictionary not in DICTIONARIES:
+        raise ScenarioError(
+            f"{p}.dictionary: {str(dictionary)[:40]!r} is not an OpenCV ArUco dictionary "
+            f"(one of {', '.join(DICTIONARIES)})"
+        )
+    size = DICTIONARY_SIZES[dictionary]
+    marker_id = obj.take("aruco")
+    if isinstance(marker_id, bool) or not isinstance(marker_id, int) or not 0 <= marker_id < size:
+        raise ScenarioError(f"{p}.aruco: {str(marker_id)[:40]} is not a marker id of {dictionary} (0 to {size - 1})")
+    if not centered:
+        return ArucoDef(marker_id, dictionary, 0.0)
+    center = _point(obj.take("center"), f"{p}.center")
+    side = _number(obj.take("size"), f"{p}.size", 0.02, 5)
+    heading = _number(obj.take("heading", 0.0), f"{p}.heading", -360, 360)
+    return ArucoDef(marker_id, dictionary, side, center, heading)
 
 
 def _robot(
@@ -357,7 +517,7 @@ def _robot(
     walls: Sequence[Polygon],
     mission: str,
 ) -> RobotDef:
-    obj.check_keys(["start", "goal", "radius", "color", "speed_mps"])
+    obj.check_keys(["start", "goal", "radius", "color", "speed_mps", "marker"])
     radius = _number(obj.take("radius", 0.2), "robot.radius", 0.05, 2.0)
     floor = box(*bounds)
     start = _point(obj.take("start"), "robot.start")
@@ -377,10 +537,23 @@ def _robot(
     cname = obj.take("color")
     if cname not in colors:
         raise ScenarioError(f"robot.color: {cname!r} has no definition in colors")
+    marker: ArucoDef | None = None
+    if "marker" in obj.value:
+        m = _Obj(obj.take("marker"), "robot.marker")
+        m.check_keys(["aruco", "dictionary", "size"])
+        m.value = {**m.value, "center": [0.0, 0.0]}
+        marker = _aruco(m, centered=True)
+        if marker.printed_size * math.sqrt(0.5) > radius:
+            raise ScenarioError(
+                f"robot.marker.size: {marker.size:g} m does not fit on the robot's top plate: printed with its "
+                f"quiet zone it is {marker.printed_size:.3f} m square, wider corner to corner than the robot's "
+                f"{2 * radius:g} m"
+            )
     return RobotDef(
         start=start,
         goal=goal,
         radius=radius,
         color=colors[cname],
         speed_mps=_number(obj.take("speed_mps", 1.0), "robot.speed_mps", 0.05, 10),
+        marker=marker,
     )

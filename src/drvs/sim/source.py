@@ -36,6 +36,7 @@ class SimSource:
         self._first = threading.Event()
         self._stop = threading.Event()
         self._robot: tuple[float, float] | None = None
+        self._robot_theta = 0.0
         self._robot_version = -1
         self._threads: list[threading.Thread] = []
         self._channel: grpc.Channel | None = None
@@ -87,6 +88,7 @@ class SimSource:
             for pose in self._watch:
                 with self._lock:
                     self._robot = (pose.x, pose.y)
+                    self._robot_theta = pose.theta
                     self._robot_version = pose.version
                     self._lock.notify_all()
         except grpc.RpcError as exc:
@@ -103,11 +105,11 @@ class SimSource:
             with self._lock:
                 if self._robot_version == rendered_version:
                     self._lock.wait(period)  # a new frame at the frame rate, or at once when the robot moves
-                robot, version = self._robot, self._robot_version
+                robot, theta, version = self._robot, self._robot_theta, self._robot_version
             if self._stop.is_set():
                 return
             if image is None or version != rendered_version:  # pixels depend only on the world state
-                image = self.renderer.render(robot, max(version, 0))
+                image = self.renderer.render(robot, max(version, 0), theta)
             sequence += 1
             frame = Frame(image=image, capture_time=time.time(), sequence=sequence, captured_at=time.monotonic())
             with self._lock:
