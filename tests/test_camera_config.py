@@ -142,6 +142,10 @@ def test_capture_detector_and_heartbeat_settings(tmp_path: Path) -> None:
         )
     with pytest.raises(InvalidArgument, match=r"resolution \(from --resolution\): 1x1 is not a camera resolution"):
         load_config({"resolution": "1,1"}, {}, cfg)
+    # Detector settings reach the detectors: a flag, the environment, the file, in that order.
+    people = load_config({"people_min_height_px": "85"}, {"DRVS_CAMERA_DETECT_WORKERS": "3"}, cfg)
+    assert people.detector_options() == {"people": {"min_height_px": 85.0}} and people.detect_workers == 3
+    assert load_config(NO_FLAGS, {}, cfg).detector_options() == {}
 
 
 def test_heartbeat_never_outlives_the_lease(tmp_path: Path) -> None:

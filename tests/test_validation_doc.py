@@ -319,6 +319,11 @@ def cli_cases(tmp: Path) -> list[CliCase]:
             (*camera, "--detect-workers", "0"),
             "detect_workers (from …): '…' must be a whole number from 1 to 64",
         ),
+        CliCase(
+            "drvs-camera",
+            (*camera, "--people-min-height", "20"),
+            "people_min_height_px (from …): '…' must be a number from 32 to 1024",
+        ),
         CliCase("drvs-server", ("--max-forward-bytes", "0"), "--max-forward-bytes: … must be in [1, 1e12]"),
         CliCase(
             "drvs-server", ("--max-connection-idle", "-1"), "--max-connection-idle: … must be in [0, 1e9] (0: no limit)"

@@ -88,6 +88,13 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"picture of the empty floor (drvs-camera snapshot) for the foreground detector ({e['background']})",
     )
     p.add_argument(
+        "--people-min-height",
+        dest="people_min_height_px",
+        metavar="PX",
+        help=f"people: the smallest person to find, pixels tall, 32-1024; below 128 costs more CPU "
+        f"(default 128; {e['people_min_height_px']})",
+    )
+    p.add_argument(
         "--heartbeat", dest="heartbeat_s", type=float, metavar="S", help="heartbeat interval (default: lease / 3)"
     )
     p.add_argument(

@@ -53,6 +53,7 @@ ENVIRONMENT = {
     "heartbeat_s": "DRVS_CAMERA_HEARTBEAT",
     "max_continuous": "DRVS_CAMERA_MAX_CONTINUOUS",
     "detect_workers": "DRVS_CAMERA_DETECT_WORKERS",
+    "people_min_height_px": "DRVS_CAMERA_PEOPLE_MIN_HEIGHT",
     "log_level": "DRVS_LOG_LEVEL",
     "log_format": "DRVS_LOG_FORMAT",
     "metrics_port": "DRVS_METRICS_PORT",
@@ -88,6 +89,8 @@ class CameraConfig:
     max_continuous: int = DEFAULT_MAX_CONTINUOUS_PER_ROBOT
     #: Threads that run heavy detectors (people, models); requests beyond them queue.
     detect_workers: int = DEFAULT_DETECT_WORKERS
+    #: The people detector's smallest person, pixels tall (None: its default, 128, HOG's window).
+    people_min_height_px: float | None = None
     log_level: str | None = None
     #: text, or json (one object per line, with the request id).
     log_format: str | None = None
@@ -121,6 +124,8 @@ class CameraConfig:
             options["foreground"] = {"background": str(self.background)}
         if self.models:
             options["model"] = {"models": self.models}
+        if self.people_min_height_px is not None:
+            options["people"] = {"min_height_px": self.people_min_height_px}
         return options
 
 
@@ -132,7 +137,8 @@ _FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max
           "tls_key": "--tls-key", "tls_ca": "--tls-ca", "tls_client_auth": "--tls-client-auth",
           "token_file": "--token-file", "log_format": "--log-format", "metrics_port": "--metrics-port",
           "metrics_host": "--metrics-host", "max_continuous": "--max-continuous",
-          "detect_workers": "--detect-workers", "background": "--background"}  # fmt: skip
+          "detect_workers": "--detect-workers", "background": "--background",
+          "people_min_height_px": "--people-min-height"}  # fmt: skip
 
 
 def load_config(
@@ -209,7 +215,7 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
                     f"installed: {', '.join(DETECTOR_KINDS)}"
                 )
             return tuple(dict.fromkeys(kinds))
-        if name in ("max_range_m", "min_area_px", "max_frame_age_s", "fps", "heartbeat_s"):
+        if name in ("max_range_m", "min_area_px", "max_frame_age_s", "fps", "heartbeat_s", "people_min_height_px"):
             value = float(raw) if not isinstance(raw, bool) else math.nan
             limits = {
                 "max_range_m": (0.1, 1000.0),
@@ -217,6 +223,7 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
                 "max_frame_age_s": (0.05, 3600.0),
                 "fps": (0.1, 1000.0),
                 "heartbeat_s": (0.05, 3600.0),
+                "people_min_height_px": (32.0, 1024.0),
             }[name]
             if not (math.isfinite(value) and limits[0] <= value <= limits[1]):
                 raise InvalidArgument(f"{where}: {raw!r} must be a number from {limits[0]:g} to {limits[1]:g}")
