@@ -41,16 +41,17 @@ def empty_floor(scenario: Scenario, camera: CameraDef, seed: int) -> Any:
 
 
 def camera_config(cams_dir: Path, scenario: Scenario, camera: CameraDef, detector: str, seed: int) -> list[str]:
-    """Extra drvs-camera arguments for this detector: with `foreground`, a config file naming a
-    picture of the empty floor (written next to it)."""
+    """Extra drvs-camera arguments for this detector: the detectors the mission uses (a camera runs
+    every installed one by default, and foreground's motion model costs every frame whether or not
+    anyone asks), and with `foreground` a config file naming a picture of the empty floor."""
     if detector != "foreground":
-        return []
+        return ["--detectors", "hsv,aruco"]
     picture = cams_dir / f"{camera.id}.empty.png"
     if not cv2.imwrite(str(picture), empty_floor(scenario, camera, seed)):
         raise OSError(f"cannot write {picture}")
     config = cams_dir / f"{camera.id}.camera.yaml"
     config.write_text(yaml.safe_dump({"background": str(picture.resolve())}))
-    return ["--config", str(config)]
+    return ["--config", str(config), "--detectors", "hsv,aruco,foreground"]
 
 
 class Progress:
