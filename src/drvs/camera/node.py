@@ -501,6 +501,8 @@ class CameraNode(Lifecycle):
         wanted = object_type(request.filter_def)
         runner = self.kinds[wanted.kind]
         analysis = self._analyses.for_frame(frame)
+        if runner.observes:
+            self._analyses.asked(runner)
         if not runner.heavy:
             self._analyses.want(analysis, request.filter_def)
         elif analysis.cached_blobs(wanted.key) is None:

@@ -13,14 +13,18 @@ filter asked about on every frame (a robot following objects, many robots) it co
 Heavy detectors (people, models) are never prefetched: at about 100 ms a frame, finding objects
 in frames nobody may look at again would take a core.
 
-Detectors that keep a model of the scene (foreground's background model) see every new frame on
-a second thread, whether or not requests look.
+Detectors that keep a model of the scene (foreground's background model) see new frames on a
+second thread, whether or not requests look: every frame while robots ask for them, and at most
+IDLE_OBSERVE_HZ frames a second after nobody has for IDLE_AFTER_S, so a model nobody uses stays
+warm without taking CPU (and the GIL) from the requests a camera is serving.
 """
 
 from __future__ import annotations
 
 import logging
+import math
 import threading
+import time
 from collections.abc import Callable, Sequence
 
 from drvs.detectors import Detector, Frame, FrameAnalysis
@@ -31,6 +35,11 @@ log = logging.getLogger(__name__)
 
 #: How often the thread looks for a new frame while some filter is wanted.
 POLL_S = 0.002
+#: An observing detector nobody has asked for this long sees at most IDLE_OBSERVE_HZ frames a second.
+IDLE_AFTER_S = 30.0
+IDLE_OBSERVE_HZ = 2.0
+#: How often the observing thread looks for a new frame while an observer is due one.
+OBSERVE_POLL_S = 0.01
 
 
 class Analyses:
@@ -45,6 +54,9 @@ class Analyses:
         self._source = source
         self._prefetch = prefetch
         self._observers = tuple(observers)
+        # Monotonic times each observer was last asked for by a request, and last fed a frame.
+        self._asked: dict[int, float] = {}
+        self._fed: dict[int, float] = {}
         self._observer_thread = (
             threading.Thread(target=self._observe, name=f"observe:{name}", daemon=True) if self._observers else None
         )
@@ -85,6 +97,10 @@ class Analyses:
             analysis.wanted.add(filter_def)
             self._wanted.set()
 
+    def asked(self, detector: Detector) -> None:
+        """A request asked an observing detector: it sees every frame for IDLE_AFTER_S from now."""
+        self._asked[id(detector)] = time.monotonic()
+
     def wait_prefetched(self, count: int, timeout_s: float) -> bool:
         """Wait until `count` frames have been prefetched in all; False on timeout."""
         with self._done:
@@ -116,16 +132,36 @@ class Analyses:
                 self._done.notify_all()
 
     def _observe(self) -> None:
-        """Hand every new frame to the detectors that model the scene, in order, on this thread."""
+        """Hand new frames to the detectors that model the scene, in order, on this thread. While
+        they are idle the thread sleeps until the next frame is due to them rather than polling:
+        a thread waking every few milliseconds takes the GIL from the event loop serving requests."""
         handled = -1
         while not self._stop.is_set():
+            now = time.monotonic()
+            due = [d for d in self._observers if self._due(d, now)]
+            if not due:
+                self._stop.wait(min(self._wait_s(d, now) for d in self._observers))
+                continue
             frame = self._source.latest()
             if frame is None or frame.sequence == handled:
-                self._stop.wait(POLL_S)
+                self._stop.wait(OBSERVE_POLL_S)
                 continue
             handled = frame.sequence
-            for detector in self._observers:
+            for detector in due:
+                self._fed[id(detector)] = now
                 try:
                     detector.observe(frame)
                 except Exception:  # one bad frame must not end the camera's scene model
                     log.warning("%s: observing frame %d failed", type(detector).__name__, frame.sequence, exc_info=True)
+
+    def _idle(self, detector: Detector, now: float) -> bool:
+        return now - self._asked.get(id(detector), -math.inf) > IDLE_AFTER_S
+
+    def _wait_s(self, detector: Detector, now: float) -> float:
+        """Seconds until `detector` is due a frame (0 when it is due now)."""
+        if not self._idle(detector, now):
+            return 0.0
+        return max(0.0, self._fed.get(id(detector), -math.inf) + 1.0 / IDLE_OBSERVE_HZ - now)
+
+    def _due(self, detector: Detector, now: float) -> bool:
+        return self._wait_s(detector, now) == 0.0
