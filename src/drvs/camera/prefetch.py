@@ -14,9 +14,11 @@ Heavy detectors (people, models) are never prefetched: at about 100 ms a frame, 
 in frames nobody may look at again would take a core.
 
 Detectors that keep a model of the scene (foreground's background model) see new frames on a
-second thread, whether or not requests look: every frame while robots ask for them, and at most
-IDLE_OBSERVE_HZ frames a second after nobody has for IDLE_AFTER_S, so a model nobody uses stays
-warm without taking CPU (and the GIL) from the requests a camera is serving.
+second thread from the first request that asks for them: every frame while robots ask, and at most
+IDLE_OBSERVE_HZ frames a second after nobody has for IDLE_AFTER_S, so a model stays warm without
+taking CPU (and the GIL) from the requests the camera serves. A camera nobody asks for foreground
+never runs the model: on two cores, feeding it every frame made other robots' colour answers on
+the same camera tens of milliseconds late (tests/test_faults.py).
 """
 
 from __future__ import annotations
@@ -57,6 +59,7 @@ class Analyses:
         # Monotonic times each observer was last asked for by a request, and last fed a frame.
         self._asked: dict[int, float] = {}
         self._fed: dict[int, float] = {}
+        self._first_ask = threading.Event()
         self._observer_thread = (
             threading.Thread(target=self._observe, name=f"observe:{name}", daemon=True) if self._observers else None
         )
@@ -77,6 +80,7 @@ class Analyses:
     def stop(self) -> None:
         self._stop.set()
         self._wanted.set()
+        self._first_ask.set()
         for thread in (self._thread, self._observer_thread):
             if thread is not None and thread.is_alive():
                 thread.join(timeout=5)
@@ -100,6 +104,7 @@ class Analyses:
     def asked(self, detector: Detector) -> None:
         """A request asked an observing detector: it sees every frame for IDLE_AFTER_S from now."""
         self._asked[id(detector)] = time.monotonic()
+        self._first_ask.set()
 
     def wait_prefetched(self, count: int, timeout_s: float) -> bool:
         """Wait until `count` frames have been prefetched in all; False on timeout."""
@@ -136,6 +141,7 @@ class Analyses:
         they are idle the thread sleeps until the next frame is due to them rather than polling:
         a thread waking every few milliseconds takes the GIL from the event loop serving requests."""
         handled = -1
+        self._first_ask.wait()  # nobody has asked for a model yet: it costs nothing
         while not self._stop.is_set():
             now = time.monotonic()
             due = [d for d in self._observers if self._due(d, now)]
@@ -159,6 +165,8 @@ class Analyses:
 
     def _wait_s(self, detector: Detector, now: float) -> float:
         """Seconds until `detector` is due a frame (0 when it is due now)."""
+        if id(detector) not in self._asked:
+            return IDLE_AFTER_S  # never asked: look again later
         if not self._idle(detector, now):
             return 0.0
         return max(0.0, self._fed.get(id(detector), -math.inf) + 1.0 / IDLE_OBSERVE_HZ - now)
