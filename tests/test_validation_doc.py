@@ -114,7 +114,7 @@ INVALID, DENIED, NOT_FOUND = "INVALID_ARGUMENT", "PERMISSION_DENIED", "NOT_FOUND
 GRPC_CASES = [
     Case(INVALID, "request_id: longer than 128 characters", detect(request_id="a" * 129)),
     Case(INVALID, "robot_id: '…' may hold only letters, digits and - _ . :", detect(robot_id="robot with spaces")),
-    Case(INVALID, "filter_def: empty; expected e.g. 'hsv_014110130035225200'…", detect(filter_def="")),
+    Case(INVALID, "filter_def: empty; expected e.g. …", detect(filter_def="")),
     Case(INVALID, "filter_def: unknown object type '…' in '…'; known types: …", detect(filter_def="rgb_0141")),
     Case(
         INVALID,
@@ -123,6 +123,22 @@ GRPC_CASES = [
     ),
     Case(INVALID, "filter_def: H low = 200 is out of range 0-179 in '…'", detect(filter_def="hsv_200110130035225200")),
     Case(INVALID, "filter_def: S low … > S high … in '…'", detect(filter_def="hsv_014210130035100200")),
+    Case(
+        INVALID,
+        "filter_def: '…' names no ArUco dictionary; expected aruco_<dictionary> or aruco_<dictionary>_<id>, "
+        "e.g. 'aruco_4x4_50' or 'aruco_4x4_50_7'",
+        detect(filter_def="aruco"),
+    ),
+    Case(
+        INVALID,
+        "filter_def: unknown ArUco dictionary '…' in '…'; OpenCV's dictionaries are …",
+        detect(filter_def="aruco_4X4_50_7"),
+    ),
+    Case(
+        INVALID,
+        "filter_def: marker id '…' in '…' is not an integer in 0-… (dictionary … has … markers)",
+        detect(filter_def="aruco_apriltag_16h5_30"),
+    ),
     Case(INVALID, "region: missing; give a box or a polygon", detect(region=None)),
     Case(INVALID, "region.box.x_lower: nan is not finite", detect(region=box(math.nan, 0, 1, 1))),
     Case(INVALID, "region.box.x_upper: 1e+300 is beyond ±1e+06 m", detect(region=box(0, 0, 1e300, 1))),
@@ -284,7 +300,7 @@ def cli_cases(tmp: Path) -> list[CliCase]:
             "heartbeat_s (from …): … must be a number from 0.05 to 3600",
         ),
         CliCase(
-            "drvs-camera", (*camera, "--detectors", "rgb"), "detectors (from …): '…': detectors must be some of hsv"
+            "drvs-camera", (*camera, "--detectors", "rgb"), "detectors (from …): '…': detectors must be some of …"
         ),
         CliCase(
             "drvs-camera",

@@ -72,7 +72,9 @@ def build_parser() -> argparse.ArgumentParser:
         "--resolution", help=f"W,H to ask of a device or stream; another size is refused ({e['resolution']})"
     )
     p.add_argument("--fps", type=float, help=f"frame rate to ask of a device or stream ({e['fps']})")
-    p.add_argument("--detectors", help=f"detector kinds to run, comma-separated (default hsv; {e['detectors']})")
+    p.add_argument(
+        "--detectors", help=f"detector kinds to run, comma-separated (default: all, e.g. aruco,hsv; {e['detectors']})"
+    )
     p.add_argument(
         "--heartbeat", dest="heartbeat_s", type=float, metavar="S", help="heartbeat interval (default: lease / 3)"
     )

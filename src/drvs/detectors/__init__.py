@@ -6,6 +6,7 @@ below. See `drvs.detectors.base` for what a detector implements and what stays c
 
 from __future__ import annotations
 
+from .aruco import ArucoDetector as ArucoDetector
 from .base import (
     DEFAULT_MIN_AREA_PX,
     OUTLINE_TOLERANCE_PX,
