@@ -31,6 +31,12 @@ REPORTS = Counter(
     "drvs_reports_sent_total", "Reports a camera node sent to robots, by outcome (sent or dropped)", ["outcome"]
 )
 REPORT_BYTES = Counter("drvs_report_bytes_sent_total", "Serialised bytes of the reports a camera node sent")
+DETECTOR_RUNS = Counter(
+    "drvs_detector_runs_total",
+    "Searches a camera node ran on a frame, by object-type kind (hsv, people ...): one per frame and key, "
+    "however many requests shared it",
+    ["kind"],
+)
 STAGE = Histogram(
     "drvs_stage_seconds",
     "Time per stage: route (server: validate, check, route, dispatch), forward (server: until the camera "

@@ -372,7 +372,7 @@ class CameraNode(Lifecycle):
         if pending is None:
             loop = asyncio.get_running_loop()
             pool = self._heavy_pool if runner.heavy else None
-            pending = loop.run_in_executor(pool, analysis.found, wanted.key, lambda: runner.find(analysis, wanted))
+            pending = loop.run_in_executor(pool, analysis.found, wanted.key, lambda: _run(runner, analysis, wanted))
             analysis.pending[wanted.key] = pending
             pending.add_done_callback(lambda _f: analysis.pending.pop(wanted.key, None))
         found: tuple[Detection, ...] = await asyncio.shield(pending)
@@ -383,7 +383,7 @@ class CameraNode(Lifecycle):
         wanted = object_type(filter_def)
         runner = self.kinds.get(wanted.kind)
         if runner is not None and not runner.heavy:
-            analysis.found(wanted.key, lambda: runner.find(analysis, wanted))
+            analysis.found(wanted.key, lambda: _run(runner, analysis, wanted))
 
     # --- serving requests --------------------------------------------------------------------
 
@@ -500,6 +500,13 @@ class CameraNode(Lifecycle):
             final=final,
             detections=tuple(detections),
         )
+
+
+def _run(runner: Detector, analysis: FrameAnalysis, wanted: ObjectType) -> tuple[Detection, ...]:
+    """One search of a frame for a key (FrameAnalysis.found calls it at most once per frame and key),
+    counted in drvs_detector_runs_total so sharing a frame's work is observable."""
+    metrics.DETECTOR_RUNS.labels(wanted.kind).inc()
+    return runner.find(analysis, wanted)
 
 
 def _details(exc: grpc.RpcError) -> str:

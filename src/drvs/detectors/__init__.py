@@ -24,6 +24,7 @@ from .base import (
 
 # Built-in detectors register themselves on import.
 from .hsv import HsvDetector, HsvRange
+from .people import PeopleDetector  # noqa: F401
 
 __all__ = [
     "DEFAULT_MIN_AREA_PX",
