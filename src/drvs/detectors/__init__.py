@@ -26,6 +26,9 @@ from .base import (
 from .hsv import HsvDetector, HsvRange
 from .people import PeopleDetector  # noqa: F401
 
+# isort: split
+from .foreground import ForegroundDetector  # noqa: F401  (registers "foreground")
+
 __all__ = [
     "DEFAULT_MIN_AREA_PX",
     "OUTLINE_TOLERANCE_PX",

@@ -1,0 +1,270 @@
+"""``foreground``: anything on the floor that is not the empty floor.
+
+Two cues, combined per pixel:
+
+- Motion: a per-camera background model (OpenCV's MOG2 subtractor, shadow detection on and
+  shadows dropped) learns from every frame (`observe`), so things that move are found at once;
+  things that stop fade into that model after a while.
+- The empty floor: when the camera's configuration names a picture of it (``background:
+  empty.png``, taken with ``drvs-camera snapshot``), every frame is compared with that picture,
+  so things that never move are found too.
+
+Lighting: each frame is first scaled by one global gain (the median brightness ratio between the
+frame and the picture, or the first frame when there is none), so a slow change of the building's
+light moves nothing. What is left is compared colour vector by colour vector in the way shadow
+detectors do (Horprasert et al. 1999): a pixel is a *shadow* (not an object) when its colour points
+the same way as the floor's (chromaticity distortion small) and it is darker, down to
+`SHADOW_MIN_BRIGHTNESS` of the floor's brightness; it is an *object* when its colour points
+elsewhere, or it is brighter than the floor, or darker than any shadow. The price: an object of
+exactly the floor's hue and a little darker is a shadow to this detector while it stands still.
+
+All the pixel work runs at a reduced scale (at most `WORK_WIDTH` pixels wide); outlines are traced
+on the mask brought back to the frame's size.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import OrderedDict
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from drvs.errors import FailedPrecondition, InvalidArgument
+from drvs.model import Detection
+
+from .base import CameraView, Detector, Frame, FrameAnalysis, ObjectType, register
+
+FOREGROUND = "foreground"
+#: Pixel work happens on frames scaled down to at most this width (640x480 -> 320x240).
+WORK_WIDTH = 320
+#: The motion model's memory, frames (MOG2's history), and its learning rate per frame
+#: (None: OpenCV's 1/min(frames seen, history)).
+HISTORY_FRAMES = 300
+#: MOG2's squared Mahalanobis distance for a pixel to match its model (OpenCV's default is 16).
+VAR_THRESHOLD = 25.0
+#: Frames the motion model must have seen before its mask counts (its first frames are all new).
+WARMUP_FRAMES = 5
+#: A pixel whose colour direction departs from the floor's by more than this (the sine of the
+#: angle between the two colour vectors) is not floor, whatever its brightness.
+CHROMA_THRESHOLD = 0.045
+#: Brightness relative to the floor (after the global gain): above HIGH is an object (a shadow
+#: never brightens), below SHADOW_MIN_BRIGHTNESS is darker than any shadow.
+BRIGHTNESS_HIGH = 1.22
+SHADOW_MIN_BRIGHTNESS = 0.35
+#: Cleaning, in working pixels: openings remove speckle, closings join an object's parts.
+OPEN_PX = 3
+CLOSE_PX = 5
+#: Frames whose motion masks are kept for requests that ask about them a little later.
+MASK_CACHE = 4
+#: Sums a float image's three channels (cv2.transform is ten times faster than numpy's sum).
+_SUM = np.ones((1, 3), dtype=np.float32)
+
+
+def _work_size(image_size: tuple[int, int]) -> tuple[int, int]:
+    width, height = image_size
+    if width <= WORK_WIDTH:
+        return width, height
+    scale = WORK_WIDTH / width
+    return WORK_WIDTH, max(1, round(height * scale))
+
+
+@register
+class ForegroundDetector(Detector):
+    """Motion (MOG2) and, when configured, difference from a picture of the empty floor."""
+
+    prefix = "foreground"
+    example = FOREGROUND
+    observes = True
+
+    def __init__(self, view: CameraView, options: Mapping[str, Any] | None = None) -> None:
+        super().__init__(view, options)
+        unknown = sorted(set(self.options) - {"background"})
+        if unknown:
+            raise InvalidArgument(f"foreground: unknown option(s) {', '.join(map(str, unknown))}; expected: background")
+        self._work = _work_size(view.image_size)
+        work_w, work_h = self._work
+        self._fov = cv2.resize(view.fov_mask, self._work, interpolation=cv2.INTER_NEAREST) > 0
+        # Sample of the field of view the gain is measured on (every 4th pixel is plenty for a median).
+        sample = np.zeros((work_h, work_w), dtype=bool)
+        sample[::4, ::4] = True
+        sample &= self._fov
+        self._sample = np.nonzero(sample if sample.any() else self._fov)
+        self._open = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (OPEN_PX, OPEN_PX))
+        self._close = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (CLOSE_PX, CLOSE_PX))
+        self.background_path: Path | None = None
+        self._reference: NDArray[np.float32] | None = None
+        self._reference_norm2: NDArray[np.float32] | None = None
+        self._reference_brightness: NDArray[np.float32] | None = None
+        self._target_brightness: float | None = None
+        background = self.options.get("background")
+        if background is not None:
+            self._load_background(background)
+        self._lock = threading.Lock()
+        self._subtractor = cv2.createBackgroundSubtractorMOG2(
+            history=HISTORY_FRAMES, varThreshold=VAR_THRESHOLD, detectShadows=True
+        )
+        self._observed = 0
+        self._subtractor.setShadowThreshold(SHADOW_MIN_BRIGHTNESS)
+        self._masks: OrderedDict[int, NDArray[np.uint8]] = OrderedDict()
+        self._frames: OrderedDict[int, tuple[NDArray[np.uint8], NDArray[np.uint8], float]] = OrderedDict()
+
+    # --- configuration -----------------------------------------------------------------------
+
+    def _load_background(self, background: Any) -> None:
+        if not isinstance(background, (str, Path)) or not str(background).strip():
+            raise InvalidArgument(f"foreground: background: {background!r} is not a file path")
+        path = Path(background)
+        self.background_path = path
+        if not path.is_file():
+            reason = "no such file" if not path.exists() else "not a file"
+            raise FailedPrecondition(f"foreground: background {path}: {reason} (take one with drvs-camera snapshot)")
+        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if image is None:
+            raise FailedPrecondition(f"foreground: background {path}: unreadable, not an image OpenCV can decode")
+        size = (int(image.shape[1]), int(image.shape[0]))
+        if size != self.view.image_size:
+            raise FailedPrecondition(
+                f"foreground: background {path}: {size[0]}x{size[1]}, but the camera's frames are "
+                f"{self.view.image_size[0]}x{self.view.image_size[1]} (take it again with drvs-camera snapshot)"
+            )
+        work = self._prepare(np.asarray(image, dtype=np.uint8))
+        self._reference = work.astype(np.float32) + 1.0
+        self._reference_norm2 = np.asarray(cv2.transform(cv2.multiply(self._reference, self._reference), _SUM))
+        self._reference_brightness = work[self._sample].astype(np.float32).sum(axis=1) + 3.0
+
+    @classmethod
+    def parse(cls, filter_def: str) -> ObjectType:
+        if filter_def != FOREGROUND:
+            raise InvalidArgument(f"filter_def: {filter_def[:40]!r} is not {FOREGROUND!r} (it takes no parameters)")
+        return ObjectType(FOREGROUND, "foreground", "foreground", FOREGROUND)
+
+    # --- pixel work ----------------------------------------------------------------------------
+
+    def _prepare(self, image: NDArray[np.uint8]) -> NDArray[np.uint8]:
+        """The frame at the working scale, smoothed against sensor noise (BGR)."""
+        if image.ndim == 2:
+            image = np.asarray(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR), dtype=np.uint8)
+        small = cv2.resize(image, self._work, interpolation=cv2.INTER_AREA)
+        return np.asarray(cv2.GaussianBlur(small, (5, 5), 0), dtype=np.uint8)
+
+    def _gain(self, work: NDArray[np.uint8]) -> float:
+        """The frame's global lighting gain: against the empty floor's picture, or the first frame."""
+        brightness = work[self._sample].astype(np.float32).sum(axis=1) + 3.0
+        if self._reference_brightness is not None:
+            gain = float(np.median(brightness / self._reference_brightness))
+        else:
+            level = float(np.median(brightness))
+            if self._target_brightness is None:
+                self._target_brightness = level
+            gain = level / self._target_brightness
+        return gain if np.isfinite(gain) and gain > 0.05 else 1.0
+
+    def _motion(self, work: NDArray[np.uint8], gain: float, learning_rate: float) -> NDArray[np.uint8]:
+        """MOG2's foreground (shadows, marked 127, dropped) for a working frame, lighting gain taken out."""
+        levelled = cv2.convertScaleAbs(work, alpha=1.0 / gain)
+        mask = self._subtractor.apply(levelled, learningRate=learning_rate)
+        return np.asarray(cv2.threshold(mask, 200, 255, cv2.THRESH_BINARY)[1], dtype=np.uint8)
+
+    def _static(self, work: NDArray[np.uint8], gain: float) -> NDArray[np.uint8]:
+        """Pixels that differ from the empty floor in a way no shadow or lighting change explains."""
+        assert self._reference is not None and self._reference_norm2 is not None
+        frame = work.astype(np.float32) + 1.0
+        dot = cv2.transform(cv2.multiply(frame, self._reference), _SUM)  # |F| |R| cos(angle)
+        norm2 = cv2.transform(cv2.multiply(frame, frame), _SUM)
+        ref2 = self._reference_norm2
+        # Colour direction: tan(angle)^2 > T^2  <=>  dot^2 (1 + T^2) < |F|^2 |R|^2.
+        hue_changed = dot * dot * np.float32(1.0 + CHROMA_THRESHOLD**2) < norm2 * ref2
+        # Brightness along the floor's colour, relative to the floor's, after the global gain.
+        brightness = dot / (ref2 * np.float32(gain))
+        changed = hue_changed | (brightness > BRIGHTNESS_HIGH) | (brightness < SHADOW_MIN_BRIGHTNESS)
+        return np.asarray(changed, dtype=np.uint8) * np.uint8(255)
+
+    def _prepared(self, frame: Frame) -> tuple[NDArray[np.uint8], float]:
+        """The frame's working image and gain (computed by observe when it has seen the frame)."""
+        with self._lock:
+            cached = self._frames.get(frame.sequence)
+            if cached is not None and cached[0] is frame.image:
+                return cached[1], cached[2]
+        work = self._prepare(frame.image)
+        with self._lock:
+            return work, self._gain(work)
+
+    def observe(self, frame: Frame) -> None:
+        self.view.check_frame(frame)
+        work = self._prepare(frame.image)
+        with self._lock:
+            gain = self._gain(work)
+            mask = self._motion(work, gain, -1.0)
+            self._observed += 1
+            self._frames[frame.sequence] = (frame.image, work, gain)
+            self._masks[frame.sequence] = mask
+            while len(self._masks) > MASK_CACHE:
+                self._masks.popitem(last=False)
+            while len(self._frames) > MASK_CACHE:
+                self._frames.popitem(last=False)
+
+    def _motion_mask(self, frame: Frame, work: NDArray[np.uint8], gain: float) -> NDArray[np.uint8] | None:
+        """This frame's motion mask: the one observe made, or the model's verdict without learning."""
+        with self._lock:
+            if self._observed < WARMUP_FRAMES:
+                return None
+            mask = self._masks.get(frame.sequence)
+            if mask is None:
+                mask = self._motion(work, gain, 0.0)
+            return mask
+
+    def masks(self, frame: Frame) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+        """The frame's foreground (0/255) at the frame's size within the field of view: as found,
+        and cleaned (speckle removed, an object's parts joined)."""
+        self.view.check_frame(frame)
+        work, gain = self._prepared(frame)
+        found = np.zeros(work.shape[:2], dtype=np.uint8)
+        motion = self._motion_mask(frame, work, gain)
+        if motion is not None:
+            found |= motion
+        if self._reference is not None:
+            found |= self._static(work, gain)
+        found[~self._fov] = 0
+        opened = cv2.morphologyEx(found, cv2.MORPH_OPEN, self._open)
+        cleaned = np.asarray(cv2.morphologyEx(opened, cv2.MORPH_CLOSE, self._close), dtype=np.uint8)
+        return self._full_size(found), self._full_size(cleaned)
+
+    def _full_size(self, mask: NDArray[np.uint8]) -> NDArray[np.uint8]:
+        full: Any = mask
+        if self._work != self.view.image_size:
+            full = cv2.resize(mask, self.view.image_size, interpolation=cv2.INTER_LINEAR)
+            full = cv2.threshold(full, 127, 255, cv2.THRESH_BINARY)[1]
+        return np.asarray(cv2.bitwise_and(full, self.view.fov_mask), dtype=np.uint8)
+
+    def find(self, analysis: FrameAnalysis, object_type: ObjectType) -> tuple[Detection, ...]:
+        frame = analysis.frame
+        raw, cleaned = self.masks(frame)
+        contours, _ = cv2.findContours(cleaned, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        found: list[Detection] = []
+        for contour in contours:
+            area_px = float(cv2.contourArea(contour))
+            if area_px < self.view.min_area_px:
+                continue
+            x, y, w, h = (int(v) for v in cv2.boundingRect(contour))
+            blob = np.zeros((h, w), dtype=np.uint8)
+            cv2.drawContours(blob, [contour - np.array([x, y], dtype=np.int32)], -1, 255, thickness=cv2.FILLED)
+            inside = int(np.count_nonzero(blob))
+            hits = int(np.count_nonzero(cv2.bitwise_and(blob, raw[y : y + h, x : x + w])))
+            detection = self.view.detection(
+                self.view.simplified(contour),
+                object_type,
+                frame.capture_time,
+                score=hits / inside if inside else 0.0,
+                area_px=area_px,
+                contact_px=(x + (w - 1) / 2.0, y + h - 1.0),
+                label="",
+            )
+            if detection is not None:
+                found.append(detection)
+        found.sort(key=lambda d: d.area_px, reverse=True)
+        return tuple(found)
