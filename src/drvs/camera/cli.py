@@ -340,6 +340,7 @@ def main(argv: list[str] | None = None) -> int:
             serve_frames=config.serve_frames,
             resolution=config.resolution,
             detectors=config.detectors,
+            detector_options={"model": {"models": config.models}} if config.models else None,
             heartbeat_s=config.heartbeat_s,
             max_continuous_per_robot=config.max_continuous,
             security=config.security(),

@@ -8,13 +8,14 @@ from __future__ import annotations
 
 import math
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
 from drvs._cli import SECURITY_ENV, read_token
 from drvs._files import read_yaml
 from drvs.detection import DEFAULT_MIN_AREA_PX
+from drvs.detectors.model import ModelSpec, parse_models
 from drvs.errors import InvalidArgument
 from drvs.filters import DETECTOR_KINDS
 from drvs.geometry import DEFAULT_MAX_RANGE_M
@@ -90,6 +91,9 @@ class CameraConfig:
     tls_ca: Path | None = None
     tls_client_auth: bool = False
     token_file: Path | None = None
+    #: The operator's object-detection models (config file only): {name: {path, classes, ...}}, see
+    #: drvs.detectors.model; paths are relative to the config file.
+    models: dict[str, ModelSpec] = field(default_factory=dict)
 
     def security(self) -> Security:
         return Security(
@@ -134,7 +138,7 @@ def load_config(
         name = f.name
         if flags.get(name) is not None:
             raw, origin = flags[name], _FLAGS[name]
-        elif environ.get(ENVIRONMENT[name], "") != "":
+        elif name in ENVIRONMENT and environ.get(ENVIRONMENT[name], "") != "":
             raw, origin = environ[ENVIRONMENT[name]], ENVIRONMENT[name]
         elif name in file_values:
             raw, origin = file_values[name]
@@ -147,6 +151,11 @@ def load_config(
                 f"{required}: missing; give {_FLAGS[required]}, {ENVIRONMENT[required]} "
                 f"or {required}: in a --config file"
             )
+    if values.get("models") and "model" not in values.get("detectors", DETECTOR_KINDS):
+        raise InvalidArgument(
+            f"models: {', '.join(values['models'])} configured, but detectors ({', '.join(values['detectors'])}) "
+            "leaves out model"
+        )
     return CameraConfig(**values)
 
 
@@ -161,6 +170,8 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
             if not (16 <= w <= 16384 and 16 <= h <= 16384):
                 raise InvalidArgument(f"{where}: {w}x{h} is not a camera resolution")
             return (w, h)
+        if name == "models":
+            return parse_models(raw, where, base)
         if name == "detectors":
             kinds = raw if isinstance(raw, list) else str(raw).split(",")
             kinds = [str(k).strip() for k in kinds if str(k).strip()]

@@ -28,6 +28,7 @@ from .people import PeopleDetector  # noqa: F401
 
 # isort: split
 from .foreground import ForegroundDetector  # noqa: F401  (registers "foreground")
+from .model import ModelDetector  # noqa: F401
 
 __all__ = [
     "DEFAULT_MIN_AREA_PX",
