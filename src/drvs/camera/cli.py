@@ -7,6 +7,7 @@ import asyncio
 import logging
 import os
 import sys
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -76,6 +77,11 @@ def build_parser() -> argparse.ArgumentParser:
         "--detectors", help=f"detector kinds to run, comma-separated (default: all, e.g. aruco,hsv; {e['detectors']})"
     )
     p.add_argument(
+        "--background",
+        metavar="FILE",
+        help=f"picture of the empty floor (drvs-camera snapshot) for the foreground detector ({e['background']})",
+    )
+    p.add_argument(
         "--heartbeat", dest="heartbeat_s", type=float, metavar="S", help="heartbeat interval (default: lease / 3)"
     )
     p.add_argument(
@@ -141,8 +147,8 @@ def parse_size(text: str, name: str = "--image-size") -> tuple[int, int]:
     return w, h
 
 
-async def grab_one(spec: str, timeout_s: float) -> Frame:
-    source = VideoSource(spec, loop_file=False)
+async def grab_one(spec: str, timeout_s: float, source: FrameSource | None = None) -> Frame:
+    source = VideoSource(spec, loop_file=False) if source is None else source
     source.start()
     try:
         return await source.wait_first_frame(timeout_s)
@@ -150,22 +156,52 @@ async def grab_one(spec: str, timeout_s: float) -> Frame:
         await asyncio.to_thread(source.stop)
 
 
+def check_writable(path: Path, name: str = "--out") -> None:
+    """Refuse, before any frame is grabbed, an image path that cannot be written."""
+    if path.is_dir():
+        raise DrvsError(f"{name} {path}: is a directory")
+    ext = path.suffix.lower()
+    if not ext or not cv2.haveImageWriter(f"x{ext}"):
+        raise DrvsError(f"{name} {path}: OpenCV cannot write {ext or 'files without an extension'}; use .png")
+    parent = path.parent
+    if not parent.is_dir():
+        raise DrvsError(f"{name} {path}: no directory {parent}")
+    if not os.access(parent, os.W_OK) or (path.exists() and not os.access(path, os.W_OK)):
+        raise DrvsError(f"{name} {path}: permission denied")
+
+
 def snapshot_main(argv: list[str]) -> int:
-    p = argparse.ArgumentParser(prog="drvs-camera snapshot", description="Save one frame, to pick floor points in.")
-    p.add_argument("--source", required=True, help="device index, video file or stream URL")
-    p.add_argument("--out", required=True, help="PNG file to write")
+    p = argparse.ArgumentParser(
+        prog="drvs-camera snapshot",
+        description="Save one frame of a camera's source: to pick floor points in, or as the picture of the empty "
+        "floor the foreground detector compares frames with (background: in the camera's config).",
+    )
+    p.add_argument("--config", metavar="FILE", help="the camera's YAML config: its source, id, resolution and fps")
+    p.add_argument("--source", help="device index, video file, stream URL or sim://HOST:PORT (overrides --config)")
+    p.add_argument("--id", help="camera id (needed for a sim:// source without --config)")
+    p.add_argument("--out", required=True, help="image file to write (PNG: lossless)")
     p.add_argument("--timeout", type=float, default=15.0, help="seconds to wait for a frame")
     args = p.parse_args(argv)
     setup_logging("WARNING")
+    out = Path(args.out)
     try:
-        frame = asyncio.run(grab_one(args.source, args.timeout))
-    except (DrvsError, OSError) as exc:
+        check_writable(out)
+        spec, camera_id = args.source, args.id or "snapshot"
+        resolution, fps = None, None
+        if args.config is not None:
+            flags = {"source": args.source, "id": args.id, "homography": "-"}
+            config = load_config(flags, os.environ, args.config)
+            spec, camera_id, resolution, fps = config.source, config.id, config.resolution, config.fps
+        if not spec:
+            raise DrvsError("give --source SRC or --config FILE")
+        source = make_source(spec, camera_id, loop_file=False, resolution=resolution, fps=fps)
+        frame = asyncio.run(grab_one(spec, args.timeout, source))
+        if not cv2.imwrite(str(out), frame.image):
+            raise DrvsError(f"--out {out}: OpenCV could not write it")
+    except (DrvsError, OSError, cv2.error) as exc:
         print(f"drvs-camera snapshot: {exc}", file=sys.stderr)
         return 1
-    if not cv2.imwrite(args.out, frame.image):
-        print(f"drvs-camera snapshot: cannot write {args.out}", file=sys.stderr)
-        return 1
-    print(f"{args.out}: {frame.size[0]}x{frame.size[1]} from {args.source}")
+    print(f"{out}: {frame.size[0]}x{frame.size[1]} from {spec}")
     return 0
 
 
@@ -340,7 +376,7 @@ def main(argv: list[str] | None = None) -> int:
             serve_frames=config.serve_frames,
             resolution=config.resolution,
             detectors=config.detectors,
-            detector_options={"model": {"models": config.models}} if config.models else None,
+            detector_options=config.detector_options(),
             heartbeat_s=config.heartbeat_s,
             max_continuous_per_robot=config.max_continuous,
             security=config.security(),

@@ -46,6 +46,7 @@ ENVIRONMENT = {
     "resolution": "DRVS_CAMERA_RESOLUTION",
     "fps": "DRVS_CAMERA_FPS",
     "detectors": "DRVS_CAMERA_DETECTORS",
+    "background": "DRVS_CAMERA_BACKGROUND",
     "heartbeat_s": "DRVS_CAMERA_HEARTBEAT",
     "max_continuous": "DRVS_CAMERA_MAX_CONTINUOUS",
     "log_level": "DRVS_LOG_LEVEL",
@@ -74,6 +75,9 @@ class CameraConfig:
     resolution: tuple[int, int] | None = None
     fps: float | None = None
     detectors: tuple[str, ...] = DETECTOR_KINDS
+    #: A picture of the empty floor (drvs-camera snapshot) for the foreground detector; relative
+    #: to the config file. The detector refuses, at start, a file it cannot read or of another size.
+    background: Path | None = None
     #: Heartbeat interval; by default a third of the lease the server grants.
     heartbeat_s: float | None = None
     #: Continuous requests one robot (callback address) may have running on this camera at once.
@@ -104,6 +108,15 @@ class CameraConfig:
             token=read_token(self.token_file) if self.token_file else "",
         )
 
+    def detector_options(self) -> dict[str, dict[str, Any]]:
+        """Per-detector options for CameraNode(detector_options=...)."""
+        options: dict[str, dict[str, Any]] = {}
+        if self.background is not None:
+            options["foreground"] = {"background": str(self.background)}
+        if self.models:
+            options["model"] = {"models": self.models}
+        return options
+
 
 _FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max_range_m": "--max-range",
           "min_area_px": "--min-area", "max_frame_age_s": "--max-frame-age", "loop": "--no-loop",
@@ -112,7 +125,8 @@ _FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max
           "detectors": "--detectors", "heartbeat_s": "--heartbeat", "tls_cert": "--tls-cert",
           "tls_key": "--tls-key", "tls_ca": "--tls-ca", "tls_client_auth": "--tls-client-auth",
           "token_file": "--token-file", "log_format": "--log-format", "metrics_port": "--metrics-port",
-          "metrics_host": "--metrics-host", "max_continuous": "--max-continuous"}  # fmt: skip
+          "metrics_host": "--metrics-host", "max_continuous": "--max-continuous",
+          "background": "--background"}  # fmt: skip
 
 
 def load_config(
@@ -155,6 +169,11 @@ def load_config(
         raise InvalidArgument(
             f"models: {', '.join(values['models'])} configured, but detectors ({', '.join(values['detectors'])}) "
             "leaves out model"
+        )
+    if "background" in values and "foreground" not in values.get("detectors", DETECTOR_KINDS):
+        raise InvalidArgument(
+            f"background: {values['background']} is for the foreground detector, which detectors "
+            f"({', '.join(values['detectors'])}) leaves out"
         )
     return CameraConfig(**values)
 
@@ -229,7 +248,7 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
             except InvalidArgument:
                 raise InvalidArgument(f"{where}: {text[:80]!r} is not a host name or IP address") from None
             return text.strip("[]")
-        elif name in ("homography", "tls_cert", "tls_key", "tls_ca", "token_file"):
+        elif name in ("homography", "background", "tls_cert", "tls_key", "tls_ca", "token_file"):
             path = Path(text)
             return path if path.is_absolute() else base / path
         elif name == "source" and not text.strip():

@@ -42,19 +42,22 @@ from .base import CameraView, Detector, Frame, FrameAnalysis, ObjectType, regist
 FOREGROUND = "foreground"
 #: Pixel work happens on frames scaled down to at most this width (640x480 -> 320x240).
 WORK_WIDTH = 320
-#: The motion model's memory, frames (MOG2's history), and its learning rate per frame
-#: (None: OpenCV's 1/min(frames seen, history)).
-HISTORY_FRAMES = 300
+#: The motion model's memory in frames (MOG2's history): after its first WARMUP_FRAMES it learns
+#: at 1/HISTORY_FRAMES a frame, so a thing that stops fades into it after some 50 frames (MOG2's
+#: default, 1/frames seen, would absorb a slow object's own pixels within a few frames of a start).
+HISTORY_FRAMES = 500
 #: MOG2's squared Mahalanobis distance for a pixel to match its model (OpenCV's default is 16).
 VAR_THRESHOLD = 25.0
 #: Frames the motion model must have seen before its mask counts (its first frames are all new).
 WARMUP_FRAMES = 5
-#: A pixel whose colour direction departs from the floor's by more than this (the sine of the
-#: angle between the two colour vectors) is not floor, whatever its brightness.
-CHROMA_THRESHOLD = 0.045
+#: A pixel whose colour direction departs from the floor's by more than this (the tangent of the
+#: angle between the two colour vectors) is not floor, whatever its brightness. Sensor noise of
+#: sigma 3 grey levels, MJPG-compressed, halved by a shadow, reaches 0.02 at the working scale.
+CHROMA_THRESHOLD = 0.03
 #: Brightness relative to the floor (after the global gain): above HIGH is an object (a shadow
-#: never brightens), below SHADOW_MIN_BRIGHTNESS is darker than any shadow.
-BRIGHTNESS_HIGH = 1.22
+#: never brightens; noise moves it 2 %), below SHADOW_MIN_BRIGHTNESS is darker than any shadow
+#: (also MOG2's shadow threshold).
+BRIGHTNESS_HIGH = 1.15
 SHADOW_MIN_BRIGHTNESS = 0.35
 #: Cleaning, in working pixels: openings remove speckle, closings join an object's parts.
 OPEN_PX = 3
@@ -150,7 +153,7 @@ class ForegroundDetector(Detector):
         if image.ndim == 2:
             image = np.asarray(cv2.cvtColor(image, cv2.COLOR_GRAY2BGR), dtype=np.uint8)
         small = cv2.resize(image, self._work, interpolation=cv2.INTER_AREA)
-        return np.asarray(cv2.GaussianBlur(small, (5, 5), 0), dtype=np.uint8)
+        return np.asarray(cv2.medianBlur(small, 5), dtype=np.uint8)
 
     def _gain(self, work: NDArray[np.uint8]) -> float:
         """The frame's global lighting gain: against the empty floor's picture, or the first frame."""
@@ -199,7 +202,8 @@ class ForegroundDetector(Detector):
         work = self._prepare(frame.image)
         with self._lock:
             gain = self._gain(work)
-            mask = self._motion(work, gain, -1.0)
+            rate = 1.0 / (self._observed + 1) if self._observed < WARMUP_FRAMES else 1.0 / HISTORY_FRAMES
+            mask = self._motion(work, gain, rate)
             self._observed += 1
             self._frames[frame.sequence] = (frame.image, work, gain)
             self._masks[frame.sequence] = mask
