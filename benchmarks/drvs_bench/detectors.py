@@ -63,7 +63,7 @@ RATE_HZ = 10.0
 FULL_FRAMES, QUICK_FRAMES = 40, 8
 FULL_TIMED, QUICK_TIMED = 12, 3
 #: Seconds of each camera CPU run.
-FULL_SECONDS, QUICK_SECONDS = 10.0, 1.5
+FULL_SECONDS, QUICK_SECONDS = 10.0, 1.0
 #: The office camera whose view the timing, the camera CPU and the memory runs use.
 TIMING_CAMERA = "cam-west"
 #: Colours no hsv filter of the office matches (BGR), for obstacles only `foreground` can find.
@@ -151,9 +151,9 @@ def office_frames(
 
 @dataclass(frozen=True)
 class MarkerPose:
-    """An ArUco marker lying face up on the floor: its centre, side (m) and heading, the direction
-    its top edge faces (from the marker's centre through the middle of its top edge), in degrees
-    counter-clockwise from +x."""
+    """An ArUco marker lying face up on the floor: its centre, side (m) and heading as the aruco
+    detector reports it: degrees counter-clockwise from +x to the marker's x axis (its printed top
+    edge read left to right)."""
 
     marker_id: int
     x: float
@@ -164,8 +164,8 @@ class MarkerPose:
     def corners(self) -> NDArray[np.float64]:
         """Floor corners of the black square: top-left, top-right, bottom-right, bottom-left."""
         t = math.radians(self.heading_deg)
-        up = np.array([math.cos(t), math.sin(t)])
-        right = np.array([math.sin(t), -math.cos(t)])  # seen from above, clockwise of up
+        right = np.array([math.cos(t), math.sin(t)])
+        up = np.array([-math.sin(t), math.cos(t)])  # seen from above, counter-clockwise of the top edge
         c = np.array([self.x, self.y])
         h = self.side_m / 2
         return np.array([c + h * (up - right), c + h * (up + right), c - h * (up - right), c - h * (up + right)])
@@ -278,14 +278,122 @@ class Work:
         )
 
 
+class NoInputs(Exception):
+    """A detector's inputs cannot be made on this machine (the message says why)."""
+
+
 def hsv_inputs(work: Work) -> DetectorInputs:
     # The office's yellow discs (markers and distractors) in cam-west's view.
     return work.office_inputs("hsv", "hsv_014110130035225200", min_found=1)
 
 
+def aruco_inputs(work: Work) -> DetectorInputs:
+    # Six 0.3 m markers of DICT_4X4_50 drawn on the floor of every frame.
+    return work.office_inputs("aruco", "aruco_4x4_50", min_found=4)
+
+
+def empty_floor(work: Work, camera: CameraDef) -> Path:
+    """A picture of the camera's empty floor (the office without obstacles), as `drvs-camera
+    snapshot` would take it: the foreground detector's `background`."""
+    path = work.tmp / f"empty-{camera.id}.png"
+    if not path.exists():
+        image = CameraRenderer(bench_office(obstacles=False), camera, seed=0).render(None, 0)
+        cv2.imwrite(str(path), image)
+    return path
+
+
+def foreground_inputs(work: Work) -> DetectorInputs:
+    _scenario, camera, frames = work.office()
+    background = str(empty_floor(work, camera))
+    # Its obstacles (and the markers drawn on the floor, which the empty-floor picture lacks).
+    return work.office_inputs(
+        "foreground", "foreground", options={"background": background}, camera_config={"background": background},
+        min_found=4, warm_frames=frames[-6:],
+    )  # fmt: skip
+
+
+#: Debian's opencv-doc ships OpenCV's sample footage of people walking (768x576).
+VTEST = Path("/usr/share/doc/opencv-doc/examples/data/vtest.avi")
+#: Feet marked by hand on frames of VTEST (tests/data, by the people detector's author).
+VTEST_FEET = Path(__file__).resolve().parents[2] / "tests" / "data" / "vtest_feet.json"
+#: The people tests' plausible pose for the footage (8 m up, 35 degrees down, 60 degree lens): the
+#: same pose at 640x480 gives the same view, scaled.
+VTEST_POSE = ((0.0, 0.0, 8.0), 90.0, 35.0, 60.0)
+VTEST_RANGE_M = 40.0
+#: The people tests' setting for this footage at 768x576 (min_height_px 85), and scaled to 640x480.
+PEOPLE_NATIVE = {"min_height_px": 85}
+PEOPLE_TUNED = {"min_height_px": round(85 * 480 / 576)}
+
+
+def vtest_frames(indices: Sequence[int], resize: bool = True) -> dict[int, NDArray[np.uint8]]:
+    """Frames of vtest.avi by index, resized to 640x480 (resize=False: as recorded, 768x576)."""
+    if not VTEST.is_file():
+        raise NoInputs(f"{VTEST} is absent (apt-get install opencv-doc)")
+    wanted = set(indices)
+    out: dict[int, NDArray[np.uint8]] = {}
+    cap = cv2.VideoCapture(str(VTEST))
+    try:
+        index = 0
+        while len(out) < len(wanted):
+            ok, image = cap.read()
+            if not ok:
+                raise NoInputs(f"{VTEST} ended at frame {index}; wanted up to {max(wanted)}")
+            if index in wanted:
+                if resize:
+                    image = cv2.resize(image, IMAGE_SIZE, interpolation=cv2.INTER_AREA)
+                out[index] = np.asarray(image, dtype=np.uint8)
+            index += 1
+    finally:
+        cap.release()
+    return out
+
+
+def vtest_homography() -> Homography:
+    from drvs.geometry import homography_from_pose
+
+    position, yaw, pitch, hfov = VTEST_POSE
+    return homography_from_pose(position, yaw, pitch, hfov, IMAGE_SIZE)
+
+
+def people_inputs(work: Work) -> DetectorInputs:
+    indices = [5 * i for i in range(work.frames)]
+    frames = vtest_frames(indices)
+    return DetectorInputs(
+        prefix="people",
+        filter_def="people",
+        frames=[frames[i] for i in indices],
+        homography=vtest_homography(),
+        max_range_m=VTEST_RANGE_M,
+        # As a camera runs it: drvs-camera has no setting for the people detector's options.
+        options=None,
+        camera_config={},
+        frames_are=f"real footage: {VTEST} (Debian opencv-doc), every 5th frame from 0, resized to 640x480",
+        min_found=0,
+    )
+
+
+def model_inputs(work: Work) -> DetectorInputs:
+    from .onnx_model import build_model
+
+    path = work.tmp / "bench-model.onnx"
+    info = build_model(path, width=0.25 if work.quick else 1.0)
+    spec = {"path": str(path), "classes": ["a", "b", "c"]}
+    inputs = work.office_inputs(
+        "model", "model_bench", options={"models": {"bench": spec}}, camera_config={"models": {"bench": spec}},
+        min_found=0,
+    )  # fmt: skip
+    inputs.frames_are += "; model: " + json.dumps(info)
+    work.cache["model_info"] = info
+    return inputs
+
+
 #: Inputs by detector prefix. A detector registered without an entry here is listed as `no_inputs`.
 INPUTS: dict[str, Callable[[Work], DetectorInputs]] = {
     "hsv": hsv_inputs,
+    "aruco": aruco_inputs,
+    "foreground": foreground_inputs,
+    "people": people_inputs,
+    "model": model_inputs,
 }
 
 
@@ -351,6 +459,10 @@ def measure_find(all_inputs: Mapping[str, DetectorInputs], rounds: int, timed: i
         entry["found_per_frame"] = per_round[0][prefix]["found_per_frame"]
         entry["heavy"] = detectors[prefix].heavy
         entry["observes"] = detectors[prefix].observes
+        if "hsv" in all_inputs and prefix != "hsv":
+            # Side by side: this detector's find over hsv's in the same round (the machine drifts less
+            # within a round than between runs).
+            publish(entry, "find_ms_over_hsv", [f[prefix]["find_ms"] / f["hsv"]["find_ms"] for f in per_round])
 
 
 # --- camera CPU at 10 requests a second, and peak RSS -------------------------------------------
@@ -444,6 +556,9 @@ async def measure_cameras(
             publish(entry, "camera_cpu_10hz_over_idle", [
                 (b["cpu_s"] / b["wall_s"]) / (i["cpu_s"] / i["wall_s"]) for b, i in zip(busy, idle, strict=True)
             ])  # fmt: skip
+            # Requests answered per second of wall time (until the last answer): under 10, the camera
+            # could not keep up and requests queued for its detector threads.
+            publish(entry, "camera_answered_per_s", [b["requests"] / b["wall_s"] for b in busy])
             publish(entry, "camera_marginal_cpu_ms_per_request", [
                 (b["cpu_s"] - i["cpu_s"] / i["wall_s"] * b["wall_s"]) / b["requests"] * 1000
                 for b, i in zip(busy, idle, strict=True)
@@ -493,30 +608,238 @@ async def measure_memory(
 # --- accuracy -----------------------------------------------------------------------------------
 
 
+def spread(values: Sequence[float]) -> dict[str, float | None]:
+    """Median, 95th percentile and max of errors (None when there are none)."""
+    if not values:
+        return {"median": None, "p95": None, "max": None}
+    v = np.asarray(values, dtype=np.float64)
+    return {"median": float(np.median(v)), "p95": float(np.percentile(v, 95)), "max": float(v.max())}
+
+
+def office_view(camera: CameraDef) -> CameraView:
+    fov = FieldOfView.compute(camera.homography, camera.resolution, camera.max_range_m)
+    return CameraView(camera.homography, fov, camera.resolution, camera_id=camera.id)
+
+
+def accuracy_aruco(work: Work) -> dict[str, Any]:
+    """0.3 m markers of DICT_4X4_50 on a grid over each office camera's floor, each at another
+    heading, drawn into rendered frames: position (the detection's centroid against the marker's
+    centre) and heading errors of every marker found, and how many were found."""
+    scenario = bench_office()
+    wanted = parse_object_type("aruco_4x4_50")
+    versions = (3,) if work.quick else (3, 11, 19)
+    position_cm: list[float] = []
+    heading_deg: list[float] = []
+    rendered = found = false = 0
+    per_camera: dict[str, Any] = {}
+    for camera in scenario.cameras:
+        poses = marker_poses(camera, scenario, 0.3, 1.6 if work.quick else 1.0)
+        truth = {m.marker_id: m for m in poses}
+        det = REGISTRY["aruco"](office_view(camera), None)
+        cam_found = 0
+        cam_distances: list[float] = []
+        for v in versions:
+            image = draw_markers(office_frames(scenario, camera, [v])[0], camera.homography, poses,
+                                 rng=np.random.default_rng(v))  # fmt: skip
+            detections = det.narrow(det.find(FrameAnalysis(Frame(image, 0.0, v)), wanted), wanted)
+            rendered += len(poses)
+            seen: set[int] = set()
+            for d in detections:
+                m = truth.get(d.marker_id) if d.marker_id is not None else None
+                if m is None or m.marker_id in seen:
+                    false += 1
+                    continue
+                seen.add(m.marker_id)
+                position_cm.append(100 * math.dist(d.centroid_xy, (m.x, m.y)))
+                if d.heading_deg is not None:
+                    heading_deg.append(abs((d.heading_deg - m.heading_deg + 180.0) % 360.0 - 180.0))
+                cam_distances.append(math.dist((m.x, m.y), camera.position[:2]))
+            cam_found += len(seen)
+        found += cam_found
+        per_camera[camera.id] = {
+            "markers": len(poses),
+            "found": cam_found,
+            "rendered": len(poses) * len(versions),
+            "farthest_found_m": round(max(cam_distances), 2) if cam_distances else None,
+        }
+        det.close()
+    return {
+        "what": "0.3 m DICT_4X4_50 markers (black square; one-module white margin) lying on the floor at known "
+        "poses, a grid 1 m apart over each office camera's view, headings varied; drawn into rendered office "
+        "frames (textured floor, lighting, noise)",
+        "rendered": rendered,
+        "found": found,
+        "false": false,
+        "found_fraction": found / rendered if rendered else None,
+        "position_error_cm": spread(position_cm),
+        "heading_error_deg": spread(heading_deg),
+        "per_camera": per_camera,
+    }
+
+
+def accuracy_foreground(work: Work) -> dict[str, Any]:
+    """The office with obstacles of colours no hsv filter matches (the office's two, recoloured,
+    and five more), each camera's foreground detector given a picture of its empty floor: obstacles
+    found, missed and false in each camera's view."""
+    scenario = bench_office()
+    wanted = parse_object_type("foreground")
+    frames = 8 if work.quick else 24
+    found = missed = false = 0
+    per_camera: dict[str, Any] = {}
+    for camera in scenario.cameras:
+        view = office_view(camera)
+        det = REGISTRY["foreground"](view, {"background": str(empty_floor(work, camera))})
+        images = office_frames(scenario, camera, range(1, frames + 1), seed=3)
+        for seq, image in enumerate(images):
+            det.observe(Frame(image, float(seq), seq))
+        last = Frame(images[-1], float(frames), frames)
+        detections = det.narrow(det.find(FrameAnalysis(last), wanted), wanted)
+        visible = [
+            o for o in scenario.obstacles if o.shape.intersection(view.field_of_view.floor).area >= 0.5 * o.shape.area
+        ]
+        partly = [o for o in scenario.obstacles if o.shape.intersects(view.field_of_view.floor)]
+        matched = [o for o in visible if any(d.outline.intersects(o.shape) for d in detections)]
+        near = [o.shape.buffer(0.15) for o in partly]
+        wrong = [d for d in detections if not any(d.outline.intersects(n) for n in near)]
+        found += len(matched)
+        missed += len(visible) - len(matched)
+        false += len(wrong)
+        per_camera[camera.id] = {
+            "obstacles_in_view": len(visible),
+            "found": len(matched),
+            "missed": len(visible) - len(matched),
+            "false": len(wrong),
+            "false_areas_m2": [round(d.area_m2, 3) for d in wrong],
+            "missed_obstacles": [
+                {
+                    "colour": o.color.name if o.color else "",
+                    "centre": [round(o.shape.centroid.x, 2), round(o.shape.centroid.y, 2)],
+                }
+                for o in visible
+                if o not in matched
+            ],
+        }
+        det.close()
+    return {
+        "what": "the office (drvs.sim) with 7 obstacles in colours no hsv filter of the office matches (red, purple, "
+        "white, near-black), after the detector saw the camera's frames (lighting drift, noise) from the start; "
+        "each camera's background: a picture of its empty floor; an obstacle counts when half of it is in view, "
+        "a detection is false when it touches no obstacle (within 0.15 m)",
+        "frames_observed": frames,
+        "found": found,
+        "missed": missed,
+        "false": false,
+        "per_camera": per_camera,
+    }
+
+
+#: The people tests' rule: a detection matches a marked person when its feet are within this
+#: fraction of its box height of the marked feet (greedy, strongest first, each person once).
+MATCH_FRACTION = 0.12
+
+
+def accuracy_people(work: Work) -> dict[str, Any]:
+    """Precision and recall on the hand-marked frames of vtest.avi, resized to 640x480 (the marks
+    scaled with them), with the camera's default options and with the people tests' setting."""
+    truth = json.loads(VTEST_FEET.read_text())
+    if work.quick:  # a smoke run: four of the marked frames, two settings
+        truth["frames"] = truth["frames"][:4]
+    native_size = (int(truth["image_size"][0]), int(truth["image_size"][1]))
+    settings: dict[str, Any] = {}
+    runs = (("camera_default", None, IMAGE_SIZE), ("tuned", PEOPLE_TUNED, IMAGE_SIZE),
+            ("native_768x576", PEOPLE_NATIVE, native_size))  # fmt: skip
+    for name, options, size in runs[::2] if work.quick else runs:
+        sx, sy = size[0] / native_size[0], size[1] / native_size[1]
+        marks = {f["index"]: [(p["feet"][0] * sx, p["feet"][1] * sy) for p in f["people"]] for f in truth["frames"]}
+        images = vtest_frames(list(marks), resize=size != native_size)
+        position, yaw, pitch, hfov = VTEST_POSE
+        from drvs.geometry import homography_from_pose
+
+        homography = homography_from_pose(position, yaw, pitch, hfov, size)
+        view = CameraView(homography, FieldOfView.compute(homography, size, VTEST_RANGE_M), size)
+        to_image = homography.inverse()
+        wanted = parse_object_type("people")
+        det = REGISTRY["people"](view, options)
+        true = false = missed = 0
+        errors: list[float] = []
+        times: list[float] = []
+        for index, feet in marks.items():
+            t0 = time.perf_counter()
+            found = det.narrow(det.find(FrameAnalysis(Frame(images[index], 0.0, index)), wanted), wanted)
+            times.append((time.perf_counter() - t0) * 1000)
+            free = list(range(len(feet)))
+            for d in sorted(found, key=lambda d: -d.score):
+                u, v = to_image.apply([list(d.ground_contact_xy)])[0]
+                near = [(math.dist((u, v), feet[j]), j) for j in free]
+                near = [(e, j) for e, j in near if e <= MATCH_FRACTION * d.pixel_box.height]
+                if not near:
+                    false += 1
+                    continue
+                error, j = min(near)
+                free.remove(j)
+                true += 1
+                errors.append(error)
+            missed += len(free)
+        det.close()
+        settings[name] = {
+            "image_size": list(size),
+            "options": options or {},
+            "true": true,
+            "false": false,
+            "missed": missed,
+            "precision": true / max(1, true + false),
+            "recall": true / max(1, true + missed),
+            "feet_error_px": spread(errors),
+            "find_ms_median": statistics.median(times),
+        }
+    people = sum(len(f["people"]) for f in truth["frames"])
+    return {
+        "what": f"{len(truth['frames'])} frames of {VTEST} with {people} people whose feet were marked by hand "
+        f"({VTEST_FEET.name}), resized to 640x480 (native: as recorded); a detection is true when its feet "
+        f"(ground contact mapped back to the image) are within {MATCH_FRACTION} of its box height of a marked "
+        "person's, greedy, strongest first. camera_default: as drvs-camera runs it (no setting for its options); "
+        "tuned: the people tests' min_height_px 85 at 768x576, scaled; native_768x576: the people tests' own "
+        "setting and size. find_ms_median: one pass over the marked frames, not interleaved rounds",
+        **settings,
+    }
+
+
 #: Accuracy by detector prefix, against ground truth.
-ACCURACY: dict[str, Callable[[Work], dict[str, Any] | None]] = {}
+ACCURACY: dict[str, Callable[[Work], dict[str, Any] | None]] = {
+    "aruco": accuracy_aruco,
+    "foreground": accuracy_foreground,
+    "people": accuracy_people,
+}
 
 
 # --- the run ------------------------------------------------------------------------------------
 
 
-def gather_inputs(work: Work) -> tuple[dict[str, DetectorInputs], dict[str, str]]:
+def gather_inputs(work: Work, only: Sequence[str] | None = None) -> tuple[dict[str, DetectorInputs], dict[str, str]]:
     """Inputs for every registered detector this module knows, and why any other is left out."""
     found: dict[str, DetectorInputs] = {}
     left_out: dict[str, str] = {}
     for prefix in INPUTS:
+        if only is not None and prefix not in only:
+            continue
         if prefix not in REGISTRY:
             left_out[prefix] = "missing: no such detector in drvs.detectors.REGISTRY on this branch"
     for prefix in REGISTRY:
+        if only is not None and prefix not in only:
+            continue
         make = INPUTS.get(prefix)
         if make is None:
             left_out[prefix] = "no_inputs: registered, but drvs_bench.detectors has no inputs for it"
             continue
-        found[prefix] = make(work)
+        try:
+            found[prefix] = make(work)
+        except NoInputs as exc:
+            left_out[prefix] = f"no_inputs: {exc}"
     return found, left_out
 
 
-async def run_detectors(out_dir: Path, quick: bool) -> dict[str, Any]:
+async def run_detectors(out_dir: Path, quick: bool, only: Sequence[str] | None = None) -> dict[str, Any]:
+    """The benchmark; `only`: these detector prefixes (default: every registered one)."""
     rounds = QUICK_ROUNDS if quick else FULL_ROUNDS
     result: dict[str, Any] = {"benchmark": "detectors", "quick": quick, "rounds": rounds, "rate_hz": RATE_HZ}
     t0 = time.perf_counter()
@@ -527,7 +850,7 @@ async def run_detectors(out_dir: Path, quick: bool) -> dict[str, Any]:
     with tempfile.TemporaryDirectory(prefix="drvs-bench-det-") as tmp:
         work = Work(Path(tmp), quick)
         say("rendering inputs")
-        all_inputs, left_out = await asyncio.to_thread(gather_inputs, work)
+        all_inputs, left_out = await asyncio.to_thread(gather_inputs, work, only)
         for inputs in all_inputs.values():
             await asyncio.to_thread(materialise, inputs, work.tmp / "videos")
         per: dict[str, Any] = {p: {"filter_def": i.filter_def, "frames": i.frames_are} for p, i in all_inputs.items()}
@@ -537,7 +860,8 @@ async def run_detectors(out_dir: Path, quick: bool) -> dict[str, Any]:
         say("camera CPU at 10 requests/s against idle")
         await measure_cameras(all_inputs, rounds, QUICK_SECONDS if quick else FULL_SECONDS, work.tmp, per)
         say("peak RSS: every detector against hsv only")
-        await measure_memory(all_inputs, 1 if quick else 3, work.tmp, result)
+        if "hsv" in all_inputs:
+            await measure_memory(all_inputs, 1 if quick else 3, work.tmp, result)
         say("accuracy")
         for prefix in all_inputs:
             check = ACCURACY.get(prefix)
@@ -568,6 +892,38 @@ DEFINITION = {
 }
 
 
+def accuracy_lines(per: Mapping[str, Any]) -> list[str]:
+    """The accuracy figures as short lines of text (the plot's fourth panel)."""
+    lines: list[str] = []
+
+    def fmt(v: float | None, digits: int = 1) -> str:
+        return "-" if v is None else f"{v:.{digits}f}"
+
+    aruco = per.get("aruco", {}).get("accuracy")
+    if aruco:
+        p, h = aruco["position_error_cm"], aruco["heading_error_deg"]
+        lines += [
+            f"aruco: {aruco['found']}/{aruco['rendered']} markers found, {aruco['false']} false",
+            f"  position error cm: median {fmt(p['median'], 2)}, p95 {fmt(p['p95'], 2)}, max {fmt(p['max'], 2)}",
+            f"  heading error deg: median {fmt(h['median'], 2)}, p95 {fmt(h['p95'], 2)}, max {fmt(h['max'], 2)}",
+            "",
+        ]
+    fg = per.get("foreground", {}).get("accuracy")
+    if fg:
+        lines += [f"foreground (office): {fg['found']} found, {fg['missed']} missed, {fg['false']} false", ""]
+    people = per.get("people", {}).get("accuracy")
+    if people:
+        lines.append("people (vtest.avi, hand-marked feet):")
+        for name, entry in people.items():
+            if isinstance(entry, dict) and "precision" in entry:
+                size = "x".join(str(v) for v in entry["image_size"])
+                lines.append(
+                    f"  {name} ({size}): precision {entry['precision']:.2f}, recall {entry['recall']:.2f}, "
+                    f"{entry['find_ms_median']:.0f} ms"
+                )
+    return lines
+
+
 def write_outputs(result: dict[str, Any], out: Path) -> None:
     import matplotlib
 
@@ -577,7 +933,7 @@ def write_outputs(result: dict[str, Any], out: Path) -> None:
     out.mkdir(parents=True, exist_ok=True)
     per: dict[str, Any] = result.get("detectors", {})
     names = list(per)
-    fig, axes = plt.subplots(1, 3, figsize=(13, 4.2), dpi=100)
+    fig, axes = plt.subplots(1, 4, figsize=(18, 4.4), dpi=100, gridspec_kw={"width_ratios": [3, 3, 2, 4]})
     x = np.arange(len(names))
 
     def bars(ax: Any, offset: float, width: float, key: str, scale: float, label: str | None) -> None:
@@ -609,6 +965,11 @@ def write_outputs(result: dict[str, Any], out: Path) -> None:
         ax.set_ylabel("camera peak RSS (MB)")
         ax.set_title("Camera memory")
         ax.grid(True, axis="y", alpha=0.3)
+    ax = axes[3]
+    ax.axis("off")
+    ax.set_title("Accuracy")
+    ax.text(0.0, 1.0, "\n".join(accuracy_lines(per)) or "no accuracy measured", va="top", ha="left", fontsize=8,
+            family="monospace", transform=ax.transAxes)  # fmt: skip
     fig.suptitle(f"drvs-bench detectors ({result.get('rounds')} interleaved rounds; bars: median, whiskers: min-max)")
     fig.tight_layout()
     fig.savefig(out / "detectors.png")
