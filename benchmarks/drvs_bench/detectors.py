@@ -103,6 +103,8 @@ class DetectorInputs:
     frames_are: str
     #: The timed `find` must find at least this many detections a frame, on average over a round.
     min_found: int = 1
+    #: What else the JSON should say about the inputs (the model used ...).
+    about: dict[str, Any] = field(default_factory=dict)
     #: Frames an observing detector sees before it is timed (a background model's warm-up).
     warm_frames: list[NDArray[np.uint8]] = field(default_factory=list)
     #: Filled in by `materialise`: the camera process's video and homography file.
@@ -382,8 +384,7 @@ def model_inputs(work: Work) -> DetectorInputs:
         "model", "model_bench", options={"models": {"bench": spec}}, camera_config={"models": {"bench": spec}},
         min_found=0,
     )  # fmt: skip
-    inputs.frames_are += "; model: " + json.dumps(info)
-    work.cache["model_info"] = info
+    inputs.about["model"] = info
     return inputs
 
 
@@ -499,7 +500,7 @@ async def paced_requests(
         delay = t0 + i / rate - loop.time()
         if delay > 0:
             await asyncio.sleep(delay)
-        tasks.append(loop.create_task(client.detect(filter_def, region, timeout_s=120, outlines=False)))
+        tasks.append(loop.create_task(client.detect(filter_def, region, timeout_s=600, outlines=False)))
     results = await asyncio.gather(*tasks)
     wall = loop.time() - t0
     got: dict[str, float] = {
@@ -853,7 +854,9 @@ async def run_detectors(out_dir: Path, quick: bool, only: Sequence[str] | None =
         all_inputs, left_out = await asyncio.to_thread(gather_inputs, work, only)
         for inputs in all_inputs.values():
             await asyncio.to_thread(materialise, inputs, work.tmp / "videos")
-        per: dict[str, Any] = {p: {"filter_def": i.filter_def, "frames": i.frames_are} for p, i in all_inputs.items()}
+        per: dict[str, Any] = {
+            p: {"filter_def": i.filter_def, "frames": i.frames_are, **i.about} for p, i in all_inputs.items()
+        }
         say("find ms per frame")
         timed = QUICK_TIMED if quick else FULL_TIMED
         await asyncio.to_thread(measure_find, all_inputs, rounds, timed, per)
