@@ -299,9 +299,7 @@ def cli_cases(tmp: Path) -> list[CliCase]:
             (*camera, "--heartbeat", "0.01"),
             "heartbeat_s (from …): … must be a number from 0.05 to 3600",
         ),
-        CliCase(
-            "drvs-camera", (*camera, "--detectors", "rgb"), "detectors (from …): '…': detectors must be some of …"
-        ),
+        CliCase("drvs-camera", (*camera, "--detectors", "rgb"), "detectors (from …): '…': detectors must be some of …"),
         CliCase(
             "drvs-camera",
             (*camera, "--max-continuous", "0"),
