@@ -139,6 +139,11 @@ GRPC_CASES = [
         "filter_def: marker id '…' in '…' is not an integer in 0-… (dictionary … has … markers)",
         detect(filter_def="aruco_apriltag_16h5_30"),
     ),
+    Case(
+        INVALID,
+        "filter_def: '…': the people type takes no parameters; write 'people'",
+        detect(filter_def="people_adult"),
+    ),
     Case(INVALID, "region: missing; give a box or a polygon", detect(region=None)),
     Case(INVALID, "region.box.x_lower: nan is not finite", detect(region=box(math.nan, 0, 1, 1))),
     Case(INVALID, "region.box.x_upper: 1e+300 is beyond ±1e+06 m", detect(region=box(0, 0, 1e300, 1))),

@@ -17,7 +17,7 @@ from .workload import add_workload_arguments, workload_main
 
 
 def paper_main(args: argparse.Namespace) -> int:
-    from .paper import FULL_REQUESTS, QUICK_REQUESTS, run_paper
+    from .paper import FULL_REQUESTS, PEOPLE_FULL_REQUESTS, PEOPLE_QUICK_REQUESTS, QUICK_REQUESTS, run_paper
     from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch
 
     requests = args.requests or (QUICK_REQUESTS if args.quick else FULL_REQUESTS)
@@ -27,7 +27,8 @@ def paper_main(args: argparse.Namespace) -> int:
         return 2
     out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
     try:
-        result = asyncio.run(run_paper(out, requests, args.rate, rounds))
+        people = PEOPLE_QUICK_REQUESTS if args.quick else PEOPLE_FULL_REQUESTS
+        result = asyncio.run(run_paper(out, requests, args.rate, rounds, people))
     except WorkMismatch as exc:
         print(f"drvs-bench paper: FAILED: {exc}", file=sys.stderr)
         return 1
@@ -37,6 +38,8 @@ def paper_main(args: argparse.Namespace) -> int:
     for mode, data in result["modes"].items():
         summary[f"{mode}_bytes_per_s"] = round(data["bytes_per_s"])
         summary[f"{mode}_payload_bytes_per_s"] = round(data["payload_bytes_per_s"])
+        summary[f"{mode}_cpu_s"] = round(data["cpu_s"], 3)
+    for mode, data in result.get("people", {}).get("modes", {}).items():
         summary[f"{mode}_cpu_s"] = round(data["cpu_s"], 3)
     summary["targets"] = {k: v["verdict"] for k, v in result["targets"].items()}
     print(json.dumps(summary, indent=1))

@@ -25,6 +25,55 @@ BOTH_REGION = (-6.0, 0.0, 26.0, 10.0)
 ALL_REGION = (-6.0, 0.0, 46.0, 10.0)
 _TICK = os.sysconf("SC_CLK_TCK")
 
+#: Real footage of people walking (Debian's opencv-doc; ./run test installs it where it can).
+VTEST = Path("/usr/share/doc/opencv-doc/examples/data/vtest.avi")
+#: The people cameras (drvs-bench paper's people modes) play vtest.avi at its own 10 fps, scaled
+#: to IMAGE_SIZE, with a plausible pose (8 m up, 35 degrees down, 60 degree lens), 100 m along x
+#: from the colour scene: no request for one floor reaches the other's cameras.
+PEOPLE_POSE = ((100.0, 0.0, 8.0), 90.0, 35.0, 60.0)
+PEOPLE_MAX_RANGE_M = 40.0
+#: Covers the people cameras' fields of view (and nothing of the colour scene's).
+PEOPLE_REGION = (60.0, 0.0, 140.0, 60.0)
+#: Frames of vtest.avi each people camera loops over: camera k plays [k * 400, k * 400 + 200).
+PEOPLE_FRAMES = 200
+
+
+def record_people(directory: Path, cameras: int = 2) -> dict[str, RecordedCamera] | None:
+    """`cameras` looping videos of different stretches of vtest.avi at IMAGE_SIZE, with their
+    homography files; None when the footage is not installed."""
+    import cv2
+    import numpy as np
+    from numpy.typing import NDArray
+
+    from drvs.geometry import homography_from_pose
+
+    if not VTEST.is_file():
+        return None
+    cap = cv2.VideoCapture(str(VTEST))
+    fps = float(cap.get(cv2.CAP_PROP_FPS)) or 10.0
+    frames: list[NDArray[np.uint8]] = []
+    try:
+        while len(frames) < 400 * (cameras - 1) + PEOPLE_FRAMES:
+            ok, image = cap.read()
+            if not ok:
+                break
+            frames.append(np.asarray(cv2.resize(image, IMAGE_SIZE, interpolation=cv2.INTER_AREA), dtype=np.uint8))
+    finally:
+        cap.release()
+    position, yaw, pitch, hfov = PEOPLE_POSE
+    homography = homography_from_pose(position, yaw, pitch, hfov, IMAGE_SIZE)
+    out = {}
+    for k in range(cameras):
+        camera_id = f"people{k + 1}"
+        stretch = frames[400 * k : 400 * k + PEOPLE_FRAMES]
+        if not stretch:
+            raise ValueError(f"{VTEST}: {len(frames)} frames, too few for {cameras} people cameras")
+        video = write_video(directory / f"{camera_id}.avi", stretch, fps)
+        hfile = directory / f"{camera_id}.homography.yaml"
+        save_homography(hfile, homography)
+        out[camera_id] = RecordedCamera(camera_id, video, hfile, homography)
+    return out
+
 
 def record_scene(directory: Path, cameras: int = 2, frames: int = 40) -> dict[str, RecordedCamera]:
     """The first `cameras` cameras of scene.yaml rendered (textured floor, noise, lighting) to looping videos."""

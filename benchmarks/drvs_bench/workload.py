@@ -3,6 +3,9 @@
 drvs: single-shot requests at 30 Hz through DRVS (with --moving, the region slides and the filter
 alternates every request). raw / jpeg: both cameras stream every frame to the robot over a plain
 grpc.aio channel (gRPC's defaults), and the robot runs the same HSV detection on each frame itself.
+With --filter people, the same with OpenCV's HOG people detector (drvs.detectors.people) instead:
+the DRVS robot asks for `people`, the streaming robot asks each camera for frames at the request
+rate (--max-fps) and runs the detector the cameras run on every frame it gets.
 
 Each mode counts the work it did, so the parent can check that it did what it was meant to
 (`cpu_s` is `time.process_time()`: user + system time of this whole process, all its threads).
@@ -24,7 +27,10 @@ from shapely.geometry import box
 
 from drvs.camera.homography_file import load_homography
 from drvs.detection import CameraView, Frame, FrameAnalysis, HsvDetector
+from drvs.detectors import Detector, select
+from drvs.detectors.people import PeopleDetector
 from drvs.errors import DrvsError
+from drvs.filters import object_type
 from drvs.geometry import FieldOfView
 from drvs.robot import DrvsClient
 from drvs.v1 import stream_pb2, stream_pb2_grpc
@@ -60,7 +66,7 @@ async def drvs_mode(args: argparse.Namespace) -> dict[str, object]:
         print(f"READY {client.port}", flush=True)
         # The floors' warm-up: requests back to back (connections, caches), before anything is measured.
         for i in range(-args.warmup, 0):
-            filter_def, region = moving_request(i) if args.moving else (YELLOW, BOTH_REGION)
+            filter_def, region = moving_request(i) if args.moving else (args.filter, args.region)
             try:
                 await client.detect(filter_def, region, timeout_s=5.0, outlines=not args.no_outlines)
             except DrvsError as exc:
@@ -76,7 +82,7 @@ async def drvs_mode(args: argparse.Namespace) -> dict[str, object]:
 
         async def one(i: int) -> None:
             nonlocal reports, detections, missing, refused, error_reports, busy_reports, delivered
-            filter_def, region = moving_request(i) if args.moving else (YELLOW, BOTH_REGION)
+            filter_def, region = moving_request(i) if args.moving else (args.filter, args.region)
             try:
                 result = await client.detect(filter_def, region, timeout_s=5.0, outlines=not args.no_outlines)
             except DrvsError as exc:  # refused (rate limit, invalid, unavailable): a failure, never delivered
@@ -130,11 +136,13 @@ async def drvs_mode(args: argparse.Namespace) -> dict[str, object]:
 
 async def stream_mode(args: argparse.Namespace) -> dict[str, object]:
     encoding = stream_pb2.FRAME_ENCODING_RAW_BGR if args.mode == "raw" else stream_pb2.FRAME_ENCODING_JPEG
-    detectors = []
+    detectors: list[Detector] = []
+    wanted = object_type(args.filter)
     for hfile in args.homography:
         h = load_homography(hfile)
-        detectors.append(HsvDetector(CameraView(h, FieldOfView.compute(h, IMAGE_SIZE, 6.0), IMAGE_SIZE)))
-    region = box(*BOTH_REGION)
+        view = CameraView(h, FieldOfView.compute(h, IMAGE_SIZE, args.max_range), IMAGE_SIZE)
+        detectors.append(PeopleDetector(view) if wanted.kind == "people" else HsvDetector(view))
+    region = box(*args.region)
     duration = args.requests / args.rate
     print("READY 0", flush=True)
     loop = asyncio.get_running_loop()
@@ -159,22 +167,26 @@ async def stream_mode(args: argparse.Namespace) -> dict[str, object]:
         for address in args.camera
     ]
 
-    def detect(detector: HsvDetector, data: bytes, seq: int) -> int:
+    def detect(detector: Detector, data: bytes, seq: int) -> int:
         if encoding == stream_pb2.FRAME_ENCODING_RAW_BGR:
             pixels = np.frombuffer(data, dtype=np.uint8).reshape(IMAGE_SIZE[1], IMAGE_SIZE[0], 3)
         else:
             pixels = np.asarray(cv2.imdecode(np.frombuffer(data, dtype=np.uint8), cv2.IMREAD_COLOR), dtype=np.uint8)
-        return len(detector.detect(FrameAnalysis(Frame(pixels, 0.0, seq)), YELLOW, region))
+        analysis = FrameAnalysis(Frame(pixels, 0.0, seq))
+        if isinstance(detector, HsvDetector):
+            return len(detector.detect(analysis, args.filter, region))
+        return len(select(detector.narrow(detector.find(analysis, wanted), wanted), region))
 
     token = args.camera_token_file.read_text().strip() if args.camera_token_file else ""
     metadata = (("authorization", f"Bearer {token}"),) if token else ()
 
-    async def watch(address: str, detector: HsvDetector, counts: dict[str, Any], warm: asyncio.Event) -> None:
+    async def watch(address: str, detector: Detector, counts: dict[str, Any], warm: asyncio.Event) -> None:
         # gRPC's default channel: the baseline is what a user streaming video would get, not DRVS's tuning.
         async with aio.insecure_channel(address) as channel:
             stub = stream_pb2_grpc.FrameStreamStub(channel)
             call = stub.StreamFrames(
-                stream_pb2.StreamFramesRequest(encoding=encoding, jpeg_quality=80, max_fps=FPS), metadata=metadata
+                stream_pb2.StreamFramesRequest(encoding=encoding, jpeg_quality=80, max_fps=args.max_fps),
+                metadata=metadata,
             )
             try:
                 seen = 0
@@ -209,7 +221,7 @@ async def stream_mode(args: argparse.Namespace) -> dict[str, object]:
         "frames": sum(c["frames_received"] for c in cameras),
         # What the cameras' sources made meanwhile: fewer frames received means a stream fell behind
         # (a camera or the robot short of CPU), and the baseline carried less than a full stream.
-        "frames_expected": round(FPS * wall) * len(cameras),
+        "frames_expected": round(min(FPS, args.max_fps) * wall) * len(cameras),
         "frames_analysed": sum(c["frames_analysed"] for c in cameras),
         "detections": sum(c["detections"] for c in cameras),
         "per_camera": cameras,
@@ -223,6 +235,11 @@ def workload_main(args: argparse.Namespace) -> int:
     return 0
 
 
+def _region(text: str) -> tuple[float, float, float, float]:
+    x0, y0, x1, y1 = (float(v) for v in text.split(","))
+    return x0, y0, x1, y1
+
+
 def add_workload_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mode", choices=["drvs", "raw", "jpeg"], required=True)
     p.add_argument("--server", help="DRVS server HOST:PORT (drvs mode)")
@@ -230,6 +247,10 @@ def add_workload_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--camera", action="append", default=[], help="camera HOST:PORT to stream from (raw/jpeg)")
     p.add_argument("--homography", action="append", type=Path, default=[], help="each camera's homography file")
     p.add_argument("--camera-token-file", type=Path, help="the cameras' token, for their frame streams (raw/jpeg)")
+    p.add_argument("--filter", default=YELLOW, help="filter_def to find (hsv_... or people; not with --moving)")
+    p.add_argument("--region", type=_region, default=BOTH_REGION, help="X0,Y0,X1,Y1 of the floor to search, metres")
+    p.add_argument("--max-range", type=float, default=6.0, help="raw/jpeg: the cameras' --max-range, metres")
+    p.add_argument("--max-fps", type=float, default=FPS, help="raw/jpeg: frames per second to ask of each camera")
     p.add_argument("--no-outlines", action="store_true", help="drvs mode: ask for boxes only, as the paper's DRVS")
     p.add_argument("--moving", action="store_true", help="drvs mode: the region slides and the filter alternates")
     p.add_argument("--cameras", type=int, default=2, help="drvs mode: cameras every request needs a report from")

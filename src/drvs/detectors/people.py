@@ -95,12 +95,14 @@ class PeopleDetector(Detector):
         #: Resampling factor applied to frames before the search (1: none).
         self.resize = HOG_WINDOW_PX / self.min_height_px
         self._hog = cv2.HOGDescriptor()
-        self._hog.setSVMDetector(cv2.HOGDescriptor_getDefaultPeopleDetector())
+        self._hog.setSVMDetector(np.asarray(cv2.HOGDescriptor.getDefaultPeopleDetector(), dtype=np.float32))
 
     @classmethod
     def parse(cls, filter_def: str) -> ObjectType:
         if filter_def != PEOPLE:
-            raise InvalidArgument(f"filter_def: {filter_def[:40]!r}: the people type takes no parameters; write 'people'")
+            raise InvalidArgument(
+                f"filter_def: {filter_def[:40]!r}: the people type takes no parameters; write 'people'"
+            )
         return ObjectType(filter_def, PEOPLE, PEOPLE, PEOPLE)
 
     def search(self, gray: np.ndarray[Any, Any]) -> list[tuple[float, float, float, float, float]]:
@@ -159,7 +161,12 @@ class PeopleDetector(Detector):
         x1, y1 = min(width, math.ceil(x + w)), min(height, math.ceil(y + h))
         return Detection(
             outline=outline,
-            bounds=(float(outline.bounds[0]), float(outline.bounds[1]), float(outline.bounds[2]), float(outline.bounds[3])),
+            bounds=(
+                float(outline.bounds[0]),
+                float(outline.bounds[1]),
+                float(outline.bounds[2]),
+                float(outline.bounds[3]),
+            ),
             centroid_xy=feet,
             ground_contact_xy=feet,
             pixel_box=PixelBox(x0, y0, max(1, x1 - x0), max(1, y1 - y0)),
