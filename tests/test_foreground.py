@@ -12,9 +12,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
+import shapely
 import yaml
 from numpy.typing import NDArray
-from shapely.geometry import Point, Polygon
+from shapely.geometry import Polygon
 
 from drvs.camera.cli import snapshot_main
 from drvs.camera.config import load_config
@@ -163,8 +164,13 @@ def test_slow_lighting_changes_and_cast_shadows_are_not_objects(tmp_path: Path) 
             image = scene.image(shadow=shadow, darken=darken, gain=gain)
             assert step(det, scene, image) == (), (shadow.bounds, darken, gain)
             assert step(motion_only, scene, image) == (), (shadow.bounds, darken, gain)
-    # The same frames with objects in them, one half in shadow, do show the objects.
-    objects = [OBJECTS[0], FloorPatch.disc((0.0, 3.0), 0.3, (40, 120, 90))]
+    # The same frames with objects in them do show the objects: in the shadow, those whose hue
+    # differs from the floor's (a grey one there would look like shadowed floor); out of it, grey too.
+    objects = [
+        FloorPatch.disc((0.0, 3.0), 0.3, (40, 120, 90)),
+        FloorPatch.rect(-0.6, 4.0, 0.0, 4.6, (120, 115, 70)),
+        FloorPatch.disc((-1.8, 3.5), 0.25, (140, 140, 140)),
+    ]
     found = step(det, scene, scene.image(objects, shadow=shadows[0], darken=0.5, gain=1.2))
     assert_found(found, objects)
 
@@ -219,9 +225,15 @@ def test_observe_and_find_on_different_threads() -> None:
 
 # --- real footage -----------------------------------------------------------------------------
 
-#: People in vtest.avi (768x576), frame 300, boxed by hand (x0, y0, x1, y1), feet to head.
-VTEST_FRAME = 300
-VTEST_PEOPLE: list[tuple[int, int, int, int]] = []
+#: Every person in vtest.avi (768x576) at two frames, boxed by hand (x0, y0, x1, y1), head to feet.
+VTEST_PEOPLE = {
+    300: [(187, 158, 218, 234), (243, 158, 270, 220), (297, 158, 323, 230), (315, 210, 343, 296),
+          (581, 160, 610, 236), (618, 160, 643, 233)],
+    550: [(126, 167, 152, 232), (598, 166, 630, 243), (642, 303, 670, 412), (168, 368, 226, 512),
+          (235, 374, 290, 510)],
+}  # fmt: skip
+#: People mostly hidden (behind the lamp post and its sign at frame 550): found if a blob is centred in their box.
+VTEST_HIDDEN = {300: [], 550: [(403, 165, 437, 204)]}
 
 
 def vtest_frames(count: int) -> Iterator[NDArray[np.uint8]]:
@@ -236,34 +248,47 @@ def vtest_frames(count: int) -> Iterator[NDArray[np.uint8]]:
         cap.release()
 
 
+def box(x0: float, y0: float, x1: float, y1: float) -> Polygon:
+    return Polygon([(x0, y0), (x1, y0), (x1, y1), (x0, y1)])
+
+
 @pytest.mark.skipif(not VTEST.exists(), reason=f"{VTEST} absent (Debian package opencv-doc)")
 def test_people_walking_in_real_footage_are_foreground() -> None:
+    """Motion alone (no picture of the empty hall): after 300 frames of learning, every person is
+    found, and what is found is people (the wind also moves the barrier tape: small blobs)."""
     size = (768, 576)
     # Any camera whose whole image is floor: the test is about pixels, not floor positions.
     h = homography_from_pose((0.0, 0.0, 6.0), 90.0, 70.0, 60.0, size)
     det = ForegroundDetector(view(h, size))
-    last: tuple[Detection, ...] = ()
-    for sequence, image in enumerate(vtest_frames(VTEST_FRAME + 1)):
+    answers: dict[int, tuple[Detection, ...]] = {}
+    for sequence, image in enumerate(vtest_frames(max(VTEST_PEOPLE) + 1)):
         frame = Frame(image, float(sequence), sequence)
         det.observe(frame)
-        if sequence == VTEST_FRAME:
-            last = det.find(FrameAnalysis(frame), FOREGROUND)
-    boxes = [d.pixel_box for d in last]
-    assert VTEST_PEOPLE, "hand-marked people missing"
-    for x0, y0, x1, y1 in VTEST_PEOPLE:
-        person = Polygon([(x0, y0), (x1, y0), (x1, y1), (x0, y1)])
-        overlaps = [
-            Polygon([(b.x, b.y), (b.x + b.width, b.y), (b.x + b.width, b.y + b.height), (b.x, b.y + b.height)])
-            .intersection(person)
-            .area
-            for b in boxes
+        if sequence in VTEST_PEOPLE:
+            answers[sequence] = det.find(FrameAnalysis(frame), FOREGROUND)
+    assert set(answers) == set(VTEST_PEOPLE), "vtest.avi is shorter than expected"
+    for sequence, people in VTEST_PEOPLE.items():
+        found = [
+            (box(b.x, b.y, b.x + b.width, b.y + b.height), d.area_px) for d in answers[sequence] for b in [d.pixel_box]
         ]
-        assert max(overlaps, default=0.0) > 0.5 * person.area, ((x0, y0, x1, y1), boxes)
-    # Nearly everything found is a person: no blob of the still hall.
-    people = [Polygon([(x0, y0), (x1, y0), (x1, y1), (x0, y1)]) for x0, y0, x1, y1 in VTEST_PEOPLE]
-    for b in boxes:
-        centre = Point(b.x + b.width / 2, b.y + b.height / 2)
-        assert any(p.buffer(10).contains(centre) for p in people), (b, boxes)
+        persons = [box(*p) for p in people]
+        for person in persons:
+            # Dark clothes on grey asphalt pass for shadows in places, so a person's blob may miss
+            # legs or a head (and two people side by side make one blob): found means a blob
+            # covering 40 % of the person's box.
+            assert any(b.intersection(person).area > 0.4 * person.area for b, _ in found), (
+                sequence,
+                person.bounds,
+                [b.bounds for b, _ in found],
+            )
+        hidden = [box(*p) for p in VTEST_HIDDEN[sequence]]
+        for person in hidden:
+            assert any(person.contains(b.centroid) for b, _ in found), (sequence, person.bounds)
+        # Every blob of person size is mostly people; the rest (tape in the wind) is small.
+        people_area = shapely.union_all(persons + hidden)
+        stray = [(b, area) for b, area in found if b.intersection(people_area).area < 0.5 * b.area]
+        assert all(area < 200 for _, area in stray), (sequence, [b.bounds for b, _ in stray])
+        assert sum(area for _, area in stray) < 0.05 * sum(p.area for p in persons)
 
 
 # --- configuration ----------------------------------------------------------------------------
@@ -332,6 +357,13 @@ def test_snapshot_refuses_what_it_cannot_write(tmp_path: Path, capsys: pytest.Ca
     assert snapshot_main(["--source", str(video), "--out", str(out)]) == 0
     image = cv2.imread(str(out))
     assert image is not None and image.shape == (480, 640, 3)
+    # From the camera's config (whose background does not exist yet: this is how it is made).
+    config = tmp_path / "cam.yaml"
+    config.write_text(yaml.safe_dump({"id": "c", "source": str(video), "homography": "h.yaml", "background": "e.png"}))
+    assert snapshot_main(["--config", str(config), "--out", str(tmp_path / "e.png")]) == 0
+    again = cv2.imread(str(tmp_path / "e.png"))
+    assert again is not None and again.shape == (480, 640, 3)
+    assert f"e.png: 640x480 from {video}" in capsys.readouterr().out
 
 
 # --- end to end -------------------------------------------------------------------------------

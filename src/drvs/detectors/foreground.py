@@ -53,7 +53,7 @@ WARMUP_FRAMES = 5
 #: A pixel whose colour direction departs from the floor's by more than this (the tangent of the
 #: angle between the two colour vectors) is not floor, whatever its brightness. Sensor noise of
 #: sigma 3 grey levels, MJPG-compressed, halved by a shadow, reaches 0.02 at the working scale.
-CHROMA_THRESHOLD = 0.03
+CHROMA_THRESHOLD = 0.06
 #: Brightness relative to the floor (after the global gain): above HIGH is an object (a shadow
 #: never brightens; noise moves it 2 %), below SHADOW_MIN_BRIGHTNESS is darker than any shadow
 #: (also MOG2's shadow threshold).
