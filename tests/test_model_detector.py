@@ -1,7 +1,8 @@
 """The operator's own ONNX detection models (`model_<name>`, `model_<name>_<class>`).
 
 No trained network ships with DRVS and nothing may be downloaded, so these tests build small ONNX
-models with the `onnx` package whose graphs compute a YOLO-shaped output *from the pixels*: for
+models with the `onnx` package (drvs_bench.onnx_models) whose graphs compute a YOLO-shaped output
+*from the pixels*: for
 each class (red, green, blue) the graph thresholds the image's colour channels, finds the bounding
 box of the pixels of that colour with reductions, and writes it as one candidate (cx, cy, w, h in
 input pixels, then class scores) in the layout under test ([1, 4+nc, N], [1, N, 4+nc] or YOLOv5's
@@ -23,16 +24,24 @@ from __future__ import annotations
 
 import json
 import math
+import subprocess
+import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
 import numpy as np
-import onnx
 import pytest
 import yaml
-from onnx import TensorProto, helper, numpy_helper
+from drvs_bench.onnx_models import (
+    COLOUR_CLASSES,
+    classifier_model,
+    colour_box_model,
+    odd_model,
+    vector_model,
+    yolo_sized_model,
+)
 
 from drvs.camera.config import load_config
 from drvs.detectors import CameraView, Frame, FrameAnalysis
@@ -46,7 +55,7 @@ from drvs.sim.scene import FloorPatch, record_camera, render_view
 
 IMAGE_SIZE = (640, 480)
 HOMOGRAPHY = homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, IMAGE_SIZE)
-CLASSES = ["red", "green", "blue"]
+CLASSES = list(COLOUR_CLASSES)
 RED_BGR = (30, 30, 220)
 BLUE_BGR = (250, 40, 30)
 #: A red and a blue rectangle on the floor (x0, y0, x1, y1), axis-aligned. This camera looks along +y
@@ -77,126 +86,6 @@ def pixel_error(floor_a: tuple[float, float], floor_b: tuple[float, float]) -> f
 
 RED_CONTACT = box_bottom(RED)[0]
 BLUE_CONTACT = box_bottom(BLUE)[0]
-
-
-# --- small ONNX models -------------------------------------------------------------------------
-
-
-class _Graph:
-    """A tiny onnx.helper builder that names intermediate values."""
-
-    def __init__(self) -> None:
-        self.nodes: list[onnx.NodeProto] = []
-        self.initializers: list[onnx.TensorProto] = []
-        self._n = 0
-
-    def name(self) -> str:
-        self._n += 1
-        return f"v{self._n}"
-
-    def const(self, value: Any, dtype: Any = np.float32) -> str:
-        name = self.name()
-        self.initializers.append(numpy_helper.from_array(np.asarray(value, dtype=dtype), name))
-        return name
-
-    def op(self, op_type: str, *inputs: str, **attrs: Any) -> str:
-        out = self.name()
-        self.nodes.append(helper.make_node(op_type, list(inputs), [out], **attrs))
-        return out
-
-
-def colour_box_model(path: Path, layout: str = "v8", *, fixed_size: tuple[int, int] | None = (320, 320)) -> Path:
-    """A YOLO-shaped "detector" of red, green and blue patches (see the module docstring).
-
-    layout: "v8" [1, 4+nc, nc], "v8t" [1, nc, 4+nc], "v5" [1, nc, 5+nc]. fixed_size: the input's
-    (width, height), or None for dynamic height and width.
-    """
-    g = _Graph()
-    channels = [g.op("Gather", "images", g.const(i, np.int64), axis=1) for i in range(3)]  # R, G, B: [1, H, W]
-    shape = g.op("Shape", channels[0])
-    height = g.op("Cast", g.op("Gather", shape, g.const(1, np.int64)), to=TensorProto.FLOAT)
-    width = g.op("Cast", g.op("Gather", shape, g.const(2, np.int64)), to=TensorProto.FLOAT)
-    xs = g.op("Range", g.const(0.0), width, g.const(1.0))
-    ys = g.op("Range", g.const(0.0), height, g.const(1.0))
-    half, low, big, one = g.const(0.5), g.const(0.3), g.const(1e6), g.const(1.0)
-    nc = 3
-    columns = []
-    for k in range(3):
-        others = [channels[j] for j in range(3) if j != k]
-        mask = g.op("Cast", g.op("And", g.op("Greater", channels[k], half), g.op("Less", g.op("Max", *others), low)),
-                    to=TensorProto.FLOAT)  # fmt: skip
-        col = g.op("ReduceMax", mask, axes=[1], keepdims=0)  # [1, W]: does column x hold this colour?
-        row = g.op("ReduceMax", mask, axes=[2], keepdims=0)  # [1, H]
-
-        def extent(hits: str, positions: str) -> tuple[str, str]:
-            last = g.op("ReduceMax", g.op("Mul", hits, positions), keepdims=0)
-            misses = g.op("Mul", g.op("Sub", one, hits), big)
-            first = g.op("ReduceMin", g.op("Add", g.op("Mul", hits, positions), misses), keepdims=0)
-            return first, last
-
-        x1, x2 = extent(col, xs)
-        y1, y2 = extent(row, ys)
-        # The score: the colour's brightest value inside the patch (0-1), so thresholds have something to cut.
-        score = g.op("ReduceMax", g.op("Mul", mask, channels[k]), keepdims=0)
-        # Pixel i spans [i, i+1): the box runs from the first hit to one past the last.
-        w = g.op("Add", g.op("Sub", x2, x1), one)
-        h = g.op("Add", g.op("Sub", y2, y1), one)
-        cx = g.op("Add", x1, g.op("Mul", w, half))
-        cy = g.op("Add", y1, g.op("Mul", h, half))
-        if layout == "v5":  # objectness, then class probabilities
-            values = [cx, cy, w, h, score, *[one if j == k else g.const(0.0) for j in range(nc)]]
-        else:
-            values = [cx, cy, w, h, *[score if j == k else g.const(0.0) for j in range(nc)]]
-        items = [g.op("Reshape", v, g.const([1], np.int64)) for v in values]
-        columns.append(g.op("Reshape", g.op("Concat", *items, axis=0), g.const([-1, 1], np.int64)))
-    stacked = g.op("Unsqueeze", g.op("Concat", *columns, axis=1), g.const([0], np.int64))  # [1, 4+nc, N]
-    output = stacked if layout == "v8" else g.op("Transpose", stacked, perm=[0, 2, 1])
-    g.nodes.append(helper.make_node("Identity", [output], ["output0"]))
-    dims: list[Any] = [1, 3, fixed_size[1], fixed_size[0]] if fixed_size else [1, 3, "height", "width"]
-    graph = helper.make_graph(
-        g.nodes,
-        "colour_boxes",
-        [helper.make_tensor_value_info("images", TensorProto.FLOAT, dims)],
-        [helper.make_tensor_value_info("output0", TensorProto.FLOAT, [1, "rows", "columns"])],
-        g.initializers,
-    )
-    return save(graph, path)
-
-
-def classifier_model(path: Path) -> Path:
-    """An image classifier: [1, 3, 224, 224] -> [1, 1000] (not a detection model)."""
-    g = _Graph()
-    pooled = g.op("Flatten", g.op("GlobalAveragePool", "images"))
-    logits = g.op("MatMul", pooled, g.const(np.ones((3, 1000))))
-    g.nodes.append(helper.make_node("Identity", [logits], ["logits"]))
-    graph = helper.make_graph(
-        g.nodes,
-        "classifier",
-        [helper.make_tensor_value_info("images", TensorProto.FLOAT, [1, 3, 224, 224])],
-        [helper.make_tensor_value_info("logits", TensorProto.FLOAT, [1, 1000])],
-        g.initializers,
-    )
-    return save(graph, path)
-
-
-def vector_model(path: Path) -> Path:
-    """A model whose input is a [1, 10] vector, not an image."""
-    node = helper.make_node("Identity", ["x"], ["y"])
-    graph = helper.make_graph(
-        [node],
-        "vector",
-        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 10])],
-        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, 10])],
-    )
-    return save(graph, path)
-
-
-def save(graph: onnx.GraphProto, path: Path) -> Path:
-    model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 17)])
-    model.ir_version = 8
-    onnx.checker.check_model(model)
-    onnx.save(model, str(path))
-    return path
 
 
 # --- a camera view and its frames --------------------------------------------------------------
@@ -322,6 +211,19 @@ def test_ms_per_frame_of_the_test_model(tmp_path: Path) -> None:
     print(f"colour-box test model, 640x640 input: {(time.perf_counter() - started) / 5 * 1000:.1f} ms per frame")
 
 
+def test_a_model_shaped_like_an_ultralytics_export_loads_and_runs(tmp_path: Path) -> None:
+    """Random weights in a small YOLO's shape: output [1, 84, N] for 80 classes, as `yolo export`
+    writes it. Its class scores stay under 0.01, so it finds nothing; a 79-class config is refused."""
+    path, _ = yolo_sized_model(tmp_path / "y.onnx", classes=80, size=320)
+    coco = [f"class{i}" for i in range(80)]
+    det = detector(path, classes=coco)
+    model = det.models["colours"]
+    assert (model.layout, model.output_shape, model.input_size) == ("[1, 4+nc, N]", (1, 84, 2100), (320, 320))
+    assert find(det, "model_colours_class7", analysis(patches())) == ()
+    with pytest.raises(FailedPrecondition, match=r"output \[1, 84, 2100\] is not a YOLO detection output for the 79"):
+        detector(path, classes=coco[:79])
+
+
 # --- refusals at start ---------------------------------------------------------------------------
 
 
@@ -363,6 +265,18 @@ def test_a_classifier_is_not_a_detection_model(tmp_path: Path) -> None:
 
 def test_a_model_without_an_image_input_is_refused(tmp_path: Path) -> None:
     refused(vector_model, r"input 'x' has shape \[1, 10\]; expected an image \[1, 3, height, width\]", tmp_path)
+
+
+@pytest.mark.parametrize(
+    ("oddity", "message"),
+    [
+        ("uint8", r"input 'images' is tensor\(uint8\); expected an image of float or float16$"),
+        ("two-inputs", r"has 2 inputs \(images, scale\); a detection model takes one image \[1, 3, H, W\]$"),
+        ("int-output", r"output is int64, not boxes and scores \(floats\)$"),
+    ],
+)
+def test_models_that_do_not_take_an_image_or_give_boxes_are_refused(tmp_path: Path, oddity: str, message: str) -> None:
+    refused(lambda p: odd_model(p, oddity), message, tmp_path)
 
 
 @pytest.mark.parametrize("classes", [["red", "green"], ["red", "green", "blue", "cyan", "pink"]])
@@ -435,6 +349,17 @@ def test_unknown_detector_option_is_refused() -> None:
 def test_no_models_serve_nothing_and_load_nothing() -> None:
     det = ModelDetector(view(), None)
     assert det.kinds() == () and det.models == {}
+    # A camera without models never imports onnxruntime (about 15 MB): checked in a fresh interpreter.
+    code = (
+        "import sys\n"
+        "from drvs.camera.node import CameraNode\n"
+        "from tests.test_model_detector import view\n"
+        "from drvs.detectors.model import ModelDetector\n"
+        "ModelDetector(view(), None)\n"
+        "sys.exit('onnxruntime' in sys.modules)\n"
+    )
+    root = Path(__file__).resolve().parents[1]
+    assert subprocess.run([sys.executable, "-c", code], cwd=root, timeout=60).returncode == 0
 
 
 # --- filter_def syntax -------------------------------------------------------------------------

@@ -141,16 +141,11 @@ def _parse_spec(name: str, spec: Any, where: str, base: Path | None) -> ModelSpe
     if base is not None and not path.is_absolute():
         path = base / path
     classes = spec["classes"]
-    if (
-        not isinstance(classes, (list, tuple))
-        or not classes
-        or not all(isinstance(c, str) and CLASS_NAME_RE.fullmatch(c) for c in classes)
-    ):
-        bad = (
-            next((c for c in classes if not isinstance(c, str) or not CLASS_NAME_RE.fullmatch(c)), None)
-            if (isinstance(classes, (list, tuple)))
-            else None
-        )
+    listed = isinstance(classes, (list, tuple))
+    bad = (
+        next((c for c in classes if not isinstance(c, str) or not CLASS_NAME_RE.fullmatch(c)), None) if listed else None
+    )
+    if not listed or not classes or bad is not None:
         detail = f" ({str(bad)[:40]!r} is not)" if bad is not None else ""
         raise InvalidArgument(
             f"{where}: classes: expected a non-empty list of class names in the model's output order, "
@@ -158,9 +153,11 @@ def _parse_spec(name: str, spec: Any, where: str, base: Path | None) -> ModelSpe
         )
     if len(classes) > MAX_CLASSES:
         raise InvalidArgument(f"{where}: classes: {len(classes)} classes; at most {MAX_CLASSES}")
-    duplicate = next((c for i, c in enumerate(classes) if c in classes[:i]), None)
-    if duplicate is not None:
-        raise InvalidArgument(f"{where}: classes: {duplicate!r} appears twice")
+    seen: set[str] = set()
+    for label in classes:
+        if label in seen:
+            raise InvalidArgument(f"{where}: classes: {label!r} appears twice")
+        seen.add(label)
     input_size = _input_size(spec.get("input_size"), f"{where}: input_size")
     score = _fraction(spec.get("score_threshold", DEFAULT_SCORE_THRESHOLD), f"{where}: score_threshold")
     iou = _fraction(spec.get("iou_threshold", DEFAULT_IOU_THRESHOLD), f"{where}: iou_threshold")
@@ -318,6 +315,8 @@ def load_model(spec: ModelSpec) -> LoadedModel:
         output = np.asarray(session.run(None, {source.name: blank})[0])
     except Exception as exc:
         raise _fail(spec, f"fails on a {size[0]}x{size[1]} image ({_first_line(exc)})") from None
+    if not np.issubdtype(output.dtype, np.floating):
+        raise _fail(spec, f"output is {output.dtype}, not boxes and scores (floats)")
     layout = _layout(output.shape, len(spec.classes))
     if layout is None:
         nc = len(spec.classes)
