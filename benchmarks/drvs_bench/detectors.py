@@ -375,16 +375,24 @@ def people_inputs(work: Work) -> DetectorInputs:
 
 
 def model_inputs(work: Work) -> DetectorInputs:
-    from .onnx_model import build_model
+    # The model detector's own benchmark network (drvs_bench.onnx_models, by its author): random
+    # weights in a small YOLO's shape, about a YOLOv8n's arithmetic at 640; a smoke run uses 320.
+    from .onnx_models import yolo_sized_model
 
-    path = work.tmp / "bench-model.onnx"
-    info = build_model(path, width=0.25 if work.quick else 1.0)
-    spec = {"path": str(path), "classes": ["a", "b", "c"]}
+    size = 320 if work.quick else 640
+    path, macs = yolo_sized_model(work.tmp / "bench-model.onnx", classes=80, size=size)
+    spec = {"path": str(path), "classes": [f"class{i}" for i in range(80)]}
     inputs = work.office_inputs(
         "model", "model_bench", options={"models": {"bench": spec}}, camera_config={"models": {"bench": spec}},
         min_found=0,
     )  # fmt: skip
-    inputs.about["model"] = info
+    inputs.about["model"] = {
+        "built_by": "drvs_bench.onnx_models.yolo_sized_model: random weights in the shape of a small YOLO "
+        "(stride-2 conv backbone, heads at strides 8, 16, 32, 80 classes); it detects nothing",
+        "input": [1, 3, size, size],
+        "gflops": round(2 * macs / 1e9, 2),
+        "for_comparison": "YOLOv8n at 640: 8.7 GFLOPs",
+    }
     return inputs
 
 
