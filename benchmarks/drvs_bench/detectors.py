@@ -29,6 +29,7 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import os
 import statistics
 import sys
 import tempfile
@@ -851,6 +852,8 @@ async def run_detectors(out_dir: Path, quick: bool, only: Sequence[str] | None =
     """The benchmark; `only`: these detector prefixes (default: every registered one)."""
     rounds = QUICK_ROUNDS if quick else FULL_ROUNDS
     result: dict[str, Any] = {"benchmark": "detectors", "quick": quick, "rounds": rounds, "rate_hz": RATE_HZ}
+    # The machine is shared: how loaded it was (1-minute load average, 2 cores) when the run began and ended.
+    result["load_average_at_start"] = os.getloadavg()[0]
     t0 = time.perf_counter()
 
     def say(what: str) -> None:
@@ -883,6 +886,8 @@ async def run_detectors(out_dir: Path, quick: bool, only: Sequence[str] | None =
         result["detectors"] = per
         result["left_out"] = left_out
         say("done")
+    result["load_average_at_end"] = os.getloadavg()[0]
+    result["seconds"] = round(time.perf_counter() - t0, 1)
     result["definition"] = DEFINITION
     result["machine"] = machine()
     await asyncio.to_thread(write_outputs, result, out_dir)
