@@ -9,23 +9,24 @@ from typing import Any
 
 import cv2
 import pytest
-from drvs_bench.common import record_scene
+from drvs_bench.common import VTEST, record_scene
 from drvs_bench.load import QUICK_ROBOTS, Sampler, check_load_work, expected_requests, schedule, summarise
-from drvs_bench.paper import check_drvs, check_stream, run_mode
+from drvs_bench.paper import PEOPLE_QUICK_REQUESTS, check_drvs, check_stream, run_mode
 from drvs_bench.service import check_latency_run
 from drvs_bench.stats import QUICK_ROUNDS, WorkMismatch
 
 from drvs.launch import ManagedProcess, start_camera, start_server
 
 
-@pytest.mark.timeout(480)  # 24 runs, each a process of its own: a minute alone, more on a loaded machine
+@pytest.mark.timeout(600)  # 30 runs, each a process of its own: two minutes alone, more on a loaded machine
 async def test_paper_benchmark_smoke(tmp_path: Path) -> None:
-    """--quick's three interleaved rounds (of 15 requests here), every mode and floor, checked work."""
+    """--quick's three interleaved rounds (of 15 requests here), every mode and floor, checked work;
+    with vtest.avi installed, the people modes too."""
     proc = ManagedProcess.entry_point(
         "bench", "drvs-bench", "paper", "--quick", "--requests", "15", "--out", str(tmp_path)
     )
     await proc.start()
-    assert await proc.wait(timeout=420) == 0, proc.output()
+    assert await proc.wait(timeout=560) == 0, proc.output()
     result = json.loads((tmp_path / "paper.json").read_text())
     assert result["rounds"] == QUICK_ROUNDS == 3
     assert set(result["modes"]) == {"drvs", "drvs_boxes", "drvs_boxes_moving", "raw", "jpeg"}
@@ -57,7 +58,18 @@ async def test_paper_benchmark_smoke(tmp_path: Path) -> None:
         assert lo <= result[key] <= hi, key
     # Headers weigh far more on DRVS's small messages than on a stream's full segments.
     assert result["bandwidth_ratio_raw_payload"] > result["bandwidth_ratio_raw"]
-    assert set(result["targets"]) == {"bandwidth_ratio_raw", "bandwidth_ratio_jpeg", "robot_cpu_ratio"}
+    targets = {"bandwidth_ratio_raw", "bandwidth_ratio_jpeg", "robot_cpu_ratio"}
+    if not VTEST.is_file():
+        assert "people" not in result and set(result["targets"]) == targets
+        return
+    assert set(result["targets"]) == {*targets, "robot_cpu_ratio_people"}
+    people = result["people"]["modes"]
+    assert people["drvs_people"]["requests_delivered"] == PEOPLE_QUICK_REQUESTS
+    assert people["drvs_people"]["reports"] == 2 * PEOPLE_QUICK_REQUESTS and people["drvs_people"]["detections"] > 0
+    assert people["raw_people"]["frames"] == people["raw_people"]["frames_analysed"] > 0
+    assert people["raw_people"]["detections"] > 0
+    # The robot running the HOG detector itself costs it more than asking DRVS, in every round.
+    assert min(result["robot_cpu_ratio_people_runs"]) > 1
     for target in result["targets"].values():
         assert target["verdict"] in ("met", "missed", "spread crosses target")
     # The floors ran: DRVS's message flow in bare grpc.aio, and an idle loop at the same rate.

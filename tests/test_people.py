@@ -204,6 +204,22 @@ def test_nothing_on_an_empty_floor(marked: list[Marked]) -> None:
     assert people(PeopleDetector(view(), {"min_height_px": MIN_HEIGHT_PX}), empty) == ()
 
 
+def test_eye_level_picture_finds_the_whole_man_not_the_one_cut_by_the_edge() -> None:
+    """basketball1.png (same package): a robot's-eye view at 640x480 with the default settings. The
+    man on the left, head to feet in the frame, is found; the one cut by the right edge is not. His
+    feet come out about 75 px high (he fills the frame, so HOG's box has less margin below him: see
+    the README); the assertion allows that and no more, so a worse placement fails."""
+    _footage()
+    image = cv2.imread(str(VTEST.parent / "basketball1.png"))
+    assert image is not None and image.shape[1::-1] == (640, 480)
+    h = homography_from_pose((0.0, 0.0, 1.2), 90.0, 5.0, 60.0, (640, 480))
+    detector = PeopleDetector(CameraView(h, FieldOfView.compute(h, (640, 480), 20.0), (640, 480)))
+    found = people(detector, np.asarray(image, dtype=np.uint8))
+    assert len(found) == 1, found
+    u, v = feet_px(found[0], detector)
+    assert 60 <= u <= 130 and 380 <= v <= 475, (u, v)  # his feet: about (95, 470)
+
+
 @pytest.mark.parametrize(
     ("filter_def", "message"),
     [
