@@ -48,9 +48,13 @@ def view(h: Homography | None = None, size: tuple[int, int] = SIZE) -> CameraVie
 class Scene:
     """Noisy renders of one floor, each frame with its own noise, as a camera sends them."""
 
-    def __init__(self, seed: int = 0) -> None:
+    def __init__(self, seed: int = 0, *, texture: float = 0.0) -> None:
         self.rng = np.random.default_rng(seed)
         self.sequence = 0
+        #: A floor with texture (a carpet, tiles' grain): its albedo varies by `texture` (standard
+        #: deviation, relative) over a few pixels; the objects on it are flat colour.
+        grain = cv2.GaussianBlur(self.rng.normal(0.0, 1.0, (SIZE[1], SIZE[0])).astype(np.float32), (0, 0), 2.0)
+        self.albedo = 1.0 + texture * grain / float(grain.std())
 
     def image(
         self,
@@ -62,7 +66,10 @@ class Scene:
     ) -> NDArray[np.uint8]:
         """A frame; `gain` scales the whole image (the building's light), `shadow` darkens a floor
         region by `darken` with a soft edge, the same for every channel (chromaticity unchanged)."""
-        image = render_view(camera(), SIZE, patches).astype(np.float32) * gain
+        image = render_view(camera(), SIZE, patches).astype(np.float32)
+        floor = np.all(image == render_view(camera(), SIZE, []).astype(np.float32), axis=2)
+        image[floor] *= self.albedo[floor][:, None]
+        image *= gain
         if shadow is not None:
             hard = np.zeros(image.shape[:2], dtype=np.float32)
             ring = camera().inverse().apply(np.asarray(shadow.exterior.coords)[:-1])
@@ -96,20 +103,22 @@ def pixel_m(h: Homography, xy: tuple[float, float]) -> float:
     return max(math.dist(p[0], p[1]), math.dist(p[0], p[2]))
 
 
-def assert_found(found: Sequence[Detection], truth: Sequence[FloorPatch]) -> None:
+def assert_found(
+    found: Sequence[Detection], truth: Sequence[FloorPatch], min_score: float = 0.9, margin_px: float = 0.0
+) -> None:
     """Exactly one detection per object, centred where it lies to within two working pixels (the
     detector works at half resolution), outline area within 15 %, contact on its nearest edge."""
     assert len(found) == len(truth), [d.centroid_xy for d in found]
     for patch in truth:
         c = patch.shape.centroid
         d = min(found, key=lambda d: d.centroid.distance(c))
-        tolerance = 4 * pixel_m(camera(), (c.x, c.y))
+        tolerance = (4 + margin_px) * pixel_m(camera(), (c.x, c.y))
         assert d.centroid.distance(c) < tolerance, (patch, d.centroid_xy, tolerance)
         assert abs(d.area_m2 - patch.shape.area) < 0.15 * patch.shape.area, (patch, d.area_m2)
         # This camera looks along +y: the bottom of the pixel box is the object's nearest edge.
         nearest_y = patch.shape.bounds[1]
         assert abs(d.ground_contact_xy[1] - nearest_y) < tolerance, (patch, d.ground_contact_xy)
-        assert 0.9 <= d.score <= 1.0
+        assert min_score <= d.score <= 1.0
         assert (d.filter_def, d.label, d.camera_id) == ("foreground", "", "cam1")
 
 
@@ -184,6 +193,27 @@ def test_a_moving_object_is_found_at_once_without_a_background_picture() -> None
     for i in range(30):
         disc = FloorPatch.disc((-1.5 + 0.05 * i, 4.0 + 0.02 * i), 0.25, (140, 140, 140))
         assert_found(step(det, scene, scene.image([disc])), [disc])
+
+
+def test_a_thing_that_stops_fades_from_the_motion_model_but_not_from_the_picture(tmp_path: Path) -> None:
+    scene = Scene(8)
+    empty = write_empty_floor(tmp_path / "empty.png", scene)
+    motion_only, with_picture = ForegroundDetector(view()), ForegroundDetector(view(), {"background": str(empty)})
+    for _ in range(20):
+        image = scene.image()
+        assert step(motion_only, scene, image) == step(with_picture, scene, image) == ()
+    disc = FloorPatch.disc((0.0, 4.0), 0.3, (60, 160, 60))  # arrives, and stays
+    gone = None
+    for i in range(100):
+        image = scene.image([disc])
+        assert_found(step(with_picture, scene, image), [disc])
+        found = step(motion_only, scene, image)
+        if i < 40:
+            assert_found(found, [disc])
+        elif gone is None and not found:
+            gone = i
+    # It learns at 1/HISTORY_FRAMES a frame; MOG2 counts a mode as background above 10 % weight.
+    assert gone is not None and 40 <= gone <= 70, gone
 
 
 def test_a_request_on_a_frame_not_yet_observed_uses_the_model_without_teaching_it(tmp_path: Path) -> None:
@@ -419,3 +449,32 @@ async def test_a_camera_with_a_background_answers_foreground_with_the_objects_po
         assert f"foreground: background {tmp_path / 'gone.png'}: no such file" in bad.output()
     finally:
         await server.stop()
+
+
+def test_on_a_textured_floor_an_object_of_the_floors_own_colour_is_found_and_shadows_are_not(
+    tmp_path: Path,
+) -> None:
+    """On a floor with texture, an object of the floor's own hue and darker (which colour alone
+    takes for a shadow) hides the texture and is found; shadows and light scale it and are not."""
+    scene = Scene(10, texture=0.12)
+    det = ForegroundDetector(view(), {"background": str(write_empty_floor(tmp_path / "empty.png", scene))})
+    dark = tuple(round(0.6 * c) for c in FLOOR_BGR)
+    objects = [FloorPatch.disc((-1.0, 4.0), 0.3, dark), FloorPatch.rect(0.8, 5.0, 1.6, 5.6, dark)]  # type: ignore[arg-type]
+    for _ in range(10):
+        found = step(det, scene, scene.image(objects))
+    # Texture is judged over 5x5 windows at half scale: a window that straddles the edge sees the
+    # object (outlines grow by up to 2 working pixels, 4 of the frame's), and a uniform surface
+    # correlates by chance in places; the clean-up fills those holes (they lower the score).
+    assert_found(found, objects, min_score=0.75, margin_px=4)
+    # An empty floor (a camera that started on one: the objects' leaving would be motion).
+    det = ForegroundDetector(view(), {"background": str(tmp_path / "empty.png")})
+    for gain in (*np.linspace(1.0, 1.3, 20), *np.linspace(1.3, 0.7, 30)):
+        assert step(det, scene, scene.image(gain=float(gain))) == (), gain
+    shadow = Polygon([(-1.5, 2.0), (1.0, 2.0), (1.5, 5.0), (-1.0, 5.0)])
+    for darken, gain in ((0.4, 0.7), (0.5, 0.7), (0.45, 1.0), (0.5, 1.2)):
+        assert step(det, scene, scene.image(shadow=shadow, darken=darken, gain=gain)) == (), (darken, gain)
+    # The same objects on a floor without texture are shadows to the picture: not found.
+    plain = Scene(11)
+    flat = ForegroundDetector(view(), {"background": str(write_empty_floor(tmp_path / "plain.png", plain))})
+    for _ in range(10):
+        assert step(flat, plain, plain.image(objects)) == ()
