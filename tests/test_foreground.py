@@ -161,6 +161,10 @@ def test_slow_lighting_changes_and_cast_shadows_are_not_objects(tmp_path: Path) 
         image = scene.image(gain=float(gain))
         assert step(det, scene, image) == (), f"gain {gain:.2f}"
         assert step(motion_only, scene, image) == (), f"gain {gain:.2f} (motion only)"
+    # Lights switched on and off: the whole view 40 % brighter, then darker, from one frame to the next.
+    for gain in (1.4, 1.4, 0.6, 0.6, 1.0):
+        image = scene.image(gain=gain)
+        assert step(det, scene, image) == step(motion_only, scene, image) == (), f"sudden gain {gain}"
     # Shadows cast across the floor (a person or a trolley out of view): darker by 40 to 50 %,
     # sudden, anywhere, under any of the lighting above.
     shadows = [
