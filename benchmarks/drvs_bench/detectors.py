@@ -484,7 +484,9 @@ async def start_detector_camera(
 ) -> ManagedProcess:  # fmt: skip
     """A real drvs-camera on the inputs' video, running `detectors` with `config` (options)."""
     assert inputs.video is not None and inputs.homography_file is not None
-    args = ["--max-range", f"{inputs.max_range_m:g}", "--detectors", ",".join(detectors)]
+    # Cost, not policy: a frame up to 30 s old still serves (the default, 2 s, refuses requests when
+    # the shared machine starves the camera's reader thread; a full run failed on it once).
+    args = ["--max-range", f"{inputs.max_range_m:g}", "--detectors", ",".join(detectors), "--max-frame-age", "30"]
     if config:
         path = directory / f"{camera_id}.config.yaml"
         path.write_text(yaml.safe_dump(dict(config), sort_keys=False))
