@@ -326,3 +326,64 @@ def test_load_work_check_fires_when_requests_are_missing() -> None:
     with pytest.raises(WorkMismatch, match="requests: expected 60, got 59"):
         check_load_work("load", result, robots=3, rate=10, warmup=1, seconds=2)
     check_load_work("load", summarise_records(records, warmup=1, seconds=2), robots=3, rate=10, warmup=1, seconds=2)
+
+
+@pytest.mark.timeout(480)  # five detectors' cameras, three short rounds, accuracy on small sets: ~2 minutes
+async def test_detectors_benchmark_smoke(tmp_path: Path) -> None:
+    """--quick over every registered detector: each one's figures in interleaved rounds, side by side
+    with its idle camera, the memory of a camera with all of them, and the accuracy figures."""
+    from drvs_bench.detectors import INPUTS, VTEST
+
+    from drvs.detectors import REGISTRY
+
+    proc = ManagedProcess.entry_point("bench", "drvs-bench", "detectors", "--quick", "--out", str(tmp_path))
+    await proc.start()
+    assert await proc.wait(timeout=450) == 0, proc.output()
+    result = json.loads((tmp_path / "detectors.json").read_text())
+    assert result["rounds"] == QUICK_ROUNDS and result["rate_hz"] == 10
+    expected = {p for p in REGISTRY if p in INPUTS} - (set() if VTEST.is_file() else {"people"})
+    assert set(result["detectors"]) == expected and {"hsv", "aruco", "foreground"} <= expected
+    assert set(result["left_out"]) == set(REGISTRY) - expected
+    for name, entry in result["detectors"].items():
+        for key in ("find_ms", "camera_cpu_idle_cores", "camera_cpu_10hz_cores", "camera_cpu_10hz_over_idle"):
+            assert entry[key] > 0 and len(entry[f"{key}_runs"]) == QUICK_ROUNDS, (name, key)
+            lo, hi = entry[f"{key}_spread"]
+            assert lo <= entry[key] == entry[f"{key}_median"] <= hi, (name, key)
+        # Requests cost the camera CPU on top of reading frames.
+        assert entry["camera_cpu_10hz_cores"] > entry["camera_cpu_idle_cores"], name
+    assert result["detectors"]["foreground"]["observe_ms"] > 0
+    assert result["detectors"]["aruco"]["found_per_frame"] >= 4  # the markers drawn on every frame
+    memory = result["memory"]
+    assert memory["all_detectors"] == list(result["detectors"])
+    assert memory["camera_peak_rss_bytes_all"] > memory["camera_peak_rss_bytes_hsv"] > 50e6
+    aruco = result["detectors"]["aruco"]["accuracy"]
+    assert aruco["found"] >= 0.7 * aruco["rendered"] and aruco["position_error_cm"]["median"] < 5
+    assert aruco["heading_error_deg"]["median"] < 5
+    fg = result["detectors"]["foreground"]["accuracy"]
+    assert fg["found"] + fg["missed"] == sum(c["obstacles_in_view"] for c in fg["per_camera"].values()) >= 5
+    if "people" in result["detectors"]:
+        people = result["detectors"]["people"]["accuracy"]
+        assert 0 < people["native_768x576"]["recall"] <= 1 and 0 < people["native_768x576"]["precision"] <= 1
+    image = cv2.imread(str(tmp_path / "detectors.png"))
+    assert image is not None and image.shape[0] > 200
+
+
+def test_detectors_benchmark_reports_a_missing_detector_and_refuses_short_work(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """A detector the benchmark has inputs for but this build lacks is listed, not a crash; a timed
+    find that finds less than its inputs hold stops the benchmark (WorkMismatch)."""
+    from drvs_bench import detectors as bench
+
+    monkeypatch.setitem(bench.INPUTS, "sonar", bench.hsv_inputs)
+    work = bench.Work(tmp_path, quick=True)
+    found, left_out = bench.gather_inputs(work, ["hsv", "sonar"])
+    assert list(found) == ["hsv"] and left_out == {"sonar": left_out["sonar"]}
+    assert left_out["sonar"].startswith("missing: ")
+    inputs = found["hsv"]
+    out: dict[str, Any] = {}
+    bench.measure_find({"hsv": inputs}, 1, 2, out)  # the office's yellow discs: found
+    assert out["hsv"]["found_per_frame"] >= 1
+    inputs.min_found = 50
+    with pytest.raises(WorkMismatch, match=r"find hsv, round 1"):
+        bench.measure_find({"hsv": inputs}, 1, 2, {})

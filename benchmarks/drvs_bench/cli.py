@@ -1,5 +1,5 @@
 """drvs-bench: `paper` (the paper's comparison), `service` (DRVS's own costs), `load` (many robots at
-once); the rest are the benchmarks' internal processes."""
+once), `detectors` (each detector's costs and accuracy); the rest are the benchmarks' internal processes."""
 
 from __future__ import annotations
 
@@ -70,6 +70,40 @@ def service_main(args: argparse.Namespace) -> int:
     return 0
 
 
+def detectors_main(args: argparse.Namespace) -> int:
+    from drvs.detectors import REGISTRY
+
+    from .detectors import INPUTS, run_detectors
+    from .stats import WorkMismatch
+
+    only = [d.strip() for d in args.detectors.split(",") if d.strip()] if args.detectors else None
+    unknown = [d for d in only or [] if d not in REGISTRY and d not in INPUTS]
+    if only is not None and (unknown or not only):
+        print(f"drvs-bench detectors: --detectors: {', '.join(unknown) or 'none'}: name some of "
+              f"{', '.join(dict.fromkeys([*REGISTRY, *INPUTS]))}", file=sys.stderr)  # fmt: skip
+        return 2
+    out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
+    try:
+        result = asyncio.run(run_detectors(out, args.quick, only))
+    except WorkMismatch as exc:
+        print(f"drvs-bench detectors: FAILED: {exc}", file=sys.stderr)
+        return 1
+    # The medians (every figure's spread and rounds are in detectors.json) and the accuracy.
+    summary: dict[str, object] = {}
+    for name, entry in result["detectors"].items():
+        summary[name] = {
+            k: (round(v, 4) if isinstance(v, float) else v)
+            for k, v in entry.items()
+            if not isinstance(v, (str, bool)) and not k.endswith(("_median", "_runs"))
+        }
+    memory = result.get("memory", {})
+    summary["memory"] = {k: v for k, v in memory.items() if not k.endswith(("_median", "_runs"))}
+    summary["left_out"] = result["left_out"]
+    print(json.dumps(summary, indent=1))
+    print(f"written: {out / 'detectors.json'}, {out / 'detectors.png'}")
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="drvs-bench", description="DRVS benchmarks: JSON and PNG into --out.")
     sub = parser.add_subparsers(dest="bench", required=True)
@@ -86,6 +120,13 @@ def main(argv: list[str] | None = None) -> int:
     s.add_argument("--quick", action="store_true", help="a smoke run: 3 interleaved rounds of short runs (full: 5)")
     s.add_argument("--out", type=Path, default=None)
     s.set_defaults(func=service_main)
+    d = sub.add_parser("detectors", help="each detector's ms per frame, camera CPU at 10 requests/s, memory, accuracy")
+    d.add_argument("--quick", action="store_true", help="a smoke run: 3 rounds of short runs (full: 5)")
+    d.add_argument(
+        "--detectors", default=None, help="comma-separated detector prefixes (default: every registered one)"
+    )
+    d.add_argument("--out", type=Path, default=None)
+    d.set_defaults(func=detectors_main)
     add_load_parser(sub)
     add_helper_parsers(sub)
     add_bare_parsers(sub)
