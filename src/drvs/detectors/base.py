@@ -16,6 +16,7 @@ Each `filter_def` parses to an `ObjectType` with three names:
 
 from __future__ import annotations
 
+import dataclasses
 import threading
 import time
 from abc import ABC, abstractmethod
@@ -240,6 +241,37 @@ class CameraView:
             heading_deg=heading_deg,
             label=label,
         )
+
+    def blobs(
+        self, raw: NDArray[Any], cleaned: NDArray[Any], object_type: ObjectType, capture_time: float
+    ) -> tuple[Detection, ...]:
+        """The connected blobs of a cleaned-up mask (0/255) of at least min_area_px, largest first,
+        mapped to the floor. score: the fraction of a blob's pixels set in `raw` (the mask before
+        clean-up filled holes); ground contact: the bottom centre of its pixel box (the contour's)."""
+        contours, _ = cv2.findContours(cleaned, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+        found: list[Detection] = []
+        for contour in contours:
+            area_px = float(cv2.contourArea(contour))
+            if area_px < self.min_area_px:
+                continue
+            x, y, w, h = (int(v) for v in cv2.boundingRect(contour))
+            blob = np.zeros((h, w), dtype=np.uint8)
+            cv2.drawContours(blob, [contour - np.array([x, y], dtype=np.int32)], -1, 255, thickness=cv2.FILLED)
+            inside = int(np.count_nonzero(blob))
+            hits = int(np.count_nonzero(cv2.bitwise_and(blob, raw[y : y + h, x : x + w])))
+            detection = self.detection(
+                self.simplified(contour),
+                object_type,
+                capture_time,
+                score=hits / inside if inside else 0.0,
+                area_px=area_px,
+                contact_px=(x + (w - 1) / 2.0, y + h - 1.0),
+            )
+            if detection is not None:
+                # The pixel box is the contour's, not the simplified outline's.
+                found.append(dataclasses.replace(detection, pixel_box=PixelBox(x, y, w, h)))
+        found.sort(key=lambda d: d.area_px, reverse=True)
+        return tuple(found)
 
     def simplified(self, contour: NDArray[Any]) -> NDArray[np.float64]:
         """A contour simplified to OUTLINE_TOLERANCE_PX (the contour itself if that degenerates)."""

@@ -303,27 +303,4 @@ class ForegroundDetector(Detector):
     def find(self, analysis: FrameAnalysis, object_type: ObjectType) -> tuple[Detection, ...]:
         frame = analysis.frame
         raw, cleaned = self.masks(frame)
-        contours, _ = cv2.findContours(cleaned, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-        found: list[Detection] = []
-        for contour in contours:
-            area_px = float(cv2.contourArea(contour))
-            if area_px < self.view.min_area_px:
-                continue
-            x, y, w, h = (int(v) for v in cv2.boundingRect(contour))
-            blob = np.zeros((h, w), dtype=np.uint8)
-            cv2.drawContours(blob, [contour - np.array([x, y], dtype=np.int32)], -1, 255, thickness=cv2.FILLED)
-            inside = int(np.count_nonzero(blob))
-            hits = int(np.count_nonzero(cv2.bitwise_and(blob, raw[y : y + h, x : x + w])))
-            detection = self.view.detection(
-                self.view.simplified(contour),
-                object_type,
-                frame.capture_time,
-                score=hits / inside if inside else 0.0,
-                area_px=area_px,
-                contact_px=(x + (w - 1) / 2.0, y + h - 1.0),
-                label="",
-            )
-            if detection is not None:
-                found.append(detection)
-        found.sort(key=lambda d: d.area_px, reverse=True)
-        return tuple(found)
+        return self.view.blobs(raw, cleaned, object_type, frame.capture_time)

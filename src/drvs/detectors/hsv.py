@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import dataclasses
 import re
 from collections.abc import Mapping
 from dataclasses import dataclass
@@ -13,7 +12,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drvs.errors import InvalidArgument
-from drvs.model import Detection, PixelBox
+from drvs.model import Detection
 
 from .base import CameraView, Detector, FrameAnalysis, ObjectType, register, select
 
@@ -138,42 +137,4 @@ class HsvDetector(Detector):
         raw = cv2.bitwise_and(hsv_range.mask(analysis.hsv()), self.view.fov_mask)
         mask = cv2.morphologyEx(raw, cv2.MORPH_OPEN, self._kernel)
         mask = cv2.morphologyEx(mask, cv2.MORPH_CLOSE, self._kernel)
-        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
-        found: list[Detection] = []
-        for contour in contours:
-            area_px = float(cv2.contourArea(contour))
-            if area_px < self.view.min_area_px:
-                continue
-            detection = self._to_floor(contour, area_px, raw, object_type, frame.capture_time)
-            if detection is not None:
-                found.append(detection)
-        found.sort(key=lambda d: d.area_px, reverse=True)
-        return tuple(found)
-
-    def _to_floor(
-        self,
-        contour: NDArray[Any],
-        area_px: float,
-        raw_mask: NDArray[Any],
-        object_type: ObjectType,
-        capture_time: float,
-    ) -> Detection | None:
-        x, y, w, h = (int(v) for v in cv2.boundingRect(contour))
-        # Score: how much of the blob's outline is really the colour (morphology may have filled holes).
-        blob = np.zeros((h, w), dtype=np.uint8)
-        cv2.drawContours(blob, [contour - np.array([x, y], dtype=np.int32)], -1, 255, thickness=cv2.FILLED)
-        inside = int(np.count_nonzero(blob))
-        hits = int(np.count_nonzero(cv2.bitwise_and(blob, raw_mask[y : y + h, x : x + w])))
-        score = hits / inside if inside else 0.0
-        detection = self.view.detection(
-            self.view.simplified(contour),
-            object_type,
-            capture_time,
-            score=score,
-            area_px=area_px,
-            contact_px=(x + (w - 1) / 2.0, y + h - 1.0),
-        )
-        if detection is None:
-            return None
-        # The pixel box is the contour's, not the simplified outline's.
-        return dataclasses.replace(detection, pixel_box=PixelBox(x, y, w, h))
+        return self.view.blobs(raw, mask, object_type, frame.capture_time)
