@@ -29,10 +29,11 @@ from drvs.model import Detection
 from drvs.robot import DrvsClient
 from drvs.sim.scene import FloorPatch, render_view, write_video
 
+from .test_people import footage
+
 SIZE = (640, 480)
 FOREGROUND = parse_object_type("foreground")
 NOISE_SIGMA = 3.0
-VTEST = Path("/usr/share/doc/opencv-doc/examples/data/vtest.avi")
 
 
 def camera() -> Homography:
@@ -271,7 +272,7 @@ VTEST_HIDDEN = {300: [], 550: [(403, 165, 437, 204)]}
 
 
 def vtest_frames(count: int) -> Iterator[NDArray[np.uint8]]:
-    cap = cv2.VideoCapture(str(VTEST))
+    cap = cv2.VideoCapture(str(footage()))
     try:
         for _ in range(count):
             ok, image = cap.read()
@@ -286,7 +287,6 @@ def box(x0: float, y0: float, x1: float, y1: float) -> Polygon:
     return Polygon([(x0, y0), (x1, y0), (x1, y1), (x0, y1)])
 
 
-@pytest.mark.skipif(not VTEST.exists(), reason=f"{VTEST} absent (Debian package opencv-doc)")
 def test_people_walking_in_real_footage_are_foreground() -> None:
     """Motion alone (no picture of the empty hall): after 300 frames of learning, every person is
     found, and what is found is people (the wind also moves the barrier tape: small blobs)."""

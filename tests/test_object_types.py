@@ -133,89 +133,71 @@ async def test_a_camera_asked_for_a_detector_that_is_not_installed_stops_at_star
     assert "'yellowish' is not an installed detector; installed: hsv" in proc.output(), proc.output()
 
 
+@pytest_asyncio.fixture
+async def slow(recorded: dict[str, RecordedCamera], tmp_path: Path) -> AsyncIterator[tuple[str, int]]:
+    """A server and one camera running only the plug-in's heavy `slowyellowish`, with metrics:
+    (server address, the camera's metrics port)."""
+    env = plugin_env(tmp_path)
+    rec = recorded["cam1"]
+    server, address = await start_server(env=env)
+    camera = None
+    try:
+        camera = await start_camera(
+            "slow",
+            rec.video,
+            rec.homography_file,
+            address,
+            "--max-range",
+            MAX_RANGE,
+            "--detectors",
+            "slowyellowish",
+            "--metrics-port",
+            "0",
+            env=env,
+        )
+        await camera.wait_for_line(r"metrics on http://")
+        yield address, metrics_port(camera)
+    finally:
+        if camera is not None:
+            await camera.stop()
+        await server.stop()
+
+
 async def test_requests_for_a_frame_being_searched_by_a_heavy_detector_share_that_search(
-    recorded: dict[str, RecordedCamera], tmp_path: Path
+    slow: tuple[str, int],
 ) -> None:
     """Heavy detectors run in the camera's bounded pool, and a request that arrives while a search
     is running takes its result: eight requests at once cost one search, counted by the camera's
     own drvs_detector_runs_total."""
-    env = plugin_env(tmp_path)
-    rec = recorded["cam1"]
-    server, address = await start_server(env=env)
-    camera = None
-    try:
-        camera = await start_camera(
-            "slow",
-            rec.video,
-            rec.homography_file,
-            address,
-            "--max-range",
-            MAX_RANGE,
-            "--detectors",
-            "slowyellowish",
-            "--metrics-port",
-            "0",
-            env=env,
+    address, port = slow
+    runs = 'drvs_detector_runs_total{detector="slowyellowish"}'
+    assert (await scrape(port)).get(runs, 0.0) == 0.0
+    async with DrvsClient(address, robot_id="r1") as client:
+        results = await asyncio.gather(
+            *(client.detect("slowyellowish_30", CAM1_REGION, timeout_s=30) for _ in range(8))
         )
-        await camera.wait_for_line(r"metrics on http://")
-        port = metrics_port(camera)
-        runs = 'drvs_detector_runs_total{detector="slowyellowish"}'
-        assert (await scrape(port)).get(runs, 0.0) == 0.0
-        async with DrvsClient(address, robot_id="r1") as client:
-            results = await asyncio.gather(
-                *(client.detect("slowyellowish_30", CAM1_REGION, timeout_s=30) for _ in range(8))
-            )
-        for result in results:
-            assert result.complete and len(result.detections) == 2, result.camera_errors
-        after = await scrape(port)
-        assert after[runs] == 1.0, after[runs]
-        assert len({r.reports[0].capture_time for r in results}) == 1  # all from the one frame searched
-    finally:
-        if camera is not None:
-            await camera.stop()
-        await server.stop()
+    for result in results:
+        assert result.complete and len(result.detections) == 2, result.camera_errors
+    after = await scrape(port)
+    assert after[runs] == 1.0, after[runs]
+    assert len({r.reports[0].capture_time for r in results}) == 1  # all from the one frame searched
 
 
-async def test_continuous_requests_share_the_heavy_search_that_is_running(
-    recorded: dict[str, RecordedCamera], tmp_path: Path
-) -> None:
+async def test_continuous_requests_share_the_heavy_search_that_is_running(slow: tuple[str, int]) -> None:
     """Six robots following people at 10 Hz: each report needs a search of a few hundred ms, on a
     newer frame each time. A request that comes while a search runs takes that search's result
     rather than queue its own behind it, so the camera runs about one search per search time, not
     one per report (which would also make every answer wait in the queue)."""
-    env = plugin_env(tmp_path)
-    rec = recorded["cam1"]
-    server, address = await start_server(env=env)
-    camera = None
-    try:
-        camera = await start_camera(
-            "slow",
-            rec.video,
-            rec.homography_file,
-            address,
-            "--max-range",
-            MAX_RANGE,
-            "--detectors",
-            "slowyellowish",
-            "--metrics-port",
-            "0",
-            env=env,
-        )
-        await camera.wait_for_line(r"metrics on http://")
-        port = metrics_port(camera)
-        async with DrvsClient(address, robot_id="r1") as client:
-            results = await asyncio.gather(
-                *(
-                    client.detect("slowyellowish_30", CAM1_REGION, rate_hz=10, duration_s=2.0, timeout_s=30)
-                    for _ in range(6)
-                )
+    address, port = slow
+    async with DrvsClient(address, robot_id="r1") as client:
+        results = await asyncio.gather(
+            *(
+                client.detect("slowyellowish_30", CAM1_REGION, rate_hz=10, duration_s=2.0, timeout_s=30)
+                for _ in range(6)
             )
-        reports = sum(len(r.reports) for r in results)
-        for result in results:
-            assert result.complete and all(len(r.detections) == 2 for r in result.reports), result.camera_errors
-        runs = (await scrape(port))['drvs_detector_runs_total{detector="slowyellowish"}']
-        assert reports >= 6 * 3 and runs <= reports / 3.5, (runs, reports)
-    finally:
-        if camera is not None:
-            await camera.stop()
-        await server.stop()
+        )
+    reports = sum(len(r.reports) for r in results)
+    for result in results:
+        assert result.complete and all(len(r.detections) == 2 for r in result.reports), result.camera_errors
+    runs = (await scrape(port))['drvs_detector_runs_total{detector="slowyellowish"}']
+    assert reports >= 6 * 3 and runs <= reports / 3.5, (runs, reports)

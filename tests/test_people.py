@@ -52,7 +52,9 @@ MIN_PRECISION = 0.9
 MIN_RECALL = 0.75
 
 
-def _footage() -> Path:
+def footage() -> Path:
+    """OpenCV's vtest.avi (Debian's opencv-doc): a failure where ./run test could have installed it, a
+    skip only where it cannot (no root or no apt-get)."""
     if VTEST.is_file():
         return VTEST
     if os.geteuid() == 0 and shutil.which("apt-get"):
@@ -70,7 +72,7 @@ class Marked:
 @pytest.fixture(scope="module")
 def marked() -> list[Marked]:
     """The hand-marked frames of vtest.avi, read from the video with OpenCV."""
-    video = _footage()
+    video = footage()
     truth = json.loads(FEET.read_text())
     wanted = {f["index"]: [tuple(p["feet"]) for p in f["people"]] for f in truth["frames"]}
     cap = cv2.VideoCapture(str(video))
@@ -209,7 +211,7 @@ def test_eye_level_picture_finds_the_whole_man_not_the_one_cut_by_the_edge() -> 
     man on the left, head to feet in the frame, is found; the one cut by the right edge is not. His
     feet come out about 75 px high (he fills the frame, so HOG's box has less margin below him: see
     the README); the assertion allows that and no more, so a worse placement fails."""
-    _footage()
+    footage()
     image = cv2.imread(str(VTEST.parent / "basketball1.png"))
     assert image is not None and image.shape[1::-1] == (640, 480)
     h = homography_from_pose((0.0, 0.0, 1.2), 90.0, 5.0, 60.0, (640, 480))
