@@ -26,9 +26,11 @@ from drvs.detectors.aruco import DICTIONARIES, ArucoDetector
 from drvs.errors import InvalidArgument
 from drvs.filters import object_type
 from drvs.geometry import FieldOfView, Homography, homography_from_pose
-from drvs.launch import ManagedProcess, start_camera, start_server
+from drvs.launch import start_camera, start_server
 from drvs.model import Detection
 from drvs.sim.scene import write_video
+
+from .test_cli import roi, run_robot
 
 SIZE = (640, 480)
 SUPERSAMPLE = 4
@@ -319,16 +321,6 @@ def test_detector_module_does_not_import_the_simulator_or_camera() -> None:
         "assert not bad, bad"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
-
-
-def roi(region: tuple[float, float, float, float]) -> str:
-    return ",".join(str(v) for v in region)
-
-
-async def run_robot(*args: str) -> tuple[int, list[str]]:
-    proc = await ManagedProcess.entry_point("robot", "drvs-robot", *args).start()
-    code = await proc.wait(timeout=30)
-    return code, proc.lines
 
 
 async def test_end_to_end_robot_cli_gets_marker_id_and_heading(tmp_path: Path) -> None:
