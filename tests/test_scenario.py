@@ -28,8 +28,10 @@ def test_default_office_matches_the_paper() -> None:
     assert len(s.obstacles) == 2 and len(s.charging_stations) == 1
 
 
-def with_change(path: str, value: object) -> str:
-    data = yaml.safe_load(DEFAULT_SCENARIO.read_text())
+def with_change(path: str, value: object, scenario: Path = DEFAULT_SCENARIO) -> str:
+    """The scenario file's text with one value at `path` (e.g. objects[0].bgr) set, or removed
+    (value KeyError)."""
+    data = yaml.safe_load(scenario.read_text())
     node = data
     keys = [int(k) if k.isdigit() else k for k in re.split(r"[.\[\]]+", path) if k]
     for k in keys[:-1]:
@@ -124,16 +126,7 @@ def test_markers_plain_paint_and_the_robots_marker() -> None:
 
 
 def any_colour_with(path: str, value: object) -> str:
-    data = yaml.safe_load(ANY_COLOUR.read_text())
-    node = data
-    keys = [int(k) if k.isdigit() else k for k in re.split(r"[.\[\]]+", path) if k]
-    for k in keys[:-1]:
-        node = node.setdefault(k, {}) if isinstance(node, dict) else node[k]
-    if value is KeyError:
-        del node[keys[-1]]
-    else:
-        node[keys[-1]] = value
-    return yaml.safe_dump(data)
+    return with_change(path, value, ANY_COLOUR)
 
 
 @pytest.mark.parametrize(
