@@ -11,9 +11,9 @@ from shapely import contains_xy
 
 from drvs.camera.aruco import BoardSpec, find_correspondences, render_board_view
 from drvs.camera.calibration import fit_homography
-from drvs.camera.homography_file import load_homography
 from drvs.errors import InvalidArgument
 from drvs.geometry import FieldOfView, Homography, homography_from_pose
+from drvs.homography_file import load_homography
 from drvs.launch import ManagedProcess
 
 SIZE = (640, 480)

@@ -11,9 +11,9 @@ import pytest
 import yaml
 
 from drvs.camera.calibration import Correspondence, fit_homography, load_points
-from drvs.camera.homography_file import load_homography
 from drvs.errors import InvalidArgument
 from drvs.geometry import FieldOfView, homography_from_pose
+from drvs.homography_file import load_homography
 from drvs.launch import ManagedProcess
 
 from .conftest import Office

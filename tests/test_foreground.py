@@ -19,11 +19,11 @@ from shapely.geometry import Polygon
 
 from drvs.camera.cli import snapshot_main
 from drvs.camera.config import load_config
-from drvs.camera.homography_file import save_homography
 from drvs.detectors import CameraView, Frame, FrameAnalysis, parse_object_type
 from drvs.detectors.foreground import ForegroundDetector
 from drvs.errors import FailedPrecondition, InvalidArgument
 from drvs.geometry import FieldOfView, Homography, homography_from_pose
+from drvs.homography_file import save_homography
 from drvs.launch import CAMERA_REGISTERED, ManagedProcess, start_server
 from drvs.model import Detection
 from drvs.robot import DrvsClient

@@ -25,11 +25,11 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from drvs.camera.homography_file import save_homography
 from drvs.detectors import CameraView, Frame, FrameAnalysis, parse_object_type
 from drvs.detectors.people import PeopleDetector
 from drvs.errors import InvalidArgument
 from drvs.geometry import FieldOfView, Homography, homography_from_pose
+from drvs.homography_file import save_homography
 from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.model import Detection
 from drvs.robot import DrvsClient

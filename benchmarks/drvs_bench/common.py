@@ -9,7 +9,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from drvs.camera.homography_file import save_homography
+from drvs.homography_file import save_homography
 from drvs.launch import ManagedProcess
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import load_scenario

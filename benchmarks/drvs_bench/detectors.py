@@ -45,9 +45,9 @@ import yaml
 from numpy.typing import NDArray
 from shapely.geometry import Polygon, box
 
-from drvs.camera.homography_file import save_homography
 from drvs.detectors import REGISTRY, CameraView, Detector, Frame, FrameAnalysis, parse_object_type
 from drvs.geometry import FieldOfView, Homography
+from drvs.homography_file import save_homography
 from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.robot import DrvsClient
 from drvs.sim.render import CameraRenderer

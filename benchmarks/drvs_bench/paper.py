@@ -241,7 +241,7 @@ def expected_detections(
     if an object lies across a field of view's or the region's edge (its count is not certain)."""
     from shapely.geometry import box
 
-    from drvs.camera.homography_file import load_homography
+    from drvs.homography_file import load_homography
 
     scenario = load_scenario(SCENE)
     area = box(*region)

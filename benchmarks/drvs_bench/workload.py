@@ -25,13 +25,13 @@ import numpy as np
 from grpc import aio
 from shapely.geometry import box
 
-from drvs.camera.homography_file import load_homography
 from drvs.detection import CameraView, Frame, FrameAnalysis, HsvDetector
 from drvs.detectors import Detector, select
 from drvs.detectors.people import PeopleDetector
 from drvs.errors import DrvsError
 from drvs.filters import object_type
 from drvs.geometry import FieldOfView
+from drvs.homography_file import load_homography
 from drvs.robot import DrvsClient
 from drvs.v1 import stream_pb2, stream_pb2_grpc
 

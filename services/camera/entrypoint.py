@@ -29,8 +29,8 @@ def option(argv: list[str], flag: str, env: str) -> str | None:
 def sim_homography(world: str, camera_id: str) -> tuple[Path, float]:
     import grpc
 
-    from drvs.camera.homography_file import save_homography
     from drvs.errors import Unavailable
+    from drvs.homography_file import save_homography
     from drvs.sim.world import fetch_scene
 
     with grpc.insecure_channel(world) as channel:

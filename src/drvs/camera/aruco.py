@@ -18,7 +18,7 @@ from numpy.typing import NDArray
 from drvs.camera.calibration import Correspondence
 from drvs.errors import InvalidArgument
 from drvs.geometry import Homography
-from drvs.sim.scene import fill_polygon
+from drvs.imaging import fill_polygon
 
 DEFAULT_DICTIONARY = "DICT_4X4_50"
 

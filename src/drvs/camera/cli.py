@@ -16,12 +16,12 @@ from drvs._cli import add_security_arguments, join_negative_values, setup_loggin
 from drvs.camera.aruco import DEFAULT_DICTIONARY, BoardSpec, board_image, find_correspondences
 from drvs.camera.calibration import fit_homography, load_points, save_calibration
 from drvs.camera.config import DEFAULT_LISTEN, DEFAULT_SERVER, ENVIRONMENT, load_config
-from drvs.camera.homography_file import load_homography
 from drvs.camera.node import CameraNode
-from drvs.camera.source import FrameSource, VideoSource
+from drvs.camera.source import FrameSource, VideoSource, plugin_source
 from drvs.detection import Frame
 from drvs.errors import DrvsError
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, polygon_coords
+from drvs.homography_file import load_homography
 from drvs.metrics import DEFAULT_METRICS_HOST, serve_metrics
 
 log = logging.getLogger("drvs.camera")
@@ -122,11 +122,11 @@ def make_source(
     resolution: tuple[int, int] | None = None,
     fps: float | None = None,
 ) -> FrameSource:
-    """A sim://HOST:PORT source renders the simulated world; anything else goes to OpenCV."""
-    if spec.startswith("sim://"):
-        from drvs.sim.source import SimSource
-
-        return SimSource(spec, camera_id)
+    """A scheme an installed plug-in claims (sim://HOST:PORT: the simulated world) goes to it;
+    anything else to OpenCV."""
+    plugin = plugin_source(spec, camera_id)
+    if plugin is not None:
+        return plugin
     return VideoSource(spec, loop_file=loop_file, resolution=resolution, fps=fps)
 
 

@@ -3,11 +3,13 @@
 from __future__ import annotations
 
 import asyncio
+import importlib.metadata
 import logging
 import os
 import threading
 import time
-from typing import Protocol
+from collections.abc import Callable
+from typing import Protocol, cast
 
 import cv2
 import numpy as np
@@ -30,6 +32,30 @@ class FrameSource(Protocol):
     def latest(self) -> Frame | None: ...
 
     async def wait_first_frame(self, timeout_s: float) -> Frame: ...
+
+
+#: The entry-point group naming a frame source for a URL scheme: a callable (spec, camera_id) ->
+#: FrameSource, e.g. [project.entry-points."drvs.frame_sources"] sim = "drvs.sim.source:SimSource".
+#: The camera finds the simulator's sim:// source this way without importing the simulator.
+SOURCE_ENTRY_POINT_GROUP = "drvs.frame_sources"
+
+
+def plugin_source(spec: str, camera_id: str) -> FrameSource | None:
+    """The frame source an installed package registers for the spec's scheme (sim://...), or None
+    for a spec no plug-in claims (OpenCV's: a device, a file, rtsp://...)."""
+    scheme, sep, _ = spec.partition("://")
+    if not sep:
+        return None
+    for entry in importlib.metadata.entry_points(group=SOURCE_ENTRY_POINT_GROUP, name=scheme):
+        try:
+            factory = cast(Callable[[str, str], FrameSource], entry.load())
+        except ImportError as exc:
+            raise FailedPrecondition(
+                f"source {spec}: the {scheme}:// frame source ({entry.value}) cannot load: {exc}"
+                + (" (the simulator: pip install 'drvs[sim]')" if scheme == "sim" else "")
+            ) from None
+        return factory(spec, camera_id)
+    return None
 
 
 def parse_source(spec: str) -> int | str:

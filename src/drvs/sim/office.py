@@ -17,9 +17,9 @@ from typing import Any, TextIO
 import cv2
 import yaml
 
-from drvs.camera.homography_file import save_homography
 from drvs.certs import make_all
 from drvs.errors import DrvsError
+from drvs.homography_file import save_homography
 from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.sim.cli import PROGRESS_PREFIX
 from drvs.sim.scenario import DEFAULT_SCENARIO, CameraDef, Scenario, load_scenario

@@ -13,8 +13,9 @@ from numpy.typing import NDArray
 from shapely.geometry import Point, Polygon
 
 from drvs.geometry import FieldOfView
+from drvs.imaging import fill_polygon
 from drvs.sim.scenario import QUIET_ZONE_CELLS, ArucoDef, CameraDef, Scenario
-from drvs.sim.scene import fill_floor_shape, fill_polygon
+from drvs.sim.scene import fill_floor_shape
 
 FLOOR_BGR = (128, 132, 136)
 WALL_BGR = (72, 72, 72)

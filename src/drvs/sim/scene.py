@@ -16,8 +16,8 @@ from numpy.typing import NDArray
 from shapely.geometry import Point, Polygon
 
 from drvs.geometry import FieldOfView, Homography
-
-_SHIFT = 4  # fillPoly fractional bits: 1/16 pixel
+from drvs.homography_file import save_homography
+from drvs.imaging import fill_polygon
 
 
 @dataclass(frozen=True)
@@ -60,12 +60,6 @@ def render_view(
         noisy = image.astype(np.float32) + gen.normal(0.0, noise_sigma, image.shape).astype(np.float32)
         image = np.clip(noisy, 0, 255).astype(np.uint8)
     return image
-
-
-def fill_polygon(image: NDArray[np.uint8], points: NDArray[np.float64], color: int | tuple[int, int, int]) -> None:
-    """Fill a polygon given in (fractional) pixels, to 1/16 pixel."""
-    pts = np.round(points * (1 << _SHIFT)).astype(np.int32)
-    cv2.fillPoly(image, [pts], color, lineType=cv2.LINE_8, shift=_SHIFT)
 
 
 def fill_floor_shape(
@@ -122,8 +116,6 @@ def record_camera(
     seed: int = 0,
 ) -> RecordedCamera:
     """Render `frames` noisy views of a static floor and write them with the camera's homography."""
-    from drvs.camera.homography_file import save_homography
-
     directory = Path(directory)
     directory.mkdir(parents=True, exist_ok=True)
     rng = np.random.default_rng(seed)
