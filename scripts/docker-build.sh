@@ -1,11 +1,12 @@
 #!/usr/bin/env bash
 # Build the simulated office's images (compose.yaml) without an image registry or an index in the
 # containers: a local Debian base image (scripts/docker-base-image.sh), the pinned runtime wheels
-# (services/requirements.txt) downloaded on the host into services/wheelhouse/ for the base image's
-# Python and platform, then `docker compose build` with --no-index. Unchanged inputs rebuild nothing.
+# (services/requirements.txt; services/requirements-sim.txt, the sim extra's) downloaded on the host
+# into services/wheelhouse/ for the base image's Python and platform, then `docker compose build`
+# with --no-index. Unchanged inputs rebuild nothing.
 #
 #   scripts/docker-build.sh          # base image if missing, wheels if missing, images
-#   scripts/docker-build.sh --pin    # only rewrite services/requirements.txt from the set-up .venv
+#   scripts/docker-build.sh --pin    # only rewrite services/requirements*.txt from the set-up .venv
 #
 # Environment: DRVS_BASE_IMAGE (default drvs-python:bookworm; python:3.11-slim where a registry can be
 # reached), DRVS_PIP_ARGS (default --no-index), PYTHON (the host Python whose pip downloads the
@@ -20,6 +21,7 @@ export DRVS_BASE_IMAGE=${DRVS_BASE_IMAGE:-drvs-python:bookworm}
 export DRVS_PIP_ARGS=${DRVS_PIP_ARGS---no-index}
 WHEELHOUSE=services/wheelhouse
 REQUIREMENTS=services/requirements.txt
+REQUIREMENTS_SIM=services/requirements-sim.txt
 
 host_python() {
   if [ -n "${PYTHON:-}" ]; then echo "$PYTHON"; return; fi
@@ -30,31 +32,43 @@ host_python() {
 pin() {
   local py
   py=$(host_python)
-  "$py" - "$REQUIREMENTS" <<'PY'
-"""The installed versions of drvs's runtime dependencies and theirs (no extras): the pins."""
+  "$py" - "$REQUIREMENTS" "$REQUIREMENTS_SIM" <<'PY'
+"""The installed versions of drvs's runtime dependencies and theirs: the pins. The first file gets
+the base package's (every image), the second what the sim extra adds (the simulator's images)."""
 import importlib.metadata as md
 import sys
 from pathlib import Path
 
 from packaging.requirements import Requirement
 
-path = Path(sys.argv[1])
-header = [line for line in path.read_text().splitlines() if line.startswith("#")] if path.exists() else []
-pins: dict[str, str] = {}
-todo = [Requirement(r) for r in md.requires("drvs") or []]
-while todo:
-    req = todo.pop()
-    if req.marker is not None and not req.marker.evaluate({"extra": ""}):
-        continue
-    dist = md.distribution(req.name)
-    name = dist.metadata["Name"]
-    if name.lower() in {p.lower() for p in pins}:
-        continue
-    pins[name] = dist.version
-    todo += [Requirement(r) for r in dist.requires or []]
-body = [f"{name}=={version}" for name, version in sorted(pins.items(), key=lambda kv: kv[0].lower())]
-path.write_text("\n".join(header + body) + "\n")
-print(f"{path}: {len(body)} pins", file=sys.stderr)
+
+def closure(extra: str) -> dict[str, str]:
+    pins: dict[str, str] = {}
+    todo = [(Requirement(r), extra) for r in md.requires("drvs") or []]
+    while todo:
+        req, wanted = todo.pop()
+        if req.name == "drvs" or (req.marker is not None and not req.marker.evaluate({"extra": wanted})):
+            continue
+        dist = md.distribution(req.name)
+        name = dist.metadata["Name"]
+        if name.lower() in {p.lower() for p in pins}:
+            continue
+        pins[name] = dist.version
+        todo += [(Requirement(r), "") for r in dist.requires or []]
+    return pins
+
+
+def write(path: Path, pins: dict[str, str]) -> None:
+    header = [line for line in path.read_text().splitlines() if line.startswith("#")] if path.exists() else []
+    body = [f"{name}=={version}" for name, version in sorted(pins.items(), key=lambda kv: kv[0].lower())]
+    path.write_text("\n".join(header + body) + "\n")
+    print(f"{path}: {len(body)} pins", file=sys.stderr)
+
+
+base = closure("")
+write(Path(sys.argv[1]), base)
+base_names = {name.lower() for name in base}
+write(Path(sys.argv[2]), {n: v for n, v in closure("sim").items() if n.lower() not in base_names})
 PY
 }
 
@@ -82,7 +96,7 @@ if [ "$DRVS_PIP_ARGS" = --no-index ]; then
   log=$(mktemp)
   if ! "$py" -m pip download --disable-pip-version-check --dest "$WHEELHOUSE" \
     --only-binary :all: --python-version "$pyver" --implementation cp --abi "cp${pyver/./}" "${platforms[@]}" \
-    -r "$REQUIREMENTS" "setuptools>=77" wheel >"$log" 2>&1; then
+    -r "$REQUIREMENTS" -r "$REQUIREMENTS_SIM" "setuptools>=77" wheel >"$log" 2>&1; then
     tail -20 "$log" >&2
     rm -f "$log"
     die "pip download failed (is PyPI reachable from this host?)"
