@@ -34,6 +34,7 @@ from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 from .conftest import CAM1_REGION, MAX_RANGE, YELLOW
+from .fakes import server_process
 
 ROLES = Path(__file__).with_name("fault_roles.py")
 
@@ -337,38 +338,37 @@ BOX = geometry_pb2.Region(box=geometry_pb2.Box(x_lower=0, y_lower=0, x_upper=1, 
 
 
 async def test_streams_per_connection_are_capped_and_idle_connections_closed() -> None:
-    server, address = await start_server("--max-streams-per-connection", "2", "--max-connection-idle", "1")
-    try:
-        async with aio.insecure_channel(address) as channel:
-            stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
-            calls = []
-            for i in range(2):
-                calls.append(stub.DetectStream())
-                await calls[i].write(request(f"s{i}", BOX))
-                assert (await calls[i].read()).request_id == f"s{i}"
-            # A third stream on the same connection waits for one of the two to end.
+    async with (
+        server_process("--max-streams-per-connection", "2", "--max-connection-idle", "1") as address,
+        aio.insecure_channel(address) as channel,
+    ):
+        stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
+        calls = []
+        for i in range(2):
             calls.append(stub.DetectStream())
+            await calls[i].write(request(f"s{i}", BOX))
+            assert (await calls[i].read()).request_id == f"s{i}"
+        # A third stream on the same connection waits for one of the two to end.
+        calls.append(stub.DetectStream())
 
-            async def third_answer() -> detection_pb2.DetectionReply:
-                await calls[2].write(request("s2", BOX))
-                reply: detection_pb2.DetectionReply = await calls[2].read()
-                return reply
+        async def third_answer() -> detection_pb2.DetectionReply:
+            await calls[2].write(request("s2", BOX))
+            reply: detection_pb2.DetectionReply = await calls[2].read()
+            return reply
 
-            third = asyncio.get_running_loop().create_task(third_answer())
-            done, _ = await asyncio.wait({third}, timeout=1.0)
-            assert not done, "a third stream ran beside two on one connection"
-            await calls[0].done_writing()
-            assert await calls[0].code() == grpc.StatusCode.OK
-            assert (await asyncio.wait_for(third, 10)).request_id == "s2"
-            for call in calls[1:]:
-                await call.done_writing()
-                assert await call.code() == grpc.StatusCode.OK
-            # No call open: the server closes the connection after a second.
-            assert channel.get_state() == grpc.ChannelConnectivity.READY
-            await asyncio.wait_for(channel.wait_for_state_change(grpc.ChannelConnectivity.READY), 10)
-            assert channel.get_state() != grpc.ChannelConnectivity.READY
-    finally:
-        await server.stop()
+        third = asyncio.get_running_loop().create_task(third_answer())
+        done, _ = await asyncio.wait({third}, timeout=1.0)
+        assert not done, "a third stream ran beside two on one connection"
+        await calls[0].done_writing()
+        assert await calls[0].code() == grpc.StatusCode.OK
+        assert (await asyncio.wait_for(third, 10)).request_id == "s2"
+        for call in calls[1:]:
+            await call.done_writing()
+            assert await call.code() == grpc.StatusCode.OK
+        # No call open: the server closes the connection after a second.
+        assert channel.get_state() == grpc.ChannelConnectivity.READY
+        await asyncio.wait_for(channel.wait_for_state_change(grpc.ChannelConnectivity.READY), 10)
+        assert channel.get_state() != grpc.ChannelConnectivity.READY
 
 
 async def test_old_connections_are_ended_and_clients_reconnect() -> None:

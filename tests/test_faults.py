@@ -27,12 +27,13 @@ import pytest
 from grpc import aio
 
 from drvs.errors import Unavailable
-from drvs.launch import ManagedProcess, start_camera, start_server
+from drvs.launch import ManagedProcess, start_server
 from drvs.robot import DrvsClient
 from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc
 
-from .conftest import BOTH_REGION, CAM1_REGION, MAX_RANGE, YELLOW, Office, start_office, stop_office
+from .conftest import BOTH_REGION, CAM1_REGION, YELLOW, Office, start_office, stop_office
+from .fakes import start_recorded_camera
 
 ROLES = Path(__file__).with_name("fault_roles.py")
 #: The lease in the killed-camera test (cameras heartbeat every third of it).
@@ -159,18 +160,7 @@ async def test_server_restart_fails_fast_retries_and_cameras_return_within_a_hea
     loop = asyncio.get_running_loop()
     try:
         for camera_id, rec in recorded.items():
-            procs.append(
-                await start_camera(
-                    camera_id,
-                    rec.video,
-                    rec.homography_file,
-                    address,
-                    "--max-range",
-                    MAX_RANGE,
-                    "--heartbeat",
-                    str(HEARTBEAT_S),
-                )
-            )
+            procs.append(await start_recorded_camera(camera_id, rec, address, "--heartbeat", str(HEARTBEAT_S)))
         cameras = procs[1:]
         async with (
             DrvsClient(address, robot_id="plain") as plain,

@@ -24,6 +24,7 @@ from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 from .conftest import CAM1_REGION, MAX_RANGE, YELLOW
+from .fakes import start_recorded_camera
 from .test_server import register_message
 
 CAMERA_TOKEN = "camera-token-0123456789abcdef"
@@ -97,11 +98,9 @@ async def token_office(
     )
     camera: ManagedProcess | None = None
     try:
-        rec = recorded["cam1"]
-        camera = await start_camera(
-            "cam1", rec.video, rec.homography_file, address, "--max-range", MAX_RANGE,
-            "--token-file", str(tmp_path / "cam.token"),
-        )  # fmt: skip
+        camera = await start_recorded_camera(
+            "cam1", recorded["cam1"], address, "--token-file", str(tmp_path / "cam.token")
+        )
         yield address, camera, tmp_path
     finally:
         if camera is not None:
