@@ -28,7 +28,7 @@ from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 from .conftest import CAM1_REGION, CAM2_REGION, MAX_RANGE, YELLOW
-from .test_server import register_message
+from .test_server import detect_message, register_message
 
 
 class _CapturingCamera(AckingCamera):
@@ -148,13 +148,8 @@ async def test_server_rewrites_a_callback_name_to_the_address_it_checked() -> No
             registration.address = camera_address
             await registry_pb2_grpc.RegisterVisionServiceStub(channel).Register(registration)
             stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
-            request = detection_pb2.DetectionRequest(
-                request_id="named",
-                filter_def=YELLOW,
-                region=geometry_pb2.Region(box=geometry_pb2.Box(x_lower=-1, y_lower=0, x_upper=1, y_upper=5)),
-                callback_address="localhost:4321",
-                report_secret=b"s" * 16,
-            )
+            request = detect_message(request_id="named", callback_address="localhost:4321")
+            request.report_secret = b"s" * 16
             reply = await stub.DetectObjects(request)
             assert list(reply.camera_ids) == ["cam1"]
             forwarded = await asyncio.wait_for(evil.requests.get(), 10)
