@@ -11,6 +11,12 @@ from grpc import aio
 
 from drvs.v1 import detection_pb2, detection_pb2_grpc
 
+_Context = aio.ServicerContext[Any, Any]
+_Requests = AsyncIterator[detection_pb2.DetectionRequest]
+_Batches = AsyncIterator[detection_pb2.DetectionRequests]
+_Reply = detection_pb2.DetectionReply
+_Replies = detection_pb2.DetectionReplies
+
 
 class AckingCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
     """Accepts every request at once on DetectBatches, DetectStream and DetectObjects, with a reply
@@ -35,25 +41,15 @@ class AckingCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
     async def replied(self, request: detection_pb2.DetectionRequest) -> None:
         """Called after the reply to `request` was sent on a stream."""
 
-    async def DetectObjects(
-        self, request: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
-    ) -> detection_pb2.DetectionReply:
+    async def DetectObjects(self, request: detection_pb2.DetectionRequest, context: _Context) -> _Reply:
         return await self.accept(request)
 
-    async def DetectStream(
-        self,
-        request_iterator: AsyncIterator[detection_pb2.DetectionRequest],
-        context: aio.ServicerContext[Any, Any],
-    ) -> AsyncIterator[detection_pb2.DetectionReply]:
+    async def DetectStream(self, request_iterator: _Requests, context: _Context) -> AsyncIterator[_Reply]:
         async for request in request_iterator:
             yield await self.accept(request)
             await self.replied(request)
 
-    async def DetectBatches(
-        self,
-        request_iterator: AsyncIterator[detection_pb2.DetectionRequests],
-        context: aio.ServicerContext[Any, Any],
-    ) -> AsyncIterator[detection_pb2.DetectionReplies]:
+    async def DetectBatches(self, request_iterator: _Batches, context: _Context) -> AsyncIterator[_Replies]:
         async for batch in request_iterator:
             await self.batch(batch.requests)
             yield detection_pb2.DetectionReplies(replies=[await self.accept(request) for request in batch.requests])
