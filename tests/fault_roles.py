@@ -19,29 +19,22 @@ import argparse
 import asyncio
 import contextlib
 import json
-import signal
 import sys
 import time
 from collections.abc import AsyncIterator
 from typing import Any
 
 import grpc
+from drvs_bench.fakes import AckingCamera, serve_camera
 from grpc import aio
 
+from drvs._cli import shutdown_event
 from drvs.errors import DrvsError
 from drvs.geometry import homography_from_pose
 from drvs.robot import DrvsClient
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
 
 YELLOW = "hsv_014110130035225200"
-
-
-def _stop_event() -> asyncio.Event:
-    event = asyncio.Event()
-    loop = asyncio.get_running_loop()
-    for sig in (signal.SIGINT, signal.SIGTERM):
-        loop.add_signal_handler(sig, event.set)
-    return event
 
 
 class _Reporter:
@@ -69,9 +62,9 @@ class _Reporter:
             await channel.close()
 
 
-class _SlowCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
+class _SlowCamera(AckingCamera):
     def __init__(self, camera_id: str, accept_delay: float, report_delay: float) -> None:
-        self.camera_id = camera_id
+        super().__init__(camera_id)
         self.accept_delay = accept_delay
         self.report_delay = report_delay
         self.reporter = _Reporter()
@@ -90,7 +83,7 @@ class _SlowCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
         except (grpc.RpcError, asyncio.TimeoutError, asyncio.InvalidStateError) as exc:
             print(f"REPORT FAILED {request_id}: {exc!r}", flush=True)
 
-    async def _accept(self, message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
+    async def accept(self, message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
         # The server elides nothing towards cameras, but keep the last callback like a real node would.
         self.callback = message.callback_address or self.callback
         print(f"REQUEST {message.request_id}", flush=True)
@@ -101,20 +94,7 @@ class _SlowCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
         )
         self.jobs.add(job)
         job.add_done_callback(self.jobs.discard)
-        return detection_pb2.DetectionReply(request_id=message.request_id, camera_ids=[self.camera_id])
-
-    async def DetectObjects(
-        self, request: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
-    ) -> detection_pb2.DetectionReply:
-        return await self._accept(request)
-
-    async def DetectBatches(
-        self,
-        request_iterator: AsyncIterator[detection_pb2.DetectionRequests],
-        context: aio.ServicerContext[Any, Any],
-    ) -> AsyncIterator[detection_pb2.DetectionReplies]:
-        async for batch in request_iterator:
-            yield detection_pb2.DetectionReplies(replies=[await self._accept(message) for message in batch.requests])
+        return await super().accept(message)
 
 
 class _StalledCamera(_SlowCamera):
@@ -138,17 +118,13 @@ class _StalledCamera(_SlowCamera):
 
 
 async def slow_camera(args: argparse.Namespace) -> None:
-    stop = _stop_event()
+    stop = shutdown_event()
     camera = (
         _StalledCamera(args.id)
         if args.role == "stalled-camera"
         else _SlowCamera(args.id, args.accept_delay, args.report_delay)
     )
-    server = aio.server()
-    detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(camera, server)
-    port = server.add_insecure_port("127.0.0.1:0")
-    await server.start()
-    address = f"127.0.0.1:{port}"
+    server, address = await serve_camera(camera)
     print(f"LISTENING {address}", flush=True)
     h = homography_from_pose((args.x, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
     register = registry_pb2.RegisterRequest(
@@ -196,7 +172,7 @@ async def slow_camera(args: argparse.Namespace) -> None:
 
 
 async def probe_robot(args: argparse.Namespace) -> None:
-    stop = _stop_event()
+    stop = shutdown_event()
     region = [float(v) for v in args.region.split(",")]
     async with DrvsClient(args.server, robot_id=args.robot_id, listen=args.listen) as client:
         print(f"READY {client.callback_address}", flush=True)

@@ -4,11 +4,13 @@ request is answered exactly once, in order, and requests nobody waits for any mo
 from __future__ import annotations
 
 import asyncio
+import contextlib
 from collections.abc import AsyncIterator, Callable
 from typing import Any
 
 import grpc
 import pytest
+from drvs_bench.fakes import serve_camera
 from grpc import aio
 
 from drvs import _grpc, errors
@@ -78,12 +80,19 @@ class _Results:
             await asyncio.wait_for(self.changed.wait(), 10)
 
 
-async def _camera_server(camera: _Camera) -> tuple[aio.Server, str]:
-    server = aio.server(options=_grpc.SERVER_OPTIONS)
-    detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(camera, server)
-    port = server.add_insecure_port("127.0.0.1:0")
-    await server.start()
-    return server, f"127.0.0.1:{port}"
+@contextlib.asynccontextmanager
+async def _sending_to_a_camera(**sender_options: Any) -> AsyncIterator[tuple[_Camera, BatchSender, _Results]]:
+    """A _Camera on a free port, a BatchSender to it (timeout_s 10 unless `sender_options` say),
+    and the results it gives; the camera's server stops on exit."""
+    camera = _Camera()
+    server, address = await serve_camera(camera, options=_grpc.SERVER_OPTIONS)
+    try:
+        async with _grpc.insecure_channel(address) as channel:
+            stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
+            sender_options.setdefault("timeout_s", 10)
+            yield camera, BatchSender(stub, "camera", **sender_options), _Results()
+    finally:
+        await server.stop(None)
 
 
 def _request(request_id: str, vertices: int = 0) -> detection_pb2.DetectionRequest:
@@ -95,80 +104,61 @@ def _request(request_id: str, vertices: int = 0) -> detection_pb2.DetectionReque
 
 
 async def test_requests_waiting_together_travel_in_one_message_and_are_answered_in_order() -> None:
-    camera = _Camera()
-    server, address = await _camera_server(camera)
-    try:
-        async with _grpc.insecure_channel(address) as channel:
-            sender = BatchSender(detection_pb2_grpc.DetectObjectBoundaryStub(channel), "camera", timeout_s=10)
-            results = _Results()
-            ids = [f"a{i}" for i in range(6)] + ["bad1"] + [f"b{i}" for i in range(3)]
-            for request_id in ids:  # no await in between: all are waiting when the writer first runs
-                sender.submit(_request(request_id), results.callback(request_id))
-            assert sender.in_flight == len(ids)
-            await results.wait_for(len(ids))
-            assert camera.batches == [ids]
-            assert (sender.batches_written, sender.requests_written, sender.in_flight) == (1, len(ids), 0)
-            for request_id in ids:
-                [result] = results.by_id[request_id]
-                if request_id == "bad1":
-                    assert isinstance(result, errors.InvalidArgument) and "filter_def" in str(result)
-                else:
-                    assert isinstance(result, detection_pb2.DetectionReply) and result.request_id == request_id
-            # A lone request afterwards goes on its own, on the same call.
-            sender.submit(_request("c0"), results.callback("c0"))
-            await results.wait_for(len(ids) + 1)
-            assert camera.batches[-1] == ["c0"] and sender.batches_written == 2
-            await sender.close()
-    finally:
-        await server.stop(None)
+    async with _sending_to_a_camera() as (camera, sender, results):
+        ids = [f"a{i}" for i in range(6)] + ["bad1"] + [f"b{i}" for i in range(3)]
+        for request_id in ids:  # no await in between: all are waiting when the writer first runs
+            sender.submit(_request(request_id), results.callback(request_id))
+        assert sender.in_flight == len(ids)
+        await results.wait_for(len(ids))
+        assert camera.batches == [ids]
+        assert (sender.batches_written, sender.requests_written, sender.in_flight) == (1, len(ids), 0)
+        for request_id in ids:
+            [result] = results.by_id[request_id]
+            if request_id == "bad1":
+                assert isinstance(result, errors.InvalidArgument) and "filter_def" in str(result)
+            else:
+                assert isinstance(result, detection_pb2.DetectionReply) and result.request_id == request_id
+        # A lone request afterwards goes on its own, on the same call.
+        sender.submit(_request("c0"), results.callback("c0"))
+        await results.wait_for(len(ids) + 1)
+        assert camera.batches[-1] == ["c0"] and sender.batches_written == 2
+        await sender.close()
 
 
 async def test_a_camera_that_stops_reading_is_cut_off_and_queued_requests_that_expired_are_never_sent() -> None:
-    camera = _Camera()
-    camera.reading.clear()  # takes the first batch, then stops reading: the stream backs up
-    server, address = await _camera_server(camera)
-    try:
-        async with _grpc.insecure_channel(address) as channel:
-            sender = BatchSender(
-                detection_pb2_grpc.DetectObjectBoundaryStub(channel),
-                "camera",
-                timeout_s=0.5,
-                max_batch_bytes=64 * 1024,
-            )
-            results = _Results()
-            # About 20 kB each: far more than the HTTP/2 windows hold, so writes stop completing.
-            ids = [f"big{i}" for i in range(200)]
-            messages = [_request(request_id, vertices=1000) for request_id in ids]
-            for request_id, message in zip(ids, messages, strict=True):
-                sender.submit(message, results.callback(request_id))
-            await results.wait_for(len(ids))
-            first = camera.batches[0]
-            assert all(isinstance(results.by_id[i][0], detection_pb2.DetectionReply) for i in first)
-            expired = ids[len(first) :]
-            assert all(isinstance(results.by_id[i][0], errors.DeadlineExceeded) for i in expired)
-            assert sender.in_flight == 0
-            written = sender.requests_written
-            assert len(first) < written < len(ids), "some requests were still queued when they expired"
-            # What was written and never answered cut the stream off: the camera's call is ended.
-            await asyncio.wait_for(camera.ended.wait(), 10)
-            camera.reading.set()
-            # The next request opens a new stream and is answered as usual; the camera never read
-            # the rest of the old one.
-            sender.submit(_request("after"), results.callback("after"))
-            await results.wait_for(len(ids) + 1)
-            [after] = results.by_id["after"]
-            assert isinstance(after, detection_pb2.DetectionReply) and after.request_id == "after"
-            assert [request_id for batch in camera.batches for request_id in batch] == [*first, "after"]
-            assert camera.calls == 2
-            assert all(len(rs) == 1 for rs in results.by_id.values())  # nobody answered twice
-            await sender.close()
-    finally:
-        await server.stop(None)
+    async with _sending_to_a_camera(timeout_s=0.5, max_batch_bytes=64 * 1024) as (camera, sender, results):
+        camera.reading.clear()  # takes the first batch, then stops reading: the stream backs up
+        # About 20 kB each: far more than the HTTP/2 windows hold, so writes stop completing.
+        ids = [f"big{i}" for i in range(200)]
+        messages = [_request(request_id, vertices=1000) for request_id in ids]
+        for request_id, message in zip(ids, messages, strict=True):
+            sender.submit(message, results.callback(request_id))
+        await results.wait_for(len(ids))
+        first = camera.batches[0]
+        assert all(isinstance(results.by_id[i][0], detection_pb2.DetectionReply) for i in first)
+        expired = ids[len(first) :]
+        assert all(isinstance(results.by_id[i][0], errors.DeadlineExceeded) for i in expired)
+        assert sender.in_flight == 0
+        written = sender.requests_written
+        assert len(first) < written < len(ids), "some requests were still queued when they expired"
+        # What was written and never answered cut the stream off: the camera's call is ended.
+        await asyncio.wait_for(camera.ended.wait(), 10)
+        camera.reading.set()
+        # The next request opens a new stream and is answered as usual; the camera never read
+        # the rest of the old one.
+        sender.submit(_request("after"), results.callback("after"))
+        await results.wait_for(len(ids) + 1)
+        [after] = results.by_id["after"]
+        assert isinstance(after, detection_pb2.DetectionReply) and after.request_id == "after"
+        assert [request_id for batch in camera.batches for request_id in batch] == [*first, "after"]
+        assert camera.calls == 2
+        assert all(len(rs) == 1 for rs in results.by_id.values())  # nobody answered twice
+        await sender.close()
 
 
 async def test_a_camera_that_goes_away_fails_what_it_had_and_the_next_request_reconnects() -> None:
     camera = _Camera()
-    server, address = await _camera_server(camera)
+    server, address = await serve_camera(camera, options=_grpc.SERVER_OPTIONS)
     port = int(address.rsplit(":", 1)[1])
     async with _grpc.insecure_channel(address) as channel:
         sender = BatchSender(detection_pb2_grpc.DetectObjectBoundaryStub(channel), "camera", timeout_s=10)
@@ -185,10 +175,8 @@ async def test_a_camera_that_goes_away_fails_what_it_had_and_the_next_request_re
         assert isinstance(lost, errors.Unavailable)
         # The camera comes back on the same port: the next request opens a new call.
         camera2 = _Camera()
-        server2 = aio.server()
-        detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(camera2, server2)
-        assert server2.add_insecure_port(f"127.0.0.1:{port}") == port
-        await server2.start()
+        server2, address2 = await serve_camera(camera2, f"127.0.0.1:{port}")
+        assert address2 == address
         try:
             await asyncio.wait_for(channel.channel_ready(), 20)
             sender.submit(_request("again"), results.callback("again"))
@@ -201,18 +189,11 @@ async def test_a_camera_that_goes_away_fails_what_it_had_and_the_next_request_re
 
 
 async def test_after_close_requests_fail_at_once() -> None:
-    camera = _Camera()
-    server, address = await _camera_server(camera)
-    try:
-        async with _grpc.insecure_channel(address) as channel:
-            sender = BatchSender(detection_pb2_grpc.DetectObjectBoundaryStub(channel), "camera", timeout_s=10)
-            await sender.close()
-            results = _Results()
-            sender.submit(_request("x"), results.callback("x"))
-            [result] = results.by_id["x"]
-            assert isinstance(result, errors.Unavailable) and sender.in_flight == 0
-    finally:
-        await server.stop(None)
+    async with _sending_to_a_camera() as (_, sender, results):
+        await sender.close()
+        sender.submit(_request("x"), results.callback("x"))
+        [result] = results.by_id["x"]
+        assert isinstance(result, errors.Unavailable) and sender.in_flight == 0
 
 
 async def test_the_server_does_not_serve_the_camera_hop() -> None:

@@ -25,7 +25,7 @@ from drvs.convert import MAX_REGION_BYTES, RegionCache, region_to_pb
 from drvs.detection import Frame
 from drvs.errors import InvalidArgument, ResourceExhausted
 from drvs.geometry import MAX_REGION_VERTICES, homography_from_pose, polygon_region
-from drvs.launch import ManagedProcess, start_camera, start_server
+from drvs.launch import ManagedProcess, start_server
 from drvs.model import ContinuousMode
 from drvs.robot import DrvsClient
 from drvs.robot.client import Subscription
@@ -33,7 +33,8 @@ from drvs.server.policy import RequestLimits
 from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
-from .conftest import CAM1_REGION, MAX_RANGE, YELLOW
+from .conftest import CAM1_REGION, YELLOW
+from .fakes import server_process, start_recorded_camera
 
 ROLES = Path(__file__).with_name("fault_roles.py")
 
@@ -214,11 +215,9 @@ async def test_continuous_caps_per_robot_on_server_and_camera_and_their_slots_co
     request; the server then frees that request's slot, since no camera runs it. A cancelled
     request frees the camera's slot. And the server refuses the third that is really running."""
     server, address = await start_server("--max-continuous", "2")
-    rec = recorded["cam1"]
-    camera = await start_camera(
-        "cam1", rec.video, rec.homography_file, address, "--max-range", MAX_RANGE,
-        "--max-continuous", "1", "--log-level", "DEBUG",
-    )  # fmt: skip
+    camera = await start_recorded_camera(
+        "cam1", recorded["cam1"], address, "--max-continuous", "1", "--log-level", "DEBUG"
+    )
     try:
         async with DrvsClient(address, robot_id="r", listen="127.0.0.1:0") as robot:
             first, error = await _error_of_first_report(robot)
@@ -253,8 +252,7 @@ async def test_a_cancelled_continuous_request_frees_its_place_at_the_server(
     stops listening to the first (the server hears it on the robot's request stream) a new one runs.
     Without the cancel reaching the server, the slot would last the request's 60 s."""
     server, address = await start_server("--max-continuous", "1")
-    rec = recorded["cam1"]
-    camera = await start_camera("cam1", rec.video, rec.homography_file, address, "--max-range", MAX_RANGE)
+    camera = await start_recorded_camera("cam1", recorded["cam1"], address)
     try:
         async with DrvsClient(address, robot_id="r", listen="127.0.0.1:0") as robot:
             first, error = await _error_of_first_report(robot)
@@ -289,12 +287,11 @@ async def test_a_camera_that_heartbeats_but_never_reads_is_cut_off_and_costs_the
     stalled = ManagedProcess(
         "stalled", [sys.executable, str(ROLES), "stalled-camera", "--server", address, "--heartbeat", "0.05"]
     )
-    rec = recorded["cam1"]
     camera: ManagedProcess | None = None
     try:
         await stalled.start()
         await stalled.wait_for_line(r"^REGISTERED stalled", timeout=30)
-        camera = await start_camera("cam1", rec.video, rec.homography_file, address, "--max-range", MAX_RANGE)
+        camera = await start_recorded_camera("cam1", recorded["cam1"], address)
         region = circle(40.0, 4.5, 3.0, 900)  # inside the stalled camera's view (x 34..46), not cam1's
         loop = asyncio.get_running_loop()
         sent = 0
@@ -337,38 +334,37 @@ BOX = geometry_pb2.Region(box=geometry_pb2.Box(x_lower=0, y_lower=0, x_upper=1, 
 
 
 async def test_streams_per_connection_are_capped_and_idle_connections_closed() -> None:
-    server, address = await start_server("--max-streams-per-connection", "2", "--max-connection-idle", "1")
-    try:
-        async with aio.insecure_channel(address) as channel:
-            stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
-            calls = []
-            for i in range(2):
-                calls.append(stub.DetectStream())
-                await calls[i].write(request(f"s{i}", BOX))
-                assert (await calls[i].read()).request_id == f"s{i}"
-            # A third stream on the same connection waits for one of the two to end.
+    async with (
+        server_process("--max-streams-per-connection", "2", "--max-connection-idle", "1") as address,
+        aio.insecure_channel(address) as channel,
+    ):
+        stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
+        calls = []
+        for i in range(2):
             calls.append(stub.DetectStream())
+            await calls[i].write(request(f"s{i}", BOX))
+            assert (await calls[i].read()).request_id == f"s{i}"
+        # A third stream on the same connection waits for one of the two to end.
+        calls.append(stub.DetectStream())
 
-            async def third_answer() -> detection_pb2.DetectionReply:
-                await calls[2].write(request("s2", BOX))
-                reply: detection_pb2.DetectionReply = await calls[2].read()
-                return reply
+        async def third_answer() -> detection_pb2.DetectionReply:
+            await calls[2].write(request("s2", BOX))
+            reply: detection_pb2.DetectionReply = await calls[2].read()
+            return reply
 
-            third = asyncio.get_running_loop().create_task(third_answer())
-            done, _ = await asyncio.wait({third}, timeout=1.0)
-            assert not done, "a third stream ran beside two on one connection"
-            await calls[0].done_writing()
-            assert await calls[0].code() == grpc.StatusCode.OK
-            assert (await asyncio.wait_for(third, 10)).request_id == "s2"
-            for call in calls[1:]:
-                await call.done_writing()
-                assert await call.code() == grpc.StatusCode.OK
-            # No call open: the server closes the connection after a second.
-            assert channel.get_state() == grpc.ChannelConnectivity.READY
-            await asyncio.wait_for(channel.wait_for_state_change(grpc.ChannelConnectivity.READY), 10)
-            assert channel.get_state() != grpc.ChannelConnectivity.READY
-    finally:
-        await server.stop()
+        third = asyncio.get_running_loop().create_task(third_answer())
+        done, _ = await asyncio.wait({third}, timeout=1.0)
+        assert not done, "a third stream ran beside two on one connection"
+        await calls[0].done_writing()
+        assert await calls[0].code() == grpc.StatusCode.OK
+        assert (await asyncio.wait_for(third, 10)).request_id == "s2"
+        for call in calls[1:]:
+            await call.done_writing()
+            assert await call.code() == grpc.StatusCode.OK
+        # No call open: the server closes the connection after a second.
+        assert channel.get_state() == grpc.ChannelConnectivity.READY
+        await asyncio.wait_for(channel.wait_for_state_change(grpc.ChannelConnectivity.READY), 10)
+        assert channel.get_state() != grpc.ChannelConnectivity.READY
 
 
 async def test_old_connections_are_ended_and_clients_reconnect() -> None:

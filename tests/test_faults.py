@@ -27,12 +27,13 @@ import pytest
 from grpc import aio
 
 from drvs.errors import Unavailable
-from drvs.launch import ManagedProcess, start_camera, start_server
+from drvs.launch import ManagedProcess, start_server
 from drvs.robot import DrvsClient
 from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc
 
-from .conftest import BOTH_REGION, CAM1_REGION, MAX_RANGE, YELLOW, Office, start_office, stop_office
+from .conftest import BOTH_REGION, CAM1_REGION, YELLOW, Office, start_office, stop_office
+from .fakes import start_recorded_camera
 
 ROLES = Path(__file__).with_name("fault_roles.py")
 #: The lease in the killed-camera test (cameras heartbeat every third of it).
@@ -159,18 +160,7 @@ async def test_server_restart_fails_fast_retries_and_cameras_return_within_a_hea
     loop = asyncio.get_running_loop()
     try:
         for camera_id, rec in recorded.items():
-            procs.append(
-                await start_camera(
-                    camera_id,
-                    rec.video,
-                    rec.homography_file,
-                    address,
-                    "--max-range",
-                    MAX_RANGE,
-                    "--heartbeat",
-                    str(HEARTBEAT_S),
-                )
-            )
+            procs.append(await start_recorded_camera(camera_id, rec, address, "--heartbeat", str(HEARTBEAT_S)))
         cameras = procs[1:]
         async with (
             DrvsClient(address, robot_id="plain") as plain,
@@ -358,10 +348,13 @@ def slow_camera(server: str, *args: str) -> ManagedProcess:
     return ManagedProcess("slow", [sys.executable, str(ROLES), "slow-camera", "--server", server, *args])
 
 
-async def test_a_slow_camera_delays_nobody_else(office: Office) -> None:
-    """A camera whose detection takes three seconds: it accepts each request at once, and reports late."""
-    slow = await slow_camera(office.address, "--report-delay", "3").start()
-    loop = asyncio.get_running_loop()
+@contextlib.asynccontextmanager
+async def beside_a_slow_camera(
+    office: Office, *args: str
+) -> AsyncIterator[tuple[ManagedProcess, DrvsClient, DrvsClient, list[float]]]:
+    """A slow camera (fault_roles.py slow-camera with `args`) registered in the office, and two
+    robots: the first warmed up, with its baseline latencies (ms) on cam1 alone; the second idle."""
+    slow = await slow_camera(office.address, *args).start()
     try:
         await slow.wait_for_line(r"^REGISTERED slow", timeout=30)
         async with (
@@ -369,56 +362,53 @@ async def test_a_slow_camera_delays_nobody_else(office: Office) -> None:
             DrvsClient(office.address, robot_id="r2") as other,
         ):
             await latencies_ms(robot, CAM1_REGION, 5)
-            baseline = await latencies_ms(robot, CAM1_REGION, 30)
-            # Keep the slow camera busy: a dozen requests that each take it three seconds.
-            t0 = loop.time()
-            waiting = [await other.subscribe(YELLOW, SLOW_REGION, timeout_s=6) for _ in range(12)]
-            assert all(s.camera_ids == ("slow",) for s in waiting)
-            during = await latencies_ms(robot, CAM1_REGION, 30)
-            # A request that also covers the slow camera: the others' reports come at once.
-            sub = await robot.subscribe(YELLOW, ALL_THREE_REGION, timeout_s=6)
-            assert sorted(sub.camera_ids) == ["cam1", "cam2", "slow"]
-            t_sub = loop.time()
-            arrivals = {}
-            async for report in sub:
-                arrivals[report.camera_id] = loop.time() - t_sub
-            assert sub.result.complete and not sub.result.errors
-            assert max(arrivals["cam1"], arrivals["cam2"]) * 1000 <= 3 * p90(baseline) + 20, arrivals
-            assert arrivals["slow"] >= 2.5, arrivals
-            results = [await s.collect() for s in waiting]
-            assert all(r.complete and r.reports[0].camera_id == "slow" for r in results)
-            assert loop.time() - t0 >= 3.0
-        assert statistics.median(during) <= 1.5 * statistics.median(baseline) + 5, (baseline, during)
+            yield slow, robot, other, await latencies_ms(robot, CAM1_REGION, 30)
     finally:
         await slow.stop()
+
+
+async def test_a_slow_camera_delays_nobody_else(office: Office) -> None:
+    """A camera whose detection takes three seconds: it accepts each request at once, and reports late."""
+    loop = asyncio.get_running_loop()
+    async with beside_a_slow_camera(office, "--report-delay", "3") as (_, robot, other, baseline):
+        # Keep the slow camera busy: a dozen requests that each take it three seconds.
+        t0 = loop.time()
+        waiting = [await other.subscribe(YELLOW, SLOW_REGION, timeout_s=6) for _ in range(12)]
+        assert all(s.camera_ids == ("slow",) for s in waiting)
+        during = await latencies_ms(robot, CAM1_REGION, 30)
+        # A request that also covers the slow camera: the others' reports come at once.
+        sub = await robot.subscribe(YELLOW, ALL_THREE_REGION, timeout_s=6)
+        assert sorted(sub.camera_ids) == ["cam1", "cam2", "slow"]
+        t_sub = loop.time()
+        arrivals = {}
+        async for report in sub:
+            arrivals[report.camera_id] = loop.time() - t_sub
+        assert sub.result.complete and not sub.result.errors
+        assert max(arrivals["cam1"], arrivals["cam2"]) * 1000 <= 3 * p90(baseline) + 20, arrivals
+        assert arrivals["slow"] >= 2.5, arrivals
+        results = [await s.collect() for s in waiting]
+        assert all(r.complete and r.reports[0].camera_id == "slow" for r in results)
+        assert loop.time() - t0 >= 3.0
+    assert statistics.median(during) <= 1.5 * statistics.median(baseline) + 5, (baseline, during)
 
 
 async def test_a_camera_slow_to_accept_is_answered_for_and_delays_nobody_else(office: Office) -> None:
     """A camera that takes five seconds to accept a request: the server gives up on it after its
     forward timeout (2 s), answers the robot for it, and nobody else waits."""
-    slow = await slow_camera(office.address, "--accept-delay", "5", "--report-delay", "0").start()
     loop = asyncio.get_running_loop()
-    try:
-        await slow.wait_for_line(r"^REGISTERED slow", timeout=30)
-        async with (
-            DrvsClient(office.address, robot_id="r1") as robot,
-            DrvsClient(office.address, robot_id="r2") as other,
-        ):
-            await latencies_ms(robot, CAM1_REGION, 5)
-            baseline = await latencies_ms(robot, CAM1_REGION, 30)
-            sub = await other.subscribe(YELLOW, ALL_THREE_REGION, timeout_s=6)
-            assert sorted(sub.camera_ids) == ["cam1", "cam2", "slow"]
-            t_sub = loop.time()
-            during = await latencies_ms(robot, CAM1_REGION, 30)
-            arrivals = {}
-            async for report in sub:
-                arrivals[report.camera_id] = loop.time() - t_sub
-            by_camera = {r.camera_id: r for r in sub.result.reports}
-            assert not sub.result.complete and sub.result.camera_errors["slow"].code == "DEADLINE_EXCEEDED"
-            assert not by_camera["cam1"].error and not by_camera["cam2"].error
-            assert "slow did not accept the request: DEADLINE_EXCEEDED" in by_camera["slow"].error
-            assert 1.8 <= arrivals["slow"] <= 3.0, arrivals
-            await slow.wait_for_line(rf"^REQUEST {sub.request_id}$", timeout=5)
-        assert statistics.median(during) <= 1.5 * statistics.median(baseline) + 5, (baseline, during)
-    finally:
-        await slow.stop()
+    accepts_late = ("--accept-delay", "5", "--report-delay", "0")
+    async with beside_a_slow_camera(office, *accepts_late) as (slow, robot, other, baseline):
+        sub = await other.subscribe(YELLOW, ALL_THREE_REGION, timeout_s=6)
+        assert sorted(sub.camera_ids) == ["cam1", "cam2", "slow"]
+        t_sub = loop.time()
+        during = await latencies_ms(robot, CAM1_REGION, 30)
+        arrivals = {}
+        async for report in sub:
+            arrivals[report.camera_id] = loop.time() - t_sub
+        by_camera = {r.camera_id: r for r in sub.result.reports}
+        assert not sub.result.complete and sub.result.camera_errors["slow"].code == "DEADLINE_EXCEEDED"
+        assert not by_camera["cam1"].error and not by_camera["cam2"].error
+        assert "slow did not accept the request: DEADLINE_EXCEEDED" in by_camera["slow"].error
+        assert 1.8 <= arrivals["slow"] <= 3.0, arrivals
+        await slow.wait_for_line(rf"^REQUEST {sub.request_id}$", timeout=5)
+    assert statistics.median(during) <= 1.5 * statistics.median(baseline) + 5, (baseline, during)

@@ -351,7 +351,7 @@ def test_a_background_the_camera_cannot_use_stops_it_at_start(tmp_path: Path) ->
         ForegroundDetector(view(), {"background": str(small)})
     with pytest.raises(InvalidArgument, match=r"foreground: background: 5 is not a file path"):
         ForegroundDetector(view(), {"background": 5})
-    with pytest.raises(InvalidArgument, match=r"foreground: unknown option\(s\) backdrop; expected: background"):
+    with pytest.raises(InvalidArgument, match=r"^foreground: unknown option 'backdrop' \(known: background\)$"):
         ForegroundDetector(view(), {"backdrop": "x.png"})
 
 

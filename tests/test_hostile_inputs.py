@@ -18,7 +18,7 @@ from pathlib import Path
 
 import grpc
 import pytest
-from drvs_bench.amplification import _AcceptingCamera
+from drvs_bench.fakes import AckingCamera, serve_camera
 from grpc import aio
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
@@ -87,19 +87,14 @@ def world(tmp_path_factory: pytest.TempPathFactory) -> Iterator[World]:
             "--camera-tokens", str(cameras), "--robot-tokens", str(robots), "--lease-ttl", "3600"
         )
         held["server"] = server
-        accepting = aio.server()
+        accepting, accepting_address = await serve_camera(AckingCamera("a-cam"))
         held["accepting"] = accepting
-        detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(
-            _AcceptingCamera("a-cam", asyncio.Event()), accepting
-        )
-        port = accepting.add_insecure_port("127.0.0.1:0")
-        await accepting.start()
         channel = aio.insecure_channel(address)
         held["channel"] = channel
         await registry_pb2_grpc.RegisterVisionServiceStub(channel).Register(
             registry_pb2.RegisterRequest(
                 camera_id="a-cam",
-                address=f"127.0.0.1:{port}",
+                address=accepting_address,
                 homography=registry_pb2.Homography(m=GOOD_H),
                 image_width=640,
                 image_height=480,

@@ -342,7 +342,7 @@ def test_bad_model_config_is_refused_naming_the_key(models: Any, message: str) -
 
 
 def test_unknown_detector_option_is_refused() -> None:
-    with pytest.raises(InvalidArgument, match=r"^model: model: unknown option \(expected: models\)$"):
+    with pytest.raises(InvalidArgument, match=r"^model: unknown option 'model' \(known: models\)$"):
         ModelDetector(view(), {"model": {}})
 
 

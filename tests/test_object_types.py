@@ -16,11 +16,12 @@ import pytest
 import pytest_asyncio
 
 from drvs.errors import FailedPrecondition, InvalidArgument
-from drvs.launch import ManagedProcess, start_camera, start_server
+from drvs.launch import ManagedProcess, start_server
 from drvs.robot import DrvsClient
 from drvs.sim.scene import RecordedCamera
 
-from .conftest import CAM1_REGION, MAX_RANGE, OBJECTS, YELLOW
+from .conftest import CAM1_REGION, OBJECTS, YELLOW
+from .fakes import start_recorded_camera
 from .test_observability import metrics_port, scrape
 
 PLUGINS = Path(__file__).parent / "plugins"
@@ -54,17 +55,7 @@ async def floor(recorded: dict[str, RecordedCamera], tmp_path: Path) -> AsyncIte
     try:
         for camera_id, detectors in (("colour", "hsv"), ("plug", "hsv,yellowish")):
             floor.cameras.append(
-                await start_camera(
-                    camera_id,
-                    rec.video,
-                    rec.homography_file,
-                    address,
-                    "--max-range",
-                    MAX_RANGE,
-                    "--detectors",
-                    detectors,
-                    env=env,
-                )
+                await start_recorded_camera(camera_id, rec, address, "--detectors", detectors, env=env)
             )
         yield floor
     finally:
@@ -142,18 +133,8 @@ async def slow(recorded: dict[str, RecordedCamera], tmp_path: Path) -> AsyncIter
     server, address = await start_server(env=env)
     camera = None
     try:
-        camera = await start_camera(
-            "slow",
-            rec.video,
-            rec.homography_file,
-            address,
-            "--max-range",
-            MAX_RANGE,
-            "--detectors",
-            "slowyellowish",
-            "--metrics-port",
-            "0",
-            env=env,
+        camera = await start_recorded_camera(
+            "slow", rec, address, "--detectors", "slowyellowish", "--metrics-port", "0", env=env
         )
         await camera.wait_for_line(r"metrics on http://")
         yield address, metrics_port(camera)

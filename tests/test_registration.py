@@ -36,6 +36,7 @@ from drvs.v1 import (
 )
 
 from .conftest import CAM1_REGION, MAX_RANGE, YELLOW
+from .fakes import server_process, start_recorded_camera
 from .test_server import register_message
 
 LOBBY_TOKEN = "lobby-token-0123456789abcdef"
@@ -202,11 +203,9 @@ async def test_a_stale_registration_secret_is_refused_and_the_camera_registers_a
     server, address = await tokens_server(tmp_path, "--lease-ttl", "1.5")
     camera: ManagedProcess | None = None
     try:
-        rec = recorded["cam1"]
-        camera = await start_camera(
-            "cam1", rec.video, rec.homography_file, address, "--max-range", MAX_RANGE,
-            "--token-file", str(tmp_path / "lobby.token"),
-        )  # fmt: skip
+        camera = await start_recorded_camera(
+            "cam1", recorded["cam1"], address, "--token-file", str(tmp_path / "lobby.token")
+        )
         async with aio.insecure_channel(address) as channel:
             registry = registry_pb2_grpc.RegisterVisionServiceStub(channel)
             first = await registry.Register(
@@ -374,8 +373,7 @@ async def test_beyond_loopback_registration_needs_a_credential_unless_the_networ
 
 
 async def test_a_field_of_view_beyond_the_servers_range_or_area_is_refused_naming_the_field() -> None:
-    server, address = await start_server("--max-fov-range", "20", "--max-fov-area", "40")
-    try:
+    async with server_process("--max-fov-range", "20", "--max-fov-area", "40") as address:
         async with aio.insecure_channel(address) as channel:
             registry = registry_pb2_grpc.RegisterVisionServiceStub(channel)
             details = await refused(
@@ -391,8 +389,6 @@ async def test_a_field_of_view_beyond_the_servers_range_or_area_is_refused_namin
             await registry.Register(at(register_message("fits"), "127.0.0.1:9", max_range_m=6))
         async with DrvsClient(address, robot_id="r", listen="127.0.0.1:0") as robot:
             assert [c.camera_id for c in await robot.cameras()] == ["fits"]
-    finally:
-        await server.stop()
     # The defaults are sized for a building: 100 m.
     async with DrvsServer("127.0.0.1:0") as default, aio.insecure_channel(default.address) as channel:
         details = await refused(

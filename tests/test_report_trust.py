@@ -8,11 +8,12 @@ from __future__ import annotations
 import asyncio
 import ipaddress
 import secrets
-from collections.abc import AsyncIterator
+from collections.abc import Sequence
 from typing import Any
 
 import grpc
 import pytest
+from drvs_bench.fakes import AckingCamera, serve_camera
 from grpc import aio
 from shapely.geometry import box
 
@@ -27,35 +28,20 @@ from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 from .conftest import CAM1_REGION, CAM2_REGION, MAX_RANGE, YELLOW
-from .test_server import register_message
+from .test_server import detect_message, register_message
 
 
-class _CapturingCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
+class _CapturingCamera(AckingCamera):
     """A registered camera that accepts every forwarded request and keeps it: it learns what a
     camera learns, and nothing is reported unless the test writes it."""
 
     def __init__(self) -> None:
+        super().__init__()
         self.requests: asyncio.Queue[detection_pb2.DetectionRequest] = asyncio.Queue()
 
-    async def DetectBatches(
-        self,
-        request_iterator: AsyncIterator[detection_pb2.DetectionRequests],
-        context: aio.ServicerContext[Any, Any],
-    ) -> AsyncIterator[detection_pb2.DetectionReplies]:
-        async for batch in request_iterator:
-            for message in batch.requests:
-                self.requests.put_nowait(message)
-            yield detection_pb2.DetectionReplies(
-                replies=[detection_pb2.DetectionReply(request_id=m.request_id) for m in batch.requests]
-            )
-
-
-async def _camera_server(servicer: detection_pb2_grpc.DetectObjectBoundaryServicer) -> tuple[aio.Server, str]:
-    server = aio.server()
-    detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(servicer, server)
-    port = server.add_insecure_port("127.0.0.1:0")
-    await server.start()
-    return server, f"127.0.0.1:{port}"
+    async def batch(self, requests: Sequence[detection_pb2.DetectionRequest]) -> None:
+        for message in requests:
+            self.requests.put_nowait(message)
 
 
 def _report(request_id: str, camera_id: str, sequence: int, final: bool, key: bytes = b"", x: float = 0.5) -> Any:
@@ -99,7 +85,7 @@ async def test_reports_only_from_dispatched_cameras_on_their_own_streams(
     ignored. A forged final in cam1's name ends nothing."""
     procs: list[ManagedProcess] = []
     evil = _CapturingCamera()
-    evil_server, evil_address = await _camera_server(evil)
+    evil_server, evil_address = await serve_camera(evil)
     try:
         server, address = await start_server()
         procs.append(server)
@@ -155,20 +141,15 @@ async def test_server_rewrites_a_callback_name_to_the_address_it_checked() -> No
     """A robot names its callback by host name; the camera gets the address the name resolved to and
     was checked, so a later answer for the name (DNS rebinding) changes nothing."""
     evil = _CapturingCamera()
-    camera, camera_address = await _camera_server(evil)
+    camera, camera_address = await serve_camera(evil)
     try:
         async with DrvsServer("127.0.0.1:0") as server, aio.insecure_channel(server.address) as channel:
             registration = register_message("cam1")
             registration.address = camera_address
             await registry_pb2_grpc.RegisterVisionServiceStub(channel).Register(registration)
             stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
-            request = detection_pb2.DetectionRequest(
-                request_id="named",
-                filter_def=YELLOW,
-                region=geometry_pb2.Region(box=geometry_pb2.Box(x_lower=-1, y_lower=0, x_upper=1, y_upper=5)),
-                callback_address="localhost:4321",
-                report_secret=b"s" * 16,
-            )
+            request = detect_message(request_id="named", callback_address="localhost:4321")
+            request.report_secret = b"s" * 16
             reply = await stub.DetectObjects(request)
             assert list(reply.camera_ids) == ["cam1"]
             forwarded = await asyncio.wait_for(evil.requests.get(), 10)
@@ -284,26 +265,17 @@ class _LateCamera(_CapturingCamera):
         super().__init__()
         self.delay = 0.0
 
-    async def DetectBatches(
-        self,
-        request_iterator: AsyncIterator[detection_pb2.DetectionRequests],
-        context: aio.ServicerContext[Any, Any],
-    ) -> AsyncIterator[detection_pb2.DetectionReplies]:
-        async for batch in request_iterator:
-            # Seen on arrival: the server may cut a stream whose acceptance is overdue.
-            for message in batch.requests:
-                self.requests.put_nowait(message)
-            await asyncio.sleep(self.delay)
-            yield detection_pb2.DetectionReplies(
-                replies=[detection_pb2.DetectionReply(request_id=m.request_id) for m in batch.requests]
-            )
+    async def batch(self, requests: Sequence[detection_pb2.DetectionRequest]) -> None:
+        # Seen on arrival: the server may cut a stream whose acceptance is overdue.
+        await super().batch(requests)
+        await asyncio.sleep(self.delay)
 
 
 async def test_a_camera_the_server_answered_for_keeps_its_own_stream() -> None:
     """The server answers for a camera that accepted too late, on its own stream and with the
     camera's key; the camera's own stream, which presented the key before, still counts after."""
     camera = _LateCamera()
-    camera_server, camera_address = await _camera_server(camera)
+    camera_server, camera_address = await serve_camera(camera)
     try:
         async with (
             DrvsServer("127.0.0.1:0", forward_timeout_s=0.5) as server,

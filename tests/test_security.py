@@ -24,7 +24,8 @@ from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 from .conftest import CAM1_REGION, MAX_RANGE, YELLOW
-from .test_server import register_message
+from .fakes import start_recorded_camera
+from .test_server import detect_message, register_message
 
 CAMERA_TOKEN = "camera-token-0123456789abcdef"
 OTHER_CAMERA_TOKEN = "camera-token-fedcba9876543210"
@@ -97,11 +98,9 @@ async def token_office(
     )
     camera: ManagedProcess | None = None
     try:
-        rec = recorded["cam1"]
-        camera = await start_camera(
-            "cam1", rec.video, rec.homography_file, address, "--max-range", MAX_RANGE,
-            "--token-file", str(tmp_path / "cam.token"),
-        )  # fmt: skip
+        camera = await start_recorded_camera(
+            "cam1", recorded["cam1"], address, "--token-file", str(tmp_path / "cam.token")
+        )
         yield address, camera, tmp_path
     finally:
         if camera is not None:
@@ -155,12 +154,7 @@ async def test_tokens_robots_and_cameras_need_their_own(token_office: tuple[str,
     listening = next(line for line in camera.lines if "listening on" in line).split("listening on ")[1].split()[0]
     async with aio.insecure_channel(listening) as channel:
         stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
-        request = detection_pb2.DetectionRequest(
-            request_id="direct",
-            filter_def=YELLOW,
-            region=geometry_pb2.Region(box=geometry_pb2.Box(x_lower=-1, y_lower=0, x_upper=1, y_upper=5)),
-            callback_address="10.9.9.9:9",
-        )
+        request = detect_message(request_id="direct", callback_address="10.9.9.9:9")
         with pytest.raises(aio.AioRpcError) as err:
             await stub.DetectObjects(request, metadata=bearer(ROBOT_TOKEN))
         assert err.value.code() == grpc.StatusCode.UNAUTHENTICATED

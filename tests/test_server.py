@@ -8,6 +8,7 @@ from typing import Any
 import grpc
 import pytest
 import pytest_asyncio
+from drvs_bench.fakes import serve_camera
 from grpc import aio
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
@@ -293,15 +294,12 @@ class _SilentCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
 
 
 async def test_server_sheds_load_when_a_camera_has_too_many_requests_waiting() -> None:
-    camera = aio.server()
-    detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(_SilentCamera(), camera)
-    port = camera.add_insecure_port("127.0.0.1:0")
-    await camera.start()
+    camera, camera_address = await serve_camera(_SilentCamera())
     try:
         async with DrvsServer("127.0.0.1:0", max_queued_forwards=2, forward_timeout_s=30) as server:
             async with aio.insecure_channel(server.address) as channel:
                 registration = register_message()
-                registration.address = f"127.0.0.1:{port}"
+                registration.address = camera_address
                 await registry_pb2_grpc.RegisterVisionServiceStub(channel).Register(registration)
             async with DrvsClient(server.address, robot_id="r", listen="127.0.0.1:0") as robot:
                 waiting = [await robot.subscribe(YELLOW, (-1, 0, 1, 5), timeout_s=30) for _ in range(2)]

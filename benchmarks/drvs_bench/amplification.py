@@ -20,7 +20,7 @@ import asyncio
 import json
 import math
 import sys
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import Sequence
 from typing import Any
 
 from grpc import aio
@@ -30,7 +30,9 @@ from drvs.geometry import homography_from_pose
 from drvs.launch import start_server
 from drvs.meter import CountingRelay
 from drvs.robot import DrvsClient
-from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
+from drvs.v1 import detection_pb2, registry_pb2, registry_pb2_grpc
+
+from .fakes import AckingCamera, serve_camera
 
 YELLOW = "hsv_014110130035225200"
 #: Every camera stands at the origin looking along +y: it sees about x -3.8..3.8, y 1.5..7.5.
@@ -45,28 +47,17 @@ def big_region(points: int = 1000) -> list[tuple[float, float]]:
     ]
 
 
-class _AcceptingCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
+class _AcceptingCamera(AckingCamera):
     """Accepts every forwarded request and reports nothing: only the forwarded bytes matter."""
 
     def __init__(self, camera_id: str, read: asyncio.Event) -> None:
-        self.camera_id = camera_id
+        super().__init__(camera_id)
         self.requests = 0
         self.read = read  # set whenever a camera has read a batch
 
-    async def DetectBatches(
-        self,
-        request_iterator: AsyncIterator[detection_pb2.DetectionRequests],
-        context: aio.ServicerContext[Any, Any],
-    ) -> AsyncIterator[detection_pb2.DetectionReplies]:
-        async for batch in request_iterator:
-            self.requests += len(batch.requests)
-            self.read.set()
-            yield detection_pb2.DetectionReplies(
-                replies=[
-                    detection_pb2.DetectionReply(request_id=m.request_id, camera_ids=[self.camera_id])
-                    for m in batch.requests
-                ]
-            )
+    async def batch(self, requests: Sequence[detection_pb2.DetectionRequest]) -> None:
+        self.requests += len(requests)
+        self.read.set()
 
 
 async def measure(
@@ -87,13 +78,10 @@ async def measure(
         async with aio.insecure_channel(address) as channel:
             registry = registry_pb2_grpc.RegisterVisionServiceStub(channel)
             for i in range(cameras):
-                grpc_server = aio.server()
                 accepting.append(_AcceptingCamera(f"acc{i}", read))
-                detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(accepting[-1], grpc_server)
-                port = grpc_server.add_insecure_port("127.0.0.1:0")
-                await grpc_server.start()
+                grpc_server, camera_address = await serve_camera(accepting[-1])
                 servers.append(grpc_server)
-                relay = CountingRelay("127.0.0.1", port)
+                relay = CountingRelay("127.0.0.1", int(camera_address.rsplit(":", 1)[1]))
                 await relay.start()
                 relays.append(relay)
                 await registry.Register(

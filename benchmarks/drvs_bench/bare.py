@@ -23,24 +23,11 @@ from typing import Any
 from grpc import aio
 
 from drvs import _grpc
-from drvs._cli import shutdown_event
-from drvs._service import Endpoint
 from drvs.v1 import detection_pb2, detection_pb2_grpc
 
 from .common import peak_rss_bytes
-from .helpers import one_camera_request, percentile
-
-_DETECT = detection_pb2.DESCRIPTOR.services_by_name["DetectObjectBoundary"].full_name
-_CALLBACK = detection_pb2.DESCRIPTOR.services_by_name["CallbackCoordinates"].full_name
-
-
-async def _serve(service: str, add: Any) -> None:
-    stop = shutdown_event()
-    endpoint = Endpoint("127.0.0.1:0", [service], add)
-    await endpoint.start()
-    print(f"LISTENING {endpoint.address}", flush=True)
-    await stop.wait()
-    await endpoint.stop(0.5)
+from .fakes import AckingCamera
+from .helpers import one_camera_request, percentile, serve_detection
 
 
 class _Forwards:
@@ -93,9 +80,11 @@ class _BareServer(detection_pb2_grpc.DetectObjectBoundaryServicer):
             yield detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=cameras)
 
 
-class _BareCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
+class _BareCamera(AckingCamera):
+    """Acknowledges each request at once, then sends its one report to the robot."""
+
     def __init__(self, camera_id: str) -> None:
-        self._camera_id = camera_id
+        super().__init__(camera_id)
         self._reports: dict[str, aio.StreamStreamCall[Any, Any]] = {}
         self._channels: list[aio.Channel] = []  # an aio.Channel closes its calls when collected
 
@@ -107,16 +96,10 @@ class _BareCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):
             call = self._reports[address] = stub.ReportDetections()
         return call
 
-    async def DetectStream(
-        self,
-        request_iterator: AsyncIterator[detection_pb2.DetectionRequest],
-        context: aio.ServicerContext[Any, Any],
-    ) -> AsyncIterator[detection_pb2.DetectionReply]:
-        async for request in request_iterator:
-            yield detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=[self._camera_id])
-            report = detection_pb2.DetectionReport(request_id=request.request_id, camera_id=self._camera_id, final=True)
-            report.capture_time.GetCurrentTime()
-            await self._report_stream(request.callback_address).write(report)
+    async def replied(self, request: detection_pb2.DetectionRequest) -> None:
+        report = detection_pb2.DetectionReport(request_id=request.request_id, camera_id=self.camera_id, final=True)
+        report.capture_time.GetCurrentTime()
+        await self._report_stream(request.callback_address).write(report)
 
 
 class _BareListener(detection_pb2_grpc.CallbackCoordinatesServicer):
@@ -230,14 +213,12 @@ async def idle_robot(args: argparse.Namespace) -> None:
 
 
 def _server_main(args: argparse.Namespace) -> int:
-    servicer = _BareServer(args.camera, args.streams if args.fanout == "one" else 1, args.fanout)
-    asyncio.run(_serve(_DETECT, lambda s: detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(servicer, s)))
+    asyncio.run(serve_detection(_BareServer(args.camera, args.streams if args.fanout == "one" else 1, args.fanout)))
     return 0
 
 
 def _camera_main(args: argparse.Namespace) -> int:
-    servicer = _BareCamera(args.id)
-    asyncio.run(_serve(_DETECT, lambda s: detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(servicer, s)))
+    asyncio.run(serve_detection(_BareCamera(args.id)))
     return 0
 
 

@@ -9,7 +9,6 @@ import json
 import math
 import os
 import time
-from collections.abc import AsyncIterator
 from typing import Any
 
 import grpc
@@ -24,6 +23,7 @@ from drvs.robot import DrvsClient
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 from .common import ALL_REGION, YELLOW, peak_rss_bytes
+from .fakes import AckingCamera
 
 #: Fake cameras sit on a grid this many metres apart; each sees about 6 m in front of it.
 GRID_M = 10.0
@@ -53,47 +53,23 @@ def moving_all_region(i: int) -> tuple[float, ...]:
     return moving_box(i, ALL_REGION, 1.0, 0.5)
 
 
-class _Ack(detection_pb2_grpc.DetectObjectBoundaryServicer):
-    """Answers at once: a bare grpc.aio echo of the request id, with no validation or work."""
-
-    async def DetectObjects(
-        self, request: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
-    ) -> detection_pb2.DetectionReply:
-        return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=["ack"])
-
-    async def DetectStream(
-        self,
-        request_iterator: AsyncIterator[detection_pb2.DetectionRequest],
-        context: aio.ServicerContext[Any, Any],
-    ) -> AsyncIterator[detection_pb2.DetectionReply]:
-        async for request in request_iterator:
-            yield detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=["ack"])
-
-    async def DetectBatches(
-        self,
-        request_iterator: AsyncIterator[detection_pb2.DetectionRequests],
-        context: aio.ServicerContext[Any, Any],
-    ) -> AsyncIterator[detection_pb2.DetectionReplies]:
-        async for batch in request_iterator:
-            yield detection_pb2.DetectionReplies(
-                replies=[
-                    detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=["ack"])
-                    for request in batch.requests
-                ]
-            )
-
-
-async def ack_server(args: argparse.Namespace) -> None:
+async def serve_detection(servicer: detection_pb2_grpc.DetectObjectBoundaryServicer) -> None:
+    """Serve `servicer` as DetectObjectBoundary on a free loopback port, print `LISTENING address`,
+    and stop at SIGINT or SIGTERM."""
     stop = shutdown_event()
     endpoint = Endpoint(
         "127.0.0.1:0",
         [detection_pb2.DESCRIPTOR.services_by_name["DetectObjectBoundary"].full_name],
-        lambda s: detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(_Ack(), s),
+        lambda s: detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(servicer, s),
     )
     await endpoint.start()
     print(f"LISTENING {endpoint.address}", flush=True)
     await stop.wait()
     await endpoint.stop(0.5)
+
+
+async def ack_server(args: argparse.Namespace) -> None:
+    await serve_detection(AckingCamera("ack"))
 
 
 def grid_position(i: int) -> tuple[float, float]:

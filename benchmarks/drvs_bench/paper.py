@@ -27,6 +27,7 @@ import re
 import secrets
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -399,6 +400,11 @@ def _cpu_rate(m: dict[str, Any]) -> float:
     return float(m["cpu_s"]) / float(m["wall_s"])
 
 
+def _figure(key: str) -> Callable[[dict[str, Any]], float]:
+    """A mode's figure `key`, read from its measurements."""
+    return lambda m: float(m[key])
+
+
 #: Ratios taken within each round: name -> (numerator mode, denominator mode).
 _BANDWIDTH = {
     "bandwidth_ratio_raw": ("raw", "drvs_boxes"),
@@ -418,16 +424,8 @@ _CPU = {
     "robot_cpu_over_bare_path": ("drvs_boxes", "bare_path"),
     "robot_cpu_ratio_at_idle": ("raw", "idle"),
 }
-_MACHINE = {
-    "machine_cpu_ratio": ("raw", "drvs_boxes"),
-    "machine_cpu_ratio_jpeg": ("jpeg", "drvs_boxes"),
-    "machine_cpu_ratio_moving": ("raw", "drvs_boxes_moving"),
-}
-_SYSTEM = {
-    "system_cpu_ratio": ("raw", "drvs_boxes"),
-    "system_cpu_ratio_jpeg": ("jpeg", "drvs_boxes"),
-    "system_cpu_ratio_moving": ("raw", "drvs_boxes_moving"),
-}
+#: Whole-machine ratios, for each of `machine_cpu_cores` and `system_cpu_cores`: key suffix -> modes.
+_CORES = {"": ("raw", "drvs_boxes"), "_jpeg": ("jpeg", "drvs_boxes"), "_moving": ("raw", "drvs_boxes_moving")}
 _FLOOR_DEFINITIONS = {
     "robot_cpu_floor": (
         "rtt_floor",
@@ -486,16 +484,18 @@ def summarise(
         "jpeg_mean_frame_bytes",
         [run["jpeg"]["payload_bytes_to_robot"] / max(1, run["jpeg"]["frames"]) for run in runs],
     )
+
+    def ratio(name: str, num: str, den: str, figure: Callable[[dict[str, Any]], float]) -> None:
+        publish(result, name, [figure(run[num]) / figure(run[den]) for run in runs])
+
     for name, (num, den) in _BANDWIDTH.items():
-        publish(result, name, [run[num]["bytes_per_s"] / run[den]["bytes_per_s"] for run in runs])
-        payload = [run[num]["payload_bytes_per_s"] / run[den]["payload_bytes_per_s"] for run in runs]
-        publish(result, f"{name}_payload", payload)
+        ratio(name, num, den, _figure("bytes_per_s"))
+        ratio(f"{name}_payload", num, den, _figure("payload_bytes_per_s"))
     for name, (num, den) in _CPU.items():
-        publish(result, name, [_cpu_rate(run[num]) / _cpu_rate(run[den]) for run in runs])
-    for name, (num, den) in _MACHINE.items():
-        publish(result, name, [run[num]["machine_cpu_cores"] / run[den]["machine_cpu_cores"] for run in runs])
-    for name, (num, den) in _SYSTEM.items():
-        publish(result, name, [run[num]["system_cpu_cores"] / run[den]["system_cpu_cores"] for run in runs])
+        ratio(name, num, den, _cpu_rate)
+    for kind in ("machine", "system"):
+        for suffix, (num, den) in _CORES.items():
+            ratio(f"{kind}_cpu_ratio{suffix}", num, den, _figure(f"{kind}_cpu_cores"))
     for key, (floor, definition) in _FLOOR_DEFINITIONS.items():
         figures: dict[str, Any] = {}
         for fig in ("cpu_s", "wall_s", "last_report_ms_p50"):
@@ -522,11 +522,7 @@ def summarise(
             "HOG people detector (drvs.detectors.people, the cameras' default settings) on every frame",
             "modes": {mode: _mode_figures(runs, mode) for mode in PEOPLE_MODES},
         }
-        publish(
-            result,
-            "robot_cpu_ratio_people",
-            [_cpu_rate(run["raw_people"]) / _cpu_rate(run["drvs_people"]) for run in runs],
-        )
+        ratio("robot_cpu_ratio_people", "raw_people", "drvs_people", _cpu_rate)
         publish(
             result,
             "robot_cpu_cores_people_onboard",

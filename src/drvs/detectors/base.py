@@ -310,6 +310,12 @@ class Detector(ABC):
         self.view = view
         self.options: Mapping[str, Any] = options or {}
 
+    def refuse_unknown_options(self, *known: str) -> None:
+        """InvalidArgument naming the first option (in sorted order) that is not one of `known`."""
+        unknown = sorted(str(key) for key in self.options if key not in known)
+        if unknown:
+            raise InvalidArgument(f"{self.prefix}: unknown option {unknown[0][:40]!r} (known: {', '.join(known)})")
+
     @classmethod
     @abstractmethod
     def parse(cls, filter_def: str) -> ObjectType:

@@ -113,9 +113,7 @@ class ForegroundDetector(Detector):
 
     def __init__(self, view: CameraView, options: Mapping[str, Any] | None = None) -> None:
         super().__init__(view, options)
-        unknown = sorted(set(self.options) - {"background"})
-        if unknown:
-            raise InvalidArgument(f"foreground: unknown option(s) {', '.join(map(str, unknown))}; expected: background")
+        self.refuse_unknown_options("background")
         self._work = _work_size(view.image_size)
         work_w, work_h = self._work
         self._fov = cv2.resize(view.fov_mask, self._work, interpolation=cv2.INTER_NEAREST) > 0

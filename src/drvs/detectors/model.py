@@ -393,9 +393,7 @@ class ModelDetector(Detector):
 
     def __init__(self, view: CameraView, options: Mapping[str, Any] | None = None) -> None:
         super().__init__(view, options)
-        unknown = [str(k) for k in self.options if k != "models"]
-        if unknown:
-            raise InvalidArgument(f"model: {unknown[0][:40]}: unknown option (expected: models)")
+        self.refuse_unknown_options("models")
         self.specs = parse_models(self.options.get("models"))
         self.models: dict[str, LoadedModel] = {}
         try:

@@ -88,9 +88,7 @@ class PeopleDetector(Detector):
 
     def __init__(self, view: CameraView, options: Mapping[str, Any] | None = None) -> None:
         super().__init__(view, options)
-        unknown = sorted(set(self.options) - {"min_height_px"})
-        if unknown:
-            raise InvalidArgument(f"people: unknown option {unknown[0]!r} (known: min_height_px)")
+        self.refuse_unknown_options("min_height_px")
         raw = self.options.get("min_height_px", DEFAULT_MIN_HEIGHT_PX)
         lo, hi = MIN_HEIGHT_RANGE_PX
         if isinstance(raw, bool) or not isinstance(raw, int | float) or not (lo <= float(raw) <= hi):

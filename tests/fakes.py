@@ -1,0 +1,32 @@
+"""Shared test steps: stand-in processes and set-ups that several test modules need. (The fake cameras
+themselves are drvs_bench.fakes: the benchmarks use them too.)"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import AsyncIterator
+
+from drvs.launch import ManagedProcess, start_camera, start_server
+from drvs.sim.scene import RecordedCamera
+
+from .conftest import MAX_RANGE
+
+
+async def start_recorded_camera(
+    camera_id: str, rec: RecordedCamera, server: str, *args: str, env: dict[str, str] | None = None
+) -> ManagedProcess:
+    """drvs-camera `camera_id` on a recorded camera's footage and homography, registering with
+    `server` and seeing as far as the scene's cameras (MAX_RANGE); `args`: more drvs-camera flags."""
+    return await start_camera(
+        camera_id, rec.video, rec.homography_file, server, "--max-range", MAX_RANGE, *args, env=env
+    )
+
+
+@contextlib.asynccontextmanager
+async def server_process(*args: str) -> AsyncIterator[str]:
+    """A drvs-server process started with `args`: its address; it is stopped on exit."""
+    server, address = await start_server(*args)
+    try:
+        yield address
+    finally:
+        await server.stop()
