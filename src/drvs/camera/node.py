@@ -40,9 +40,10 @@ from drvs.model import Detection, DetectionReport, DetectionRequest, check_id
 from drvs.net import dialable_address, parse_address
 from drvs.request_stream import serve_request_batches, serve_request_stream
 from drvs.security import Security, bearer_token
-from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc, stream_pb2, stream_pb2_grpc
+from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, stream_pb2, stream_pb2_grpc
 
 from .prefetch import Analyses
+from .registration import Registration
 from .source import FrameSource
 
 log = logging.getLogger("drvs.camera")
@@ -133,12 +134,10 @@ class CameraNode(Lifecycle):
         self.max_frame_age_s = max_frame_age_s
         self.view: CameraView | None = None
         self.field_of_view: FieldOfView | None = None
-        self.registered = asyncio.Event()
+        self.registration = Registration(self.camera_id, server, self.security, heartbeat_s)
         self.serve_frames = serve_frames
         names = (*SERVICE_NAMES, FRAME_STREAM_SERVICE) if serve_frames else SERVICE_NAMES
         self._endpoint = Endpoint(listen, names, self._add_servicers, security=self.security)
-        self._channel: aio.Channel | None = None
-        self._registrar: asyncio.Task[None] | None = None
         self._watchdog: asyncio.Task[None] | None = None
         self.has_fresh_frame = True
         self._jobs: set[asyncio.Task[None]] = set()
@@ -148,12 +147,15 @@ class CameraNode(Lifecycle):
         # Handed to the server at registration; the server presents it on every forward, so this
         # node takes requests only from the server it registered with (see _ServerFacing).
         self.forward_secret = secrets.token_urlsafe(24)
-        # The current registration's secret, from the server: heartbeats and deregistration carry it.
-        self.registration_secret = ""
 
     @property
     def port(self) -> int:
         return self._endpoint.port
+
+    @property
+    def registered(self) -> asyncio.Event:
+        """Set once the node has registered with its server."""
+        return self.registration.registered
 
     @property
     def address(self) -> str:
@@ -200,38 +202,34 @@ class CameraNode(Lifecycle):
                 "this camera's token, so nobody can stream them",
                 self.camera_id,
             )
-        self._channel = self.security.channel(self.server_address)
-        self._registrar = asyncio.get_running_loop().create_task(self._keep_registered(image_size))
+        self.registration.start(
+            registry_pb2.RegisterRequest(
+                camera_id=self.camera_id,
+                address=self.address,
+                homography=homography_to_pb(self.homography),
+                image_width=image_size[0],
+                image_height=image_size[1],
+                max_range_m=self.max_range_m,
+                detector_kinds=list(self.kinds),
+                forward_secret=self.forward_secret,
+            ),
+            self.field_of_view.floor.area,
+        )
         self._watchdog = asyncio.get_running_loop().create_task(self._watch_frames())
 
     async def stop(self, grace: float = 2.0) -> None:
         if self._stopped:
             return
         self._stopped = True
-        for task in (self._registrar, self._watchdog):
-            if task is not None:
-                task.cancel()
-                await asyncio.gather(task, return_exceptions=True)
-        if self.registered.is_set() and self._channel is not None:
-            try:
-                stub = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
-                await stub.Deregister(
-                    registry_pb2.DeregisterRequest(
-                        camera_id=self.camera_id, registration_secret=self.registration_secret
-                    ),
-                    timeout=1.0,
-                    metadata=self.security.metadata(),
-                )
-                log.info("camera %s deregistered", self.camera_id)
-            except grpc.RpcError as exc:
-                log.warning("camera %s: deregistration failed: %s", self.camera_id, _details(exc))
+        if self._watchdog is not None:
+            self._watchdog.cancel()
+            await asyncio.gather(self._watchdog, return_exceptions=True)
+        await self.registration.stop()
         await self._endpoint.stop(grace)
         for job in list(self._jobs):
             job.cancel()
         await asyncio.gather(*self._jobs, return_exceptions=True)
         await self._callbacks.close()
-        if self._channel is not None:
-            await self._channel.close()
         if self._analyses is not None:
             await asyncio.to_thread(self._analyses.stop)
         if self._heavy_pool is not None:
@@ -266,102 +264,6 @@ class CameraNode(Lifecycle):
                         self.max_frame_age_s,
                         self.source.description,
                     )
-
-    # --- registration: soft state ------------------------------------------------------------
-
-    def _heartbeat_interval(self, lease_ttl_s: float) -> float:
-        """The configured interval, but never so long that the lease runs out between beats."""
-        interval = lease_ttl_s / 3 if self.heartbeat_s is None else min(self.heartbeat_s, lease_ttl_s / 2)
-        return max(0.05, interval)
-
-    async def _keep_registered(self, image_size: tuple[int, int]) -> None:
-        assert self._channel is not None
-        stub = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
-        register = registry_pb2.RegisterRequest(
-            camera_id=self.camera_id,
-            address=self.address,
-            homography=homography_to_pb(self.homography),
-            image_width=image_size[0],
-            image_height=image_size[1],
-            max_range_m=self.max_range_m,
-            detector_kinds=list(self.kinds),
-            forward_secret=self.forward_secret,
-        )
-        interval = 1.0
-        backoff = 0.2
-        ever_registered = False
-        registered = False
-        while True:
-            try:
-                if not registered:
-                    # The previous registration's secret proves this is the same camera coming back.
-                    register.registration_secret = self.registration_secret
-                    reply = await stub.Register(register, timeout=5.0, metadata=self.security.metadata())
-                    self.registration_secret = reply.registration_secret
-                    registered = True
-                    interval = self._heartbeat_interval(reply.lease_ttl_s)
-                    log.info(
-                        "camera %s %s with %s: lease %.1f s, field of view %.1f m²",
-                        self.camera_id,
-                        "re-registered" if ever_registered else "registered",
-                        self.server_address,
-                        reply.lease_ttl_s,
-                        self.field_of_view.floor.area if self.field_of_view else 0.0,
-                    )
-                    ever_registered = True
-                    self.registered.set()
-                else:
-                    reply_hb = await stub.Heartbeat(
-                        registry_pb2.HeartbeatRequest(
-                            camera_id=self.camera_id, registration_secret=self.registration_secret
-                        ),
-                        timeout=interval,
-                        metadata=self.security.metadata(),
-                    )
-                    interval = self._heartbeat_interval(reply_hb.lease_ttl_s)
-                backoff = 0.2
-                await asyncio.sleep(interval)
-            except grpc.RpcError as exc:
-                code = exc.code() if isinstance(exc, aio.AioRpcError) else grpc.StatusCode.UNKNOWN
-                if code == grpc.StatusCode.NOT_FOUND:
-                    log.info(
-                        "camera %s: server does not know this camera (restarted?); registering again",
-                        self.camera_id,
-                    )
-                    registered = False
-                    continue
-                if code == grpc.StatusCode.FAILED_PRECONDITION and registered:
-                    log.warning(
-                        "camera %s: the server says another registration replaced ours (%s); registering again",
-                        self.camera_id,
-                        _details(exc),
-                    )
-                    registered = False
-                    continue
-                if code == grpc.StatusCode.PERMISSION_DENIED:
-                    registered = False
-                    log.error(
-                        "camera %s: CONFLICT: the server gives camera id %s to another registration: %s; "
-                        "retrying in %.1f s",
-                        self.camera_id,
-                        self.camera_id,
-                        _details(exc),
-                        backoff,
-                    )
-                elif code in (grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.UNAUTHENTICATED):
-                    registered = False
-                    log.error("camera %s: server refused registration: %s", self.camera_id, _details(exc))
-                else:
-                    log.warning(
-                        "camera %s: server %s unreachable: %s",
-                        self.camera_id,
-                        self.server_address,
-                        _details(exc),
-                    )
-                await asyncio.sleep(backoff)
-                # A conflict lasts at least a lease: ask again, but not more often than every 5 s.
-                conflict = code == grpc.StatusCode.PERMISSION_DENIED
-                backoff = min(backoff * 2, max(interval, 5.0) if conflict else interval)
 
     # --- detectors ---------------------------------------------------------------------------
 
@@ -537,12 +439,6 @@ def _run(runner: Detector, analysis: FrameAnalysis, wanted: ObjectType) -> tuple
     finally:
         metrics.DETECTOR_RUNS.labels(runner.prefix).inc()
         metrics.DETECTOR_SECONDS.labels(runner.prefix).inc(time.perf_counter() - started)
-
-
-def _details(exc: grpc.RpcError) -> str:
-    if isinstance(exc, aio.AioRpcError):
-        return f"{exc.code().name} {exc.details()}"
-    return str(exc)
 
 
 class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
