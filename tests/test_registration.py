@@ -110,6 +110,21 @@ async def recorder() -> AsyncIterator[tuple[Recorder, str]]:
         await server.stop(0)
 
 
+async def batch(
+    stub: detection_pb2_grpc.DetectObjectBoundaryStub,
+    request: detection_pb2.DetectionRequest,
+    metadata: tuple[tuple[str, str], ...] = (),
+) -> detection_pb2.DetectionReplies:
+    """Send one request to a camera as its server does (DetectBatches); the camera's replies."""
+    call = stub.DetectBatches(metadata=metadata)
+    try:
+        await call.write(detection_pb2.DetectionRequests(requests=[request]))
+        replies: detection_pb2.DetectionReplies = await call.read()
+        return replies
+    finally:
+        call.cancel()
+
+
 def camera_address(camera: ManagedProcess) -> str:
     line = next(line for line in camera.lines if "listening on" in line)
     return line.split("listening on ")[1].split()[0]
@@ -484,9 +499,7 @@ async def test_a_camera_without_credentials_takes_requests_and_gives_frames_only
         async with aio.insecure_channel(camera_address(plain)) as channel:
             stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
             for metadata in ((), bearer("not-the-secret-0123456789")):
-                details = await refused(
-                    stub.DetectObjects(cam1_request("direct"), metadata=metadata), grpc.StatusCode.UNAUTHENTICATED
-                )
+                details = await refused(batch(stub, cam1_request("direct"), metadata), grpc.StatusCode.UNAUTHENTICATED)
                 assert "need the secret this camera gave its server" in details
         async with aio.insecure_channel(camera_address(framing)) as channel:
             frames = stream_pb2_grpc.FrameStreamStub(channel)
@@ -501,6 +514,40 @@ async def test_a_camera_without_credentials_takes_requests_and_gives_frames_only
         async with DrvsClient(address, robot_id="r", listen="127.0.0.1:0") as robot:
             result = await robot.detect(YELLOW, CAM1_REGION, timeout_s=10)
             assert result.camera_ids == ("cam1",) and result.complete and len(result.detections) == 2
+    finally:
+        for proc in reversed(procs):
+            await proc.stop()
+
+
+async def test_a_camera_serves_its_server_only_detect_batches(
+    recorded: dict[str, RecordedCamera], tmp_path: Path
+) -> None:
+    """The server forwards to cameras only on DetectBatches; the robot-facing DetectObjects and
+    DetectStream of the shared service are not served by a camera (UNIMPLEMENTED), even to a caller
+    that holds the camera's own token, to whom DetectBatches answers."""
+    server, address = await start_server()
+    procs = [server]
+    try:
+        (tmp_path / "cam.token").write_text(LOBBY_TOKEN)
+        rec = recorded["cam1"]
+        camera = await start_camera(
+            "cam1", rec.video, rec.homography_file, address, "--max-range", MAX_RANGE,
+            "--token-file", str(tmp_path / "cam.token"),
+        )  # fmt: skip
+        procs.append(camera)
+        async with aio.insecure_channel(camera_address(camera)) as channel:
+            stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
+            for metadata in ((), bearer(LOBBY_TOKEN)):
+                details = await refused(
+                    stub.DetectObjects(cam1_request("one"), metadata=metadata), grpc.StatusCode.UNIMPLEMENTED
+                )
+                assert details.startswith("DetectObjects: a camera takes requests only from the server"), details
+                stream = stub.DetectStream(metadata=metadata)
+                details = await refused(stream.read(), grpc.StatusCode.UNIMPLEMENTED)
+                assert details.startswith("DetectStream: a camera takes requests only from the server"), details
+            replies = await batch(stub, cam1_request("batched"), bearer(LOBBY_TOKEN))
+            [reply] = replies.replies
+            assert reply.request_id == "batched" and list(reply.camera_ids) == ["cam1"], reply
     finally:
         for proc in reversed(procs):
             await proc.stop()

@@ -19,7 +19,7 @@ import numpy as np
 from grpc import aio
 from numpy.typing import NDArray
 
-from drvs import _grpc, logs, metrics
+from drvs import logs, metrics
 from drvs._service import Endpoint, Lifecycle
 from drvs.callback import CallbackSender
 from drvs.convert import homography_to_pb, request_from_pb
@@ -38,7 +38,7 @@ from drvs.filters import object_type
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
 from drvs.model import Detection, DetectionReport, DetectionRequest, check_id
 from drvs.net import dialable_address, parse_address
-from drvs.request_stream import serve_request_batches, serve_request_stream
+from drvs.request_stream import serve_request_batches
 from drvs.security import Security, bearer_token
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, stream_pb2, stream_pb2_grpc
 
@@ -441,12 +441,22 @@ def _run(runner: Detector, analysis: FrameAnalysis, wanted: ObjectType) -> tuple
         metrics.DETECTOR_SECONDS.labels(runner.prefix).inc(time.perf_counter() - started)
 
 
+#: What a camera answers on the robot-facing methods of the service it shares with the server.
+NOT_SERVED_HERE = (
+    "{method}: a camera takes requests only from the server it registered with, on DetectBatches; "
+    "robots send requests to the server"
+)
+
+
 class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
+    """Converts and delegates: the server's request batches to `CameraNode.accept`.
+
+    The camera serves the DetectObjectBoundary service the robots use on the server, but only its
+    DetectBatches method: the server forwards on nothing else. DetectObjects and DetectStream
+    answer UNIMPLEMENTED (no caller, so no code path to keep, secure and test)."""
+
     def __init__(self, node: CameraNode) -> None:
         self._node = node
-
-    async def _answer(self, message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
-        return self._accept(message)
 
     def _accept(self, message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
         if self._node.view is None:
@@ -455,31 +465,26 @@ class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         self._node.accept(request)
         return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=[self._node.camera_id])
 
-    async def _check_caller(self, context: aio.ServicerContext[Any, Any]) -> None:
-        await check_caller(self._node, context, "requests")
-
-    @_grpc.servicer_method
     async def DetectObjects(
         self, message: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
     ) -> detection_pb2.DetectionReply:
-        await self._check_caller(context)
-        return await self._answer(message)
+        await context.abort(grpc.StatusCode.UNIMPLEMENTED, NOT_SERVED_HERE.format(method="DetectObjects"))
+        raise AssertionError("abort raises")
 
     async def DetectStream(
         self,
         request_iterator: AsyncIterator[detection_pb2.DetectionRequest],
         context: aio.ServicerContext[Any, Any],
     ) -> AsyncIterator[detection_pb2.DetectionReply]:
-        await self._check_caller(context)
-        async for reply in serve_request_stream(request_iterator, self._answer, f"camera {self._node.camera_id}"):
-            yield reply
+        await context.abort(grpc.StatusCode.UNIMPLEMENTED, NOT_SERVED_HERE.format(method="DetectStream"))
+        yield detection_pb2.DetectionReply()  # never reached: abort raises
 
     async def DetectBatches(
         self,
         request_iterator: AsyncIterator[detection_pb2.DetectionRequests],
         context: aio.ServicerContext[Any, Any],
     ) -> AsyncIterator[detection_pb2.DetectionReplies]:
-        await self._check_caller(context)
+        await check_caller(self._node, context, "requests")
         async for replies in serve_request_batches(request_iterator, self._accept, f"camera {self._node.camera_id}"):
             yield replies
 
