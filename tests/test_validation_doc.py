@@ -320,17 +320,17 @@ def cli_cases(tmp: Path) -> list[CliCase]:
         CliCase(
             "drvs-camera",
             (*camera, "--max-continuous", "0"),
-            "max_continuous (from …): '…' must be a whole number from 1 to 1000000",
+            "max_continuous (from …): … must be a whole number from 1 to 1000000",
         ),
         CliCase(
             "drvs-camera",
             (*camera, "--detect-workers", "0"),
-            "detect_workers (from …): '…' must be a whole number from 1 to 64",
+            "detect_workers (from …): … must be a whole number from 1 to 64",
         ),
         CliCase(
             "drvs-camera",
             (*camera, "--people-min-height", "20"),
-            "people_min_height_px (from …): '…' must be a number from 32 to 1024",
+            "people_min_height_px (from …): … must be a number from 32 to 1024",
         ),
         CliCase(
             "drvs-server",

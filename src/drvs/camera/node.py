@@ -7,7 +7,6 @@ import concurrent.futures
 import hmac
 import logging
 import math
-import os
 import secrets
 import time
 from collections.abc import AsyncIterator, Mapping
@@ -42,6 +41,12 @@ from drvs.request_stream import serve_request_batches
 from drvs.security import Security, bearer_token
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, stream_pb2, stream_pb2_grpc
 
+from .config import (
+    DEFAULT_DETECT_WORKERS,
+    DEFAULT_MAX_CONTINUOUS_PER_ROBOT,
+    DEFAULT_MAX_FRAME_AGE_S,
+    check_settings,
+)
 from .prefetch import Analyses
 from .registration import Registration
 from .source import FrameSource
@@ -52,17 +57,8 @@ SERVICE_NAMES = (detection_pb2.DESCRIPTOR.services_by_name["DetectObjectBoundary
 FRAME_STREAM_SERVICE = stream_pb2.DESCRIPTOR.services_by_name["FrameStream"].full_name
 #: How often a frame stream looks for a newer frame.
 FRAME_POLL_S = 0.005
-#: A frame older than this is not used for detection: the camera says so instead.
-DEFAULT_MAX_FRAME_AGE_S = 2.0
 #: Concurrent requests a node serves at once; more are refused with RESOURCE_EXHAUSTED.
 MAX_ACTIVE_REQUESTS = 512
-#: Continuous requests one robot (its callback address, which the server checked is the robot's
-#: own) may have running on this camera at once: the server's per-robot cap counts a robot per
-#: credential or connection, and a robot with many connections would otherwise take every slot.
-DEFAULT_MAX_CONTINUOUS_PER_ROBOT = 32
-#: Threads that run heavy detectors (people, models: about 100 ms a frame here). Bounded: a burst
-#: of requests queues for them instead of starting a thread per request.
-DEFAULT_HEAVY_WORKERS = max(1, min(2, (os.cpu_count() or 1) - 1))
 
 
 def default_detectors() -> tuple[str, ...]:
@@ -71,7 +67,11 @@ def default_detectors() -> tuple[str, ...]:
 
 
 class CameraNode(Lifecycle):
-    """A camera node as an object: start(), stop(grace), `async with`."""
+    """A camera node as an object: start(), stop(grace), `async with`.
+
+    The settings it shares with drvs-camera (max_range_m, min_area_px, max_frame_age_s,
+    heartbeat_s, max_continuous, detect_workers; see CameraConfig for units and ranges) are
+    checked by the same `check_settings` as the CLI's, with the same messages."""
 
     def __init__(
         self,
@@ -90,15 +90,24 @@ class CameraNode(Lifecycle):
         resolution: tuple[int, int] | None = None,
         detectors: tuple[str, ...] | None = None,
         detector_options: Mapping[str, Mapping[str, Any]] | None = None,
-        heavy_workers: int = DEFAULT_HEAVY_WORKERS,
+        detect_workers: int = DEFAULT_DETECT_WORKERS,
         heartbeat_s: float | None = None,
         security: Security | None = None,
-        max_continuous_per_robot: int = DEFAULT_MAX_CONTINUOUS_PER_ROBOT,
+        max_continuous: int = DEFAULT_MAX_CONTINUOUS_PER_ROBOT,
     ) -> None:
+        check_settings(
+            {
+                "max_range_m": max_range_m,
+                "min_area_px": min_area_px,
+                "max_frame_age_s": max_frame_age_s,
+                "heartbeat_s": heartbeat_s,
+                "max_continuous": max_continuous,
+                "detect_workers": detect_workers,
+            }
+        )
         self.security = security or Security()
-        if max_continuous_per_robot < 1:
-            raise InvalidArgument(f"max_continuous_per_robot: {max_continuous_per_robot} must be at least 1")
-        self.max_continuous_per_robot = max_continuous_per_robot
+        #: Continuous requests one robot (callback address) may have running here at once.
+        self.max_continuous = max_continuous
         # callback address -> continuous requests of that robot running here
         self._continuous: dict[str, int] = {}
         self.resolution = resolution
@@ -108,9 +117,7 @@ class CameraNode(Lifecycle):
         if unknown or not self.detectors:
             raise InvalidArgument(f"detectors: {unknown or 'none'}; must be some of {', '.join(prefixes())}")
         self.detector_options = dict(detector_options or {})
-        if heavy_workers < 1:
-            raise InvalidArgument(f"heavy_workers: {heavy_workers} must be at least 1")
-        self.heavy_workers = heavy_workers
+        self.detect_workers = detect_workers
         self._heavy_pool: concurrent.futures.ThreadPoolExecutor | None = None
         #: Running detector instances by prefix, and by the routing kinds they serve.
         self.runners: dict[str, Detector] = {}
@@ -183,7 +190,7 @@ class CameraNode(Lifecycle):
             self.homography, self.field_of_view, image_size, camera_id=self.camera_id, min_area_px=self.min_area_px
         )
         self._start_detectors(self.view)
-        self._heavy_pool = concurrent.futures.ThreadPoolExecutor(self.heavy_workers, f"detect:{self.camera_id}")
+        self._heavy_pool = concurrent.futures.ThreadPoolExecutor(self.detect_workers, f"detect:{self.camera_id}")
         observers = [d for d in self.runners.values() if d.observes]
         self._analyses = Analyses(self.source, self._prefetch, self.camera_id, observers=observers)
         self._analyses.start()
@@ -321,10 +328,10 @@ class CameraNode(Lifecycle):
             raise ResourceExhausted(f"camera {self.camera_id}: {len(self._jobs)} requests active; try later")
         robot = request.callback_address
         continuous = not request.continuous.single_shot
-        if continuous and self._continuous.get(robot, 0) >= self.max_continuous_per_robot:
+        if continuous and self._continuous.get(robot, 0) >= self.max_continuous:
             raise ResourceExhausted(
                 f"camera {self.camera_id}: continuous: {self._continuous[robot]} continuous requests already "
-                f"running for {robot} (limit {self.max_continuous_per_robot}); wait for one to end or cancel one"
+                f"running for {robot} (limit {self.max_continuous}); wait for one to end or cancel one"
             )
         if log.isEnabledFor(logging.DEBUG):
             log.debug(
