@@ -17,6 +17,8 @@ import pytest
 from cryptography import x509
 from cryptography.x509.oid import NameOID
 from grpc import aio
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
 from drvs import certs as drvs_certs
 from drvs.convert import homography_from_pb
@@ -548,6 +550,20 @@ async def test_a_camera_serves_its_server_only_detect_batches(
             replies = await batch(stub, cam1_request("batched"), bearer(LOBBY_TOKEN))
             [reply] = replies.replies
             assert reply.request_id == "batched" and list(reply.camera_ids) == ["cam1"], reply
+            # Health and reflection stay open to probes (grpc_health_probe, grpcurl list), and list
+            # what a camera serves: no FrameStream without --serve-frames.
+            health = await health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(service=""))
+            assert health.status == health_pb2.HealthCheckResponse.SERVING
+            listing = reflection_pb2_grpc.ServerReflectionStub(channel).ServerReflectionInfo()
+            await listing.write(reflection_pb2.ServerReflectionRequest(list_services=""))
+            answer = await listing.read()
+            listing.cancel()
+            names = {s.name for s in answer.list_services_response.service}
+            assert names == {
+                "drvs.v1.DetectObjectBoundary",
+                "grpc.health.v1.Health",
+                "grpc.reflection.v1alpha.ServerReflection",
+            }, names
     finally:
         for proc in reversed(procs):
             await proc.stop()
