@@ -161,8 +161,11 @@ async def test_tokens_robots_and_cameras_need_their_own(token_office: tuple[str,
             region=geometry_pb2.Region(box=geometry_pb2.Box(x_lower=-1, y_lower=0, x_upper=1, y_upper=5)),
             callback_address="10.9.9.9:9",
         )
+        # (on DetectBatches, the one method a camera serves; the server's forwards use it)
+        call = stub.DetectBatches(metadata=bearer(ROBOT_TOKEN))
         with pytest.raises(aio.AioRpcError) as err:
-            await stub.DetectObjects(request, metadata=bearer(ROBOT_TOKEN))
+            await call.write(detection_pb2.DetectionRequests(requests=[request]))
+            await call.read()
         assert err.value.code() == grpc.StatusCode.UNAUTHENTICATED
 
 

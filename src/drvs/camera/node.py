@@ -4,12 +4,13 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import functools
 import hmac
 import logging
 import math
 import secrets
 import time
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator, Callable, Mapping
 from typing import Any
 
 import cv2
@@ -22,6 +23,7 @@ from drvs import logs, metrics
 from drvs._service import Endpoint, Lifecycle
 from drvs.callback import CallbackSender
 from drvs.convert import homography_to_pb, request_from_pb
+from drvs.detection import Frame
 from drvs.detectors import (
     DEFAULT_MIN_AREA_PX,
     REGISTRY,
@@ -272,6 +274,24 @@ class CameraNode(Lifecycle):
                         self.source.description,
                     )
 
+    async def frames(
+        self, max_fps: float, encode: Callable[[NDArray[np.uint8]], bytes]
+    ) -> AsyncIterator[tuple[Frame, bytes]]:
+        """Every new frame of the source (at most `max_fps` a second; 0: every one), encoded by
+        `encode` in a thread: the baseline DRVS replaces, for --serve-frames."""
+        period = 1.0 / max_fps if max_fps else 0.0
+        loop = asyncio.get_running_loop()
+        last_sequence = -1
+        next_at = loop.time()
+        while True:
+            frame = self.source.latest()
+            if frame is None or frame.sequence == last_sequence or loop.time() < next_at:
+                await asyncio.sleep(FRAME_POLL_S)
+                continue
+            last_sequence = frame.sequence
+            next_at = max(next_at + period, loop.time()) if period else 0.0
+            yield frame, await asyncio.to_thread(encode, frame.image)
+
     # --- detectors ---------------------------------------------------------------------------
 
     def _start_detectors(self, view: CameraView) -> None:
@@ -316,6 +336,10 @@ class CameraNode(Lifecycle):
     # --- serving requests --------------------------------------------------------------------
 
     def accept(self, request: DetectionRequest) -> None:
+        """Take a request: check it against this camera (its detectors, its load, the robot's
+        continuous requests here) and start serving it; its reports go to its callback address."""
+        if self.view is None:
+            raise FailedPrecondition(f"camera {self.camera_id} is not started")
         wanted = object_type(request.filter_def)
         runner = self.kinds.get(wanted.kind)
         if runner is None:
@@ -466,8 +490,6 @@ class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         self._node = node
 
     def _accept(self, message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
-        if self._node.view is None:
-            raise FailedPrecondition(f"camera {self._node.camera_id} is not started")
         request = request_from_pb(message, require_request_id=True)
         self._node.accept(request)
         return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=[self._node.camera_id])
@@ -543,18 +565,9 @@ class _FrameStreaming(stream_pb2_grpc.FrameStreamServicer):
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "jpeg_quality: must be 1-100")
         if not (math.isfinite(request.max_fps) and 0 <= request.max_fps <= 1000):
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "max_fps: must be 0-1000")
-        period = 1.0 / request.max_fps if request.max_fps else 0.0
-        loop = asyncio.get_running_loop()
-        last_sequence = -1
-        next_at = loop.time()
-        while True:
-            frame = self._node.source.latest()
-            if frame is None or frame.sequence == last_sequence or loop.time() < next_at:
-                await asyncio.sleep(FRAME_POLL_S)
-                continue
-            last_sequence = frame.sequence
-            next_at = max(next_at + period, loop.time()) if period else 0.0
-            data = await asyncio.to_thread(encode_frame, frame.image, request.encoding, quality)
+        async for frame, data in self._node.frames(
+            request.max_fps, functools.partial(encode_frame, encoding=request.encoding, quality=quality)
+        ):
             msg = stream_pb2.VideoFrame(
                 camera_id=self._node.camera_id,
                 sequence=frame.sequence,

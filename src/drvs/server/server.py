@@ -570,6 +570,54 @@ class DrvsServer(Lifecycle):
             reply.coverage_uncertain_s = uncertain
         return reply
 
+    async def submit(
+        self,
+        request: DetectionRequest,
+        message: detection_pb2.DetectionRequest,
+        secret: bytes,
+        robot: str,
+        peer: IPAddress | None,
+        checked_callbacks: dict[str, str],
+        slots: _Slots | None = None,
+    ) -> detection_pb2.DetectionReply:
+        """A robot's validated request (`request`, and `message` as it is to be forwarded): refused
+        if no camera serves its type; counted against `robot`'s limits; its callback checked against
+        the robot's address `peer` (once per address per call: `checked_callbacks`); forwarded to the
+        cameras that see its region. `secret`: the robot's report secret. `slots`: the continuous
+        requests of the robot's request stream, freed when cancelled. The reply, at once."""
+        plan = self.plan(request)
+        cameras = plan[0]
+        if not cameras and not plan[1]:
+            self.refuse_unserved(request)
+        # What this request costs the cameras, counted against the robot's budget (not what it
+        # cost the robot to send: on a stream a repeated region is left out).
+        limits = self.limits
+        size = message.ByteSize()
+        slot = limits.admit(robot, request.continuous.duration_s, size * len(cameras))
+        try:
+            verified = checked_callbacks.get(request.callback_address)
+            if verified is None:
+                verified = await self.callback_policy.check(request.callback_address, peer)
+                checked_callbacks[request.callback_address] = verified
+        except BaseException:
+            limits.release(robot, slot)
+            raise
+        if verified != request.callback_address:
+            # Cameras dial the address that was checked, not a name that may resolve anew.
+            request = dataclasses.replace(request, callback_address=verified)
+            message.callback_address = verified
+        on_none_accepted: Callable[[], None] | None = None
+        if slot is not None and not cameras:
+            limits.release(robot, slot)  # nothing runs: the slot is free again at once
+        elif slot is not None and slots is not None:
+            slots.hold(request.request_id, slot)  # until it ends, is cancelled, or no camera takes it
+            on_none_accepted = functools.partial(slots.release, request.request_id)
+        elif slot is not None:
+            on_none_accepted = functools.partial(limits.release, robot, slot)
+        reply = self.dispatch(request, message, secret, plan, on_none_accepted)
+        metrics.FORWARDED_BYTES.inc(size * len(reply.camera_ids))
+        return reply
+
     def _spawn(self, coro: Any) -> None:
         task = asyncio.get_running_loop().create_task(coro)
         self._tasks.add(task)
@@ -739,38 +787,7 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
             request = dataclasses.replace(request, request_id=uuid.uuid4().hex)
             message.request_id = request.request_id
             logs.request_id.set(request.request_id)
-        plan = self._s.plan(request)
-        cameras = plan[0]
-        if not cameras and not plan[1]:
-            self._s.refuse_unserved(request)
-        # What this request costs the cameras, counted against the robot's budget (not what it
-        # cost the robot to send: on a stream a repeated region is left out).
-        limits = self._s.limits
-        size = message.ByteSize()
-        slot = limits.admit(robot, request.continuous.duration_s, size * len(cameras))
-        try:
-            verified = allowed.get(request.callback_address)
-            if verified is None:
-                verified = await self._s.callback_policy.check(request.callback_address, peer)
-                allowed[request.callback_address] = verified
-        except BaseException:
-            limits.release(robot, slot)
-            raise
-        if verified != request.callback_address:
-            # Cameras dial the address that was checked, not a name that may resolve anew.
-            request = dataclasses.replace(request, callback_address=verified)
-            message.callback_address = verified
-        on_none_accepted: Callable[[], None] | None = None
-        if slot is not None and not cameras:
-            limits.release(robot, slot)  # nothing runs: the slot is free again at once
-        elif slot is not None and slots is not None:
-            slots.hold(request.request_id, slot)  # until it ends, is cancelled, or no camera takes it
-            on_none_accepted = functools.partial(slots.release, request.request_id)
-        elif slot is not None:
-            on_none_accepted = functools.partial(limits.release, robot, slot)
-        reply = self._s.dispatch(request, message, secret, plan, on_none_accepted)
-        metrics.FORWARDED_BYTES.inc(size * len(reply.camera_ids))
-        return reply
+        return await self._s.submit(request, message, secret, robot, peer, allowed, slots)
 
     @_grpc.servicer_method
     async def DetectObjects(
