@@ -85,3 +85,13 @@ def test_server_config_takes_a_flag_over_its_variable_over_the_default() -> None
     server = DrvsServer(config=ServerConfig(rate_limit_hz=3, max_continuous=4, max_forward_bytes_per_s=5))
     assert (server.limits.rate_hz, server.limits.burst, server.limits.max_active) == (3, 6, 4)
     assert server.limits.forward_bytes_per_s == 5
+
+
+def test_the_server_constructor_refuses_what_only_it_takes() -> None:
+    assert refusal(lambda: DrvsServer(default_max_range_m=150)) == (
+        "default_max_range_m: 150 m must be in (0, max_fov_range_m 100 m]"
+    )
+    assert DrvsServer(default_max_range_m=150, max_fov_range_m=200).default_max_range_m == 150
+    assert refusal(lambda: DrvsServer(config=ServerConfig(), forward_timeout_s=5)) == (
+        "config: give the settings either as a ServerConfig or as keywords, not both"
+    )

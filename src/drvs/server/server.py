@@ -187,8 +187,9 @@ class DrvsServer(Lifecycle):
     """The server role as an object: start(), stop(grace), `async with`; port 0 picks a free port.
 
     The keyword arguments are `ServerConfig`'s settings (see there for units and ranges), checked
-    by it exactly as drvs-server checks its flags; `DrvsServer.from_config` takes a ServerConfig.
-    `limits` and `connection_limits`, when given, replace the ones the config describes."""
+    by it exactly as drvs-server checks its flags. `config` gives them all at once instead (as
+    `DrvsServer.from_config` does); `limits` and `connection_limits`, when given, replace the
+    request and connection limits the config describes."""
 
     def __init__(
         self,
@@ -213,22 +214,25 @@ class DrvsServer(Lifecycle):
         warm_up_s: float | None = None,
         config: ServerConfig | None = None,
     ) -> None:
+        given = ServerConfig(
+            listen=listen,
+            lease_ttl_s=lease_ttl_s,
+            forward_timeout_s=forward_timeout_s,
+            max_queued_forwards=max_queued_forwards,
+            default_max_range_m=default_max_range_m,
+            allow_callback=tuple(allow_callback),
+            allow_any_callback=allow_any_callback,
+            trust_network=trust_network,
+            registration_grace_s=registration_grace_s,
+            max_cameras_per_identity=max_cameras_per_identity,
+            max_fov_range_m=max_fov_range_m,
+            max_fov_area_m2=max_fov_area_m2,
+            warm_up_s=warm_up_s,
+        )
         if config is None:
-            config = ServerConfig(
-                listen=listen,
-                lease_ttl_s=lease_ttl_s,
-                forward_timeout_s=forward_timeout_s,
-                max_queued_forwards=max_queued_forwards,
-                default_max_range_m=default_max_range_m,
-                allow_callback=tuple(allow_callback),
-                allow_any_callback=allow_any_callback,
-                trust_network=trust_network,
-                registration_grace_s=registration_grace_s,
-                max_cameras_per_identity=max_cameras_per_identity,
-                max_fov_range_m=max_fov_range_m,
-                max_fov_area_m2=max_fov_area_m2,
-                warm_up_s=warm_up_s,
-            )
+            config = given
+        elif given != ServerConfig():
+            raise InvalidArgument("config: give the settings either as a ServerConfig or as keywords, not both")
         self.config = config
         self.callback_policy = CallbackPolicy(config.allow_callback, config.allow_any_callback)
         self.security = security or Security()
