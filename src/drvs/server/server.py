@@ -23,7 +23,6 @@ from drvs import _grpc, logs, metrics
 from drvs._service import Endpoint, Lifecycle
 from drvs.callback import CallbackSender
 from drvs.convert import (
-    homography_from_pb,
     polygon_to_pb,
     region_from_pb,
     request_from_pb,
@@ -150,8 +149,9 @@ class CameraRegistration:
     camera_id: str
     #: host:port the server dials to forward requests.
     address: str
-    #: image pixels -> floor metres.
-    homography: Homography
+    #: image pixels -> floor metres: the 3x3 matrix, row-major (checked when registered, after the
+    #: caller's claim on the id, so a caller without one learns nothing else).
+    homography: tuple[float, ...]
     #: (width, height) of the camera's images, pixels.
     image_size: tuple[int, int]
     detector_kinds: tuple[str, ...]
@@ -411,7 +411,7 @@ class DrvsServer(Lifecycle):
         entry = self.registry.register(
             camera_id=camera_id,
             address=registration.address,
-            homography=registration.homography,
+            homography=Homography.from_values(registration.homography, "homography"),
             image_size=registration.image_size,
             detector_kinds=set(registration.detector_kinds),
             max_range_m=registration.max_range_m or self.default_max_range_m,
@@ -855,7 +855,7 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
         registration = CameraRegistration(
             camera_id=message.camera_id,
             address=message.address,
-            homography=homography_from_pb(message.homography),
+            homography=tuple(message.homography.m),
             image_size=(message.image_width, message.image_height),
             detector_kinds=tuple(message.detector_kinds),
             max_range_m=message.max_range_m,
