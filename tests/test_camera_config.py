@@ -155,9 +155,9 @@ def test_heartbeat_never_outlives_the_lease(tmp_path: Path) -> None:
 
     h = homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
     node = CameraNode("a", VideoSource("0"), h, "127.0.0.1:1", heartbeat_s=2.0)
-    assert node._heartbeat_interval(10.0) == 2.0
-    assert node._heartbeat_interval(3.0) == 1.5  # at most half the lease
-    assert CameraNode("b", VideoSource("0"), h, "127.0.0.1:1")._heartbeat_interval(9.0) == 3.0
+    assert node.registration.heartbeat_interval(10.0) == 2.0
+    assert node.registration.heartbeat_interval(3.0) == 1.5  # at most half the lease
+    assert CameraNode("b", VideoSource("0"), h, "127.0.0.1:1").registration.heartbeat_interval(9.0) == 3.0
 
 
 async def test_a_source_of_another_size_is_refused(office: Office) -> None:

@@ -17,6 +17,8 @@ import pytest
 from cryptography import x509
 from cryptography.x509.oid import NameOID
 from grpc import aio
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
 from drvs import certs as drvs_certs
 from drvs.convert import homography_from_pb
@@ -109,6 +111,21 @@ async def recorder() -> AsyncIterator[tuple[Recorder, str]]:
         yield servicer, f"127.0.0.1:{port}"
     finally:
         await server.stop(0)
+
+
+async def batch(
+    stub: detection_pb2_grpc.DetectObjectBoundaryStub,
+    request: detection_pb2.DetectionRequest,
+    metadata: tuple[tuple[str, str], ...] = (),
+) -> detection_pb2.DetectionReplies:
+    """Send one request to a camera as its server does (DetectBatches); the camera's replies."""
+    call = stub.DetectBatches(metadata=metadata)
+    try:
+        await call.write(detection_pb2.DetectionRequests(requests=[request]))
+        replies: detection_pb2.DetectionReplies = await call.read()
+        return replies
+    finally:
+        call.cancel()
 
 
 def camera_address(camera: ManagedProcess) -> str:
@@ -480,9 +497,7 @@ async def test_a_camera_without_credentials_takes_requests_and_gives_frames_only
         async with aio.insecure_channel(camera_address(plain)) as channel:
             stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
             for metadata in ((), bearer("not-the-secret-0123456789")):
-                details = await refused(
-                    stub.DetectObjects(cam1_request("direct"), metadata=metadata), grpc.StatusCode.UNAUTHENTICATED
-                )
+                details = await refused(batch(stub, cam1_request("direct"), metadata), grpc.StatusCode.UNAUTHENTICATED)
                 assert "need the secret this camera gave its server" in details
         async with aio.insecure_channel(camera_address(framing)) as channel:
             frames = stream_pb2_grpc.FrameStreamStub(channel)
@@ -497,6 +512,54 @@ async def test_a_camera_without_credentials_takes_requests_and_gives_frames_only
         async with DrvsClient(address, robot_id="r", listen="127.0.0.1:0") as robot:
             result = await robot.detect(YELLOW, CAM1_REGION, timeout_s=10)
             assert result.camera_ids == ("cam1",) and result.complete and len(result.detections) == 2
+    finally:
+        for proc in reversed(procs):
+            await proc.stop()
+
+
+async def test_a_camera_serves_its_server_only_detect_batches(
+    recorded: dict[str, RecordedCamera], tmp_path: Path
+) -> None:
+    """The server forwards to cameras only on DetectBatches; the robot-facing DetectObjects and
+    DetectStream of the shared service are not served by a camera (UNIMPLEMENTED), even to a caller
+    that holds the camera's own token, to whom DetectBatches answers."""
+    server, address = await start_server()
+    procs = [server]
+    try:
+        (tmp_path / "cam.token").write_text(LOBBY_TOKEN)
+        rec = recorded["cam1"]
+        camera = await start_camera(
+            "cam1", rec.video, rec.homography_file, address, "--max-range", MAX_RANGE,
+            "--token-file", str(tmp_path / "cam.token"),
+        )  # fmt: skip
+        procs.append(camera)
+        async with aio.insecure_channel(camera_address(camera)) as channel:
+            stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
+            for metadata in ((), bearer(LOBBY_TOKEN)):
+                details = await refused(
+                    stub.DetectObjects(cam1_request("one"), metadata=metadata), grpc.StatusCode.UNIMPLEMENTED
+                )
+                assert details.startswith("DetectObjects: a camera takes requests only from the server"), details
+                stream = stub.DetectStream(metadata=metadata)
+                details = await refused(stream.read(), grpc.StatusCode.UNIMPLEMENTED)
+                assert details.startswith("DetectStream: a camera takes requests only from the server"), details
+            replies = await batch(stub, cam1_request("batched"), bearer(LOBBY_TOKEN))
+            [reply] = replies.replies
+            assert reply.request_id == "batched" and list(reply.camera_ids) == ["cam1"], reply
+            # Health and reflection stay open to probes (grpc_health_probe, grpcurl list), and list
+            # what a camera serves: no FrameStream without --serve-frames.
+            health = await health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(service=""))
+            assert health.status == health_pb2.HealthCheckResponse.SERVING
+            listing = reflection_pb2_grpc.ServerReflectionStub(channel).ServerReflectionInfo()
+            await listing.write(reflection_pb2.ServerReflectionRequest(list_services=""))
+            answer = await listing.read()
+            listing.cancel()
+            names = {s.name for s in answer.list_services_response.service}
+            assert names == {
+                "drvs.v1.DetectObjectBoundary",
+                "grpc.health.v1.Health",
+                "grpc.reflection.v1alpha.ServerReflection",
+            }, names
     finally:
         for proc in reversed(procs):
             await proc.stop()

@@ -253,7 +253,7 @@ async def test_a_restarted_server_says_coverage_is_uncertain_for_a_lease() -> No
     ).start()
     try:
         assert await proc.wait(timeout=30) == 2
-        assert "--warm-up: -1.0 must be in [0, 3600]" in proc.output()
+        assert "warm_up_s (--warm-up): -1 must be in [0, 3600]" in proc.output()
     finally:
         await proc.stop()
 

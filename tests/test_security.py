@@ -155,8 +155,11 @@ async def test_tokens_robots_and_cameras_need_their_own(token_office: tuple[str,
     async with aio.insecure_channel(listening) as channel:
         stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
         request = detect_message(request_id="direct", callback_address="10.9.9.9:9")
+        # (on DetectBatches, the one method a camera serves; the server's forwards use it)
+        call = stub.DetectBatches(metadata=bearer(ROBOT_TOKEN))
         with pytest.raises(aio.AioRpcError) as err:
-            await stub.DetectObjects(request, metadata=bearer(ROBOT_TOKEN))
+            await call.write(detection_pb2.DetectionRequests(requests=[request]))
+            await call.read()
         assert err.value.code() == grpc.StatusCode.UNAUTHENTICATED
 
 

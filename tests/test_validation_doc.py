@@ -273,16 +273,24 @@ def cli_cases(tmp: Path) -> list[CliCase]:
     config.write_text("id: cam1\nsource: x.avi\nhomography: h.yaml\nzoom: 2\n")
     camera = ("--id", "cam1", "--source", "x.avi", "--homography", "h.yaml")
     return [
-        CliCase("drvs-server", ("--listen", "nowhere"), "--listen: '…' is not host:port"),
-        CliCase("drvs-server", ("--lease-ttl", "0"), "--lease-ttl: … must be in (0, 3600]"),
-        CliCase("drvs-server", ("--forward-timeout", "100"), "--forward-timeout: … must be in (0, 60]"),
+        CliCase("drvs-server", ("--listen", "nowhere"), "listen (--listen, DRVS_SERVER_LISTEN): '…' is not host:port"),
+        CliCase(
+            "drvs-server", ("--lease-ttl", "0"), "lease_ttl_s (--lease-ttl, DRVS_LEASE_TTL): … must be in (0, 3600]"
+        ),
+        CliCase(
+            "drvs-server", ("--forward-timeout", "100"), "forward_timeout_s (--forward-timeout): … must be in (0, 60]"
+        ),
         CliCase(
             "drvs-server",
             ("--allow-callback", "anywhere"),
             "--allow-callback: '…' is not an IP network (e.g. 10.0.0.0/8)",
         ),
+        CliCase("drvs-server", ("--rate-limit", "0"), "rate_limit_hz (--rate-limit): … must be in (0, 1e6]"),
+        CliCase("drvs-server", ("--max-continuous", "0"), "max_continuous (--max-continuous): … must be in [1, 1e6]"),
         CliCase(
-            "drvs-server", ("--rate-limit", "0"), "--rate-limit must be in (0, 1e6] and --max-continuous in [1, 1e6]"
+            "drvs-server",
+            ("--max-queued-forwards", "0"),
+            "max_queued_forwards (--max-queued-forwards): … must be in [1, 100000]",
         ),
         CliCase("drvs-camera", ("--config", str(config)), "config FILE: KEY: unknown key (expected one of: …)"),
         CliCase(
@@ -312,21 +320,27 @@ def cli_cases(tmp: Path) -> list[CliCase]:
         CliCase(
             "drvs-camera",
             (*camera, "--max-continuous", "0"),
-            "max_continuous (from …): '…' must be a whole number from 1 to 1000000",
+            "max_continuous (from …): … must be a whole number from 1 to 1000000",
         ),
         CliCase(
             "drvs-camera",
             (*camera, "--detect-workers", "0"),
-            "detect_workers (from …): '…' must be a whole number from 1 to 64",
+            "detect_workers (from …): … must be a whole number from 1 to 64",
         ),
         CliCase(
             "drvs-camera",
             (*camera, "--people-min-height", "20"),
-            "people_min_height_px (from …): '…' must be a number from 32 to 1024",
+            "people_min_height_px (from …): … must be a number from 32 to 1024",
         ),
-        CliCase("drvs-server", ("--max-forward-bytes", "0"), "--max-forward-bytes: … must be in [1, 1e12]"),
         CliCase(
-            "drvs-server", ("--max-connection-idle", "-1"), "--max-connection-idle: … must be in [0, 1e9] (0: no limit)"
+            "drvs-server",
+            ("--max-forward-bytes", "0"),
+            "max_forward_bytes_per_s (--max-forward-bytes): … must be in [1, 1e12]",
+        ),
+        CliCase(
+            "drvs-server",
+            ("--max-connection-idle", "-1"),
+            "max_connection_idle_s (--max-connection-idle): … must be in [0, 1e9] (0: no limit)",
         ),
         CliCase("drvs-server", ("--metrics-port", "nowhere"), "--metrics-port: '…' is not host:port"),
     ]
@@ -335,12 +349,23 @@ def cli_cases(tmp: Path) -> list[CliCase]:
 #: The registration flags (issue 14), run apart so that not every process starts at once.
 REGISTRATION_CLI_CASES = [
     CliCase("drvs-server", (), "DRVS_TRUST_NETWORK: '…' is not true or false", (("DRVS_TRUST_NETWORK", "maybe"),)),
-    CliCase("drvs-server", ("--registration-grace", "-1"), "--registration-grace: … must be in [0, 86400]"),
     CliCase(
-        "drvs-server", ("--max-cameras-per-identity", "0"), "--max-cameras-per-identity: … must be in [1, 1000000]"
+        "drvs-server",
+        ("--registration-grace", "-1"),
+        "registration_grace_s (--registration-grace): … must be in [0, 86400]",
     ),
-    CliCase("drvs-server", ("--max-fov-range", "5"), "--max-fov-range: … must be in [15, 10000] metres"),
-    CliCase("drvs-server", ("--max-fov-area", "0"), "--max-fov-area: … must be in [1, 1e8] square metres"),
+    CliCase(
+        "drvs-server",
+        ("--max-cameras-per-identity", "0"),
+        "max_cameras_per_identity (--max-cameras-per-identity): … must be in [1, 1e6]",
+    ),
+    CliCase(
+        "drvs-server", ("--max-fov-range", "5"), "max_fov_range_m (--max-fov-range): … must be in [15, 10000] metres"
+    ),
+    CliCase(
+        "drvs-server", ("--max-fov-area", "0"), "max_fov_area_m2 (--max-fov-area): … must be in [1, 1e8] square metres"
+    ),
+    CliCase("drvs-server", (), "DRVS_LEASE_TTL: '…' is not a number", (("DRVS_LEASE_TTL", "ten"),)),
 ]
 
 

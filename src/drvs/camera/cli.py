@@ -389,10 +389,10 @@ def main(argv: list[str] | None = None) -> int:
             serve_frames=config.serve_frames,
             resolution=config.resolution,
             detectors=config.detectors,
-            heavy_workers=config.detect_workers,
+            detect_workers=config.detect_workers,
             detector_options=config.detector_options(),
             heartbeat_s=config.heartbeat_s,
-            max_continuous_per_robot=config.max_continuous,
+            max_continuous=config.max_continuous,
             security=config.security(),
         )
     except DrvsError as exc:

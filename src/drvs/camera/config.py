@@ -28,9 +28,15 @@ from drvs.security import Security
 
 DEFAULT_SERVER = "127.0.0.1:50051"
 DEFAULT_LISTEN = "127.0.0.1:0"
+#: A frame older than this (seconds) is not used for detection: the camera says so instead.
 DEFAULT_MAX_FRAME_AGE_S = 2.0
-DEFAULT_MAX_CONTINUOUS_PER_ROBOT = 32  # as drvs.camera.node's
-#: As drvs.camera.node's DEFAULT_HEAVY_WORKERS: one thread on two cores, leaving one for the rest.
+#: Continuous requests one robot (its callback address, which the server checked is the robot's
+#: own) may have running on this camera at once: the server's per-robot cap counts a robot per
+#: credential or connection, and a robot with many connections would otherwise take every slot.
+DEFAULT_MAX_CONTINUOUS_PER_ROBOT = 32
+#: Threads that run heavy detectors (people, models: about 100 ms a frame here). Bounded: a burst
+#: of requests queues for them instead of starting a thread per request. One on two cores,
+#: leaving one for the rest.
 DEFAULT_DETECT_WORKERS = max(1, min(2, (os.cpu_count() or 1) - 1))
 
 #: Every environment variable a camera node reads, by setting.
@@ -108,6 +114,9 @@ class CameraConfig:
     #: drvs.detectors.model; paths are relative to the config file.
     models: dict[str, ModelSpec] = field(default_factory=dict)
 
+    def __post_init__(self) -> None:
+        check_settings({f.name: getattr(self, f.name) for f in fields(self)})
+
     def security(self) -> Security:
         return Security(
             tls_cert=self.tls_cert,
@@ -141,6 +150,47 @@ _FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max
           "people_min_height_px": "--people-min-height"}  # fmt: skip
 
 
+#: Numeric settings, checked wherever they come from (CameraConfig, CameraNode's constructor, the
+#: CLI): name -> (lowest, highest, whole numbers only).
+LIMITS: dict[str, tuple[float, float, bool]] = {
+    "max_range_m": (0.1, 1000.0, False),
+    "min_area_px": (1.0, 1e7, False),
+    "max_frame_age_s": (0.05, 3600.0, False),
+    "fps": (0.1, 1000.0, False),
+    "heartbeat_s": (0.05, 3600.0, False),
+    "people_min_height_px": (32.0, 1024.0, False),
+    "max_continuous": (1, 1_000_000, True),
+    "detect_workers": (1, 64, True),
+}
+
+
+def _number(value: float) -> str:
+    """1e7 rather than 1e+07."""
+    return f"{value:g}".replace("e+0", "e").replace("e+", "e")
+
+
+def check_setting(name: str, value: Any) -> None:
+    """InvalidArgument('name: value must be …') when a numeric setting is out of its range (None:
+    not set, allowed). The one check for the config, the CLI and CameraNode(...) alike."""
+    if name not in LIMITS or value is None:
+        return
+    low, high, whole = LIMITS[name]
+    number = value if isinstance(value, (int, float)) and not isinstance(value, bool) else math.nan
+    if whole and not (isinstance(number, int) or (math.isfinite(number) and number == int(number))):
+        number = math.nan
+    if not (math.isfinite(number) and low <= number <= high):
+        shown = _number(value) if not math.isnan(number) else repr(value)
+        kind = "a whole number" if whole else "a number"
+        bounds = f"{int(low)} to {int(high)}" if whole else f"{_number(low)} to {_number(high)}"
+        raise InvalidArgument(f"{name}: {shown} must be {kind} from {bounds}")
+
+
+def check_settings(values: Mapping[str, Any]) -> None:
+    """check_setting for each of `values` (by setting name)."""
+    for name, value in values.items():
+        check_setting(name, value)
+
+
 def load_config(
     flags: Mapping[str, Any], environ: Mapping[str, str], config_file: str | Path | None = None
 ) -> CameraConfig:
@@ -171,6 +221,11 @@ def load_config(
         else:
             continue
         values[name] = _convert(name, raw, origin, base if origin.startswith("config") else Path("."))
+        try:
+            check_setting(name, values[name])
+        except InvalidArgument as exc:
+            # The same message as CameraNode(...) gives, and where the value came from.
+            raise InvalidArgument(f"{name} (from {origin}){str(exc)[len(name) :]}") from None
     for required in ("id", "source", "homography"):
         if required not in values:
             raise InvalidArgument(
@@ -215,25 +270,15 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
                     f"installed: {', '.join(DETECTOR_KINDS)}"
                 )
             return tuple(dict.fromkeys(kinds))
-        if name in ("max_range_m", "min_area_px", "max_frame_age_s", "fps", "heartbeat_s", "people_min_height_px"):
-            value = float(raw) if not isinstance(raw, bool) else math.nan
-            limits = {
-                "max_range_m": (0.1, 1000.0),
-                "min_area_px": (1.0, 1e7),
-                "max_frame_age_s": (0.05, 3600.0),
-                "fps": (0.1, 1000.0),
-                "heartbeat_s": (0.05, 3600.0),
-                "people_min_height_px": (32.0, 1024.0),
-            }[name]
-            if not (math.isfinite(value) and limits[0] <= value <= limits[1]):
-                raise InvalidArgument(f"{where}: {raw!r} must be a number from {limits[0]:g} to {limits[1]:g}")
-            return value
-        if name in ("max_continuous", "detect_workers"):
-            count = int(raw) if not isinstance(raw, bool) and str(raw).strip().isdecimal() else 0
-            top = 1_000_000 if name == "max_continuous" else 64
-            if not 1 <= count <= top:
-                raise InvalidArgument(f"{where}: {raw!r} must be a whole number from 1 to {top}")
-            return count
+        if name in LIMITS and not LIMITS[name][2]:
+            if isinstance(raw, bool):
+                raise InvalidArgument(f"{where}: {raw!r} is not a number")
+            return float(raw)  # its range: check_setting
+        if name in LIMITS:
+            text = str(raw).strip()
+            if isinstance(raw, bool) or not (isinstance(raw, int) or text.lstrip("-").isdecimal()):
+                raise InvalidArgument(f"{where}: {raw!r} is not a whole number")
+            return int(text)
         if name == "metrics_port":
             port = int(raw) if not isinstance(raw, bool) and str(raw).strip().isdecimal() else -1
             if not 0 <= port <= 65535:
@@ -273,5 +318,5 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
         elif name == "source" and not text.strip():
             raise InvalidArgument(f"{where}: empty")
         return text
-    except ValueError:
+    except (ValueError, TypeError):
         raise InvalidArgument(f"{where}: {raw!r} is not a number") from None

@@ -4,13 +4,13 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import functools
 import hmac
 import logging
 import math
-import os
 import secrets
 import time
-from collections.abc import AsyncIterator, Mapping
+from collections.abc import AsyncIterator, Callable, Mapping
 from typing import Any
 
 import cv2
@@ -19,10 +19,11 @@ import numpy as np
 from grpc import aio
 from numpy.typing import NDArray
 
-from drvs import _grpc, logs, metrics
+from drvs import logs, metrics
 from drvs._service import Endpoint, Lifecycle
 from drvs.callback import CallbackSender
 from drvs.convert import homography_to_pb, request_from_pb
+from drvs.detection import Frame
 from drvs.detectors import (
     DEFAULT_MIN_AREA_PX,
     REGISTRY,
@@ -38,11 +39,18 @@ from drvs.filters import object_type
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
 from drvs.model import Detection, DetectionReport, DetectionRequest, check_id
 from drvs.net import dialable_address, parse_address
-from drvs.request_stream import serve_request_batches, serve_request_stream
+from drvs.request_stream import serve_request_batches
 from drvs.security import Security, bearer_token
-from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc, stream_pb2, stream_pb2_grpc
+from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, stream_pb2, stream_pb2_grpc
 
+from .config import (
+    DEFAULT_DETECT_WORKERS,
+    DEFAULT_MAX_CONTINUOUS_PER_ROBOT,
+    DEFAULT_MAX_FRAME_AGE_S,
+    check_settings,
+)
 from .prefetch import Analyses
+from .registration import Registration
 from .source import FrameSource
 
 log = logging.getLogger("drvs.camera")
@@ -51,17 +59,8 @@ SERVICE_NAMES = (detection_pb2.DESCRIPTOR.services_by_name["DetectObjectBoundary
 FRAME_STREAM_SERVICE = stream_pb2.DESCRIPTOR.services_by_name["FrameStream"].full_name
 #: How often a frame stream looks for a newer frame.
 FRAME_POLL_S = 0.005
-#: A frame older than this is not used for detection: the camera says so instead.
-DEFAULT_MAX_FRAME_AGE_S = 2.0
 #: Concurrent requests a node serves at once; more are refused with RESOURCE_EXHAUSTED.
 MAX_ACTIVE_REQUESTS = 512
-#: Continuous requests one robot (its callback address, which the server checked is the robot's
-#: own) may have running on this camera at once: the server's per-robot cap counts a robot per
-#: credential or connection, and a robot with many connections would otherwise take every slot.
-DEFAULT_MAX_CONTINUOUS_PER_ROBOT = 32
-#: Threads that run heavy detectors (people, models: about 100 ms a frame here). Bounded: a burst
-#: of requests queues for them instead of starting a thread per request.
-DEFAULT_HEAVY_WORKERS = max(1, min(2, (os.cpu_count() or 1) - 1))
 
 
 def default_detectors() -> tuple[str, ...]:
@@ -70,7 +69,11 @@ def default_detectors() -> tuple[str, ...]:
 
 
 class CameraNode(Lifecycle):
-    """A camera node as an object: start(), stop(grace), `async with`."""
+    """A camera node as an object: start(), stop(grace), `async with`.
+
+    The settings it shares with drvs-camera (max_range_m, min_area_px, max_frame_age_s,
+    heartbeat_s, max_continuous, detect_workers; see CameraConfig for units and ranges) are
+    checked by the same `check_settings` as the CLI's, with the same messages."""
 
     def __init__(
         self,
@@ -89,15 +92,24 @@ class CameraNode(Lifecycle):
         resolution: tuple[int, int] | None = None,
         detectors: tuple[str, ...] | None = None,
         detector_options: Mapping[str, Mapping[str, Any]] | None = None,
-        heavy_workers: int = DEFAULT_HEAVY_WORKERS,
+        detect_workers: int = DEFAULT_DETECT_WORKERS,
         heartbeat_s: float | None = None,
         security: Security | None = None,
-        max_continuous_per_robot: int = DEFAULT_MAX_CONTINUOUS_PER_ROBOT,
+        max_continuous: int = DEFAULT_MAX_CONTINUOUS_PER_ROBOT,
     ) -> None:
+        check_settings(
+            {
+                "max_range_m": max_range_m,
+                "min_area_px": min_area_px,
+                "max_frame_age_s": max_frame_age_s,
+                "heartbeat_s": heartbeat_s,
+                "max_continuous": max_continuous,
+                "detect_workers": detect_workers,
+            }
+        )
         self.security = security or Security()
-        if max_continuous_per_robot < 1:
-            raise InvalidArgument(f"max_continuous_per_robot: {max_continuous_per_robot} must be at least 1")
-        self.max_continuous_per_robot = max_continuous_per_robot
+        #: Continuous requests one robot (callback address) may have running here at once.
+        self.max_continuous = max_continuous
         # callback address -> continuous requests of that robot running here
         self._continuous: dict[str, int] = {}
         self.resolution = resolution
@@ -107,9 +119,7 @@ class CameraNode(Lifecycle):
         if unknown or not self.detectors:
             raise InvalidArgument(f"detectors: {unknown or 'none'}; must be some of {', '.join(prefixes())}")
         self.detector_options = dict(detector_options or {})
-        if heavy_workers < 1:
-            raise InvalidArgument(f"heavy_workers: {heavy_workers} must be at least 1")
-        self.heavy_workers = heavy_workers
+        self.detect_workers = detect_workers
         self._heavy_pool: concurrent.futures.ThreadPoolExecutor | None = None
         #: Running detector instances by prefix, and by the routing kinds they serve.
         self.runners: dict[str, Detector] = {}
@@ -133,12 +143,10 @@ class CameraNode(Lifecycle):
         self.max_frame_age_s = max_frame_age_s
         self.view: CameraView | None = None
         self.field_of_view: FieldOfView | None = None
-        self.registered = asyncio.Event()
+        self.registration = Registration(self.camera_id, server, self.security, heartbeat_s)
         self.serve_frames = serve_frames
         names = (*SERVICE_NAMES, FRAME_STREAM_SERVICE) if serve_frames else SERVICE_NAMES
         self._endpoint = Endpoint(listen, names, self._add_servicers, security=self.security)
-        self._channel: aio.Channel | None = None
-        self._registrar: asyncio.Task[None] | None = None
         self._watchdog: asyncio.Task[None] | None = None
         self.has_fresh_frame = True
         self._jobs: set[asyncio.Task[None]] = set()
@@ -148,12 +156,15 @@ class CameraNode(Lifecycle):
         # Handed to the server at registration; the server presents it on every forward, so this
         # node takes requests only from the server it registered with (see _ServerFacing).
         self.forward_secret = secrets.token_urlsafe(24)
-        # The current registration's secret, from the server: heartbeats and deregistration carry it.
-        self.registration_secret = ""
 
     @property
     def port(self) -> int:
         return self._endpoint.port
+
+    @property
+    def registered(self) -> asyncio.Event:
+        """Set once the node has registered with its server."""
+        return self.registration.registered
 
     @property
     def address(self) -> str:
@@ -181,7 +192,7 @@ class CameraNode(Lifecycle):
             self.homography, self.field_of_view, image_size, camera_id=self.camera_id, min_area_px=self.min_area_px
         )
         self._start_detectors(self.view)
-        self._heavy_pool = concurrent.futures.ThreadPoolExecutor(self.heavy_workers, f"detect:{self.camera_id}")
+        self._heavy_pool = concurrent.futures.ThreadPoolExecutor(self.detect_workers, f"detect:{self.camera_id}")
         observers = [d for d in self.runners.values() if d.observes]
         self._analyses = Analyses(self.source, self._prefetch, self.camera_id, observers=observers)
         self._analyses.start()
@@ -200,38 +211,34 @@ class CameraNode(Lifecycle):
                 "this camera's token, so nobody can stream them",
                 self.camera_id,
             )
-        self._channel = self.security.channel(self.server_address)
-        self._registrar = asyncio.get_running_loop().create_task(self._keep_registered(image_size))
+        self.registration.start(
+            registry_pb2.RegisterRequest(
+                camera_id=self.camera_id,
+                address=self.address,
+                homography=homography_to_pb(self.homography),
+                image_width=image_size[0],
+                image_height=image_size[1],
+                max_range_m=self.max_range_m,
+                detector_kinds=list(self.kinds),
+                forward_secret=self.forward_secret,
+            ),
+            self.field_of_view.floor.area,
+        )
         self._watchdog = asyncio.get_running_loop().create_task(self._watch_frames())
 
     async def stop(self, grace: float = 2.0) -> None:
         if self._stopped:
             return
         self._stopped = True
-        for task in (self._registrar, self._watchdog):
-            if task is not None:
-                task.cancel()
-                await asyncio.gather(task, return_exceptions=True)
-        if self.registered.is_set() and self._channel is not None:
-            try:
-                stub = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
-                await stub.Deregister(
-                    registry_pb2.DeregisterRequest(
-                        camera_id=self.camera_id, registration_secret=self.registration_secret
-                    ),
-                    timeout=1.0,
-                    metadata=self.security.metadata(),
-                )
-                log.info("camera %s deregistered", self.camera_id)
-            except grpc.RpcError as exc:
-                log.warning("camera %s: deregistration failed: %s", self.camera_id, _details(exc))
+        if self._watchdog is not None:
+            self._watchdog.cancel()
+            await asyncio.gather(self._watchdog, return_exceptions=True)
+        await self.registration.stop()
         await self._endpoint.stop(grace)
         for job in list(self._jobs):
             job.cancel()
         await asyncio.gather(*self._jobs, return_exceptions=True)
         await self._callbacks.close()
-        if self._channel is not None:
-            await self._channel.close()
         if self._analyses is not None:
             await asyncio.to_thread(self._analyses.stop)
         if self._heavy_pool is not None:
@@ -267,101 +274,23 @@ class CameraNode(Lifecycle):
                         self.source.description,
                     )
 
-    # --- registration: soft state ------------------------------------------------------------
-
-    def _heartbeat_interval(self, lease_ttl_s: float) -> float:
-        """The configured interval, but never so long that the lease runs out between beats."""
-        interval = lease_ttl_s / 3 if self.heartbeat_s is None else min(self.heartbeat_s, lease_ttl_s / 2)
-        return max(0.05, interval)
-
-    async def _keep_registered(self, image_size: tuple[int, int]) -> None:
-        assert self._channel is not None
-        stub = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
-        register = registry_pb2.RegisterRequest(
-            camera_id=self.camera_id,
-            address=self.address,
-            homography=homography_to_pb(self.homography),
-            image_width=image_size[0],
-            image_height=image_size[1],
-            max_range_m=self.max_range_m,
-            detector_kinds=list(self.kinds),
-            forward_secret=self.forward_secret,
-        )
-        interval = 1.0
-        backoff = 0.2
-        ever_registered = False
-        registered = False
+    async def frames(
+        self, max_fps: float, encode: Callable[[NDArray[np.uint8]], bytes]
+    ) -> AsyncIterator[tuple[Frame, bytes]]:
+        """Every new frame of the source (at most `max_fps` a second; 0: every one), encoded by
+        `encode` in a thread: the baseline DRVS replaces, for --serve-frames."""
+        period = 1.0 / max_fps if max_fps else 0.0
+        loop = asyncio.get_running_loop()
+        last_sequence = -1
+        next_at = loop.time()
         while True:
-            try:
-                if not registered:
-                    # The previous registration's secret proves this is the same camera coming back.
-                    register.registration_secret = self.registration_secret
-                    reply = await stub.Register(register, timeout=5.0, metadata=self.security.metadata())
-                    self.registration_secret = reply.registration_secret
-                    registered = True
-                    interval = self._heartbeat_interval(reply.lease_ttl_s)
-                    log.info(
-                        "camera %s %s with %s: lease %.1f s, field of view %.1f m²",
-                        self.camera_id,
-                        "re-registered" if ever_registered else "registered",
-                        self.server_address,
-                        reply.lease_ttl_s,
-                        self.field_of_view.floor.area if self.field_of_view else 0.0,
-                    )
-                    ever_registered = True
-                    self.registered.set()
-                else:
-                    reply_hb = await stub.Heartbeat(
-                        registry_pb2.HeartbeatRequest(
-                            camera_id=self.camera_id, registration_secret=self.registration_secret
-                        ),
-                        timeout=interval,
-                        metadata=self.security.metadata(),
-                    )
-                    interval = self._heartbeat_interval(reply_hb.lease_ttl_s)
-                backoff = 0.2
-                await asyncio.sleep(interval)
-            except grpc.RpcError as exc:
-                code = exc.code() if isinstance(exc, aio.AioRpcError) else grpc.StatusCode.UNKNOWN
-                if code == grpc.StatusCode.NOT_FOUND:
-                    log.info(
-                        "camera %s: server does not know this camera (restarted?); registering again",
-                        self.camera_id,
-                    )
-                    registered = False
-                    continue
-                if code == grpc.StatusCode.FAILED_PRECONDITION and registered:
-                    log.warning(
-                        "camera %s: the server says another registration replaced ours (%s); registering again",
-                        self.camera_id,
-                        _details(exc),
-                    )
-                    registered = False
-                    continue
-                if code == grpc.StatusCode.PERMISSION_DENIED:
-                    registered = False
-                    log.error(
-                        "camera %s: CONFLICT: the server gives camera id %s to another registration: %s; "
-                        "retrying in %.1f s",
-                        self.camera_id,
-                        self.camera_id,
-                        _details(exc),
-                        backoff,
-                    )
-                elif code in (grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.UNAUTHENTICATED):
-                    registered = False
-                    log.error("camera %s: server refused registration: %s", self.camera_id, _details(exc))
-                else:
-                    log.warning(
-                        "camera %s: server %s unreachable: %s",
-                        self.camera_id,
-                        self.server_address,
-                        _details(exc),
-                    )
-                await asyncio.sleep(backoff)
-                # A conflict lasts at least a lease: ask again, but not more often than every 5 s.
-                conflict = code == grpc.StatusCode.PERMISSION_DENIED
-                backoff = min(backoff * 2, max(interval, 5.0) if conflict else interval)
+            frame = self.source.latest()
+            if frame is None or frame.sequence == last_sequence or loop.time() < next_at:
+                await asyncio.sleep(FRAME_POLL_S)
+                continue
+            last_sequence = frame.sequence
+            next_at = max(next_at + period, loop.time()) if period else 0.0
+            yield frame, await asyncio.to_thread(encode, frame.image)
 
     # --- detectors ---------------------------------------------------------------------------
 
@@ -407,6 +336,10 @@ class CameraNode(Lifecycle):
     # --- serving requests --------------------------------------------------------------------
 
     def accept(self, request: DetectionRequest) -> None:
+        """Take a request: check it against this camera (its detectors, its load, the robot's
+        continuous requests here) and start serving it; its reports go to its callback address."""
+        if self.view is None:
+            raise FailedPrecondition(f"camera {self.camera_id} is not started")
         wanted = object_type(request.filter_def)
         runner = self.kinds.get(wanted.kind)
         if runner is None:
@@ -419,10 +352,10 @@ class CameraNode(Lifecycle):
             raise ResourceExhausted(f"camera {self.camera_id}: {len(self._jobs)} requests active; try later")
         robot = request.callback_address
         continuous = not request.continuous.single_shot
-        if continuous and self._continuous.get(robot, 0) >= self.max_continuous_per_robot:
+        if continuous and self._continuous.get(robot, 0) >= self.max_continuous:
             raise ResourceExhausted(
                 f"camera {self.camera_id}: continuous: {self._continuous[robot]} continuous requests already "
-                f"running for {robot} (limit {self.max_continuous_per_robot}); wait for one to end or cancel one"
+                f"running for {robot} (limit {self.max_continuous}); wait for one to end or cancel one"
             )
         if log.isEnabledFor(logging.DEBUG):
             log.debug(
@@ -539,51 +472,48 @@ def _run(runner: Detector, analysis: FrameAnalysis, wanted: ObjectType) -> tuple
         metrics.DETECTOR_SECONDS.labels(runner.prefix).inc(time.perf_counter() - started)
 
 
-def _details(exc: grpc.RpcError) -> str:
-    if isinstance(exc, aio.AioRpcError):
-        return f"{exc.code().name} {exc.details()}"
-    return str(exc)
+#: What a camera answers on the robot-facing methods of the service it shares with the server.
+NOT_SERVED_HERE = (
+    "{method}: a camera takes requests only from the server it registered with, on DetectBatches; "
+    "robots send requests to the server"
+)
 
 
 class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
+    """Converts and delegates: the server's request batches to `CameraNode.accept`.
+
+    The camera serves the DetectObjectBoundary service the robots use on the server, but only its
+    DetectBatches method: the server forwards on nothing else. DetectObjects and DetectStream
+    answer UNIMPLEMENTED (no caller, so no code path to keep, secure and test)."""
+
     def __init__(self, node: CameraNode) -> None:
         self._node = node
 
-    async def _answer(self, message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
-        return self._accept(message)
-
     def _accept(self, message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
-        if self._node.view is None:
-            raise FailedPrecondition(f"camera {self._node.camera_id} is not started")
         request = request_from_pb(message, require_request_id=True)
         self._node.accept(request)
         return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=[self._node.camera_id])
 
-    async def _check_caller(self, context: aio.ServicerContext[Any, Any]) -> None:
-        await check_caller(self._node, context, "requests")
-
-    @_grpc.servicer_method
     async def DetectObjects(
         self, message: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
     ) -> detection_pb2.DetectionReply:
-        await self._check_caller(context)
-        return await self._answer(message)
+        await context.abort(grpc.StatusCode.UNIMPLEMENTED, NOT_SERVED_HERE.format(method="DetectObjects"))
+        raise AssertionError("abort raises")
 
     async def DetectStream(
         self,
         request_iterator: AsyncIterator[detection_pb2.DetectionRequest],
         context: aio.ServicerContext[Any, Any],
     ) -> AsyncIterator[detection_pb2.DetectionReply]:
-        await self._check_caller(context)
-        async for reply in serve_request_stream(request_iterator, self._answer, f"camera {self._node.camera_id}"):
-            yield reply
+        await context.abort(grpc.StatusCode.UNIMPLEMENTED, NOT_SERVED_HERE.format(method="DetectStream"))
+        yield detection_pb2.DetectionReply()  # never reached: abort raises
 
     async def DetectBatches(
         self,
         request_iterator: AsyncIterator[detection_pb2.DetectionRequests],
         context: aio.ServicerContext[Any, Any],
     ) -> AsyncIterator[detection_pb2.DetectionReplies]:
-        await self._check_caller(context)
+        await check_caller(self._node, context, "requests")
         async for replies in serve_request_batches(request_iterator, self._accept, f"camera {self._node.camera_id}"):
             yield replies
 
@@ -635,18 +565,9 @@ class _FrameStreaming(stream_pb2_grpc.FrameStreamServicer):
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "jpeg_quality: must be 1-100")
         if not (math.isfinite(request.max_fps) and 0 <= request.max_fps <= 1000):
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "max_fps: must be 0-1000")
-        period = 1.0 / request.max_fps if request.max_fps else 0.0
-        loop = asyncio.get_running_loop()
-        last_sequence = -1
-        next_at = loop.time()
-        while True:
-            frame = self._node.source.latest()
-            if frame is None or frame.sequence == last_sequence or loop.time() < next_at:
-                await asyncio.sleep(FRAME_POLL_S)
-                continue
-            last_sequence = frame.sequence
-            next_at = max(next_at + period, loop.time()) if period else 0.0
-            data = await asyncio.to_thread(encode_frame, frame.image, request.encoding, quality)
+        async for frame, data in self._node.frames(
+            request.max_fps, functools.partial(encode_frame, encoding=request.encoding, quality=quality)
+        ):
             msg = stream_pb2.VideoFrame(
                 camera_id=self._node.camera_id,
                 sequence=frame.sequence,

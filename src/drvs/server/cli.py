@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import asyncio
 import logging
+import os
 from pathlib import Path
 
 from drvs import _grpc
@@ -12,14 +13,12 @@ from drvs._cli import (
     add_observability_arguments,
     add_security_arguments,
     env,
-    env_number,
     security_from,
     setup_logging,
     shutdown_event,
 )
 from drvs.errors import DrvsError
 from drvs.metrics import DEFAULT_METRICS_HOST, parse_metrics_address, serve_metrics
-from drvs.net import parse_address
 from drvs.registry import (
     DEFAULT_GRACE_S,
     DEFAULT_LEASE_TTL_S,
@@ -28,28 +27,29 @@ from drvs.registry import (
     DEFAULT_MAX_FOV_RANGE_M,
 )
 from drvs.security import load_tokens
-from drvs.server.policy import (
-    DEFAULT_FORWARD_BYTES_PER_S,
-    DEFAULT_MAX_ACTIVE,
-    DEFAULT_RATE_HZ,
-    CallbackPolicy,
-    RequestLimits,
+from drvs.server.config import (
+    DEFAULT_FORWARD_TIMEOUT_S,
+    DEFAULT_LISTEN,
+    DEFAULT_MAX_QUEUED_FORWARDS,
+    ENVIRONMENT,
+    ServerConfig,
 )
-from drvs.server.server import DEFAULT_FORWARD_TIMEOUT_S, DEFAULT_LISTEN, DEFAULT_MAX_QUEUED_FORWARDS, DrvsServer
+from drvs.server.policy import DEFAULT_FORWARD_BYTES_PER_S, DEFAULT_MAX_ACTIVE, DEFAULT_RATE_HZ
+from drvs.server.server import DrvsServer
 
 log = logging.getLogger("drvs.server")
 
-ENV_LISTEN = "DRVS_SERVER_LISTEN"
-ENV_LEASE_TTL = "DRVS_LEASE_TTL"
-ENV_TRUST_NETWORK = "DRVS_TRUST_NETWORK"
+ENV_LISTEN = ENVIRONMENT["listen"]
+ENV_LEASE_TTL = ENVIRONMENT["lease_ttl_s"]
+ENV_TRUST_NETWORK = ENVIRONMENT["trust_network"]
 
 
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="drvs-server", description="Run the DRVS server (registry and routing).")
     p.add_argument(
         "--listen",
-        default=env(ENV_LISTEN, DEFAULT_LISTEN),
-        help=f"HOST:PORT to serve on; port 0 picks a free one (env {ENV_LISTEN}; default %(default)s)",
+        default=None,
+        help=f"HOST:PORT to serve on; port 0 picks a free one (env {ENV_LISTEN}; default {DEFAULT_LISTEN})",
     )
     p.add_argument(
         "--lease-ttl",
@@ -195,24 +195,11 @@ def build_parser() -> argparse.ArgumentParser:
 
 async def serve(args: argparse.Namespace) -> None:
     stop = shutdown_event()
-    server = DrvsServer(
-        args.listen,
-        lease_ttl_s=args.lease_ttl,
-        forward_timeout_s=args.forward_timeout,
-        max_queued_forwards=args.max_queued_forwards,
-        allow_callback=args.allow_callback,
-        allow_any_callback=args.allow_any_callback,
+    server = DrvsServer.from_config(
+        args.config,
         security=args.security,
         camera_tokens=args.camera_token_table,
         robot_tokens=args.robot_token_table,
-        limits=args.limits,
-        connection_limits=args.connection_limits,
-        trust_network=args.trust_network,
-        registration_grace_s=args.registration_grace,
-        max_cameras_per_identity=args.max_cameras_per_identity,
-        max_fov_range_m=args.max_fov_range,
-        max_fov_area_m2=args.max_fov_area,
-        warm_up_s=args.warm_up,
     )
     await server.start()
     if args.metrics is not None:
@@ -224,24 +211,39 @@ async def serve(args: argparse.Namespace) -> None:
         await server.stop(grace=2.0)
 
 
+def config_from(args: argparse.Namespace) -> ServerConfig:
+    """The flags (None: not given) and the DRVS_* environment as one validated ServerConfig."""
+    return ServerConfig.load(
+        {
+            "listen": args.listen,
+            "lease_ttl_s": args.lease_ttl,
+            "forward_timeout_s": args.forward_timeout,
+            "max_queued_forwards": args.max_queued_forwards,
+            "allow_callback": args.allow_callback,
+            "allow_any_callback": args.allow_any_callback,
+            "warm_up_s": args.warm_up,
+            "rate_limit_hz": args.rate_limit,
+            "max_continuous": args.max_continuous,
+            "max_forward_bytes_per_s": args.max_forward_bytes,
+            "max_streams_per_connection": args.max_streams_per_connection,
+            "max_connection_idle_s": args.max_connection_idle,
+            "max_connection_age_s": args.max_connection_age,
+            "max_connection_age_grace_s": args.max_connection_age_grace,
+            "trust_network": args.trust_network,
+            "registration_grace_s": args.registration_grace,
+            "max_cameras_per_identity": args.max_cameras_per_identity,
+            "max_fov_range_m": args.max_fov_range,
+            "max_fov_area_m2": args.max_fov_area,
+        },
+        os.environ,
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     try:
-        parse_address(args.listen, "--listen", allow_port_zero=True)
-        if args.lease_ttl is None:
-            args.lease_ttl = env_number(ENV_LEASE_TTL, DEFAULT_LEASE_TTL_S)
-        if not 0 < args.lease_ttl <= 3600:
-            raise DrvsError(f"--lease-ttl: {args.lease_ttl} must be in (0, 3600]")
-        if args.warm_up is not None and not 0 <= args.warm_up <= 3600:
-            raise DrvsError(f"--warm-up: {args.warm_up} must be in [0, 3600]")
-        CallbackPolicy(args.allow_callback)  # refuses a malformed network now, not after start
-        if not 0 < args.forward_timeout <= 60:
-            raise DrvsError(f"--forward-timeout: {args.forward_timeout} must be in (0, 60]")
-        if not 1 <= args.max_queued_forwards <= 100_000:
-            raise DrvsError(f"--max-queued-forwards: {args.max_queued_forwards} must be in [1, 100000]")
-        if not (0 < args.rate_limit <= 1e6 and 1 <= args.max_continuous <= 1e6):
-            raise DrvsError("--rate-limit must be in (0, 1e6] and --max-continuous in [1, 1e6]")
+        args.config = config_from(args)
         metrics_host = args.metrics_host or env("DRVS_METRICS_HOST", DEFAULT_METRICS_HOST) or DEFAULT_METRICS_HOST
         if args.metrics_port is not None:
             args.metrics = parse_metrics_address(args.metrics_port, "--metrics-port", metrics_host)
@@ -249,43 +251,6 @@ def main(argv: list[str] | None = None) -> int:
             args.metrics = parse_metrics_address(
                 env("DRVS_METRICS_PORT", "-1") or "-1", "DRVS_METRICS_PORT", metrics_host
             )
-        if not 1 <= args.max_forward_bytes <= 1e12:
-            raise DrvsError(f"--max-forward-bytes: {args.max_forward_bytes:g} must be in [1, 1e12]")
-        args.limits = RequestLimits(
-            args.rate_limit,
-            max(1, round(2 * args.rate_limit)),
-            args.max_continuous,
-            forward_bytes_per_s=args.max_forward_bytes,
-        )
-        for flag in (
-            "max_streams_per_connection",
-            "max_connection_idle",
-            "max_connection_age",
-            "max_connection_age_grace",
-        ):
-            if not 0 <= getattr(args, flag) <= 1e9:
-                raise DrvsError(
-                    f"--{flag.replace('_', '-')}: {getattr(args, flag):g} must be in [0, 1e9] (0: no limit)"
-                )
-        args.connection_limits = _grpc.ConnectionLimits(
-            max_streams=args.max_streams_per_connection,
-            max_idle_s=args.max_connection_idle,
-            max_age_s=args.max_connection_age,
-            age_grace_s=args.max_connection_age_grace,
-        )
-        if args.trust_network is None:
-            trust = (env(ENV_TRUST_NETWORK) or "0").strip().lower()
-            if trust not in ("1", "true", "yes", "on", "0", "false", "no", "off"):
-                raise DrvsError(f"{ENV_TRUST_NETWORK}: {trust!r} is not true or false")
-            args.trust_network = trust in ("1", "true", "yes", "on")
-        if not 0 <= args.registration_grace <= 86400:
-            raise DrvsError(f"--registration-grace: {args.registration_grace} must be in [0, 86400]")
-        if not 1 <= args.max_cameras_per_identity <= 1_000_000:
-            raise DrvsError(f"--max-cameras-per-identity: {args.max_cameras_per_identity} must be in [1, 1000000]")
-        if not 15 <= args.max_fov_range <= 10_000:
-            raise DrvsError(f"--max-fov-range: {args.max_fov_range} must be in [15, 10000] metres")
-        if not 1 <= args.max_fov_area <= 1e8:
-            raise DrvsError(f"--max-fov-area: {args.max_fov_area} must be in [1, 1e8] square metres")
         args.security = security_from(vars(args))
         for role in ("camera", "robot"):
             path = getattr(args, f"{role}_tokens") or env(f"DRVS_{role.upper()}_TOKENS")

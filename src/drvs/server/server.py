@@ -23,7 +23,6 @@ from drvs import _grpc, logs, metrics
 from drvs._service import Endpoint, Lifecycle
 from drvs.callback import CallbackSender
 from drvs.convert import (
-    homography_from_pb,
     polygon_to_pb,
     region_from_pb,
     request_from_pb,
@@ -37,7 +36,7 @@ from drvs.errors import (
     Unauthenticated,
     Unavailable,
 )
-from drvs.geometry import DEFAULT_MAX_RANGE_M
+from drvs.geometry import DEFAULT_MAX_RANGE_M, Homography
 from drvs.model import DetectionReport, DetectionRequest, check_id
 from drvs.net import host_of, is_loopback_host
 from drvs.registry import (
@@ -62,17 +61,17 @@ from drvs.security import (
     caller_identity,
     camera_identity,
 )
+from drvs.server.config import (
+    DEFAULT_FORWARD_TIMEOUT_S,
+    DEFAULT_LISTEN,
+    DEFAULT_MAX_QUEUED_FORWARDS,
+    ServerConfig,
+)
 from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits, peer_ip
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 log = logging.getLogger("drvs.server")
 
-DEFAULT_LISTEN = "127.0.0.1:50051"
-#: How long the server waits for a camera to accept a forwarded request.
-DEFAULT_FORWARD_TIMEOUT_S = 2.0
-#: Forwards to one camera waiting for its acceptance at once; past this the server sheds load:
-#: the robot gets an error report for that camera at once (RESOURCE_EXHAUSTED, "busy").
-DEFAULT_MAX_QUEUED_FORWARDS = 64
 #: ListCameras: cameras per reply unless the caller asks for fewer, and the most it may ask for.
 #: A camera's entry is at most about 4 kB (id, address, 16 detector kinds, a field of view of at
 #: most about 70 vertices): 500 of them stay far below the 4 MB message limit.
@@ -143,6 +142,27 @@ class MissingCamera:
     field_of_view: Polygon
 
 
+@dataclass(frozen=True)
+class CameraRegistration:
+    """What a camera registers: `RegisterRequest` as the server object takes it."""
+
+    camera_id: str
+    #: host:port the server dials to forward requests.
+    address: str
+    #: image pixels -> floor metres: the 3x3 matrix, row-major (checked when registered, after the
+    #: caller's claim on the id, so a caller without one learns nothing else).
+    homography: tuple[float, ...]
+    #: (width, height) of the camera's images, pixels.
+    image_size: tuple[int, int]
+    detector_kinds: tuple[str, ...]
+    #: Metres the camera sees; 0 means the server's default.
+    max_range_m: float = 0.0
+    #: The previous registration's secret: proves an anonymous camera is coming back.
+    registration_secret: str = ""
+    #: What the server is to present back on every forward to this camera.
+    forward_secret: str = ""
+
+
 class _CameraLink:
     """One reused channel per camera, replaced when the camera registers a new address."""
 
@@ -164,7 +184,12 @@ class _CameraLink:
 
 
 class DrvsServer(Lifecycle):
-    """The server role as an object: start(), stop(grace), `async with`; port 0 picks a free port."""
+    """The server role as an object: start(), stop(grace), `async with`; port 0 picks a free port.
+
+    The keyword arguments are `ServerConfig`'s settings (see there for units and ranges), checked
+    by it exactly as drvs-server checks its flags. `config` gives them all at once instead (as
+    `DrvsServer.from_config` does); `limits` and `connection_limits`, when given, replace the
+    request and connection limits the config describes."""
 
     def __init__(
         self,
@@ -187,31 +212,48 @@ class DrvsServer(Lifecycle):
         max_fov_range_m: float = DEFAULT_MAX_FOV_RANGE_M,
         max_fov_area_m2: float = DEFAULT_MAX_FOV_AREA_M2,
         warm_up_s: float | None = None,
+        config: ServerConfig | None = None,
     ) -> None:
-        self.callback_policy = CallbackPolicy(allow_callback, allow_any_callback)
+        given = ServerConfig(
+            listen=listen,
+            lease_ttl_s=lease_ttl_s,
+            forward_timeout_s=forward_timeout_s,
+            max_queued_forwards=max_queued_forwards,
+            default_max_range_m=default_max_range_m,
+            allow_callback=tuple(allow_callback),
+            allow_any_callback=allow_any_callback,
+            trust_network=trust_network,
+            registration_grace_s=registration_grace_s,
+            max_cameras_per_identity=max_cameras_per_identity,
+            max_fov_range_m=max_fov_range_m,
+            max_fov_area_m2=max_fov_area_m2,
+            warm_up_s=warm_up_s,
+        )
+        if config is None:
+            config = given
+        elif given != ServerConfig():
+            raise InvalidArgument("config: give the settings either as a ServerConfig or as keywords, not both")
+        self.config = config
+        self.callback_policy = CallbackPolicy(config.allow_callback, config.allow_any_callback)
         self.security = security or Security()
         self.tokens = TokenAuthority(camera_tokens, robot_tokens)
-        self.limits = limits or RequestLimits()
-        self.connection_limits = connection_limits or _grpc.ConnectionLimits()
-        self.trust_network = trust_network
+        self.limits = limits or config.request_limits()
+        self.connection_limits = connection_limits or config.connection_limits()
+        self.trust_network = config.trust_network
         # camera id -> the secret its current registration handed over (or the token it carried),
         # presented back when forwarding to it; replaced, never inherited, at every registration.
         self._camera_tokens: dict[str, str] = {}
-        if default_max_range_m > max_fov_range_m:
-            raise InvalidArgument(
-                f"default_max_range_m: {default_max_range_m:g} m is beyond max_fov_range_m {max_fov_range_m:g} m"
-            )
-        self.registry = Registry(lease_ttl_s, max_fov_range_m=max_fov_range_m, max_fov_area_m2=max_fov_area_m2)
+        self.registry = Registry(
+            config.lease_ttl_s, max_fov_range_m=config.max_fov_range_m, max_fov_area_m2=config.max_fov_area_m2
+        )
         # camera id -> who holds it (token name, certificate name, or an anonymous registration's
         # secret): another identity may not re-register, renew or deregister it.
-        self.claims = Claims(registration_grace_s, max_cameras_per_identity)
-        self.forward_timeout_s = forward_timeout_s
-        if max_queued_forwards < 1:
-            raise InvalidArgument(f"max_queued_forwards: {max_queued_forwards} must be at least 1")
-        self.max_queued_forwards = max_queued_forwards
-        self.default_max_range_m = default_max_range_m
+        self.claims = Claims(config.registration_grace_s, config.max_cameras_per_identity)
+        self.forward_timeout_s = config.forward_timeout_s
+        self.max_queued_forwards = config.max_queued_forwards
+        self.default_max_range_m = config.default_max_range_m
         self._endpoint = Endpoint(
-            listen,
+            config.listen,
             SERVICE_NAMES,
             self._add_servicers,
             security=self.security,
@@ -229,14 +271,24 @@ class DrvsServer(Lifecycle):
             tuple[int, ...], tuple[Polygon, tuple[Polygon, ...], list[geometry_pb2.Polygon]]
         ] = {}
         # After a start, cameras registered with a previous run may not be back yet for this long.
-        self.warm_up_s = lease_ttl_s if warm_up_s is None else warm_up_s
-        if not (self.warm_up_s >= 0):
-            raise InvalidArgument(f"warm_up_s: {warm_up_s} must be >= 0")
+        self.warm_up_s = config.warm_up
         self._started_at = time.monotonic()
         self._tasks: set[asyncio.Task[None]] = set()
         self._sweeper: asyncio.Task[None] | None = None
         self._callbacks = CallbackSender(security=self.security)
         self._stopped = False
+
+    @classmethod
+    def from_config(
+        cls,
+        config: ServerConfig,
+        *,
+        security: Security | None = None,
+        camera_tokens: Mapping[str, str] | None = None,
+        robot_tokens: Mapping[str, str] | None = None,
+    ) -> DrvsServer:
+        """A server with `config`'s settings and these credentials (drvs-server's way in)."""
+        return cls(config=config, security=security, camera_tokens=camera_tokens, robot_tokens=robot_tokens)
 
     @property
     def port(self) -> int:
@@ -324,6 +376,101 @@ class DrvsServer(Lifecycle):
 
     async def wait_for_termination(self) -> None:
         await self._endpoint.wait_for_termination()
+
+    # --- registration ------------------------------------------------------------------------
+
+    def _camera_owner(self, who: str, method: str) -> str:
+        """`who`, the identity a call proved ("" anonymous: no camera token or camera certificate),
+        or UNAUTHENTICATED where anonymity is not allowed."""
+        if not who and not self.anonymous_cameras:
+            raise Unauthenticated(
+                f"{method}: this server serves {self.address}, beyond this host: a camera needs a camera "
+                "token or a client certificate with the camera role (the server's --trust-network allows "
+                "cameras without one)"
+            )
+        return who
+
+    def register_camera(
+        self, registration: CameraRegistration, who: str, peer: str, presented_token: str = ""
+    ) -> tuple[CameraEntry, str]:
+        """Register (or register again) a camera for identity `who` ("" anonymous): the id's claim is checked
+        and granted, its lease starts, and the server forwards to it from now on presenting its
+        forward secret (or `presented_token`, the token the registration carried). `peer`: the
+        caller's IP, whose quota an anonymous caller's ids count against. Returns the camera's entry
+        and the registration's secret, which its heartbeats and deregistration must carry."""
+        for name in ("registration_secret", "forward_secret"):
+            value = getattr(registration, name)
+            if len(value) > MAX_SECRET_LENGTH or not (value.isascii() and value.isprintable()) or " " in value:
+                raise InvalidArgument(f"{name}: at most {MAX_SECRET_LENGTH} printable ASCII characters, no spaces")
+        camera_id = check_id(registration.camera_id, "camera_id")
+        owner = self._camera_owner(who, "Register")
+        quota = owner or f"the anonymous caller at {peer}"
+        self.claims.check_register(
+            camera_id, owner, registration.registration_secret, quota, registration.forward_secret
+        )
+        entry = self.registry.register(
+            camera_id=camera_id,
+            address=registration.address,
+            homography=Homography.from_values(registration.homography, "homography"),
+            image_size=registration.image_size,
+            detector_kinds=set(registration.detector_kinds),
+            max_range_m=registration.max_range_m or self.default_max_range_m,
+        )
+        expires = self.registry.expires_at(entry.camera_id)
+        secret = self.claims.grant(entry.camera_id, owner, quota, expires, registration.forward_secret)
+        metrics.CAMERAS.set(len(self.registry))
+        # What the server presents on forwards: this registration's own secret (or token), never
+        # the previous registration's, which could hand one camera's credential to another address.
+        self._camera_tokens[entry.camera_id] = registration.forward_secret or presented_token
+        self._unreachable.discard(entry.camera_id)
+        self._link(entry)
+        log.info(
+            "camera %s registered at %s by %s: field of view %.1f m², detectors %s",
+            entry.camera_id,
+            entry.address,
+            owner or "an anonymous caller",
+            entry.field_of_view.area,
+            ",".join(sorted(entry.detector_kinds)),
+        )
+        return entry, secret
+
+    def renew_camera(self, camera_id: str, who: str, registration_secret: str) -> None:
+        """A heartbeat: the id's holder, with its registration's secret, renews the lease; a camera
+        skipped after a failed forward is routed to again."""
+        check_id(camera_id, "camera_id")
+        owner = self._camera_owner(who, "Heartbeat")
+        self.claims.check(camera_id, owner, registration_secret)
+        self.registry.renew(camera_id)
+        self.claims.renew(camera_id, self.registry.expires_at(camera_id))
+        self._unreachable.discard(camera_id)
+
+    def deregister_camera(self, camera_id: str, who: str, registration_secret: str) -> None:
+        """The id's holder leaves: out of routing, its id free at once, its link closed."""
+        check_id(camera_id, "camera_id")
+        owner = self._camera_owner(who, "Deregister")
+        self.claims.check(camera_id, owner, registration_secret)
+        self.claims.release(camera_id)
+        if camera_id in self.registry:
+            self.registry.remove(camera_id)
+        self._forget(camera_id)
+        metrics.CAMERAS.set(len(self.registry))
+        log.info("camera %s deregistered", camera_id)
+
+    def list_cameras(
+        self, region: Polygon | None = None, page_token: str = "", page_size: int = 0
+    ) -> tuple[list[CameraEntry], str]:
+        """One page of the live cameras (those that see `region`, if given), sorted by id, after the
+        id `page_token` names; `page_size` 0 or above MAX_PAGE_SIZE means MAX_PAGE_SIZE. Returns
+        the page and the next page's token ("" on the last page)."""
+        if page_token:
+            check_id(page_token, "page_token")
+        size = min(page_size or DEFAULT_PAGE_SIZE, MAX_PAGE_SIZE)
+        entries = self.registry.cameras() if region is None else self.registry.cameras_seeing(region)
+        # Both lists are sorted by camera id: a page starts after the id its token names.
+        start = bisect.bisect_right([e.camera_id for e in entries], page_token) if page_token else 0
+        more = len(entries) > start + size
+        entries = entries[start : start + size]
+        return entries, entries[-1].camera_id if more else ""
 
     # --- routing ---------------------------------------------------------------------------
 
@@ -425,6 +572,54 @@ class DrvsServer(Lifecycle):
         uncertain = self.coverage_uncertain_s()
         if uncertain:
             reply.coverage_uncertain_s = uncertain
+        return reply
+
+    async def submit(
+        self,
+        request: DetectionRequest,
+        message: detection_pb2.DetectionRequest,
+        secret: bytes,
+        robot: str,
+        peer: IPAddress | None,
+        checked_callbacks: dict[str, str],
+        slots: _Slots | None = None,
+    ) -> detection_pb2.DetectionReply:
+        """A robot's validated request (`request`, and `message` as it is to be forwarded): refused
+        if no camera serves its type; counted against `robot`'s limits; its callback checked against
+        the robot's address `peer` (once per address per call: `checked_callbacks`); forwarded to the
+        cameras that see its region. `secret`: the robot's report secret. `slots`: the continuous
+        requests of the robot's request stream, freed when cancelled. The reply, at once."""
+        plan = self.plan(request)
+        cameras = plan[0]
+        if not cameras and not plan[1]:
+            self.refuse_unserved(request)
+        # What this request costs the cameras, counted against the robot's budget (not what it
+        # cost the robot to send: on a stream a repeated region is left out).
+        limits = self.limits
+        size = message.ByteSize()
+        slot = limits.admit(robot, request.continuous.duration_s, size * len(cameras))
+        try:
+            verified = checked_callbacks.get(request.callback_address)
+            if verified is None:
+                verified = await self.callback_policy.check(request.callback_address, peer)
+                checked_callbacks[request.callback_address] = verified
+        except BaseException:
+            limits.release(robot, slot)
+            raise
+        if verified != request.callback_address:
+            # Cameras dial the address that was checked, not a name that may resolve anew.
+            request = dataclasses.replace(request, callback_address=verified)
+            message.callback_address = verified
+        on_none_accepted: Callable[[], None] | None = None
+        if slot is not None and not cameras:
+            limits.release(robot, slot)  # nothing runs: the slot is free again at once
+        elif slot is not None and slots is not None:
+            slots.hold(request.request_id, slot)  # until it ends, is cancelled, or no camera takes it
+            on_none_accepted = functools.partial(slots.release, request.request_id)
+        elif slot is not None:
+            on_none_accepted = functools.partial(limits.release, robot, slot)
+        reply = self.dispatch(request, message, secret, plan, on_none_accepted)
+        metrics.FORWARDED_BYTES.inc(size * len(reply.camera_ids))
         return reply
 
     def _spawn(self, coro: Any) -> None:
@@ -596,38 +791,7 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
             request = dataclasses.replace(request, request_id=uuid.uuid4().hex)
             message.request_id = request.request_id
             logs.request_id.set(request.request_id)
-        plan = self._s.plan(request)
-        cameras = plan[0]
-        if not cameras and not plan[1]:
-            self._s.refuse_unserved(request)
-        # What this request costs the cameras, counted against the robot's budget (not what it
-        # cost the robot to send: on a stream a repeated region is left out).
-        limits = self._s.limits
-        size = message.ByteSize()
-        slot = limits.admit(robot, request.continuous.duration_s, size * len(cameras))
-        try:
-            verified = allowed.get(request.callback_address)
-            if verified is None:
-                verified = await self._s.callback_policy.check(request.callback_address, peer)
-                allowed[request.callback_address] = verified
-        except BaseException:
-            limits.release(robot, slot)
-            raise
-        if verified != request.callback_address:
-            # Cameras dial the address that was checked, not a name that may resolve anew.
-            request = dataclasses.replace(request, callback_address=verified)
-            message.callback_address = verified
-        on_none_accepted: Callable[[], None] | None = None
-        if slot is not None and not cameras:
-            limits.release(robot, slot)  # nothing runs: the slot is free again at once
-        elif slot is not None and slots is not None:
-            slots.hold(request.request_id, slot)  # until it ends, is cancelled, or no camera takes it
-            on_none_accepted = functools.partial(slots.release, request.request_id)
-        elif slot is not None:
-            on_none_accepted = functools.partial(limits.release, robot, slot)
-        reply = self._s.dispatch(request, message, secret, plan, on_none_accepted)
-        metrics.FORWARDED_BYTES.inc(size * len(reply.camera_ids))
-        return reply
+        return await self._s.submit(request, message, secret, robot, peer, allowed, slots)
 
     @_grpc.servicer_method
     async def DetectObjects(
@@ -671,19 +835,15 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
 
 
 class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
+    """Converts and delegates: protobuf and call context in, `DrvsServer`'s registration methods
+    called, protobuf out."""
+
     def __init__(self, server: DrvsServer) -> None:
         self._s = server
 
-    def _identity(self, context: aio.ServicerContext[Any, Any], method: str) -> str:
-        """The caller's identity ("" anonymous), or UNAUTHENTICATED where anonymity is not allowed."""
-        who = camera_identity(context, self._s.tokens, self._s.security.require_client_cert, method)
-        if not who and not self._s.anonymous_cameras:
-            raise Unauthenticated(
-                f"{method}: this server serves {self._s.address}, beyond this host: a camera needs a camera "
-                "token or a client certificate with the camera role (the server's --trust-network allows "
-                "cameras without one)"
-            )
-        return who
+    def _caller(self, context: aio.ServicerContext[Any, Any], method: str) -> str:
+        """The identity the call proves ("" anonymous): a camera token or a camera certificate."""
+        return camera_identity(context, self._s.tokens, self._s.security.require_client_cert, method)
 
     @_grpc.servicer_method
     async def Register(
@@ -691,40 +851,22 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
     ) -> registry_pb2.RegisterReply:
         if not message.HasField("homography"):
             raise InvalidArgument("homography: missing")
-        for name in ("registration_secret", "forward_secret"):
-            value = getattr(message, name)
-            if len(value) > MAX_SECRET_LENGTH or not (value.isascii() and value.isprintable()) or " " in value:
-                raise InvalidArgument(f"{name}: at most {MAX_SECRET_LENGTH} printable ASCII characters, no spaces")
-        check_id(message.camera_id, "camera_id")
-        owner = self._identity(context, "Register")
-        quota = owner or f"the anonymous caller at {peer_ip(context.peer()) or context.peer()}"
-        claims = self._s.claims
-        claims.check_register(message.camera_id, owner, message.registration_secret, quota, message.forward_secret)
-        max_range = message.max_range_m or self._s.default_max_range_m
-        entry = self._s.registry.register(
+        who = self._caller(context, "Register")
+        registration = CameraRegistration(
             camera_id=message.camera_id,
             address=message.address,
-            homography=homography_from_pb(message.homography),
+            homography=tuple(message.homography.m),
             image_size=(message.image_width, message.image_height),
-            detector_kinds=set(message.detector_kinds),
-            max_range_m=max_range,
+            detector_kinds=tuple(message.detector_kinds),
+            max_range_m=message.max_range_m,
+            registration_secret=message.registration_secret,
+            forward_secret=message.forward_secret,
         )
-        expires = self._s.registry.expires_at(entry.camera_id)
-        secret = claims.grant(entry.camera_id, owner, quota, expires, message.forward_secret)
-        metrics.CAMERAS.set(len(self._s.registry))
-        # What the server presents on forwards: this registration's own secret (or token), never
-        # the previous registration's, which could hand one camera's credential to another address.
-        presented = message.forward_secret or bearer_token(list(context.invocation_metadata() or ()))
-        self._s._camera_tokens[entry.camera_id] = presented
-        self._s._unreachable.discard(entry.camera_id)
-        self._s._link(entry)
-        log.info(
-            "camera %s registered at %s by %s: field of view %.1f m², detectors %s",
-            entry.camera_id,
-            entry.address,
-            owner or "an anonymous caller",
-            entry.field_of_view.area,
-            ",".join(sorted(entry.detector_kinds)),
+        entry, secret = self._s.register_camera(
+            registration,
+            who,
+            str(peer_ip(context.peer()) or context.peer()),
+            bearer_token(list(context.invocation_metadata() or ())),
         )
         return registry_pb2.RegisterReply(
             lease_ttl_s=self._s.registry.lease_ttl_s,
@@ -736,48 +878,24 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
     async def Heartbeat(
         self, message: registry_pb2.HeartbeatRequest, context: aio.ServicerContext[Any, Any]
     ) -> registry_pb2.HeartbeatReply:
-        check_id(message.camera_id, "camera_id")
-        owner = self._identity(context, "Heartbeat")
-        self._s.claims.check(message.camera_id, owner, message.registration_secret)
-        self._s.registry.renew(message.camera_id)
-        self._s.claims.renew(message.camera_id, self._s.registry.expires_at(message.camera_id))
-        self._s._unreachable.discard(message.camera_id)
+        self._s.renew_camera(message.camera_id, self._caller(context, "Heartbeat"), message.registration_secret)
         return registry_pb2.HeartbeatReply(lease_ttl_s=self._s.registry.lease_ttl_s)
 
     @_grpc.servicer_method
     async def Deregister(
         self, message: registry_pb2.DeregisterRequest, context: aio.ServicerContext[Any, Any]
     ) -> registry_pb2.DeregisterReply:
-        check_id(message.camera_id, "camera_id")
-        owner = self._identity(context, "Deregister")
-        self._s.claims.check(message.camera_id, owner, message.registration_secret)
-        self._s.claims.release(message.camera_id)
-        if message.camera_id in self._s.registry:
-            self._s.registry.remove(message.camera_id)
-        self._s._forget(message.camera_id)
-        metrics.CAMERAS.set(len(self._s.registry))
-        log.info("camera %s deregistered", message.camera_id)
+        self._s.deregister_camera(message.camera_id, self._caller(context, "Deregister"), message.registration_secret)
         return registry_pb2.DeregisterReply()
 
     @_grpc.servicer_method
     async def ListCameras(
         self, message: registry_pb2.ListCamerasRequest, context: aio.ServicerContext[Any, Any]
     ) -> registry_pb2.ListCamerasReply:
-        entries: list[CameraEntry]
-        if message.page_token:
-            check_id(message.page_token, "page_token")
-        size = min(message.page_size or DEFAULT_PAGE_SIZE, MAX_PAGE_SIZE)
-        if message.HasField("region"):
-            region: Polygon = region_from_pb(message.region)
-            entries = self._s.registry.cameras_seeing(region)
-        else:
-            entries = self._s.registry.cameras()
-        # Both lists are sorted by camera id: a page starts after the id its token names.
-        start = bisect.bisect_right([e.camera_id for e in entries], message.page_token) if message.page_token else 0
-        more = len(entries) > start + size
-        entries = entries[start : start + size]
+        region = region_from_pb(message.region) if message.HasField("region") else None
+        entries, next_token = self._s.list_cameras(region, message.page_token, message.page_size)
         return registry_pb2.ListCamerasReply(
-            next_page_token=entries[-1].camera_id if more else "",
+            next_page_token=next_token,
             cameras=[
                 registry_pb2.CameraInfo(
                     camera_id=e.camera_id,

@@ -1,0 +1,179 @@
+"""A camera node's registration with its server: soft state, kept alive by the camera.
+
+The camera registers, heartbeats well within the lease the server grants, registers again when
+the server no longer knows it (a restart) or another registration of its id replaced it, backs
+off while the server is unreachable or refuses it, and deregisters when it stops.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+
+import grpc
+from grpc import aio
+
+from drvs.security import Security
+from drvs.v1 import registry_pb2, registry_pb2_grpc
+
+log = logging.getLogger("drvs.camera")
+
+#: Seconds a Register call may take before the camera tries again.
+REGISTER_TIMEOUT_S = 5.0
+#: Seconds a Deregister call may take when the camera stops.
+DEREGISTER_TIMEOUT_S = 1.0
+#: First wait after a failed call, seconds; doubled after each failure up to the heartbeat interval.
+INITIAL_BACKOFF_S = 0.2
+#: Shortest heartbeat interval, seconds.
+MIN_HEARTBEAT_S = 0.05
+#: A conflict over the camera id lasts at least a lease: ask again at most this often, seconds.
+CONFLICT_BACKOFF_S = 5.0
+
+
+def details(exc: grpc.RpcError) -> str:
+    """A failed call's status and message, for the log."""
+    if isinstance(exc, aio.AioRpcError):
+        return f"{exc.code().name} {exc.details()}"
+    return str(exc)
+
+
+class Registration:
+    """Keeps one camera id registered with the server at `server_address`.
+
+    `start(request)` opens the channel and starts the loop; `registered` is set once the first
+    registration succeeded; `stop()` ends the loop, deregisters and closes the channel.
+    `heartbeat_s`: the interval the operator asked for (None: a third of the lease), never more
+    than half the lease."""
+
+    def __init__(
+        self, camera_id: str, server_address: str, security: Security, heartbeat_s: float | None = None
+    ) -> None:
+        self.camera_id = camera_id
+        self.server_address = server_address
+        self.security = security
+        self.heartbeat_s = heartbeat_s
+        self.registered = asyncio.Event()
+        self._channel: aio.Channel | None = None
+        self._stub: registry_pb2_grpc.RegisterVisionServiceStub | None = None
+        self._task: asyncio.Task[None] | None = None
+        #: The current registration's secret, from the server: heartbeats and deregistration carry it.
+        self.secret = ""
+
+    def heartbeat_interval(self, lease_ttl_s: float) -> float:
+        """Seconds between heartbeats: the configured interval, but never so long that the lease
+        runs out between beats."""
+        interval = lease_ttl_s / 3 if self.heartbeat_s is None else min(self.heartbeat_s, lease_ttl_s / 2)
+        return max(MIN_HEARTBEAT_S, interval)
+
+    def start(self, request: registry_pb2.RegisterRequest, fov_m2: float = 0.0) -> None:
+        """Open the channel to the server and keep `request` registered (`fov_m2`: for the log)."""
+        self._channel = self.security.channel(self.server_address)
+        self._stub = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
+        self._task = asyncio.get_running_loop().create_task(self.run(request, fov_m2))
+
+    async def stop(self) -> None:
+        """Stop heartbeating, deregister (if registered), close the channel; idempotent."""
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+        await self.deregister()
+        channel, self._channel = self._channel, None
+        if channel is not None:
+            await channel.close()
+
+    async def _register(self, request: registry_pb2.RegisterRequest, again: bool, fov_m2: float) -> float:
+        """One registration; returns the heartbeat interval for the lease granted."""
+        assert self._stub is not None
+        # The previous registration's secret proves this is the same camera coming back.
+        request.registration_secret = self.secret
+        reply = await self._stub.Register(request, timeout=REGISTER_TIMEOUT_S, metadata=self.security.metadata())
+        self.secret = reply.registration_secret
+        log.info(
+            "camera %s %s with %s: lease %.1f s, field of view %.1f m²",
+            self.camera_id,
+            "re-registered" if again else "registered",
+            self.server_address,
+            reply.lease_ttl_s,
+            fov_m2,
+        )
+        self.registered.set()
+        return self.heartbeat_interval(reply.lease_ttl_s)
+
+    async def _heartbeat(self, timeout_s: float) -> float:
+        """One heartbeat; returns the interval for the lease the server now grants."""
+        assert self._stub is not None
+        reply = await self._stub.Heartbeat(
+            registry_pb2.HeartbeatRequest(camera_id=self.camera_id, registration_secret=self.secret),
+            timeout=timeout_s,
+            metadata=self.security.metadata(),
+        )
+        return self.heartbeat_interval(reply.lease_ttl_s)
+
+    async def run(self, request: registry_pb2.RegisterRequest, fov_m2: float = 0.0) -> None:
+        """Register with `request`, then heartbeat until cancelled (`fov_m2`: for the log only)."""
+        interval = 1.0
+        backoff = INITIAL_BACKOFF_S
+        ever_registered = False
+        registered = False
+        while True:
+            try:
+                if not registered:
+                    interval = await self._register(request, ever_registered, fov_m2)
+                    registered = ever_registered = True
+                else:
+                    interval = await self._heartbeat(interval)
+                backoff = INITIAL_BACKOFF_S
+                await asyncio.sleep(interval)
+            except grpc.RpcError as exc:
+                code = exc.code() if isinstance(exc, aio.AioRpcError) else grpc.StatusCode.UNKNOWN
+                if code == grpc.StatusCode.NOT_FOUND:
+                    log.info(
+                        "camera %s: server does not know this camera (restarted?); registering again", self.camera_id
+                    )
+                    registered = False
+                    continue
+                if code == grpc.StatusCode.FAILED_PRECONDITION and registered:
+                    log.warning(
+                        "camera %s: the server says another registration replaced ours (%s); registering again",
+                        self.camera_id,
+                        details(exc),
+                    )
+                    registered = False
+                    continue
+                if code == grpc.StatusCode.PERMISSION_DENIED:
+                    registered = False
+                    log.error(
+                        "camera %s: CONFLICT: the server gives camera id %s to another registration: %s; "
+                        "retrying in %.1f s",
+                        self.camera_id,
+                        self.camera_id,
+                        details(exc),
+                        backoff,
+                    )
+                elif code in (grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.UNAUTHENTICATED):
+                    registered = False
+                    log.error("camera %s: server refused registration: %s", self.camera_id, details(exc))
+                else:
+                    log.warning(
+                        "camera %s: server %s unreachable: %s", self.camera_id, self.server_address, details(exc)
+                    )
+                await asyncio.sleep(backoff)
+                conflict = code == grpc.StatusCode.PERMISSION_DENIED
+                backoff = min(backoff * 2, max(interval, CONFLICT_BACKOFF_S) if conflict else interval)
+
+    async def deregister(self) -> None:
+        """Leave routing at once (rather than when the lease runs out); only after a registration.
+        A failure is logged: the lease then runs out by itself."""
+        if not self.registered.is_set() or self._stub is None:
+            return
+        self.registered.clear()
+        try:
+            await self._stub.Deregister(
+                registry_pb2.DeregisterRequest(camera_id=self.camera_id, registration_secret=self.secret),
+                timeout=DEREGISTER_TIMEOUT_S,
+                metadata=self.security.metadata(),
+            )
+            log.info("camera %s deregistered", self.camera_id)
+        except grpc.RpcError as exc:
+            log.warning("camera %s: deregistration failed: %s", self.camera_id, details(exc))
