@@ -13,10 +13,13 @@ from shapely.geometry import Point, Polygon
 from drvs.errors import DrvsError, InvalidArgument, error_for
 from drvs.net import parse_address
 
-#: Continuous requests are bounded so one request cannot keep cameras busy forever.
+#: Continuous requests are bounded so one request cannot keep cameras busy forever: reports a
+#: second, and seconds.
 MAX_RATE_HZ = 100.0
 MAX_DURATION_S = 3600.0
+#: Longest id (request, robot, camera), characters.
 MAX_ID_LENGTH = 128
+#: Longest report key, bytes.
 MAX_KEY_BYTES = 64
 
 
@@ -245,6 +248,8 @@ class DetectionRequest:
 
 
 def check_id(value: str, name: str, *, allow_empty: bool = False) -> str:
+    """`value` if it is a valid id (at most MAX_ID_LENGTH characters: letters, digits, - _ . :),
+    else InvalidArgument naming `name`."""
     if not value:
         if allow_empty:
             return value
