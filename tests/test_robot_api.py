@@ -320,7 +320,7 @@ def test_every_public_name_has_a_docstring(module: Any) -> None:
 
 
 def test_help_of_the_client_reads_as_documentation() -> None:
-    text = pydoc.render_doc(drvs.DrvsClient, renderer=pydoc.plaintext)
+    text = pydoc.plain(pydoc.render_doc(drvs.DrvsClient))
     for phrase in (
         "connect_timeout_s",  # connect
         "rpc_timeout_s",

@@ -22,19 +22,23 @@ from typing import TYPE_CHECKING, Any
 __version__ = "0.1.0"
 
 if TYPE_CHECKING:
-    from drvs.errors import (
-        DeadlineExceeded,
-        DrvsError,
-        FailedPrecondition,
-        InvalidArgument,
-        NotFound,
-        PermissionDenied,
-        ResourceExhausted,
-        Unauthenticated,
-        Unavailable,
-    )
-    from drvs.model import CameraError, Detection, DetectionReport
-    from drvs.robot.client import CameraInfo, DetectionResult, DrvsClient, RetryPolicy, Subscription
+    from drvs.errors import DeadlineExceeded as DeadlineExceeded
+    from drvs.errors import DrvsError as DrvsError
+    from drvs.errors import FailedPrecondition as FailedPrecondition
+    from drvs.errors import InvalidArgument as InvalidArgument
+    from drvs.errors import NotFound as NotFound
+    from drvs.errors import PermissionDenied as PermissionDenied
+    from drvs.errors import ResourceExhausted as ResourceExhausted
+    from drvs.errors import Unauthenticated as Unauthenticated
+    from drvs.errors import Unavailable as Unavailable
+    from drvs.model import CameraError as CameraError
+    from drvs.model import Detection as Detection
+    from drvs.model import DetectionReport as DetectionReport
+    from drvs.robot.client import CameraInfo as CameraInfo
+    from drvs.robot.client import DetectionResult as DetectionResult
+    from drvs.robot.client import DrvsClient as DrvsClient
+    from drvs.robot.client import RetryPolicy as RetryPolicy
+    from drvs.robot.client import Subscription as Subscription
 
 _EXPORTS = {
     "DrvsClient": "drvs.robot.client",
@@ -56,26 +60,7 @@ _EXPORTS = {
     "Unauthenticated": "drvs.errors",
 }
 
-__all__ = [
-    "CameraError",
-    "CameraInfo",
-    "DeadlineExceeded",
-    "Detection",
-    "DetectionReport",
-    "DetectionResult",
-    "DrvsClient",
-    "DrvsError",
-    "FailedPrecondition",
-    "InvalidArgument",
-    "NotFound",
-    "PermissionDenied",
-    "ResourceExhausted",
-    "RetryPolicy",
-    "Subscription",
-    "Unauthenticated",
-    "Unavailable",
-    "__version__",
-]
+__all__ = ["__version__", *_EXPORTS]
 
 
 def __getattr__(name: str) -> Any:

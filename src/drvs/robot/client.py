@@ -31,7 +31,7 @@ import secrets
 from collections.abc import AsyncIterator, Awaitable, Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Any, ClassVar, TypeAlias, TypeVar
+from typing import Any, ClassVar, Generic, TypeAlias, TypeVar
 
 import grpc
 from grpc import aio
@@ -428,42 +428,63 @@ class Subscription:
         self.close()
 
 
-class Subscribing:
+class _Opening(Generic[T]):
+    """Something opened by awaiting it (`x = await opening`) or by entering it as an async context
+    manager (`async with opening as x:`), which closes it on leaving the block."""
+
+    def __init__(self) -> None:
+        self._opened: T | None = None
+
+    async def _open(self) -> T:
+        raise NotImplementedError
+
+    async def _close(self, opened: T) -> None:
+        raise NotImplementedError
+
+    async def _opening(self) -> T:
+        self._opened = await self._open()
+        return self._opened
+
+    def __await__(self) -> Generator[Any, None, T]:
+        return self._opening().__await__()
+
+    async def __aenter__(self) -> T:
+        return await self._opening()
+
+    async def __aexit__(
+        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if self._opened is not None:
+            await self._close(self._opened)
+
+
+class Subscribing(_Opening[Subscription]):
     """What DrvsClient.subscribe returns: `await` it for the Subscription, or use it as an async
     context manager (`async with drvs.subscribe(...) as sub:`), which closes the subscription on
     leaving the block. The request is sent when it is awaited or entered, not before."""
 
     def __init__(self, send: Callable[[], Awaitable[Subscription]]) -> None:
+        super().__init__()
         self._send = send
-        self._sub: Subscription | None = None
 
-    async def _start(self) -> Subscription:
-        self._sub = await self._send()
-        return self._sub
+    async def _open(self) -> Subscription:
+        return await self._send()
 
-    def __await__(self) -> Generator[Any, None, Subscription]:
-        return self._start().__await__()
-
-    async def __aenter__(self) -> Subscription:
-        return await self._start()
-
-    async def __aexit__(
-        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        if self._sub is not None:
-            self._sub.close()
+    async def _close(self, opened: Subscription) -> None:
+        opened.close()
 
 
-class Connecting:
+class Connecting(_Opening["DrvsClient"]):
     """What DrvsClient.connect returns: `await` it for a started client whose server answered, or
     use it as an async context manager (`async with DrvsClient.connect(...) as drvs:`), which closes
     the client on leaving the block. A server that does not answer raises Unavailable naming it."""
 
     def __init__(self, client: DrvsClient, connect_timeout_s: float) -> None:
+        super().__init__()
         self.client = client
         self._timeout_s = connect_timeout_s
 
-    async def _connect(self) -> DrvsClient:
+    async def _open(self) -> DrvsClient:
         try:
             await self.client.start()
             await self.client.check_server(self._timeout_s)
@@ -472,16 +493,8 @@ class Connecting:
             raise
         return self.client
 
-    def __await__(self) -> Generator[Any, None, DrvsClient]:
-        return self._connect().__await__()
-
-    async def __aenter__(self) -> DrvsClient:
-        return await self._connect()
-
-    async def __aexit__(
-        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        await self.client.close()
+    async def _close(self, opened: DrvsClient) -> None:
+        await opened.close()
 
 
 class DrvsClient:
@@ -505,6 +518,12 @@ class DrvsClient:
     DrvsClient(...)`) opens the channel and the listener without checking the server, and a call
     to a server that is not there fails then, with Unavailable. Every error is a drvs.errors
     exception with `.code` (the gRPC status name) and `.camera_id`.
+
+    Timeouts, in seconds, one meaning each: `connect_timeout_s` (connect) bounds one attempt to
+    reach the server; `rpc_timeout_s` (subscribe, detect, cameras) bounds one attempt's wait for the
+    server's reply; `timeout_s` (subscribe, detect) is how long, after that reply and beyond the
+    request's `duration_s`, to wait for every camera's final report (never raises: a late camera
+    is in `result.camera_errors`). `retry` repeats the first two after Unavailable.
 
     Counters: `reports_received` (reports handed to subscriptions) and `reports_rejected`
     (reports refused: not from a camera the request went to, or not on its stream).
@@ -737,37 +756,10 @@ class DrvsClient:
         - `max_queued`: unread reports a continuous request keeps; beyond it the oldest are dropped
           and counted in `sub.dropped` (final reports are always kept).
 
-        Nothing is sent until the returned object is awaited or entered. A bad argument raises
-        InvalidArgument then, before anything is sent; a server that cannot be reached raises
-        Unavailable after the attempts `retry` allows.
+        A bad argument raises InvalidArgument at once; nothing is sent until the returned object
+        is awaited or entered, and a server that cannot be reached raises Unavailable then, after
+        the attempts `retry` allows.
         """
-        return Subscribing(
-            lambda: self._subscribe(
-                filter_def,
-                region,
-                rate_hz=rate_hz,
-                duration_s=duration_s,
-                timeout_s=timeout_s,
-                request_id=request_id,
-                rpc_timeout_s=rpc_timeout_s,
-                outlines=outlines,
-                max_queued=max_queued,
-            )
-        )
-
-    async def _subscribe(
-        self,
-        filter_def: str,
-        region: RegionLike,
-        *,
-        rate_hz: float,
-        duration_s: float,
-        timeout_s: float,
-        request_id: str | None,
-        rpc_timeout_s: float,
-        outlines: bool,
-        max_queued: int,
-    ) -> Subscription:
         self._require_started()
         if not (isinstance(timeout_s, (int, float)) and math.isfinite(timeout_s) and timeout_s >= 0):
             raise InvalidArgument(f"timeout_s: {timeout_s!r} must be a finite number of seconds >= 0")
@@ -785,15 +777,25 @@ class DrvsClient:
             omit_outlines=not outlines,
         )
         request.validate(unknown_types=True)
-        if request.request_id in self._subscriptions:
-            raise InvalidArgument(f"request_id: {request.request_id!r} is already in use")
-        # Registered before sending: a camera may report before the server's reply arrives.
-        sub = Subscription(self, request, timeout_s, max_queued)
-        self._subscriptions[request.request_id] = sub
-        assert self._requests is not None
-        requests = self._requests
         message = request_to_pb(request, region=region_pb)
         message.report_secret = self._report_secret
+        return Subscribing(lambda: self._send(request, message, timeout_s, rpc_timeout_s, max_queued))
+
+    async def _send(
+        self,
+        request: DetectionRequest,
+        message: detection_pb2.DetectionRequest,
+        timeout_s: float,
+        rpc_timeout_s: float,
+        max_queued: int,
+    ) -> Subscription:
+        sub = Subscription(self, request, timeout_s, max_queued)
+        if sub.request_id in self._subscriptions:
+            raise InvalidArgument(f"request_id: {sub.request_id!r} is already in use")
+        # Registered before sending: a camera may report before the server's reply arrives.
+        self._subscriptions[sub.request_id] = sub
+        requests = self._requests
+        assert requests is not None
         try:
             reply = await self._retrying(
                 f"request {message.request_id}", lambda: requests.request(message, rpc_timeout_s)
