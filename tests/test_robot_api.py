@@ -81,6 +81,9 @@ async def test_connect_returns_a_started_client_of_a_real_server() -> None:
             assert drvs_client.port > 0 and await drvs_client.cameras() == []
         finally:
             await drvs_client.close()
+        await drvs_client.close()  # closing again does nothing
+        with pytest.raises(DrvsError, match="not started"):
+            await drvs_client.cameras()
         async with DrvsClient.connect(address, robot_id="r", listen="127.0.0.1:0") as robot:
             assert robot.callback_address == f"127.0.0.1:{robot.port}"
             result = await robot.detect(YELLOW, (0, 0, 1, 1), timeout_s=1)

@@ -690,7 +690,8 @@ class DrvsClient:
             self._requests.cancel_soon(request_id)
 
     async def close(self) -> None:
-        """Close every open subscription (cameras are told to stop), the listener and the channel."""
+        """Close every open subscription (cameras are told to stop), the listener and the channel.
+        Closing again does nothing."""
         self._closing = True
         # Requests still open: each report stream tells its camera to stop them before it ends,
         # so cameras do not go on dialling a robot that has gone.
@@ -700,8 +701,9 @@ class DrvsClient:
         for task in list(self._report_streams):
             task.cancel()
         if self._requests is not None:
-            await self._requests.flush_cancels()
-            await self._requests.close()
+            requests, self._requests = self._requests, None
+            await requests.flush_cancels()
+            await requests.close()
         if self._listener is not None:
             await self._listener.stop(0.5)
             self._listener = None
