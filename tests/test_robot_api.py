@@ -2,14 +2,18 @@
 
 from __future__ import annotations
 
+import ast
 import asyncio
 import itertools
 import logging
+import math
 import pydoc
+import re
 import socket
 import subprocess
 import sys
 from collections.abc import Iterator
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -19,7 +23,7 @@ import drvs
 from drvs import errors, model
 from drvs.errors import DrvsError, InvalidArgument, Unavailable
 from drvs.geometry import homography_from_pose
-from drvs.launch import start_server
+from drvs.launch import ManagedProcess, start_server
 from drvs.model import CameraError, DetectionReport
 from drvs.robot import DrvsClient, RetryPolicy
 from drvs.v1 import registry_pb2, registry_pb2_grpc
@@ -350,3 +354,29 @@ def test_import_drvs_is_light_and_re_exports_the_robot_api() -> None:
         "assert 'cv2' not in sys.modules, 'the robot API imports cv2'\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
+
+
+def _readme_robot_examples() -> list[str]:
+    text = (Path(__file__).parents[1] / "README.md").read_text()
+    section = text.split("## Use DRVS from robot code", 1)[1].split("\n## ", 1)[0]
+    return re.findall(r"```python\n(.*?)```", section, flags=re.S)
+
+
+async def test_the_readme_robot_examples_run_against_real_processes(office: Office) -> None:
+    five_lines, fuller = _readme_robot_examples()
+    assert len([line for line in five_lines.splitlines() if line.strip()]) <= 8  # imports, def, run included
+    for name, code in (("five-lines", five_lines), ("fuller", fuller)):
+        proc = await ManagedProcess(
+            name, [sys.executable, "-c", code.replace("drvs.example:50051", office.address)]
+        ).start()
+        try:
+            assert await proc.wait(timeout=60) == 0, proc.output()
+        finally:
+            await proc.stop()
+        output = proc.output()
+        if name == "five-lines":
+            # The yellow disc at (1.5, 3.0), the one in the box (0, 0, 5, 5), seen by cam1.
+            (camera_id, x, y), *others = ast.literal_eval(output.strip().splitlines()[-1])
+            assert not others and camera_id == "cam1" and math.dist((x, y), (1.5, 3.0)) < 0.03, output
+        else:
+            assert "dropped unread: 0" in output and "cam1" in output, output
