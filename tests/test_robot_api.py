@@ -185,6 +185,25 @@ async def test_connect_retries_until_a_server_comes_up(caplog: pytest.LogCapture
             assert await server.stop() == 0
 
 
+async def test_drvs_robot_retries_flag_waits_for_the_server() -> None:
+    probe, address = await start_server()
+    assert await probe.stop() == 0
+    robot = await ManagedProcess.entry_point(
+        "robot", "drvs-robot", "detect", "--server", address, "--filter", YELLOW, "--roi", "0,0,1,1",
+        "--retries", "100", "--log-level", "INFO",
+    ).start()  # fmt: skip
+    server = None
+    try:
+        await robot.wait_for_line(r"retrying the connection", timeout=20)
+        server, _ = await start_server("--listen", address)
+        assert await robot.wait(timeout=30) == 0, robot.output()
+        assert "dispatched to no camera" in robot.output()
+    finally:
+        await robot.stop()
+        if server is not None:
+            assert await server.stop() == 0
+
+
 # --- subscriptions ---------------------------------------------------------------------------------------
 
 
