@@ -27,7 +27,7 @@ from drvs.errors import InvalidArgument, ResourceExhausted
 from drvs.geometry import MAX_REGION_VERTICES, homography_from_pose, polygon_region
 from drvs.launch import ManagedProcess, start_server
 from drvs.model import ContinuousMode
-from drvs.robot import DrvsClient
+from drvs.robot import DrvsClient, RetryPolicy
 from drvs.robot.client import Subscription
 from drvs.server.policy import RequestLimits
 from drvs.sim.scene import RecordedCamera
@@ -383,7 +383,7 @@ async def test_old_connections_are_ended_and_clients_reconnect() -> None:
             assert (await again.read()).request_id == "s1"
             again.cancel()
         # DrvsClient reopens its request stream by itself.
-        async with DrvsClient(address, robot_id="r", listen="127.0.0.1:0", retries=2) as robot:
+        async with DrvsClient(address, robot_id="r", listen="127.0.0.1:0", retry=RetryPolicy.retries(2)) as robot:
             loop = asyncio.get_running_loop()
             end = loop.time() + 3.0
             while loop.time() < end:  # across two connection lifetimes, 50 requests a second

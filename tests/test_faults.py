@@ -28,7 +28,7 @@ from grpc import aio
 
 from drvs.errors import Unavailable
 from drvs.launch import ManagedProcess, start_server
-from drvs.robot import DrvsClient
+from drvs.robot import DrvsClient, RetryPolicy
 from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc
 
@@ -164,7 +164,7 @@ async def test_server_restart_fails_fast_retries_and_cameras_return_within_a_hea
         cameras = procs[1:]
         async with (
             DrvsClient(address, robot_id="plain") as plain,
-            DrvsClient(address, robot_id="patient", retries=8, retry_backoff_s=0.2) as patient,
+            DrvsClient(address, robot_id="patient", retry=RetryPolicy(attempts=9, initial_backoff_s=0.2)) as patient,
         ):
             assert (await plain.detect(YELLOW, BOTH_REGION, timeout_s=5)).complete
             assert (await patient.detect(YELLOW, BOTH_REGION, timeout_s=5)).complete

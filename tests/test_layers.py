@@ -7,7 +7,8 @@ From the bottom up:
   roles  drvs.server, drvs.camera, drvs.robot: each stands on the core alone; none imports another
          role, the simulator, the benchmarks or a tool.
   tools  the simulator (drvs.sim), the benchmarks (drvs_bench), drvs.demo, drvs.launch, drvs.certs,
-         drvs._entry (the console scripts' launcher): may use everything below, but the simulator
+         drvs._entry (the console scripts' launcher), drvs.meter (byte-counting relays around a
+         robot's client, for the simulated robot and the benchmarks): may use everything below, but the simulator
          talks to servers and cameras only over the wire (it starts their processes): of the roles
          it imports drvs.robot alone (its robot is a robot program).
 The `drvs` package itself (drvs/__init__.py) is the robot programmer's front door: it may re-export
@@ -33,7 +34,7 @@ SOURCES = {"drvs": ROOT / "src" / "drvs", "drvs_bench": ROOT / "benchmarks" / "d
 ROLES = ("drvs.server", "drvs.camera", "drvs.robot")
 SIMULATOR = "drvs.sim"
 BENCHMARKS = "drvs_bench"
-TOOLS = (SIMULATOR, BENCHMARKS, "drvs.demo", "drvs.launch", "drvs.certs", "drvs._entry")
+TOOLS = (SIMULATOR, BENCHMARKS, "drvs.demo", "drvs.launch", "drvs.certs", "drvs._entry", "drvs.meter")
 FACADE = "drvs"
 GENERATED = "drvs.v1"
 #: Third-party packages that only tools may import: matplotlib draws the office's map and the plots.

@@ -16,7 +16,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from drvs.certs import make_all
 from drvs.errors import InvalidArgument, ResourceExhausted, Unauthenticated, Unavailable
 from drvs.launch import ManagedProcess, start_camera, start_server
-from drvs.robot import DrvsClient
+from drvs.robot import DrvsClient, RetryPolicy
 from drvs.security import Security, load_tokens
 from drvs.server import DrvsServer
 from drvs.server.policy import RequestLimits
@@ -263,7 +263,7 @@ async def test_client_retries_while_the_server_is_unavailable() -> None:
     async with DrvsClient(address, robot_id="r", listen="127.0.0.1:0") as client:
         with pytest.raises(Unavailable):
             await asyncio.wait_for(client.detect(YELLOW, CAM1_REGION, timeout_s=1), 5)
-    async with DrvsClient(address, robot_id="r", listen="127.0.0.1:0", retries=30, retry_backoff_s=0.05) as client:
+    async with DrvsClient(address, robot_id="r", listen="127.0.0.1:0", retry=RetryPolicy(31, 0.05)) as client:
         attempt = asyncio.ensure_future(client.detect(YELLOW, CAM1_REGION, timeout_s=1))
         async with DrvsServer(address):
             result = await asyncio.wait_for(attempt, 30)

@@ -28,8 +28,7 @@ from grpc import aio
 from drvs.errors import DrvsError, ResourceExhausted
 from drvs.geometry import homography_from_pose
 from drvs.launch import start_server
-from drvs.meter import CountingRelay
-from drvs.robot import DrvsClient
+from drvs.meter import CountingRelay, MeteredClient
 from drvs.v1 import detection_pb2, registry_pb2, registry_pb2_grpc
 
 from .fakes import AckingCamera, serve_camera
@@ -100,7 +99,9 @@ async def measure(
         loop = asyncio.get_running_loop()
         accepted = refused = 0
         refusals: set[str] = set()
-        async with DrvsClient(address, robot_id="amp", listen="127.0.0.1:0", meter=True) as robot:
+        async with MeteredClient(address, robot_id="amp", listen_host="127.0.0.1") as metered:
+            assert metered.client is not None
+            robot = metered.client
             start = loop.time()
             for n in range(round(seconds * rate_hz)):
                 delay = start + n / rate_hz - loop.time()
@@ -124,7 +125,7 @@ async def measure(
                     await read.wait()
 
             await asyncio.wait_for(all_read(), 10.0)
-            robot_sent = robot.wire_bytes()[1]
+            robot_sent = metered.payload_bytes()[1]
         forwarded = sum(r.to_target for r in relays)
         return {
             "server_args": list(server_args),

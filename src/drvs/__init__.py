@@ -2,6 +2,75 @@
 
 Robots ask for *what* (a filter_def) and *where* (a floor region); the server forwards the request to
 the camera nodes that see that region; the cameras stream object locations back to the robot.
+
+The robot programmer's API is re-exported here (from drvs.robot and drvs.errors):
+
+    from drvs import DrvsClient
+
+    async with DrvsClient.connect("drvs.example:50051", robot_id="turtle-1") as drvs:
+        result = await drvs.detect("hsv_014110130035225200", (0, 0, 5, 5))
+
+Those names are imported when first used, so `import drvs` (as a camera node or the server does
+for its own modules) stays light.
 """
 
+from __future__ import annotations
+
+import importlib
+from typing import TYPE_CHECKING, Any
+
 __version__ = "0.1.0"
+
+if TYPE_CHECKING:
+    from drvs.errors import DeadlineExceeded as DeadlineExceeded
+    from drvs.errors import DrvsError as DrvsError
+    from drvs.errors import FailedPrecondition as FailedPrecondition
+    from drvs.errors import InvalidArgument as InvalidArgument
+    from drvs.errors import NotFound as NotFound
+    from drvs.errors import PermissionDenied as PermissionDenied
+    from drvs.errors import ResourceExhausted as ResourceExhausted
+    from drvs.errors import Unauthenticated as Unauthenticated
+    from drvs.errors import Unavailable as Unavailable
+    from drvs.model import CameraError as CameraError
+    from drvs.model import Detection as Detection
+    from drvs.model import DetectionReport as DetectionReport
+    from drvs.robot.client import CameraInfo as CameraInfo
+    from drvs.robot.client import DetectionResult as DetectionResult
+    from drvs.robot.client import DrvsClient as DrvsClient
+    from drvs.robot.client import RetryPolicy as RetryPolicy
+    from drvs.robot.client import Subscription as Subscription
+
+_EXPORTS = {
+    "DrvsClient": "drvs.robot.client",
+    "RetryPolicy": "drvs.robot.client",
+    "DetectionResult": "drvs.robot.client",
+    "Subscription": "drvs.robot.client",
+    "CameraInfo": "drvs.robot.client",
+    "Detection": "drvs.model",
+    "DetectionReport": "drvs.model",
+    "CameraError": "drvs.model",
+    "DrvsError": "drvs.errors",
+    "InvalidArgument": "drvs.errors",
+    "NotFound": "drvs.errors",
+    "Unavailable": "drvs.errors",
+    "DeadlineExceeded": "drvs.errors",
+    "FailedPrecondition": "drvs.errors",
+    "ResourceExhausted": "drvs.errors",
+    "PermissionDenied": "drvs.errors",
+    "Unauthenticated": "drvs.errors",
+}
+
+__all__ = ["__version__", *_EXPORTS]
+
+
+def __getattr__(name: str) -> Any:
+    module = _EXPORTS.get(name)
+    if module is None:
+        raise AttributeError(f"module 'drvs' has no attribute {name!r}")
+    value = getattr(importlib.import_module(module), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted([*globals(), *_EXPORTS])

@@ -16,14 +16,7 @@ from drvs import errors
 log = logging.getLogger(__name__)
 
 _TO_STATUS: dict[type[errors.DrvsError], grpc.StatusCode] = {
-    errors.InvalidArgument: grpc.StatusCode.INVALID_ARGUMENT,
-    errors.NotFound: grpc.StatusCode.NOT_FOUND,
-    errors.Unavailable: grpc.StatusCode.UNAVAILABLE,
-    errors.DeadlineExceeded: grpc.StatusCode.DEADLINE_EXCEEDED,
-    errors.FailedPrecondition: grpc.StatusCode.FAILED_PRECONDITION,
-    errors.ResourceExhausted: grpc.StatusCode.RESOURCE_EXHAUSTED,
-    errors.PermissionDenied: grpc.StatusCode.PERMISSION_DENIED,
-    errors.Unauthenticated: grpc.StatusCode.UNAUTHENTICATED,
+    cls: grpc.StatusCode[code] for code, cls in errors.BY_CODE.items()
 }
 _FROM_STATUS = {code: cls for cls, code in _TO_STATUS.items()}
 
@@ -115,8 +108,7 @@ def from_rpc_error(exc: grpc.RpcError, what: str) -> errors.DrvsError:
 
 def error_from_code(code_name: str, message: str) -> errors.DrvsError:
     """The domain error for a status code sent by name (a refused request on a stream)."""
-    code = grpc.StatusCode.__members__.get(code_name, grpc.StatusCode.UNKNOWN)
-    return _FROM_STATUS.get(code, errors.DrvsError)(message or code_name)
+    return errors.error_for(code_name, message)
 
 
 def servicer_method(method: Handler[T]) -> Handler[T]:

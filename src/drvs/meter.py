@@ -27,7 +27,10 @@ import contextlib
 import socket
 import struct
 from dataclasses import astuple, dataclass
-from typing import Literal
+from typing import TYPE_CHECKING, Any, Literal
+
+if TYPE_CHECKING:
+    from drvs.robot import DrvsClient
 
 _CHUNK = 65536
 
@@ -303,3 +306,91 @@ class CountingRelay:
             measured.read()  # the last look at the counters before a socket of the pair closes
             with contextlib.suppress(Exception):
                 writer.close()
+
+
+class MeteredClient:
+    """A plain DrvsClient whose two connections pass through counting relays, for benchmarks and
+    the simulated robot (robot code never needs it).
+
+    One relay stands in front of the server: the client dials it (`server=` the relay's address).
+    The other stands in front of the robot's report listener: cameras dial it (`advertise=` its
+    address), and it forwards to the listener once the listener has its port. Its measured side is
+    the socket to the listener (side="target"), as the robot's own socket would see it.
+
+        async with MeteredClient(server, robot_id="sim-robot") as metered:
+            await metered.client.detect(...)
+            received, sent = metered.payload_bytes()
+
+    `listen_host`: where the callback relay and the listener bind (default: the local address that
+    reaches the server); the other keyword arguments are DrvsClient's.
+    """
+
+    def __init__(self, server: str, *, listen_host: str | None = None, **client_args: Any) -> None:
+        from drvs.net import parse_address
+
+        self.server = server
+        self._target = parse_address(server, "server")
+        self._listen_host = listen_host
+        self._client_args = client_args
+        self.client: DrvsClient | None = None
+        self._callback: CountingRelay | None = None
+        self._server_relay: CountingRelay | None = None
+
+    async def start(self) -> DrvsClient:
+        """Start both relays and the client behind them; returns the (started, unchecked) client."""
+        from drvs.net import format_address, local_ip_towards
+        from drvs.robot import DrvsClient
+
+        host = self._listen_host
+        if host is None:
+            host = await asyncio.to_thread(local_ip_towards, self.server)
+        self._callback = CountingRelay(listen_host=host, side="target")
+        self._server_relay = CountingRelay(*self._target)
+        await self._callback.start()
+        await self._server_relay.start()
+        client = DrvsClient(
+            format_address("127.0.0.1", self._server_relay.port),
+            listen=format_address(host, 0),
+            advertise=format_address(host, self._callback.port),
+            **self._client_args,
+        )
+        self.client = client
+        await client.start()
+        self._callback.set_target(host, client.port)
+        return client
+
+    def _relays(self) -> tuple[CountingRelay, CountingRelay]:
+        if self._callback is None or self._server_relay is None:
+            raise RuntimeError("MeteredClient is not started")
+        return self._callback, self._server_relay
+
+    def payload_bytes(self) -> tuple[int, int]:
+        """(received, sent) TCP payload bytes on the robot's two connections."""
+        callback, server = self._relays()
+        return callback.to_target + server.from_target, callback.from_target + server.to_target
+
+    def ethernet_bytes(self) -> tuple[int, int]:
+        """(received, sent) bytes on the robot's connections as a 1500-byte-MTU Ethernet link
+        carries them: payload plus Ethernet, IP and TCP headers of every segment, ACKs included."""
+        callback, server = self._relays()
+        wire = callback.wire() + server.wire()
+        return wire.to_host, wire.from_host
+
+    async def close(self) -> None:
+        """Close the client, then both relays."""
+        if self.client is not None:
+            await self.client.close()
+        for relay in (self._callback, self._server_relay):
+            if relay is not None:
+                await relay.close()
+
+    async def __aenter__(self) -> MeteredClient:
+        try:
+            await self.start()
+        except BaseException:
+            await self.close()
+            raise
+        return self
+
+    async def __aexit__(self, *exc_info: object) -> None:
+        await self.close()

@@ -10,18 +10,23 @@ from typing import overload
 
 from shapely.geometry import Point, Polygon
 
-from drvs.errors import InvalidArgument
+from drvs.errors import DrvsError, InvalidArgument, error_for
 from drvs.net import parse_address
 
-#: Continuous requests are bounded so one request cannot keep cameras busy forever.
+#: Continuous requests are bounded so one request cannot keep cameras busy forever: reports a
+#: second, and seconds.
 MAX_RATE_HZ = 100.0
 MAX_DURATION_S = 3600.0
+#: Longest id (request, robot, camera), characters.
 MAX_ID_LENGTH = 128
+#: Longest report key, bytes.
 MAX_KEY_BYTES = 64
 
 
 @dataclass(frozen=True, slots=True)
 class PixelBox:
+    """An axis-aligned box in the camera's image, in pixels: top-left corner (x, y), width, height."""
+
     x: int
     y: int
     width: int
@@ -31,6 +36,18 @@ class PixelBox:
 @dataclass(frozen=True)
 class Detection:
     """One object seen by one camera, in floor coordinates (metres).
+
+    - `outline`: the object's floor outline, a shapely Polygon in metres (empty when the request
+      asked for no outlines);
+    - `bounds`: (x0, y0, x1, y1) of the outline, metres;
+    - `centroid_xy` / `centroid`: the outline's centre, metres (`centroid` is a shapely Point);
+    - `ground_contact_xy` / `ground_contact`: where the object meets the floor, metres: the
+      bottom-centre of the pixel box mapped to the floor (right for upright objects);
+    - `pixel_box`: the object's box in the camera image, pixels;
+    - `area_m2`: floor area, square metres; `area_px`: image area, pixels;
+    - `score`: the detector's confidence in [0, 1];
+    - `filter_def`: the filter that found it; `camera_id`: the camera that saw it;
+    - `capture_time`: when the frame was taken, seconds since the Unix epoch (the camera's clock).
 
     `centroid` and `ground_contact` are shapely Points, built when first asked for: a robot that
     reads only the coordinates (or only counts) never pays for the geometry objects.
@@ -57,16 +74,45 @@ class Detection:
 
     @functools.cached_property
     def centroid(self) -> Point:
+        """The outline's centre as a shapely Point, metres."""
         return Point(self.centroid_xy)
 
     @functools.cached_property
     def ground_contact(self) -> Point:
+        """Where the object meets the floor as a shapely Point, metres."""
         return Point(self.ground_contact_xy)
 
 
 @dataclass(frozen=True)
+class CameraError:
+    """Why one camera's answer is missing from a result, as a value.
+
+    `code` is a gRPC status name: UNAVAILABLE (the camera could not be reached, was skipped after a
+    failure, is gone without deregistering, or had no fresh frame), DEADLINE_EXCEEDED (no final
+    report within the timeout), RESOURCE_EXHAUSTED (busy), FAILED_PRECONDITION ...; `message` says
+    what happened; `camera_id` names the camera ("" when the error came without one).
+    `exception()` gives the matching drvs.errors exception, to raise.
+    """
+
+    code: str
+    message: str
+    camera_id: str = ""
+
+    def exception(self) -> DrvsError:
+        """The drvs.errors exception for this failure (e.g. Unavailable for UNAVAILABLE), its
+        `.code` this code and its `.camera_id` this camera."""
+        return error_for(self.code, self.message, camera_id=self.camera_id or None)
+
+
+@dataclass(frozen=True)
 class DetectionReport:
-    """What one camera saw for one request at one instant."""
+    """What one camera saw for one request at one instant.
+
+    `capture_time`: when the frame was taken, seconds since the Unix epoch; `sequence`: the
+    report's number within the request, from 0; `final`: the camera's last report for this
+    request; `error` / `error_code`: the camera's failure as text and status name ("" when it
+    looked), and `camera_error` the same as a CameraError value (None when it looked).
+    """
 
     request_id: str
     camera_id: str
@@ -78,9 +124,19 @@ class DetectionReport:
     #: With error: the gRPC status name that types it (UNAVAILABLE, DEADLINE_EXCEEDED ...).
     error_code: str = ""
 
+    @property
+    def camera_error(self) -> CameraError | None:
+        """The camera's failure as a typed value, or None when the camera looked."""
+        if not self.error:
+            return None
+        return CameraError(self.error_code or "UNKNOWN", self.error, self.camera_id)
+
 
 @dataclass(frozen=True)
 class ContinuousMode:
+    """How often and how long a camera reports: `rate_hz` reports a second for `duration_s`
+    seconds; both 0 is a single shot (one report)."""
+
     rate_hz: float = 0.0
     duration_s: float = 0.0
 
@@ -192,6 +248,8 @@ class DetectionRequest:
 
 
 def check_id(value: str, name: str, *, allow_empty: bool = False) -> str:
+    """`value` if it is a valid id (at most MAX_ID_LENGTH characters: letters, digits, - _ . :),
+    else InvalidArgument naming `name`."""
     if not value:
         if allow_empty:
             return value

@@ -12,7 +12,7 @@ from drvs._cli import add_security_arguments, env, join_negative_values, securit
 from drvs.errors import DrvsError, InvalidArgument
 from drvs.logs import FORMATS
 from drvs.model import Detection, DetectionReport
-from drvs.robot.client import DEFAULT_TIMEOUT_S, DrvsClient, RegionLike
+from drvs.robot.client import DEFAULT_TIMEOUT_S, DrvsClient, RegionLike, RetryPolicy
 
 ENV_SERVER = "DRVS_SERVER"
 
@@ -90,22 +90,24 @@ def print_report(r: DetectionReport) -> None:
 
 async def detect(args: argparse.Namespace) -> int:
     region = parse_roi(args)
-    async with DrvsClient(
-        args.server,
-        robot_id=args.robot_id,
-        listen=args.listen,
-        advertise=args.advertise,
-        security=security_from(vars(args)),
-        retries=args.retries,
-    ) as client:
-        sub = await client.subscribe(
+    async with (
+        DrvsClient.connect(
+            args.server,
+            robot_id=args.robot_id,
+            listen=args.listen,
+            advertise=args.advertise,
+            security=security_from(vars(args)),
+            retry=RetryPolicy.retries(args.retries),
+        ) as client,
+        client.subscribe(
             args.filter,
             region,
             rate_hz=args.rate,
             duration_s=args.duration,
             timeout_s=args.timeout,
             outlines=not args.no_outlines,
-        )
+        ) as sub,
+    ):
         if not args.json:
             print(f"request {sub.request_id}: dispatched to {', '.join(sub.camera_ids) or 'no camera'}")
         async for report in sub:
@@ -131,7 +133,7 @@ async def detect(args: argparse.Namespace) -> int:
 
 async def cameras(args: argparse.Namespace) -> int:
     region = parse_roi(args) if (args.roi or args.polygon) else None
-    async with DrvsClient(args.server, robot_id=args.robot_id, security=security_from(vars(args))) as client:
+    async with DrvsClient.connect(args.server, robot_id=args.robot_id, security=security_from(vars(args))) as client:
         found = await client.cameras(region)
     for c in found:
         if args.json:
@@ -187,7 +189,11 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--listen", default=None, help="HOST:PORT for the callback listener (default: ephemeral)")
     d.add_argument("--advertise", default=None, help="HOST:PORT cameras should call back, if not --listen")
     d.add_argument(
-        "--retries", type=int, default=0, metavar="N", help="send again, with backoff, while the server is unavailable"
+        "--retries",
+        type=int,
+        default=0,
+        metavar="N",
+        help="try again, with backoff, while the server is unavailable (N retries after the first try)",
     )
     d.set_defaults(func=detect)
 

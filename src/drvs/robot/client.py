@@ -1,4 +1,23 @@
-"""DrvsClient: robot code asks for objects and gets Python objects back."""
+"""DrvsClient: robot code asks for objects and gets Python objects back.
+
+    async with DrvsClient.connect("drvs.example:50051", robot_id="turtle-1") as drvs:
+        result = await drvs.detect("hsv_014110130035225200", (0, 0, 5, 5))
+        for d in result.detections:
+            print(d.camera_id, d.centroid.x, d.centroid.y)
+
+Timeouts, each in seconds and each meaning one thing:
+
+- `connect_timeout_s` (DrvsClient.connect): how long one attempt to reach the server may take
+  (its gRPC health check); past it the attempt fails with Unavailable.
+- `rpc_timeout_s` (subscribe, detect, cameras): how long one attempt of one call may wait for the
+  server's reply (the reply lists the cameras a request went to); past it DeadlineExceeded.
+- `timeout_s` (subscribe, detect): how long after the server's reply, beyond the request's own
+  `duration_s`, to wait for every camera's final report; a camera that has not finished by then is
+  in `result.camera_errors` as DEADLINE_EXCEEDED. It never raises.
+
+`retry=RetryPolicy(...)` applies to the first two, and only to Unavailable (the server is down,
+restarting, or unreachable): nothing is sent again after the server has taken it.
+"""
 
 from __future__ import annotations
 
@@ -7,11 +26,12 @@ import collections
 import contextlib
 import itertools
 import logging
+import math
 import secrets
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Generator, Iterator, Sequence
 from dataclasses import dataclass, field
 from types import TracebackType
-from typing import Any, TypeAlias
+from typing import Any, ClassVar, Generic, TypeAlias, TypeVar
 
 import grpc
 from grpc import aio
@@ -21,9 +41,8 @@ from drvs import _grpc
 from drvs.convert import polygon_from_pb, region_to_pb, report_from_pb, request_to_pb
 from drvs.errors import DrvsError, InvalidArgument, Unavailable
 from drvs.geometry import box_region, polygon_region
-from drvs.meter import CountingRelay
-from drvs.model import ContinuousMode, Detection, DetectionReport, DetectionRequest
-from drvs.net import dialable_address, format_address, host_of, local_ip_towards, parse_address
+from drvs.model import CameraError, ContinuousMode, Detection, DetectionReport, DetectionRequest
+from drvs.net import dialable_address, format_address, local_ip_towards, parse_address
 from drvs.report_auth import key_matches, new_secret
 from drvs.request_stream import RequestStream
 from drvs.security import Security
@@ -31,20 +50,27 @@ from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb
 
 log = logging.getLogger("drvs.robot")
 
-#: How long to wait for every camera's final report beyond a request's own duration.
+T = TypeVar("T")
+
+#: Seconds to wait, beyond a request's own duration, for every camera's final report (`timeout_s`).
 DEFAULT_TIMEOUT_S = 5.0
-#: Reports buffered per request before the listener pushes back on cameras.
+#: Seconds one attempt of one call waits for the server's reply (`rpc_timeout_s`).
+DEFAULT_RPC_TIMEOUT_S = 5.0
+#: Seconds one attempt to reach the server may take in DrvsClient.connect (`connect_timeout_s`).
+DEFAULT_CONNECT_TIMEOUT_S = 5.0
+#: Unread reports a continuous request keeps (the newest; older ones are dropped and counted).
 MAX_QUEUED_REPORTS = 1024
-#: The longest wait between retries of a request the server could not take.
+#: The longest wait between retries, seconds (RetryPolicy's default max_backoff_s).
 MAX_BACKOFF_S = 5.0
 #: Regions a client keeps built and encoded, by the value robot code passed.
 REGION_CACHE_SIZE = 256
 
+#: A floor region in metres: a shapely Polygon, a box (x0, y0, x1, y1), or a list of [x, y] points.
 RegionLike: TypeAlias = "Polygon | Sequence[float] | Sequence[Sequence[float]]"
 
 
 def as_region(region: RegionLike) -> Polygon:
-    """A shapely polygon, a box (x0, y0, x1, y1), or a list of [x, y] points."""
+    """A shapely polygon, a box (x0, y0, x1, y1), or a list of [x, y] points (metres) as a validated Polygon."""
     if isinstance(region, Polygon):
         return polygon_region(list(region.exterior.coords), "region")
     items: list[Any] = list(region)
@@ -53,6 +79,62 @@ def as_region(region: RegionLike) -> Polygon:
     if items and all(isinstance(p, Sequence) for p in items):
         return polygon_region(items, "region")
     raise InvalidArgument("region: expected a shapely Polygon, a box (x0, y0, x1, y1) or a list of [x, y] points")
+
+
+def _seconds(value: float, name: str, limit: float) -> float:
+    """`value` as seconds in (0, limit], or InvalidArgument naming `name`."""
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0 < value <= limit):
+        raise InvalidArgument(f"{name}: {value!r} must be a number of seconds in (0, {limit:g}]")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class RetryPolicy:
+    """How often to try a call the server could not take (Unavailable: down, restarting, unreachable).
+
+    - `attempts`: how many times in all a call is tried, the first included (1: no retry), at most 1000;
+    - `initial_backoff_s`: seconds to wait before the second attempt, in (0, max_backoff_s];
+    - `max_backoff_s`: the longest wait between attempts, seconds, in (0, 60]; each wait doubles
+      the previous one up to this.
+
+    It applies to DrvsClient.connect's check of the server and to each request's and cameras()
+    call's wait for the server's reply; never to a call the server has answered (a refusal is final).
+    `RetryPolicy.retries(n)` is the policy of n retries (n + 1 attempts) with the default backoff.
+    """
+
+    attempts: int = 1
+    initial_backoff_s: float = 0.2
+    max_backoff_s: float = MAX_BACKOFF_S
+
+    MAX_ATTEMPTS: ClassVar[int] = 1000
+    MAX_BACKOFF_LIMIT_S: ClassVar[float] = 60.0
+
+    def __post_init__(self) -> None:
+        if (
+            isinstance(self.attempts, bool)
+            or not isinstance(self.attempts, int)
+            or not (1 <= self.attempts <= self.MAX_ATTEMPTS)
+        ):
+            raise InvalidArgument(
+                f"retry.attempts: {self.attempts!r} must be a whole number in [1, {self.MAX_ATTEMPTS}] "
+                "(the first try included)"
+            )
+        _seconds(self.max_backoff_s, "retry.max_backoff_s", self.MAX_BACKOFF_LIMIT_S)
+        _seconds(self.initial_backoff_s, "retry.initial_backoff_s", self.max_backoff_s)
+
+    @classmethod
+    def retries(cls, count: int) -> RetryPolicy:
+        """`count` retries after the first attempt, with the default backoff (drvs-robot --retries)."""
+        if isinstance(count, bool) or not isinstance(count, int) or not (0 <= count < cls.MAX_ATTEMPTS):
+            raise InvalidArgument(f"retries: {count!r} must be a whole number in [0, {cls.MAX_ATTEMPTS - 1}]")
+        return cls(attempts=count + 1)
+
+    def backoffs(self) -> Iterator[float]:
+        """The waits (seconds) before the second, third ... attempt: attempts - 1 of them."""
+        wait = self.initial_backoff_s
+        for _ in range(self.attempts - 1):
+            yield wait
+            wait = min(wait * 2, self.max_backoff_s)
 
 
 class _Regions:
@@ -92,21 +174,15 @@ class _Regions:
 
 @dataclass(frozen=True)
 class CameraInfo:
+    """A camera the server routes to: its id, the address it serves on, its field of view on the
+    floor (a shapely Polygon, metres), the detector kinds it serves (hsv, aruco ...), and the
+    seconds left on its registration lease."""
+
     camera_id: str
     address: str
     field_of_view: Polygon
     detector_kinds: tuple[str, ...]
     lease_remaining_s: float
-
-
-@dataclass(frozen=True)
-class CameraError:
-    """Why a camera's answer is missing from a result. `code` is a gRPC status name:
-    UNAVAILABLE (could not be reached, skipped after a failure, gone without deregistering, or no
-    fresh frame), DEADLINE_EXCEEDED (no final report within the timeout), RESOURCE_EXHAUSTED (busy)."""
-
-    code: str
-    message: str
 
 
 @dataclass
@@ -115,9 +191,12 @@ class DetectionResult:
 
     Absence of detections means "nothing there" only where a camera looked: `complete` is False
     when any camera that sees the region did not answer (`missing_cameras`, each with its
-    `camera_errors` entry), and `uncovered` holds the parts of the region nobody looked at because
-    of that. `coverage_uncertain_s` > 0: the server restarted recently and may not know every
-    camera yet, so parts of the region no dispatched camera sees are not known to be clear.
+    `camera_errors` entry, a CameraError), and `uncovered` holds the parts of the region (shapely
+    Polygons, metres) nobody looked at because of that. `coverage_uncertain_s` > 0: the server
+    restarted that many seconds ago or less and may not know every camera yet, so parts of the
+    region no dispatched camera sees are not known to be clear. `dropped`: reports this request's
+    subscription dropped unread (continuous requests keep only the newest; see
+    DrvsClient.subscribe). `raise_for_errors()` turns the first camera failure into an exception.
     """
 
     request_id: str
@@ -129,13 +208,16 @@ class DetectionResult:
     interrupted: set[str] = field(default_factory=set)
     uncovered: list[Polygon] = field(default_factory=list)
     coverage_uncertain_s: float = 0.0
+    dropped: int = 0
 
     @property
     def detections(self) -> list[Detection]:
+        """Every detection of every report, in the order the reports arrived."""
         return [d for r in self.reports for d in r.detections]
 
     @property
     def finished_cameras(self) -> set[str]:
+        """Dispatched cameras that have sent their final report."""
         return {r.camera_id for r in self.reports if r.final}
 
     @property
@@ -145,18 +227,21 @@ class DetectionResult:
 
     @property
     def camera_errors(self) -> dict[str, CameraError]:
-        """Every camera whose answer is missing, and why."""
+        """Every camera whose answer is missing, and why (camera id -> CameraError)."""
         errors = dict(self.skipped)
         for camera_id in self.unfinished_cameras:
             if camera_id in self.interrupted:
                 errors[camera_id] = CameraError(
-                    "UNAVAILABLE", f"camera {camera_id}: its report stream ended before its final report"
+                    "UNAVAILABLE", f"camera {camera_id}: its report stream ended before its final report", camera_id
                 )
             else:
-                errors[camera_id] = CameraError("DEADLINE_EXCEEDED", f"camera {camera_id}: no final report in time")
+                errors[camera_id] = CameraError(
+                    "DEADLINE_EXCEEDED", f"camera {camera_id}: no final report in time", camera_id
+                )
         for r in self.reports:
-            if r.final and r.error:
-                errors[r.camera_id] = CameraError(r.error_code or "UNKNOWN", r.error)
+            error = r.camera_error
+            if r.final and error is not None:
+                errors[r.camera_id] = error
         return errors
 
     @property
@@ -167,18 +252,42 @@ class DetectionResult:
 
     @property
     def complete(self) -> bool:
+        """True when every camera that sees the region answered."""
         return not self.missing_cameras
 
     @property
     def errors(self) -> list[str]:
+        """The error text of every report that carried one (see camera_errors for typed values)."""
         return [r.error for r in self.reports if r.error]
+
+    def raise_for_errors(self) -> DetectionResult:
+        """Raise the drvs.errors exception of the first missing camera (by id; its `.code` the
+        status name, its `.camera_id` the camera), or return this result when it is complete."""
+        errors = self.camera_errors
+        if errors:
+            raise errors[min(errors)].exception()
+        return self
 
 
 class Subscription:
     """The reports of one request, as an async iterator that ends when every dispatched camera has
-    sent its final report, or when the timeout passes."""
+    sent its final report, or `timeout_s` seconds after the request's duration has passed.
 
-    def __init__(self, client: DrvsClient, request: DetectionRequest, timeout_s: float) -> None:
+    Use it as an async context manager (`async with drvs.subscribe(...) as sub:`): leaving the block
+    closes it, and cameras still reporting for it are told to stop. `result` (a DetectionResult)
+    gathers the reports read so far; `camera_ids` names the cameras the request went to.
+
+    Unread reports never hold back anything else: the robot's listener hands each report over
+    without waiting. A continuous request keeps the newest `max_queued` unread reports and drops
+    the oldest beyond that, counting them in `dropped`; each camera's final report is always kept.
+    A single-shot request gets one report per camera, its final one, and keeps them all: its queue
+    is bounded by the number of cameras the server dispatched to (a second report from the same
+    camera is dropped and counted).
+    """
+
+    def __init__(
+        self, client: DrvsClient, request: DetectionRequest, timeout_s: float, max_queued: int = MAX_QUEUED_REPORTS
+    ) -> None:
         self._client = client
         self.request = request
         self.request_id = request.request_id
@@ -186,23 +295,28 @@ class Subscription:
         # A deque and one waiter future, not an asyncio.Queue with wait_for: at 30 requests a
         # second per robot, a task per report was a visible share of the robot's CPU.
         self._pending: collections.deque[DetectionReport] = collections.deque()
+        self._max_queued = max_queued
         self._wakeup: asyncio.Future[None] | None = None
-        self._room = asyncio.Event()
-        self._room.set()
         self._timer: asyncio.TimerHandle | None = None
         self._expired = False
         self._timeout_s = timeout_s
         self.closed = False
         self.result = DetectionResult(request.request_id, ())
         self._finals: set[str] = set()  # cameras whose final report arrived
-        #: camera id -> when (loop time) its latest report arrived: a continuous request's camera
-        #: that falls silent is a camera that stopped looking.
+        #: camera id -> when (loop time, seconds) its latest report arrived: a continuous request's
+        #: camera that falls silent is a camera that stopped looking.
         self.last_report_at: dict[str, float] = {}
+
+    @property
+    def dropped(self) -> int:
+        """Reports dropped unread: the oldest of a continuous request's beyond `max_queued`, and
+        any second report of a camera that had already sent its final one."""
+        return self.result.dropped
 
     def _dispatched(self, reply: detection_pb2.DetectionReply) -> None:
         self.camera_ids = tuple(reply.camera_ids)
         self.result.camera_ids = self.camera_ids
-        self.result.skipped = {m.camera_id: CameraError(m.code, m.message) for m in reply.missing_cameras}
+        self.result.skipped = {m.camera_id: CameraError(m.code, m.message, m.camera_id) for m in reply.missing_cameras}
         self.result.uncovered = [polygon_from_pb(p, "uncovered") for p in reply.uncovered]
         self.result.coverage_uncertain_s = reply.coverage_uncertain_s
         loop = asyncio.get_running_loop()
@@ -230,21 +344,32 @@ class Subscription:
         reported since: they stopped looking (crashed, or cut off)."""
         return self.result.interrupted
 
-    async def _deliver(self, report: DetectionReport) -> bool:
-        """Queue a report; waits while MAX_QUEUED_REPORTS are unread, so a slow robot pushes back
-        on the camera instead of buffering without bound. False once the subscription is closed."""
-        while len(self._pending) >= MAX_QUEUED_REPORTS and not self.closed:
-            self._room.clear()
-            await self._room.wait()
+    def _deliver(self, report: DetectionReport) -> bool:
+        """Queue a report without waiting (one camera's stream carries the reports of every request
+        to this robot: waiting here would hold all of them back). False once the subscription is
+        closed."""
         if self.closed:
             return False
-        self._pending.append(report)
+        if report.camera_id in self._finals:
+            self.result.dropped += 1  # the camera already finished: nothing more is due from it
+            return True
         self.last_report_at[report.camera_id] = asyncio.get_running_loop().time()
         self.result.interrupted.discard(report.camera_id)
         if report.final:
             self._finals.add(report.camera_id)
+        elif len(self._pending) >= self._max_queued:
+            self._drop_oldest()
+        self._pending.append(report)
         self._wake()
         return True
+
+    def _drop_oldest(self) -> None:
+        """Drop the oldest unread report that is not a final one (finals, one a camera, are kept)."""
+        for i, old in enumerate(self._pending):
+            if not old.final:
+                del self._pending[i]
+                self.result.dropped += 1
+                return
 
     async def _next(self) -> DetectionReport | None:
         while not self._pending:
@@ -252,9 +377,7 @@ class Subscription:
                 return None
             self._wakeup = asyncio.get_running_loop().create_future()
             await self._wakeup
-        report = self._pending.popleft()
-        self._room.set()
-        return report
+        return self._pending.popleft()
 
     def __aiter__(self) -> AsyncIterator[DetectionReport]:
         return self._iterate()
@@ -279,6 +402,7 @@ class Subscription:
             self.close()
 
     async def collect(self) -> DetectionResult:
+        """Read every report to the end (see the class) and return the result."""
         async for _ in self:
             pass
         return self.result
@@ -293,15 +417,116 @@ class Subscription:
             if self._timer is not None:
                 self._timer.cancel()
             self._wake()
-            self._room.set()
             self._client._subscriptions.pop(self.request_id, None)
+
+    async def __aenter__(self) -> Subscription:
+        return self
+
+    async def __aexit__(
+        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+class _Opening(Generic[T]):
+    """Something opened by awaiting it (`x = await opening`) or by entering it as an async context
+    manager (`async with opening as x:`), which closes it on leaving the block."""
+
+    def __init__(self) -> None:
+        self._opened: T | None = None
+
+    async def _open(self) -> T:
+        raise NotImplementedError
+
+    async def _close(self, opened: T) -> None:
+        raise NotImplementedError
+
+    async def _opening(self) -> T:
+        self._opened = await self._open()
+        return self._opened
+
+    def __await__(self) -> Generator[Any, None, T]:
+        return self._opening().__await__()
+
+    async def __aenter__(self) -> T:
+        return await self._opening()
+
+    async def __aexit__(
+        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        if self._opened is not None:
+            await self._close(self._opened)
+
+
+class Subscribing(_Opening[Subscription]):
+    """What DrvsClient.subscribe returns: `await` it for the Subscription, or use it as an async
+    context manager (`async with drvs.subscribe(...) as sub:`), which closes the subscription on
+    leaving the block. The request is sent when it is awaited or entered, not before."""
+
+    def __init__(self, send: Callable[[], Awaitable[Subscription]]) -> None:
+        super().__init__()
+        self._send = send
+
+    async def _open(self) -> Subscription:
+        return await self._send()
+
+    async def _close(self, opened: Subscription) -> None:
+        opened.close()
+
+
+class Connecting(_Opening["DrvsClient"]):
+    """What DrvsClient.connect returns: `await` it for a started client whose server answered, or
+    use it as an async context manager (`async with DrvsClient.connect(...) as drvs:`), which closes
+    the client on leaving the block. A server that does not answer raises Unavailable naming it."""
+
+    def __init__(self, client: DrvsClient, connect_timeout_s: float) -> None:
+        super().__init__()
+        self.client = client
+        self._timeout_s = connect_timeout_s
+
+    async def _open(self) -> DrvsClient:
+        try:
+            await self.client.start()
+            await self.client.check_server(self._timeout_s)
+        except BaseException:
+            await self.client.close()
+            raise
+        return self.client
+
+    async def _close(self, opened: DrvsClient) -> None:
+        await opened.close()
 
 
 class DrvsClient:
-    """Connects to a DRVS server and runs the robot's CallbackCoordinates listener.
+    """A robot's connection to a DRVS server: ask where objects are, get Python objects back.
 
-    The listener binds `listen` (default: the local address that reaches the server, port 0) and
-    tells cameras to call `advertise` (default: the bound address).
+    Connect with `DrvsClient.connect(server, ...)`, which checks that the server answers:
+
+        async with DrvsClient.connect("drvs.example:50051", robot_id="turtle-1") as drvs:
+            result = await drvs.detect("hsv_014110130035225200", (0, 0, 5, 5))
+
+    - `server`: the server's HOST:PORT;
+    - `robot_id`: this robot's name in the server's logs and limits (letters, digits, - _ . :);
+    - `listen`: HOST:PORT the robot's report listener binds (port 0: any free port); default: the
+      local address that reaches the server, port 0, chosen when the client starts;
+    - `advertise`: HOST:PORT cameras dial to deliver reports (behind NAT, a relay ...); default:
+      the bound listener's address;
+    - `retry`: a RetryPolicy for calls the server could not take (default: no retry);
+    - `security`: a drvs.security.Security with TLS files and this robot's token (default: plain).
+
+    Constructing one does no network work (no name is resolved); `start()` (or `async with
+    DrvsClient(...)`) opens the channel and the listener without checking the server, and a call
+    to a server that is not there fails then, with Unavailable. Every error is a drvs.errors
+    exception with `.code` (the gRPC status name) and `.camera_id`.
+
+    Timeouts, in seconds, one meaning each: `connect_timeout_s` (connect) bounds one attempt to
+    reach the server; `rpc_timeout_s` (subscribe, detect, cameras) bounds one attempt's wait for the
+    server's reply; `timeout_s` (subscribe, detect) is how long, after that reply and beyond the
+    request's `duration_s`, to wait for every camera's final report (never raises: a late camera
+    is in `result.camera_errors`). `retry` repeats the first two after Unavailable.
+
+    Counters: `reports_received` (reports handed to subscriptions) and `reports_rejected`
+    (reports refused: not from a camera the request went to, or not on its stream).
     """
 
     def __init__(
@@ -311,20 +536,24 @@ class DrvsClient:
         robot_id: str = "",
         listen: str | None = None,
         advertise: str | None = None,
-        meter: bool = False,
-        retries: int = 0,
-        retry_backoff_s: float = 0.2,
+        retry: RetryPolicy | None = None,
         security: Security | None = None,
     ) -> None:
         self.security = security or Security()
         parse_address(server, "server")
         self.server = server
         self.robot_id = robot_id
-        self.listen = listen or format_address(local_ip_towards(server), 0)
-        parse_address(self.listen, "listen", allow_port_zero=True)
+        #: HOST:PORT the listener binds; "" until start() picks the default.
+        self.listen = listen or ""
+        if listen:
+            parse_address(listen, "listen", allow_port_zero=True)
         self._advertise = advertise
         if advertise:
             parse_address(advertise, "advertise")
+        if retry is not None and not isinstance(retry, RetryPolicy):
+            raise InvalidArgument(f"retry: expected a RetryPolicy, got {type(retry).__name__}")
+        self.retry = retry or RetryPolicy()
+        #: The port the listener bound (0 until started).
         self.port = 0
         self._channel: aio.Channel | None = None
         self._listener: aio.Server | None = None
@@ -345,65 +574,102 @@ class DrvsClient:
         self._id_prefix = secrets.token_urlsafe(3)  # 4 characters, 24 random bits
         self._id_counter = itertools.count(1)
         self._requests: RequestStream | None = None
-        # With meter=True, both of the robot's connections pass through counting relays, so
-        # wire_bytes() reports the real bytes its sockets carried.
-        self._meter = meter
-        # A request the server could not take (Unavailable: down, restarting, unreachable) is sent
-        # again up to `retries` times, after retry_backoff_s, doubling, at most MAX_BACKOFF_S.
-        if retries < 0 or not (0 < retry_backoff_s <= MAX_BACKOFF_S):
-            raise InvalidArgument(f"retries must be >= 0 and retry_backoff_s in (0, {MAX_BACKOFF_S:g}]")
-        self.retries = retries
-        self.retry_backoff_s = retry_backoff_s
-        self._relays: list[CountingRelay] = []
         self._regions = _Regions()
 
-    def wire_bytes(self) -> tuple[int, int]:
-        """(received, sent) TCP payload bytes on the robot's sockets; needs meter=True."""
-        if not self._relays:
-            raise DrvsError("wire_bytes() needs DrvsClient(meter=True)")
-        callback, server = self._relays
-        return callback.to_target + server.from_target, callback.from_target + server.to_target
+    @classmethod
+    def connect(
+        cls,
+        server: str,
+        *,
+        robot_id: str = "",
+        listen: str | None = None,
+        advertise: str | None = None,
+        retry: RetryPolicy | None = None,
+        security: Security | None = None,
+        connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S,
+    ) -> Connecting:
+        """A client that has checked its server: `await DrvsClient.connect(...)` or
+        `async with DrvsClient.connect(...) as drvs:` (closed on leaving the block).
 
-    def ethernet_bytes(self) -> tuple[int, int]:
-        """(received, sent) bytes on the robot's connections as a 1500-byte-MTU Ethernet link carries
-        them: payload plus Ethernet, IP and TCP headers of every segment, ACKs included (drvs.meter);
-        needs meter=True."""
-        if not self._relays:
-            raise DrvsError("ethernet_bytes() needs DrvsClient(meter=True)")
-        callback, server = self._relays
-        wire = callback.wire() + server.wire()
-        return wire.to_host, wire.from_host
+        Starts the client, then asks the server's gRPC health service whether it serves, each
+        attempt waiting at most `connect_timeout_s` seconds, and as many attempts as `retry`
+        allows. A server that is not there, not serving, or not answering in time raises
+        Unavailable naming its address (a refused credential: Unauthenticated). The other
+        arguments are DrvsClient's; bad ones raise InvalidArgument at once.
+        """
+        timeout_s = _seconds(connect_timeout_s, "connect_timeout_s", 3600.0)
+        client = cls(server, robot_id=robot_id, listen=listen, advertise=advertise, retry=retry, security=security)
+        return Connecting(client, timeout_s)
 
     @property
     def callback_address(self) -> str:
-        if self._meter and self._relays:
-            return dialable_address(self.listen, self._relays[0].port, self.server)
+        """HOST:PORT cameras dial to deliver this robot's reports (`advertise`, or the listener's)."""
         if self._advertise:
             return self._advertise
         return dialable_address(self.listen, self.port, self.server)
 
     async def start(self) -> None:
+        """Open the channel to the server and start the report listener (no check of the server:
+        DrvsClient.connect does that)."""
+        if not self.listen:
+            # Resolving the server's name may block: not on the event loop.
+            self.listen = format_address(await asyncio.to_thread(local_ip_towards, self.server), 0)
         listener = _grpc.new_server()
         detection_pb2_grpc.add_CallbackCoordinatesServicer_to_server(_Listener(self), listener)
         self.port = self.security.bind(listener, self.listen)
         await listener.start()
         self._listener = listener
-        server_address = self.server
-        if self._meter:
-            callback_relay = CountingRelay(
-                host_of(self.listen), self.port, listen_host=host_of(self.listen), side="target"
-            )
-            host, port = parse_address(self.server, "server")
-            server_relay = CountingRelay(host, port)
-            await callback_relay.start()
-            await server_relay.start()
-            self._relays = [callback_relay, server_relay]
-            server_address = format_address("127.0.0.1", server_relay.port)
-        self._channel = self.security.channel(server_address)
+        self._channel = self.security.channel(self.server)
         self._detect = detection_pb2_grpc.DetectObjectBoundaryStub(self._channel)
         self._requests = RequestStream(self._detect, f"server {self.server}", metadata=self.security.metadata())
         self._registry = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
         log.debug("robot %r listening for reports on %s", self.robot_id, self.callback_address)
+
+    async def check_server(self, timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S) -> None:
+        """Ask the server's gRPC health service whether it serves, each attempt waiting at most
+        `timeout_s` seconds, retried as `retry` allows. Raises Unavailable naming the server when it
+        is not there, not serving, or silent; other refusals (Unauthenticated ...) as they come."""
+        self._require_started()
+        from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+        assert self._channel is not None
+        stub = health_pb2_grpc.HealthStub(self._channel)
+        metadata = self.security.metadata() or None
+
+        async def check() -> None:
+            try:
+                reply = await stub.Check(health_pb2.HealthCheckRequest(), timeout=timeout_s, metadata=metadata)
+            except grpc.RpcError as exc:
+                code = exc.code() if hasattr(exc, "code") else grpc.StatusCode.UNKNOWN
+                if code == grpc.StatusCode.UNIMPLEMENTED:
+                    return  # a server without a health service: it answered, so it is there
+                if code in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
+                    details = exc.details() if hasattr(exc, "details") else ""
+                    raise Unavailable(
+                        f"server {self.server}: not reachable within {timeout_s:g} s ({code.name}: {details})"
+                    ) from None
+                raise _grpc.from_rpc_error(exc, f"server {self.server}") from None
+            if reply.status != health_pb2.HealthCheckResponse.SERVING:
+                status = health_pb2.HealthCheckResponse.ServingStatus.Name(reply.status)
+                raise Unavailable(f"server {self.server}: its health service says {status}")
+
+        await self._retrying("the connection", check)
+
+    async def _retrying(self, what: str, call: Callable[[], Awaitable[T]]) -> T:
+        """`call()`, tried again after each Unavailable as `retry` allows."""
+        waits = self.retry.backoffs()
+        while True:
+            try:
+                return await call()
+            except Unavailable:
+                wait = next(waits, None)
+                if wait is None:
+                    raise
+                log.info("server %s unavailable; retrying %s in %.1f s", self.server, what, wait)
+                await asyncio.sleep(wait)
+
+    def _receive(self, peer: str) -> _ReportStream:
+        return _ReportStream(self, peer)
 
     def _accepts(self, message: detection_pb2.DetectionReport, stream: object) -> bool:
         """A camera's reports count only on a stream that presented its key."""
@@ -416,6 +682,7 @@ class DrvsClient:
         return stream in self._camera_streams.get(camera_id, ())
 
     def new_request_id(self) -> str:
+        """A request id unique to this client (and, by its random prefix, across restarts)."""
         return f"{self._id_prefix}{next(self._id_counter):x}"
 
     def _cancel_at_server(self, request_id: str) -> None:
@@ -423,6 +690,8 @@ class DrvsClient:
             self._requests.cancel_soon(request_id)
 
     async def close(self) -> None:
+        """Close every open subscription (cameras are told to stop), the listener and the channel.
+        Closing again does nothing."""
         self._closing = True
         # Requests still open: each report stream tells its camera to stop them before it ends,
         # so cameras do not go on dialling a robot that has gone.
@@ -432,16 +701,15 @@ class DrvsClient:
         for task in list(self._report_streams):
             task.cancel()
         if self._requests is not None:
-            await self._requests.flush_cancels()
-            await self._requests.close()
+            requests, self._requests = self._requests, None
+            await requests.flush_cancels()
+            await requests.close()
         if self._listener is not None:
             await self._listener.stop(0.5)
             self._listener = None
         if self._channel is not None:
             await self._channel.close()
             self._channel = None
-        for relay in self._relays:
-            await relay.close()
 
     async def __aenter__(self) -> DrvsClient:
         await self.start()
@@ -454,9 +722,9 @@ class DrvsClient:
 
     def _require_started(self) -> None:
         if self._channel is None:
-            raise DrvsError("DrvsClient is not started; use `async with DrvsClient(...)` or await start()")
+            raise DrvsError("DrvsClient is not started; use `async with DrvsClient.connect(...)` or await start()")
 
-    async def subscribe(
+    def subscribe(
         self,
         filter_def: str,
         region: RegionLike,
@@ -465,14 +733,41 @@ class DrvsClient:
         duration_s: float = 0.0,
         timeout_s: float = DEFAULT_TIMEOUT_S,
         request_id: str | None = None,
-        rpc_timeout_s: float = 5.0,
+        rpc_timeout_s: float = DEFAULT_RPC_TIMEOUT_S,
         outlines: bool = True,
-    ) -> Subscription:
-        """Send a request; iterate the returned Subscription for its reports.
+        max_queued: int = MAX_QUEUED_REPORTS,
+    ) -> Subscribing:
+        """Send a request; its reports arrive on the Subscription as the cameras send them.
 
-        outlines=False asks for bounds, centroid and ground contact only (an empty outline).
+            async with drvs.subscribe(YELLOW, (0, 0, 5, 5), rate_hz=10, duration_s=2) as sub:
+                async for report in sub:
+                    ...
+
+        (`sub = await drvs.subscribe(...)` works too; then `sub.close()` when done.)
+
+        - `filter_def`: what to look for (e.g. "hsv_014110130035225200", "aruco_4x4_50_7", "people");
+        - `region`: where, on the floor, in metres (RegionLike);
+        - `rate_hz`, `duration_s`: continuous mode, reports a second for that many seconds (both 0:
+          a single shot, one report per camera);
+        - `timeout_s`: seconds to wait, after the server's reply and beyond `duration_s`, for every
+          camera's final report; iteration ends then, and the cameras not finished are in
+          `sub.result.camera_errors` as DEADLINE_EXCEEDED;
+        - `rpc_timeout_s`: seconds one attempt waits for the server's reply (DeadlineExceeded);
+        - `request_id`: an id of your own (default: a fresh one);
+        - `outlines`: False asks for bounds, centroid and ground contact only (an empty outline);
+        - `max_queued`: unread reports a continuous request keeps; beyond it the oldest are dropped
+          and counted in `sub.dropped` (final reports are always kept).
+
+        A bad argument raises InvalidArgument at once; nothing is sent until the returned object
+        is awaited or entered, and a server that cannot be reached raises Unavailable then, after
+        the attempts `retry` allows.
         """
         self._require_started()
+        if not (isinstance(timeout_s, (int, float)) and math.isfinite(timeout_s) and timeout_s >= 0):
+            raise InvalidArgument(f"timeout_s: {timeout_s!r} must be a finite number of seconds >= 0")
+        _seconds(rpc_timeout_s, "rpc_timeout_s", 3600.0)
+        if isinstance(max_queued, bool) or not isinstance(max_queued, int) or max_queued < 1:
+            raise InvalidArgument(f"max_queued: {max_queued!r} must be a whole number of reports >= 1")
         polygon, region_pb = self._regions.get(region)
         request = DetectionRequest(
             request_id=request_id or self.new_request_id(),
@@ -484,39 +779,34 @@ class DrvsClient:
             omit_outlines=not outlines,
         )
         request.validate(unknown_types=True)
-        if request.request_id in self._subscriptions:
-            raise InvalidArgument(f"request_id: {request.request_id!r} is already in use")
-        # Registered before sending: a camera may report before the server's reply arrives.
-        sub = Subscription(self, request, timeout_s)
-        self._subscriptions[request.request_id] = sub
-        assert self._requests is not None
         message = request_to_pb(request, region=region_pb)
         message.report_secret = self._report_secret
+        return Subscribing(lambda: self._send(request, message, timeout_s, rpc_timeout_s, max_queued))
+
+    async def _send(
+        self,
+        request: DetectionRequest,
+        message: detection_pb2.DetectionRequest,
+        timeout_s: float,
+        rpc_timeout_s: float,
+        max_queued: int,
+    ) -> Subscription:
+        sub = Subscription(self, request, timeout_s, max_queued)
+        if sub.request_id in self._subscriptions:
+            raise InvalidArgument(f"request_id: {sub.request_id!r} is already in use")
+        # Registered before sending: a camera may report before the server's reply arrives.
+        self._subscriptions[sub.request_id] = sub
+        requests = self._requests
+        assert requests is not None
         try:
-            reply = await self._send(message, rpc_timeout_s)
+            reply = await self._retrying(
+                f"request {message.request_id}", lambda: requests.request(message, rpc_timeout_s)
+            )
         except BaseException:
             sub.close()
             raise
         sub._dispatched(reply)
         return sub
-
-    async def _send(
-        self, message: detection_pb2.DetectionRequest, rpc_timeout_s: float
-    ) -> detection_pb2.DetectionReply:
-        assert self._requests is not None
-        backoff = self.retry_backoff_s
-        for attempt in itertools.count():
-            try:
-                return await self._requests.request(message, rpc_timeout_s)
-            except Unavailable:
-                if attempt >= self.retries:
-                    raise
-                log.info(
-                    "server %s unavailable; retrying request %s in %.1f s", self.server, message.request_id, backoff
-                )
-                await asyncio.sleep(backoff)
-                backoff = min(backoff * 2, MAX_BACKOFF_S)
-        raise AssertionError("unreachable")
 
     async def detect(
         self,
@@ -528,24 +818,36 @@ class DrvsClient:
         timeout_s: float = DEFAULT_TIMEOUT_S,
         outlines: bool = True,
     ) -> DetectionResult:
-        """Send a request and collect every report until each camera is done or the timeout passes."""
-        sub = await self.subscribe(
+        """Send a request and collect every report until each camera is done or `timeout_s` seconds
+        beyond `duration_s` have passed; the arguments are subscribe's. Camera failures do not
+        raise: they are in `result.camera_errors` (or call `result.raise_for_errors()`)."""
+        async with self.subscribe(
             filter_def, region, rate_hz=rate_hz, duration_s=duration_s, timeout_s=timeout_s, outlines=outlines
-        )
-        return await sub.collect()
+        ) as sub:
+            return await sub.collect()
 
-    async def cameras(self, region: RegionLike | None = None, *, rpc_timeout_s: float = 5.0) -> list[CameraInfo]:
-        """The cameras the server routes to (optionally only those that see `region`)."""
+    async def cameras(
+        self, region: RegionLike | None = None, *, rpc_timeout_s: float = DEFAULT_RPC_TIMEOUT_S
+    ) -> list[CameraInfo]:
+        """The cameras the server routes to (optionally only those that see `region`); each page of
+        the answer waits at most `rpc_timeout_s` seconds per attempt."""
         self._require_started()
         msg = registry_pb2.ListCamerasRequest()
         if region is not None:
             msg.region.CopyFrom(self._regions.get(region)[1])
         found: list[CameraInfo] = []
-        while True:  # the server answers a page at a time: follow next_page_token to the end
+
+        async def page() -> registry_pb2.ListCamerasReply:
             try:
-                reply = await self._registry.ListCameras(msg, timeout=rpc_timeout_s, metadata=self.security.metadata())
+                reply: registry_pb2.ListCamerasReply = await self._registry.ListCameras(
+                    msg, timeout=rpc_timeout_s, metadata=self.security.metadata()
+                )
             except grpc.RpcError as exc:
                 raise _grpc.from_rpc_error(exc, f"server {self.server}") from None
+            return reply
+
+        while True:  # the server answers a page at a time: follow next_page_token to the end
+            reply = await self._retrying("listing cameras", page)
             found.extend(
                 CameraInfo(
                     camera_id=c.camera_id,
@@ -561,7 +863,71 @@ class DrvsClient:
             msg.page_token = reply.next_page_token
 
 
+class _ReportStream:
+    """One camera's report stream as the client sees it: which reports count, and where they go."""
+
+    def __init__(self, client: DrvsClient, peer: str) -> None:
+        self._client = client
+        self._peer = peer
+        self._warned = False
+        self._task = asyncio.current_task()
+        if self._task is not None:
+            client._report_streams.add(self._task)
+
+    def receive(self, message: detection_pb2.DetectionReport) -> detection_pb2.ReportControl | None:
+        """Hand one report to its subscription; a control message to send back when the camera
+        should stop sending this request's reports (unknown, closed, or not proven its)."""
+        client = self._client
+        sub = client._subscriptions.get(message.request_id)
+        if not client._accepts(message, self):
+            client.reports_rejected += 1
+            if not self._warned:  # once per stream: a hostile peer does not flood the log
+                self._warned = True
+                log.warning(
+                    "report for request %s in camera %r's name from %s rejected: no valid report key "
+                    "for this stream (not a camera the server dispatched to, or not its stream)",
+                    message.request_id,
+                    message.camera_id[:40],
+                    self._peer,
+                )
+            sub = None  # answered as an unknown request: the sender learns nothing more
+        if sub is None or not sub._deliver(report_from_pb(message, sub.request.filter_def)):
+            return detection_pb2.ReportControl(cancelled_request_ids=[message.request_id])
+        client.reports_received += 1
+        return None
+
+    @property
+    def closing(self) -> bool:
+        """The robot is closing (its stream tasks are cancelled on purpose)."""
+        return self._client._closing
+
+    def closing_control(self) -> detection_pb2.ReportControl | None:
+        """What to tell the camera when the robot closes: stop the requests still open."""
+        if not self._client._open_at_close:
+            return None
+        return detection_pb2.ReportControl(cancelled_request_ids=self._client._open_at_close)
+
+    def end(self) -> None:
+        """The stream ended: cameras that reported only on it have none now, and the requests they
+        had not finished are interrupted."""
+        client = self._client
+        if self._task is not None:
+            client._report_streams.discard(self._task)
+        cameras = set()
+        for camera_id, streams in list(client._camera_streams.items()):
+            if self in streams:
+                streams.discard(self)
+                if not streams:
+                    del client._camera_streams[camera_id]
+                    cameras.add(camera_id)
+        if cameras:
+            for sub in list(client._subscriptions.values()):
+                sub._stream_ended(cameras)
+
+
 class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):
+    """The robot's CallbackCoordinates service: reads each camera's stream and delegates to the client."""
+
     def __init__(self, client: DrvsClient) -> None:
         self._client = client
 
@@ -575,50 +941,18 @@ class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):
         A closing robot cancels each stream's task and ends the stream itself (the camera sees a
         normal end) instead of leaving gRPC to cancel it.
         """
-        client = self._client
-        task = asyncio.current_task()
-        assert task is not None
-        client._report_streams.add(task)
-        stream = object()  # this stream's identity, which a camera's key binds its reports to
-        warned = False
+        stream = self._client._receive(context.peer())
         try:
             async for message in request_iterator:
-                sub = client._subscriptions.get(message.request_id)
-                if not client._accepts(message, stream):
-                    client.reports_rejected += 1
-                    if not warned:  # once per stream: a hostile peer does not flood the log
-                        warned = True
-                        log.warning(
-                            "report for request %s in camera %r's name from %s rejected: no valid report key "
-                            "for this stream (not a camera the server dispatched to, or not its stream)",
-                            message.request_id,
-                            message.camera_id[:40],
-                            context.peer(),
-                        )
-                    sub = None  # answered as an unknown request: the sender learns nothing more
-                if sub is None or not await sub._deliver(report_from_pb(message, sub.request.filter_def)):
-                    # Unknown or closed request: tell the camera to stop sending its reports.
-                    await context.write(detection_pb2.ReportControl(cancelled_request_ids=[message.request_id]))
-                    continue
-                client.reports_received += 1
+                control = stream.receive(message)
+                if control is not None:
+                    await context.write(control)
         except asyncio.CancelledError:
-            if not client._closing:
+            if not stream.closing:
                 raise
-            # The robot is closing: stop what is still open, then end the stream normally, so the
-            # camera sees it end, not fail.
-            if client._open_at_close:
+            control = stream.closing_control()
+            if control is not None:
                 with contextlib.suppress(Exception):
-                    control = detection_pb2.ReportControl(cancelled_request_ids=client._open_at_close)
                     await asyncio.wait_for(context.write(control), 0.5)
         finally:
-            client._report_streams.discard(task)
-            cameras = set()  # cameras that reported only on this stream: now they have none
-            for camera_id, streams in list(client._camera_streams.items()):
-                if stream in streams:
-                    streams.discard(stream)
-                    if not streams:
-                        del client._camera_streams[camera_id]
-                        cameras.add(camera_id)
-            if cameras:
-                for sub in list(client._subscriptions.values()):
-                    sub._stream_ended(cameras)
+            stream.end()

@@ -24,6 +24,7 @@ from shapely.geometry import LineString, Point, Polygon, box
 
 from drvs import _grpc
 from drvs.convert import polygon_from_pb
+from drvs.meter import MeteredClient
 from drvs.model import Detection
 from drvs.robot import DetectionResult, DrvsClient, Subscription
 from drvs.security import Security
@@ -529,12 +530,13 @@ async def run_robot(
         world = sim_pb2_grpc.SimulatedWorldStub(channel)
         scene = await world.GetScene(sim_pb2.GetSceneRequest(), timeout=10, wait_for_ready=True)
         scenario = parse_scenario(scene.scenario_yaml, f"world {world_address}")
-        client = (
-            DrvsClient(server_address, robot_id="sim-robot", meter=True, security=security) if server_address else None
-        )
-        if client is not None:
-            await client.start()
+        # The robot's two connections pass through counting relays: bytes_to_robot and
+        # wire_bytes_to_robot are what its sockets received (drvs.meter).
+        metered = MeteredClient(server_address, robot_id="sim-robot", security=security) if server_address else None
+        client: DrvsClient | None = None
         try:
+            if metered is not None:
+                client = await metered.start()
             robot = SimRobot(scenario, world, client, progress=progress, max_time_s=max_time_s, detector=detector)
             mission = getattr(robot, scenario.mission)
             try:
@@ -544,11 +546,11 @@ async def run_robot(
                 outcome = {"reached_goal": False, "charging_station": None, "candidates": []}
                 failure = str(exc)
             robot.report_progress(force=True)
-            received = client.wire_bytes()[0] if client is not None else 0
-            wire_received = client.ethernet_bytes()[0] if client is not None else 0
+            received = metered.payload_bytes()[0] if metered is not None else 0
+            wire_received = metered.ethernet_bytes()[0] if metered is not None else 0
         finally:
-            if client is not None:
-                await client.close()
+            if metered is not None:
+                await metered.close()
     errors = robot.localisation_errors
     headings = robot.heading_errors
     result: dict[str, Any] = {
