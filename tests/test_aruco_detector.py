@@ -30,7 +30,7 @@ from drvs.launch import start_camera, start_server
 from drvs.model import Detection
 from drvs.sim.scene import write_video
 
-from .test_cli import roi, run_robot
+from .helpers import roi, run_robot
 
 SIZE = (640, 480)
 SUPERSAMPLE = 4

@@ -16,7 +16,7 @@ from drvs.errors import InvalidArgument
 from drvs.launch import CAMERA_REGISTERED, ManagedProcess
 from drvs.robot import DrvsClient
 
-from .conftest import CAM1_REGION, YELLOW, Office
+from .helpers import CAM1_REGION, YELLOW, Office
 
 NO_FLAGS: dict[str, object] = {}
 
@@ -66,6 +66,7 @@ def test_bad_config_names_the_key_and_its_origin(
         load_config(NO_FLAGS, environ, write(tmp_path / "cam.yaml", data))
 
 
+@pytest.mark.office_cameras()
 async def test_node_runs_from_a_config_file(tmp_path: Path, office: Office) -> None:
     rec = office.recorded["cam1"]
     cfg = write(
@@ -88,6 +89,7 @@ async def health(address: str) -> int:
         return int(reply.status)
 
 
+@pytest.mark.office_cameras()
 async def test_source_that_disappears_and_comes_back(tmp_path: Path, office: Office) -> None:
     rec = office.recorded["cam1"]
     video = tmp_path / "live.avi"
@@ -160,6 +162,7 @@ def test_heartbeat_never_outlives_the_lease(tmp_path: Path) -> None:
     assert CameraNode("b", VideoSource("0"), h, "127.0.0.1:1")._heartbeat_interval(9.0) == 3.0
 
 
+@pytest.mark.office_cameras()
 async def test_a_source_of_another_size_is_refused(office: Office) -> None:
     rec = office.recorded["cam1"]
     proc = ManagedProcess.entry_point(

@@ -33,7 +33,7 @@ from drvs.server.policy import RequestLimits
 from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
-from .conftest import CAM1_REGION, MAX_RANGE, YELLOW
+from .helpers import CAM1_REGION, MAX_RANGE, YELLOW
 
 ROLES = Path(__file__).with_name("fault_roles.py")
 

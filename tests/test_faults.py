@@ -32,7 +32,7 @@ from drvs.robot import DrvsClient
 from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc
 
-from .conftest import BOTH_REGION, CAM1_REGION, MAX_RANGE, YELLOW, Office, start_office, stop_office
+from .helpers import BOTH_REGION, CAM1_REGION, MAX_RANGE, YELLOW, Office, start_office, stop_office
 
 ROLES = Path(__file__).with_name("fault_roles.py")
 #: The lease in the killed-camera test (cameras heartbeat every third of it).

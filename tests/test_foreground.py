@@ -29,7 +29,7 @@ from drvs.model import Detection
 from drvs.robot import DrvsClient
 from drvs.sim.scene import FloorPatch, render_view, write_video
 
-from .test_people import footage
+from .helpers import footage
 
 SIZE = (640, 480)
 FOREGROUND = parse_object_type("foreground")

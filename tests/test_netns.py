@@ -24,7 +24,7 @@ import pytest_asyncio
 from drvs.launch import CAMERA_REGISTERED, SERVER_READY, ManagedProcess
 from drvs.sim.scene import RecordedCamera
 
-from .conftest import CAM1_REGION, MAX_RANGE
+from .helpers import CAM1_REGION, MAX_RANGE
 
 ROLES = Path(__file__).with_name("fault_roles.py")
 LEASE_S = 2.0

@@ -20,8 +20,7 @@ from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.robot import DrvsClient
 from drvs.sim.scene import RecordedCamera
 
-from .conftest import CAM1_REGION, MAX_RANGE, OBJECTS, YELLOW
-from .test_observability import metrics_port, scrape
+from .helpers import CAM1_REGION, MAX_RANGE, OBJECTS, YELLOW, metrics_port, scrape
 
 PLUGINS = Path(__file__).parent / "plugins"
 

@@ -35,8 +35,7 @@ from drvs.v1 import (
     stream_pb2_grpc,
 )
 
-from .conftest import CAM1_REGION, MAX_RANGE, YELLOW
-from .test_server import register_message
+from .helpers import CAM1_REGION, MAX_RANGE, YELLOW, register_message
 
 LOBBY_TOKEN = "lobby-token-0123456789abcdef"
 YARD_TOKEN = "yard-token-fedcba9876543210"

@@ -26,8 +26,7 @@ from drvs.server.policy import CallbackPolicy, IPAddress
 from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
-from .conftest import CAM1_REGION, CAM2_REGION, MAX_RANGE, YELLOW
-from .test_server import register_message
+from .helpers import CAM1_REGION, CAM2_REGION, MAX_RANGE, YELLOW, register_message
 
 
 class _CapturingCamera(detection_pb2_grpc.DetectObjectBoundaryServicer):

@@ -23,8 +23,7 @@ from drvs.server.policy import RequestLimits
 from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
-from .conftest import CAM1_REGION, MAX_RANGE, YELLOW
-from .test_server import register_message
+from .helpers import CAM1_REGION, MAX_RANGE, YELLOW, register_message
 
 CAMERA_TOKEN = "camera-token-0123456789abcdef"
 OTHER_CAMERA_TOKEN = "camera-token-fedcba9876543210"

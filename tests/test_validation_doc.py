@@ -23,7 +23,7 @@ from drvs.launch import ManagedProcess
 from drvs.server import DrvsServer
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
-from .test_server import detect_message
+from .helpers import detect_message
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "validation.md"
 YELLOW = "hsv_014110130035225200"
