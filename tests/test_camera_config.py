@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import re
 import shutil
 from pathlib import Path
 
@@ -13,7 +12,7 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from drvs.camera.config import DEFAULT_SERVER, load_config
 from drvs.errors import InvalidArgument
-from drvs.launch import CAMERA_REGISTERED, ManagedProcess
+from drvs.launch import ManagedProcess, camera_ready
 from drvs.robot import DrvsClient
 
 from .helpers import CAM1_REGION, YELLOW, Office
@@ -76,7 +75,7 @@ async def test_node_runs_from_a_config_file(tmp_path: Path, office: Office) -> N
     )  # fmt: skip
     proc = await ManagedProcess.entry_point("cfgcam", "drvs-camera", "--config", str(cfg)).start()
     try:
-        await proc.wait_for_line(CAMERA_REGISTERED.format(id="cfgcam"), timeout=30)
+        await camera_ready(proc, "cfgcam")
         async with DrvsClient(office.address) as robot:
             assert "cfgcam" in [c.camera_id for c in await robot.cameras()]
     finally:
@@ -90,6 +89,7 @@ async def health(address: str) -> int:
 
 
 @pytest.mark.office_cameras()
+@pytest.mark.timeout(200)  # its own waits (starts, runs, requests) add up to 170 s
 async def test_source_that_disappears_and_comes_back(tmp_path: Path, office: Office) -> None:
     rec = office.recorded["cam1"]
     video = tmp_path / "live.avi"
@@ -100,14 +100,12 @@ async def test_source_that_disappears_and_comes_back(tmp_path: Path, office: Off
     )  # fmt: skip
     await proc.start()
     try:
-        await proc.wait_for_line(CAMERA_REGISTERED.format(id="flaky"), timeout=30)
-        address = re.search(r"listening on (\S+)", proc.output())
-        assert address is not None
-        assert await health(address.group(1)) == health_pb2.HealthCheckResponse.SERVING
+        address = await camera_ready(proc, "flaky")
+        assert await health(address) == health_pb2.HealthCheckResponse.SERVING
 
         video.unlink()  # the camera goes away: the file ends and cannot be reopened
         await proc.wait_for_line(r"NOT_SERVING until frames come back", timeout=15)
-        assert await health(address.group(1)) == health_pb2.HealthCheckResponse.NOT_SERVING
+        assert await health(address) == health_pb2.HealthCheckResponse.NOT_SERVING
         async with DrvsClient(office.address) as robot:
             result = await robot.detect(YELLOW, CAM1_REGION, timeout_s=10)
             flaky = [r for r in result.reports if r.camera_id == "flaky"]
@@ -115,7 +113,7 @@ async def test_source_that_disappears_and_comes_back(tmp_path: Path, office: Off
 
             shutil.copy(rec.video, video)  # and comes back
             await proc.wait_for_line(r"frames again from .*; SERVING", timeout=15)
-            assert await health(address.group(1)) == health_pb2.HealthCheckResponse.SERVING
+            assert await health(address) == health_pb2.HealthCheckResponse.SERVING
             result = await robot.detect(YELLOW, CAM1_REGION, timeout_s=10)
             flaky = [r for r in result.reports if r.camera_id == "flaky"]
             assert flaky and not flaky[0].error and len(flaky[0].detections) == 2

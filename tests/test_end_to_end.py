@@ -122,6 +122,7 @@ async def test_robot_that_closes_mid_request_stops_the_cameras_quietly(office: O
     assert robot_gone == [], robot_gone
 
 
+@pytest.mark.timeout(160)  # its own waits (starts, runs, requests) add up to 130 s
 async def test_dead_camera_does_not_hold_up_the_other_and_leaves_routing(office: Office) -> None:
     cam2 = office.cameras["cam2"]
     async with DrvsClient(office.address) as robot:
@@ -160,6 +161,7 @@ async def test_camera_deregisters_on_sigterm(office: Office) -> None:
         assert [c.camera_id for c in await robot.cameras()] == ["cam1"]
 
 
+@pytest.mark.timeout(180)  # its own waits (starts, runs, requests) add up to 150 s
 async def test_cameras_reregister_after_server_restart(office: Office) -> None:
     port = office.address.rsplit(":", 1)[1]
     assert await office.server.stop() == 0

@@ -150,6 +150,7 @@ async def _routes_only(robot: DrvsClient, camera_ids: list[str]) -> bool:
 HEARTBEAT_S = 1.0
 
 
+@pytest.mark.timeout(180)  # its own waits (starts, runs, requests) add up to 150 s
 async def test_server_restart_fails_fast_retries_and_cameras_return_within_a_heartbeat(
     recorded: dict[str, RecordedCamera], caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -278,6 +279,7 @@ async def unhelpful_listeners() -> AsyncIterator[dict[str, str]]:
         closed.close()
 
 
+@pytest.mark.timeout(170)  # its own waits (starts, runs, requests) add up to 140 s
 async def test_unreachable_or_stuck_robot_listeners_cost_nobody_else(office: Office) -> None:
     loop = asyncio.get_running_loop()
     cameras = list(office.cameras.values())
@@ -358,6 +360,7 @@ def slow_camera(server: str, *args: str) -> ManagedProcess:
     return ManagedProcess("slow", [sys.executable, str(ROLES), "slow-camera", "--server", server, *args])
 
 
+@pytest.mark.timeout(170)  # its own waits (starts, runs, requests) add up to 140 s
 async def test_a_slow_camera_delays_nobody_else(office: Office) -> None:
     """A camera whose detection takes three seconds: it accepts each request at once, and reports late."""
     slow = await slow_camera(office.address, "--report-delay", "3").start()
@@ -393,6 +396,7 @@ async def test_a_slow_camera_delays_nobody_else(office: Office) -> None:
         await slow.stop()
 
 
+@pytest.mark.timeout(170)  # its own waits (starts, runs, requests) add up to 140 s
 async def test_a_camera_slow_to_accept_is_answered_for_and_delays_nobody_else(office: Office) -> None:
     """A camera that takes five seconds to accept a request: the server gives up on it after its
     forward timeout (2 s), answers the robot for it, and nobody else waits."""

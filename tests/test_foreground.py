@@ -24,7 +24,7 @@ from drvs.detectors import CameraView, Frame, FrameAnalysis, parse_object_type
 from drvs.detectors.foreground import ForegroundDetector
 from drvs.errors import FailedPrecondition, InvalidArgument
 from drvs.geometry import FieldOfView, Homography, homography_from_pose
-from drvs.launch import CAMERA_REGISTERED, ManagedProcess, start_server
+from drvs.launch import ManagedProcess, camera_ready, start_server
 from drvs.model import Detection
 from drvs.robot import DrvsClient
 from drvs.sim.scene import FloorPatch, render_view, write_video
@@ -403,6 +403,7 @@ def test_snapshot_refuses_what_it_cannot_write(tmp_path: Path, capsys: pytest.Ca
 # --- end to end -------------------------------------------------------------------------------
 
 
+@pytest.mark.timeout(190)  # its own waits (starts, runs, requests) add up to 160 s
 async def test_a_camera_with_a_background_answers_foreground_with_the_objects_position(tmp_path: Path) -> None:
     """Real processes: snapshot the empty floor, then a camera whose config names it finds a box no
     colour filter matches where it lies; a camera whose background file is missing stops at start."""
@@ -432,7 +433,7 @@ async def test_a_camera_with_a_background_answers_foreground_with_the_objects_po
         (tmp_path / "cam.yaml").write_text(yaml.safe_dump(config))
         cam = await ManagedProcess.entry_point("fgcam", "drvs-camera", "--config", str(tmp_path / "cam.yaml")).start()
         try:
-            await cam.wait_for_line(CAMERA_REGISTERED.format(id="fgcam"), timeout=30)
+            await camera_ready(cam, "fgcam")
             async with DrvsClient(address) as robot:
                 result = await robot.detect("foreground", (-3.0, 1.0, 3.0, 8.0), timeout_s=10)
             reports = [r for r in result.reports if r.camera_id == "fgcam"]

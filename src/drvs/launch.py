@@ -294,17 +294,29 @@ async def _unless_exited(proc: ManagedProcess | None, awaitable: Awaitable[T], w
         await asyncio.gather(*waits, return_exceptions=True)
 
 
+def _deadline(timeout: float) -> Callable[[], float]:
+    """Seconds left of `timeout` from now (at least a little, so a last step can still report why)."""
+    end = asyncio.get_running_loop().time() + timeout
+
+    def left() -> float:
+        return max(0.01, end - asyncio.get_running_loop().time())
+
+    return left
+
+
 async def start_server(
     *args: str, echo: TextIO | None = None, env: dict[str, str] | None = None, timeout: float = READY_TIMEOUT_S
 ) -> tuple[ManagedProcess, str]:
     """drvs-server on 127.0.0.1 port 0 (unless `args` say otherwise): (process, address) once its
-    health service answers SERVING. On failure or timeout the process is stopped and reaped."""
+    health service answers SERVING, all within `timeout` s. On failure or timeout the process is
+    stopped and reaped."""
     proc = await ManagedProcess.entry_point(
         "server", "drvs-server", "--listen", "127.0.0.1:0", *args, echo=echo, env=env
     ).start()
+    left = _deadline(timeout)
     try:
-        address = (await proc.wait_for_line(SERVER_READY, timeout=timeout)).group(1)
-        await wait_serving(address, proc, args=args, env=env, timeout=timeout)
+        address = (await proc.wait_for_line(SERVER_READY, timeout=left())).group(1)
+        await wait_serving(address, proc, args=args, env=env, timeout=left())
     except BaseException:
         await asyncio.shield(proc.stop())
         raise
@@ -334,7 +346,8 @@ async def start_camera(
     timeout: float = READY_TIMEOUT_S,
 ) -> ManagedProcess:
     """drvs-camera listening on 127.0.0.1 port 0, returned once its health service answers SERVING
-    and it has registered with `server`. On failure or timeout it is stopped and reaped."""
+    and it has registered with `server`, all within `timeout` s. On failure or timeout it is
+    stopped and reaped."""
     proc = ManagedProcess.entry_point(
         camera_id,
         "drvs-camera",
@@ -353,12 +366,30 @@ async def start_camera(
         env=env,
     )
     await proc.start()
+    await camera_ready(proc, camera_id, args=args, env=env, timeout=timeout)
+    return proc
+
+
+async def camera_ready(
+    proc: ManagedProcess,
+    camera_id: str,
+    *,
+    args: Sequence[str] = (),
+    env: Mapping[str, str] | None = None,
+    timeout: float = READY_TIMEOUT_S,
+) -> str:
+    """A started drvs-camera's own address, once its health service answers SERVING and it has
+    registered with its server, all within `timeout` s. `args`/`env`: its command line and
+    environment, for its TLS files (a camera configured by --config file must not use TLS here).
+    On failure or timeout the process is stopped and reaped."""
+    left = _deadline(timeout)
     try:
-        listening = await proc.wait_for_line(CAMERA_LISTENING.format(id=re.escape(camera_id)), timeout=timeout)
-        await wait_serving(listening.group(1), proc, args=args, env=env, timeout=timeout)
+        listening = await proc.wait_for_line(CAMERA_LISTENING.format(id=re.escape(camera_id)), timeout=left())
+        address = listening.group(1)
+        await wait_serving(address, proc, args=args, env=env, timeout=left())
         # No health service says "registered": the camera's log line does.
-        await proc.wait_for_line(CAMERA_REGISTERED.format(id=re.escape(camera_id)), timeout=timeout)
+        await proc.wait_for_line(CAMERA_REGISTERED.format(id=re.escape(camera_id)), timeout=left())
     except BaseException:
         await asyncio.shield(proc.stop())
         raise
-    return proc
+    return address
