@@ -160,11 +160,15 @@ class ManagedProcess:
                     if found is not None:
                         return found
                     if self._eof:
-                        raise RuntimeError(
-                            f"{self.name} exited (code {self.returncode}) before {what}:\n"
-                            + "\n".join(self.lines[-20:])
-                        )
+                        break
                     await self._changed.wait()
+            # Its output has ended: it is exiting. Its exit code makes the error clearer.
+            if self.process is not None:
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(asyncio.shield(self.process.wait()), 5)
+            raise RuntimeError(
+                f"{self.name} exited (code {self.returncode}) before {what}:\n" + "\n".join(self.lines[-20:])
+            )
 
         try:
             return await asyncio.wait_for(wait(), timeout)
@@ -258,15 +262,15 @@ async def wait_serving(
     what = f"gRPC health SERVING at {address}"
     name = proc.name if proc is not None else address
     try:
-        await _unless_exited(proc, serving(), what, timeout)
-    except aio.AioRpcError as exc:
+        await _unless_exited(proc, serving(), what, timeout, name)
+    except aio.AioRpcError as exc:  # its deadline: the same timeout
         tail = "" if proc is None else ":\n" + "\n".join(proc.lines[-20:])
-        raise TimeoutError(
-            f"{name}: no {what} within {timeout:g} s ({exc.code().name}: {exc.details()}){tail}"
-        ) from None
+        raise TimeoutError(f"{name}: still no {what} after {timeout:g} s ({exc.code().name}){tail}") from None
 
 
-async def _unless_exited(proc: ManagedProcess | None, awaitable: Awaitable[T], what: str, timeout: float) -> T:
+async def _unless_exited(
+    proc: ManagedProcess | None, awaitable: Awaitable[T], what: str, timeout: float, name: str = "wait"
+) -> T:
     """`awaitable`'s result, unless `proc` exits first (RuntimeError) or `timeout` passes (TimeoutError)."""
     task = asyncio.ensure_future(awaitable)
     waits: set[asyncio.Future[Any]] = {task}
@@ -285,7 +289,7 @@ async def _unless_exited(proc: ManagedProcess | None, awaitable: Awaitable[T], w
             raise RuntimeError(
                 f"{proc.name} exited (code {proc.returncode}) before {what}:\n" + "\n".join(proc.lines[-20:])
             )
-        name = proc.name if proc is not None else "the process"
+        name = proc.name if proc is not None else name
         tail = "" if proc is None else ":\n" + "\n".join(proc.lines[-20:])
         raise TimeoutError(f"{name}: still no {what} after {timeout:g} s{tail}")
     finally:
