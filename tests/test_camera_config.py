@@ -88,6 +88,7 @@ async def health(address: str) -> int:
         return int(reply.status)
 
 
+@pytest.mark.slow
 @pytest.mark.office_cameras()
 @pytest.mark.timeout(200)  # its own waits (starts, runs, requests) add up to 170 s
 async def test_source_that_disappears_and_comes_back(tmp_path: Path, office: Office) -> None:

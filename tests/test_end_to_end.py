@@ -73,6 +73,7 @@ async def test_region_seen_by_no_camera_dispatches_nowhere(office: Office) -> No
     assert result.camera_ids == () and result.reports == [] and result.complete
 
 
+@pytest.mark.slow
 async def test_continuous_request_streams_at_its_rate(office: Office) -> None:
     async with DrvsClient(office.address) as robot:
         sub = await robot.subscribe(YELLOW, BOTH_REGION, rate_hz=10, duration_s=1.0, timeout_s=10)

@@ -275,6 +275,7 @@ async def test_a_cancelled_continuous_request_frees_its_place_at_the_server(
 # --- a camera that stops reading -----------------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_a_camera_that_heartbeats_but_never_reads_is_cut_off_and_costs_the_server_no_memory(
     recorded: dict[str, RecordedCamera],
 ) -> None:
@@ -371,6 +372,7 @@ async def test_streams_per_connection_are_capped_and_idle_connections_closed() -
         await server.stop()
 
 
+@pytest.mark.slow
 async def test_old_connections_are_ended_and_clients_reconnect() -> None:
     server, address = await start_server("--max-connection-age", "1", "--max-connection-age-grace", "0.5")
     try:

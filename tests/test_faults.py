@@ -74,6 +74,7 @@ def p90(values: list[float]) -> float:
 # --- a camera killed mid-request -----------------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_camera_killed_mid_request_does_not_cost_the_robot_the_other_cameras_reports(
     recorded: dict[str, RecordedCamera],
 ) -> None:
@@ -150,6 +151,7 @@ async def _routes_only(robot: DrvsClient, camera_ids: list[str]) -> bool:
 HEARTBEAT_S = 1.0
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(180)  # its own waits (starts, runs, requests) add up to 150 s
 async def test_server_restart_fails_fast_retries_and_cameras_return_within_a_heartbeat(
     recorded: dict[str, RecordedCamera], caplog: pytest.LogCaptureFixture
@@ -279,6 +281,7 @@ async def unhelpful_listeners() -> AsyncIterator[dict[str, str]]:
         closed.close()
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(170)  # its own waits (starts, runs, requests) add up to 140 s
 async def test_unreachable_or_stuck_robot_listeners_cost_nobody_else(office: Office) -> None:
     loop = asyncio.get_running_loop()
@@ -360,6 +363,7 @@ def slow_camera(server: str, *args: str) -> ManagedProcess:
     return ManagedProcess("slow", [sys.executable, str(ROLES), "slow-camera", "--server", server, *args])
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(170)  # its own waits (starts, runs, requests) add up to 140 s
 async def test_a_slow_camera_delays_nobody_else(office: Office) -> None:
     """A camera whose detection takes three seconds: it accepts each request at once, and reports late."""
@@ -396,6 +400,7 @@ async def test_a_slow_camera_delays_nobody_else(office: Office) -> None:
         await slow.stop()
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(170)  # its own waits (starts, runs, requests) add up to 140 s
 async def test_a_camera_slow_to_accept_is_answered_for_and_delays_nobody_else(office: Office) -> None:
     """A camera that takes five seconds to accept a request: the server gives up on it after its

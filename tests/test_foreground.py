@@ -136,6 +136,7 @@ OBJECTS = [
 ]
 
 
+@pytest.mark.slow
 def test_objects_of_any_colour_that_never_move_are_found_where_they_lie(tmp_path: Path) -> None:
     scene = Scene(1)
     det = ForegroundDetector(view(), {"background": str(write_empty_floor(tmp_path / "empty.png", scene))})
@@ -152,6 +153,7 @@ def test_objects_of_any_colour_that_never_move_are_found_where_they_lie(tmp_path
         assert step(motion_only, scene, scene.image(OBJECTS)) == ()
 
 
+@pytest.mark.slow
 def test_slow_lighting_changes_and_cast_shadows_are_not_objects(tmp_path: Path) -> None:
     scene = Scene(2)
     det = ForegroundDetector(view(), {"background": str(write_empty_floor(tmp_path / "empty.png", scene))})
@@ -189,6 +191,7 @@ def test_slow_lighting_changes_and_cast_shadows_are_not_objects(tmp_path: Path) 
     assert_found(found, objects)
 
 
+@pytest.mark.slow
 def test_a_moving_object_is_found_at_once_without_a_background_picture() -> None:
     scene = Scene(3)
     det = ForegroundDetector(view())
@@ -200,6 +203,7 @@ def test_a_moving_object_is_found_at_once_without_a_background_picture() -> None
         assert_found(step(det, scene, scene.image([disc])), [disc])
 
 
+@pytest.mark.slow
 def test_a_thing_that_stops_fades_from_the_motion_model_but_not_from_the_picture(tmp_path: Path) -> None:
     scene = Scene(8)
     empty = write_empty_floor(tmp_path / "empty.png", scene)
@@ -287,6 +291,7 @@ def box(x0: float, y0: float, x1: float, y1: float) -> Polygon:
     return Polygon([(x0, y0), (x1, y0), (x1, y1), (x0, y1)])
 
 
+@pytest.mark.slow
 def test_people_walking_in_real_footage_are_foreground() -> None:
     """Motion alone (no picture of the empty hall): after 300 frames of learning, every person is
     found, and what is found is people (the wind also moves the barrier tape: small blobs)."""
@@ -403,6 +408,7 @@ def test_snapshot_refuses_what_it_cannot_write(tmp_path: Path, capsys: pytest.Ca
 # --- end to end -------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(190)  # its own waits (starts, runs, requests) add up to 160 s
 async def test_a_camera_with_a_background_answers_foreground_with_the_objects_position(tmp_path: Path) -> None:
     """Real processes: snapshot the empty floor, then a camera whose config names it finds a box no
@@ -456,6 +462,7 @@ async def test_a_camera_with_a_background_answers_foreground_with_the_objects_po
         await server.stop()
 
 
+@pytest.mark.slow
 def test_on_a_textured_floor_an_object_of_the_floors_own_colour_is_found_and_shadows_are_not(
     tmp_path: Path,
 ) -> None:

@@ -125,6 +125,7 @@ def healthy(r: dict[str, Any]) -> bool:
     return r.get("reported") == ["cam1"] and r["complete"] and not r["errors"] and r["detections"] == 2
 
 
+@pytest.mark.netns
 async def test_links_cut_and_restored_recover_without_restarts(
     network: Network, recorded: dict[str, RecordedCamera]
 ) -> None:

@@ -182,6 +182,7 @@ async def test_requests_for_a_frame_being_searched_by_a_heavy_detector_share_tha
     assert len({r.reports[0].capture_time for r in results}) == 1  # all from the one frame searched
 
 
+@pytest.mark.slow
 async def test_continuous_requests_share_the_heavy_search_that_is_running(slow: tuple[str, int]) -> None:
     """Six robots following people at 10 Hz: each report needs a search of a few hundred ms, on a
     newer frame each time. A request that comes while a search runs takes that search's result

@@ -136,6 +136,7 @@ def score(detector: PeopleDetector, frames: list[Marked]) -> Score:
     return s
 
 
+@pytest.mark.slow
 def test_finds_the_hand_marked_people_with_their_feet(marked: list[Marked]) -> None:
     detector = PeopleDetector(view(), {"min_height_px": MIN_HEIGHT_PX})
     s = score(detector, marked)
@@ -276,6 +277,7 @@ async def _start(video: Path, hfile: Path) -> tuple[list[ManagedProcess], str, M
     return procs, address, camera
 
 
+@pytest.mark.slow
 async def test_camera_process_answers_people_on_real_footage(still_camera: tuple[Path, Path, Marked]) -> None:
     video, hfile, frame = still_camera
     procs, address, _camera = await _start(video, hfile)

@@ -123,6 +123,7 @@ async def tokens_server(tmp_path: Path, *args: str) -> tuple[ManagedProcess, str
 # --- a camera id belongs to its registration ------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_a_second_client_cannot_take_over_a_live_anonymous_camera_id(
     recorded: dict[str, RecordedCamera],
 ) -> None:
@@ -233,6 +234,7 @@ async def test_a_stale_registration_secret_is_refused_and_the_camera_registers_a
         await server.stop()
 
 
+@pytest.mark.slow
 async def test_a_squatted_id_lapses_with_its_lease_and_grace_and_the_camera_says_why(
     tmp_path: Path, recorded: dict[str, RecordedCamera]
 ) -> None:
@@ -340,6 +342,7 @@ async def test_under_mutual_tls_only_camera_certificates_register_and_each_camer
         await server.stop()
 
 
+@pytest.mark.slow
 async def test_beyond_loopback_registration_needs_a_credential_unless_the_network_is_trusted(
     role_certs: Path,
 ) -> None:
@@ -432,6 +435,7 @@ async def test_one_identity_holds_at_most_the_configured_number_of_camera_ids(tm
         await server.stop()
 
 
+@pytest.mark.slow
 async def test_list_cameras_pages_past_the_message_limit_and_clients_follow_the_pages() -> None:
     """4 500 cameras with long ids and addresses list as about 4.5 MB, past the 4 MB message limit:
     the server answers in pages, and DrvsClient.cameras and `drvs-robot cameras` follow them."""

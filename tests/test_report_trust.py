@@ -88,6 +88,7 @@ async def _write_reports(callback: str, reports: list[Any]) -> list[str]:
         return cancelled
 
 
+@pytest.mark.slow
 async def test_reports_only_from_dispatched_cameras_on_their_own_streams(
     recorded: dict[str, RecordedCamera],
 ) -> None:

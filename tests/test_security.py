@@ -52,6 +52,7 @@ def tls(certs: Path, role: str, ca: Path | None = None) -> Security:
     )
 
 
+@pytest.mark.slow
 async def test_mutual_tls_on_every_hop(certs: Path, recorded: dict[str, RecordedCamera]) -> None:
     """Robot -> server, server -> camera, camera -> server and camera -> robot all run over mutual
     TLS: the detection comes back, and a peer without a certificate from the CA gets nowhere."""

@@ -362,7 +362,7 @@ async def run_cli(command: str, args: tuple[str, ...], env: tuple[tuple[str, str
     return proc
 
 
-@pytest.mark.parametrize("which", ["all", "registration"])
+@pytest.mark.parametrize("which", [pytest.param("all", marks=pytest.mark.slow), "registration"])
 async def test_command_line_rows(tmp_path: Path, which: str) -> None:
     cases = cli_cases(tmp_path) if which == "all" else REGISTRATION_CLI_CASES
     procs = await asyncio.gather(*(run_cli(c.command, c.args, c.env) for c in cases))
