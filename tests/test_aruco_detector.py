@@ -323,6 +323,7 @@ def test_detector_module_does_not_import_the_simulator_or_camera() -> None:
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(210)  # its own waits (starts, runs, requests) add up to 180 s
 async def test_end_to_end_robot_cli_gets_marker_id_and_heading(tmp_path: Path) -> None:
     """A real server, a real camera node reading an MJPG video of the markers (every frame

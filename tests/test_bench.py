@@ -280,6 +280,7 @@ async def run_bench_helper(*args: str) -> dict[str, Any]:
     return dict(json.loads(done.group(1)))
 
 
+@pytest.mark.slow
 async def test_latency_work_check_fires_when_no_camera_answers() -> None:
     """A server with no camera answers every request at once with nothing in it: the latency
     robot counts each as a failure, not a delivered request, and the check refuses the run."""

@@ -116,6 +116,7 @@ async def test_calibrate_command_refuses_too_few_points(tmp_path: Path) -> None:
     assert code == 2 and "at least 4 correspondences" in log and not (tmp_path / "x").exists()
 
 
+@pytest.mark.slow
 async def test_snapshot_and_fov_commands(tmp_path: Path, recorded: dict[str, RecordedCamera]) -> None:
     rec = recorded["cam1"]
     png = tmp_path / "snap.png"

@@ -39,6 +39,7 @@ async def test_robot_detect_continuous_json(office: Office) -> None:
     assert [r["final"] for r in reports] == [False] * 5 + [True]
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(180)  # its own waits (starts, runs, requests) add up to 150 s
 async def test_robot_detect_human_output_and_cameras(office: Office) -> None:
     code, lines = await run_robot("detect", "--server", office.address, "--filter", YELLOW, "--roi", roi(CAM1_REGION))

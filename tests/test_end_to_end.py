@@ -45,6 +45,7 @@ async def test_region_of_one_camera_reaches_only_that_camera(office: Office) -> 
         assert sub.request_id not in cam2.output()
 
 
+@pytest.mark.slow
 async def test_region_over_both_cameras_gets_both(office: Office) -> None:
     async with DrvsClient(office.address, robot_id="r1") as robot:
         result = await robot.detect(YELLOW, BOTH_REGION, timeout_s=10)
@@ -94,6 +95,7 @@ async def test_continuous_request_streams_at_its_rate(office: Office) -> None:
         assert 0.7 <= times[-1] - times[0] <= 1.5
 
 
+@pytest.mark.slow
 @pytest.mark.office_cameras("cam1")
 async def test_robot_that_stops_listening_stops_the_cameras(office: Office) -> None:
     async with DrvsClient(office.address) as robot:
@@ -123,6 +125,7 @@ async def test_robot_that_closes_mid_request_stops_the_cameras_quietly(office: O
     assert robot_gone == [], robot_gone
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(160)  # its own waits (starts, runs, requests) add up to 130 s
 async def test_dead_camera_does_not_hold_up_the_other_and_leaves_routing(office: Office) -> None:
     cam2 = office.cameras["cam2"]
@@ -162,6 +165,7 @@ async def test_camera_deregisters_on_sigterm(office: Office) -> None:
         assert [c.camera_id for c in await robot.cameras()] == ["cam1"]
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(180)  # its own waits (starts, runs, requests) add up to 150 s
 async def test_cameras_reregister_after_server_restart(office: Office) -> None:
     port = office.address.rsplit(":", 1)[1]

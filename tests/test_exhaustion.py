@@ -207,6 +207,7 @@ async def _error_of_first_report(robot: DrvsClient, *, camera: str = "cam1") -> 
     raise AssertionError("no report")
 
 
+@pytest.mark.slow
 async def test_continuous_caps_per_robot_on_server_and_camera_and_their_slots_come_back(
     recorded: dict[str, RecordedCamera],
 ) -> None:
@@ -337,6 +338,7 @@ async def test_a_camera_that_heartbeats_but_never_reads_is_cut_off_and_costs_the
 BOX = geometry_pb2.Region(box=geometry_pb2.Box(x_lower=0, y_lower=0, x_upper=1, y_upper=1))
 
 
+@pytest.mark.slow
 async def test_streams_per_connection_are_capped_and_idle_connections_closed() -> None:
     server, address = await start_server("--max-streams-per-connection", "2", "--max-connection-idle", "1")
     try:

@@ -225,6 +225,7 @@ def test_a_thing_that_stops_fades_from_the_motion_model_but_not_from_the_picture
     assert gone is not None and 40 <= gone <= 70, gone
 
 
+@pytest.mark.slow
 def test_a_request_on_a_frame_not_yet_observed_uses_the_model_without_teaching_it(tmp_path: Path) -> None:
     scene = Scene(4)
     det = ForegroundDetector(view())
@@ -236,6 +237,7 @@ def test_a_request_on_a_frame_not_yet_observed_uses_the_model_without_teaching_i
         assert_found(det.find(FrameAnalysis(frame), FOREGROUND), [disc])
 
 
+@pytest.mark.slow
 def test_observe_and_find_on_different_threads() -> None:
     scene = Scene(5)
     det = ForegroundDetector(view())
@@ -378,6 +380,7 @@ def test_config_background_is_relative_to_the_config_file(tmp_path: Path) -> Non
         load_config({"detectors": "hsv"}, {}, cfg)
 
 
+@pytest.mark.slow
 def test_snapshot_refuses_what_it_cannot_write(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     video = write_video(tmp_path / "v.avi", [Scene(6).image() for _ in range(3)])
     cases = [

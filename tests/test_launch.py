@@ -79,6 +79,7 @@ async def test_start_camera_returns_once_the_server_routes_to_it(recorded: dict[
             assert await camera.stop() == 0
 
 
+@pytest.mark.slow
 async def test_start_camera_whose_server_never_answers_is_reaped(recorded: dict[str, RecordedCamera]) -> None:
     rec = recorded["cam1"]
     before = running()

@@ -432,6 +432,7 @@ async def robot_cli(*args: str) -> ManagedProcess:
     return proc
 
 
+@pytest.mark.slow
 @pytest.mark.timeout(320)  # its own waits (starts, runs, requests) add up to 290 s
 async def test_camera_with_a_model_serves_it_end_to_end(tmp_path: Path) -> None:
     rec = record_camera(tmp_path, "modelcam", HOMOGRAPHY, IMAGE_SIZE, patches(), frames=10)

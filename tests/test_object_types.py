@@ -97,6 +97,7 @@ async def test_requests_go_only_to_cameras_that_serve_their_type(floor: Floor) -
             await client.detect("purple_1", CAM1_REGION, timeout_s=20)
 
 
+@pytest.mark.slow
 async def test_drvs_robot_cameras_shows_each_cameras_types(floor: Floor) -> None:
     proc = await ManagedProcess.entry_point("robot", "drvs-robot", "cameras", "--server", floor.address).start()
     assert await proc.wait() == 0, proc.output()

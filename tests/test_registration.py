@@ -193,6 +193,7 @@ async def test_a_reregistration_never_inherits_the_previous_registrations_token(
         await server.stop()
 
 
+@pytest.mark.slow
 async def test_a_stale_registration_secret_is_refused_and_the_camera_registers_again(
     tmp_path: Path, recorded: dict[str, RecordedCamera]
 ) -> None:
@@ -466,6 +467,7 @@ async def test_list_cameras_pages_past_the_message_limit_and_clients_follow_the_
 # --- a camera serves only its server --------------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_a_camera_without_credentials_takes_requests_and_gives_frames_only_with_its_secret(
     tmp_path: Path, recorded: dict[str, RecordedCamera]
 ) -> None:

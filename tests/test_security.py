@@ -113,6 +113,7 @@ def bearer(token: str) -> tuple[tuple[str, str], ...]:
     return (("authorization", f"Bearer {token}"),)
 
 
+@pytest.mark.slow
 async def test_tokens_robots_and_cameras_need_their_own(token_office: tuple[str, ManagedProcess, Path]) -> None:
     address, camera, _ = token_office
     robot_token = Security(token=ROBOT_TOKEN)
