@@ -51,12 +51,10 @@ async def test_context_manager_stops_the_process_when_the_body_fails() -> None:
 
 
 async def test_start_server_that_exits_fails_at_once_with_its_output() -> None:
-    loop = asyncio.get_running_loop()
-    t0 = loop.time()
+    # RuntimeError, not TimeoutError: the exit itself ends the wait, not the (long) timeout.
     with pytest.raises(RuntimeError, match=r"server exited \(code 2\) before logging") as err:
-        await start_server("--lease-ttl", "-1", timeout=60)
-    assert "lease" in str(err.value)  # the process's own complaint comes with it
-    assert loop.time() - t0 < 30  # not the timeout: the exit itself ends the wait
+        await start_server("--lease-ttl", "-1", timeout=600)
+    assert "--lease-ttl: -1.0 must be in (0, 3600]" in str(err.value)  # its own complaint comes with it
 
 
 async def test_start_server_that_times_out_is_reaped() -> None:
