@@ -24,6 +24,7 @@ from grpc import aio
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from drvs._cli import add_security_arguments, security_from
+from drvs.net import format_address, parse_address
 
 T = TypeVar("T")
 
@@ -227,6 +228,13 @@ class ManagedProcess:
         return self.process.returncode
 
 
+def _loopback_if_wildcard(address: str) -> str:
+    """A listener bound to every interface (0.0.0.0, ::) is probed on this host's loopback."""
+    host, port = parse_address(address, allow_port_zero=True)
+    wildcard = {"0.0.0.0": "127.0.0.1", "::": "::1"}
+    return format_address(wildcard[host], port) if host in wildcard else address
+
+
 def _probe_security_args(args: Sequence[str]) -> dict[str, object]:
     """The security flags among a role's arguments (the rest ignored)."""
     p = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
@@ -248,9 +256,10 @@ async def wait_serving(
     as the role itself would be dialled; health needs no token). Raises, with the process's last
     lines, if `proc` exits first or `timeout` passes."""
     security = security_from(_probe_security_args(args), os.environ if env is None else env)
+    dial = _loopback_if_wildcard(address)
 
     async def serving() -> None:
-        async with security.channel(address) as channel:
+        async with security.channel(dial) as channel:
             stub = health_pb2_grpc.HealthStub(channel)
             request = health_pb2.HealthCheckRequest(service="")
             # Watch sends the current status, then every change: no polling.
