@@ -1,103 +1,60 @@
-"""Shared fixtures: a recorded two-camera floor, and DRVS roles started as real processes."""
+"""Shared fixtures: a recorded two-camera floor, and DRVS roles started as real processes.
+The constants and builders they use live in tests/helpers.py."""
 
 from __future__ import annotations
 
-import math
-from collections.abc import AsyncIterator
-from dataclasses import dataclass
-from pathlib import Path
+from collections.abc import AsyncIterator, Generator, Iterator
 
 import pytest
 import pytest_asyncio
 
-from drvs.filters import HsvRange
-from drvs.geometry import homography_from_pose
-from drvs.launch import ManagedProcess, start_camera, start_server
-from drvs.sim.scene import FloorPatch, RecordedCamera, record_camera
+from drvs.launch import running
+from drvs.sim.scene import RecordedCamera
 
-YELLOW = "hsv_014110130035225200"
-GREEN = "hsv_040080080080255255"
-IMAGE_SIZE = (640, 480)
-#: Fields of view: cam1 sees about x -3.8..3.8, y 1.5..7.5; cam2 the same 20 m further along x.
-CAMERA_POSES = {"cam1": (0.0, 0.0, 3.0), "cam2": (20.0, 0.0, 3.0)}
-CAM1_REGION = (-6.0, 0.0, 6.0, 10.0)
-CAM2_REGION = (14.0, 0.0, 26.0, 10.0)
-BOTH_REGION = (-6.0, 0.0, 26.0, 10.0)
-MAX_RANGE = "6"
+from .helpers import CAMERA_POSES, Office, record_floor, start_office, stop_office
 
 
-@dataclass(frozen=True)
-class TrueObject:
-    filter_def: str
-    center: tuple[float, float]
-    radius: float
+@pytest.fixture(autouse=True)
+def _no_process_outlives_its_test(request: pytest.FixtureRequest) -> Iterator[None]:
+    """Every process a test started (drvs.launch) is stopped when the test ends, also when it fails
+    or times out: this runs after the test's own fixtures have stopped theirs, SIGKILLs whatever is
+    left, and fails a test that passed while leaving processes behind."""
+    before = running()
+    yield
+    left = running() - before
+    for proc in left:
+        proc.kill()
+    if left:
+        names = ", ".join(sorted(f"{p.name} (pid {p.pid})" for p in left))
+        report = getattr(request.node, "rep_call", None)
+        if report is None or report.passed:
+            pytest.fail(f"processes left running after the test (now killed): {names}")
 
 
-OBJECTS = [
-    TrueObject(YELLOW, (-1.0, 4.0), 0.25),
-    TrueObject(YELLOW, (1.5, 3.0), 0.20),
-    TrueObject(GREEN, (0.0, 5.5), 0.30),
-    TrueObject(YELLOW, (19.0, 4.5), 0.30),
-    TrueObject(YELLOW, (21.5, 6.0), 0.25),
-]
-
-
-def nearest(filter_def: str, x: float, y: float) -> tuple[TrueObject, float]:
-    obj = min((o for o in OBJECTS if o.filter_def == filter_def), key=lambda o: math.dist(o.center, (x, y)))
-    return obj, math.dist(obj.center, (x, y))
+@pytest.hookimpl(wrapper=True, tryfirst=True)
+def pytest_runtest_makereport(
+    item: pytest.Item, call: pytest.CallInfo[None]
+) -> Generator[None, pytest.TestReport, pytest.TestReport]:
+    """Keep each phase's report on the test item, so fixtures can tell whether the test failed."""
+    report = yield
+    setattr(item, f"rep_{report.when}", report)
+    return report
 
 
 @pytest.fixture(scope="session")
 def recorded(tmp_path_factory: pytest.TempPathFactory) -> dict[str, RecordedCamera]:
     """Two cameras' video files of the same floor, with their homography files."""
-    directory: Path = tmp_path_factory.mktemp("floor")
-    patches = [FloorPatch.disc(o.center, o.radius, HsvRange.parse(o.filter_def).centre_bgr()) for o in OBJECTS]
-    out = {}
-    for seed, (camera_id, position) in enumerate(CAMERA_POSES.items()):
-        h = homography_from_pose(position, 90.0, 40.0, 60.0, IMAGE_SIZE)
-        out[camera_id] = record_camera(directory, camera_id, h, IMAGE_SIZE, patches, seed=seed)
-    return out
-
-
-@dataclass
-class Office:
-    server: ManagedProcess
-    address: str
-    cameras: dict[str, ManagedProcess]
-    recorded: dict[str, RecordedCamera]
-
-    async def start_camera(self, camera_id: str) -> ManagedProcess:
-        rec = self.recorded[camera_id]
-        # DEBUG: the tests read which requests each camera received from its log.
-        proc = await start_camera(
-            camera_id, rec.video, rec.homography_file, self.address, "--max-range", MAX_RANGE, "--log-level", "DEBUG"
-        )
-        self.cameras[camera_id] = proc
-        return proc
-
-
-async def start_office(recorded: dict[str, RecordedCamera], lease_ttl: float) -> Office:
-    server, address = await start_server("--lease-ttl", str(lease_ttl))
-    office = Office(server, address, {}, recorded)
-    try:
-        for camera_id in recorded:
-            await office.start_camera(camera_id)
-    except BaseException:
-        await stop_office(office)
-        raise
-    return office
-
-
-async def stop_office(office: Office) -> None:
-    for proc in office.cameras.values():
-        await proc.stop()
-    await office.server.stop()
+    return record_floor(tmp_path_factory.mktemp("floor"))
 
 
 @pytest_asyncio.fixture
-async def office(recorded: dict[str, RecordedCamera]) -> AsyncIterator[Office]:
-    """drvs-server and two drvs-camera processes, lease 1.5 s; all reaped afterwards."""
-    o = await start_office(recorded, lease_ttl=1.5)
+async def office(request: pytest.FixtureRequest, recorded: dict[str, RecordedCamera]) -> AsyncIterator[Office]:
+    """drvs-server and two drvs-camera processes, lease 1.5 s; all reaped afterwards, also when the
+    test fails. `@pytest.mark.office_cameras("cam1")` starts only cam1, `office_cameras()` the server
+    alone: a test that needs only an address or one camera starts no more than that."""
+    marker = request.node.get_closest_marker("office_cameras")
+    cameras = tuple(CAMERA_POSES) if marker is None else tuple(marker.args)
+    o = await start_office(recorded, lease_ttl=1.5, cameras=cameras)
     try:
         yield o
     finally:

@@ -9,7 +9,7 @@ from collections.abc import AsyncIterator
 from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.sim.scene import RecordedCamera
 
-from .conftest import MAX_RANGE
+from .helpers import MAX_RANGE
 
 
 async def start_recorded_camera(

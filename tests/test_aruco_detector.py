@@ -30,7 +30,7 @@ from drvs.launch import start_camera, start_server
 from drvs.model import Detection
 from drvs.sim.scene import write_video
 
-from .test_cli import roi, run_robot
+from .helpers import roi, run_robot
 
 SIZE = (640, 480)
 SUPERSAMPLE = 4
@@ -323,6 +323,8 @@ def test_detector_module_does_not_import_the_simulator_or_camera() -> None:
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(210)  # its own waits (starts, runs, requests) add up to 180 s
 async def test_end_to_end_robot_cli_gets_marker_id_and_heading(tmp_path: Path) -> None:
     """A real server, a real camera node reading an MJPG video of the markers (every frame
     JPEG-compressed by the codec), and `drvs-robot detect --json` as a person runs it."""

@@ -127,6 +127,7 @@ def call(loop: asyncio.AbstractEventLoop, make_call: Callable[[], Awaitable[obje
         return exc.code()
 
 
+@pytest.mark.slow
 @settings(max_examples=300, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(message=requests)
 def test_any_detection_request_is_answered_cleanly(

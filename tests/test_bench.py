@@ -18,6 +18,8 @@ from drvs_bench.stats import QUICK_ROUNDS, WorkMismatch
 from drvs.launch import ManagedProcess, start_camera, start_server
 
 
+@pytest.mark.bench
+@pytest.mark.slow
 @pytest.mark.timeout(600)  # 30 runs, each a process of its own: two minutes alone, more on a loaded machine
 async def test_paper_benchmark_smoke(tmp_path: Path) -> None:
     """--quick's three interleaved rounds (of 15 requests here), every mode and floor, checked work;
@@ -127,6 +129,8 @@ def test_paper_work_check_fires_when_stream_work_is_missing() -> None:
         check_stream("jpeg", {"per_camera": [camera(20, 20, 40), camera(0, 0, 0)]}, [2, 1])
 
 
+@pytest.mark.bench
+@pytest.mark.slow
 @pytest.mark.timeout(240)
 async def test_paper_work_check_fires_on_a_real_run_with_a_camera_missing(tmp_path: Path) -> None:
     """Two cameras expected, one running: every request gets one report, and the check refuses the run."""
@@ -148,6 +152,8 @@ async def test_paper_work_check_fires_on_a_real_run_with_a_camera_missing(tmp_pa
         check_drvs("drvs_boxes", run, 10, 2, None)
 
 
+@pytest.mark.bench
+@pytest.mark.slow
 @pytest.mark.timeout(600)  # three interleaved rounds of every comparison: about three minutes
 async def test_service_benchmark_smoke(tmp_path: Path) -> None:
     proc = ManagedProcess.entry_point("bench", "drvs-bench", "service", "--quick", "--out", str(tmp_path))
@@ -204,6 +210,8 @@ def check_service_rounds(result: dict[str, Any]) -> None:
         assert v["verdict"] in ("met", "missed", "spread crosses target")
 
 
+@pytest.mark.bench
+@pytest.mark.slow
 @pytest.mark.timeout(300)
 async def test_load_benchmark_smoke(tmp_path: Path) -> None:
     proc = ManagedProcess.entry_point("bench", "drvs-bench", "load", "--quick", "--out", str(tmp_path))
@@ -238,6 +246,8 @@ async def test_load_benchmark_smoke(tmp_path: Path) -> None:
     assert cv2.imread(str(tmp_path / "load.png")) is not None
 
 
+@pytest.mark.bench
+@pytest.mark.slow
 @pytest.mark.timeout(300)  # two load runs, each with its own server and cameras
 async def test_load_abuse_smoke(tmp_path: Path) -> None:
     """--abuse runs the same robots without and then with the abuse mix, and publishes both."""
@@ -270,6 +280,7 @@ async def run_bench_helper(*args: str) -> dict[str, Any]:
     return dict(json.loads(done.group(1)))
 
 
+@pytest.mark.slow
 async def test_latency_work_check_fires_when_no_camera_answers() -> None:
     """A server with no camera answers every request at once with nothing in it: the latency
     robot counts each as a failure, not a delivered request, and the check refuses the run."""
@@ -328,6 +339,8 @@ def test_load_work_check_fires_when_requests_are_missing() -> None:
     check_load_work("load", summarise_records(records, warmup=1, seconds=2), robots=3, rate=10, warmup=1, seconds=2)
 
 
+@pytest.mark.bench
+@pytest.mark.slow
 @pytest.mark.timeout(480)  # five detectors' cameras, three short rounds, accuracy on small sets: ~2 minutes
 async def test_detectors_benchmark_smoke(tmp_path: Path) -> None:
     """--quick over every registered detector: each one's figures in interleaved rounds, side by side

@@ -15,8 +15,7 @@ from drvs.errors import InvalidArgument
 from drvs.geometry import FieldOfView, homography_from_pose
 from drvs.homography_file import load_homography
 from drvs.launch import ManagedProcess
-
-from .conftest import Office
+from drvs.sim.scene import RecordedCamera
 
 SIZE = (640, 480)
 TRUE = homography_from_pose((2.0, -1.0, 3.0), 80.0, 40.0, 60.0, SIZE)
@@ -117,8 +116,9 @@ async def test_calibrate_command_refuses_too_few_points(tmp_path: Path) -> None:
     assert code == 2 and "at least 4 correspondences" in log and not (tmp_path / "x").exists()
 
 
-async def test_snapshot_and_fov_commands(tmp_path: Path, office: Office) -> None:
-    rec = office.recorded["cam1"]
+@pytest.mark.slow
+async def test_snapshot_and_fov_commands(tmp_path: Path, recorded: dict[str, RecordedCamera]) -> None:
+    rec = recorded["cam1"]
     png = tmp_path / "snap.png"
     code, log = await run("snapshot", "--source", str(rec.video), "--out", str(png))
     assert code == 0, log

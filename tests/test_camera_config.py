@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import re
 import shutil
 from pathlib import Path
 
@@ -13,10 +12,10 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from drvs.camera.config import DEFAULT_SERVER, load_config
 from drvs.errors import InvalidArgument
-from drvs.launch import CAMERA_REGISTERED, ManagedProcess
+from drvs.launch import ManagedProcess, camera_ready
 from drvs.robot import DrvsClient
 
-from .conftest import CAM1_REGION, YELLOW, Office
+from .helpers import CAM1_REGION, YELLOW, Office
 
 NO_FLAGS: dict[str, object] = {}
 
@@ -66,6 +65,7 @@ def test_bad_config_names_the_key_and_its_origin(
         load_config(NO_FLAGS, environ, write(tmp_path / "cam.yaml", data))
 
 
+@pytest.mark.office_cameras()
 async def test_node_runs_from_a_config_file(tmp_path: Path, office: Office) -> None:
     rec = office.recorded["cam1"]
     cfg = write(
@@ -75,7 +75,7 @@ async def test_node_runs_from_a_config_file(tmp_path: Path, office: Office) -> N
     )  # fmt: skip
     proc = await ManagedProcess.entry_point("cfgcam", "drvs-camera", "--config", str(cfg)).start()
     try:
-        await proc.wait_for_line(CAMERA_REGISTERED.format(id="cfgcam"), timeout=30)
+        await camera_ready(proc, "cfgcam")
         async with DrvsClient(office.address) as robot:
             assert "cfgcam" in [c.camera_id for c in await robot.cameras()]
     finally:
@@ -88,6 +88,9 @@ async def health(address: str) -> int:
         return int(reply.status)
 
 
+@pytest.mark.slow
+@pytest.mark.office_cameras()
+@pytest.mark.timeout(200)  # its own waits (starts, runs, requests) add up to 170 s
 async def test_source_that_disappears_and_comes_back(tmp_path: Path, office: Office) -> None:
     rec = office.recorded["cam1"]
     video = tmp_path / "live.avi"
@@ -98,14 +101,12 @@ async def test_source_that_disappears_and_comes_back(tmp_path: Path, office: Off
     )  # fmt: skip
     await proc.start()
     try:
-        await proc.wait_for_line(CAMERA_REGISTERED.format(id="flaky"), timeout=30)
-        address = re.search(r"listening on (\S+)", proc.output())
-        assert address is not None
-        assert await health(address.group(1)) == health_pb2.HealthCheckResponse.SERVING
+        address = await camera_ready(proc, "flaky")
+        assert await health(address) == health_pb2.HealthCheckResponse.SERVING
 
         video.unlink()  # the camera goes away: the file ends and cannot be reopened
         await proc.wait_for_line(r"NOT_SERVING until frames come back", timeout=15)
-        assert await health(address.group(1)) == health_pb2.HealthCheckResponse.NOT_SERVING
+        assert await health(address) == health_pb2.HealthCheckResponse.NOT_SERVING
         async with DrvsClient(office.address) as robot:
             result = await robot.detect(YELLOW, CAM1_REGION, timeout_s=10)
             flaky = [r for r in result.reports if r.camera_id == "flaky"]
@@ -113,7 +114,7 @@ async def test_source_that_disappears_and_comes_back(tmp_path: Path, office: Off
 
             shutil.copy(rec.video, video)  # and comes back
             await proc.wait_for_line(r"frames again from .*; SERVING", timeout=15)
-            assert await health(address.group(1)) == health_pb2.HealthCheckResponse.SERVING
+            assert await health(address) == health_pb2.HealthCheckResponse.SERVING
             result = await robot.detect(YELLOW, CAM1_REGION, timeout_s=10)
             flaky = [r for r in result.reports if r.camera_id == "flaky"]
             assert flaky and not flaky[0].error and len(flaky[0].detections) == 2
@@ -160,6 +161,7 @@ def test_heartbeat_never_outlives_the_lease(tmp_path: Path) -> None:
     assert CameraNode("b", VideoSource("0"), h, "127.0.0.1:1").registration.heartbeat_interval(9.0) == 3.0
 
 
+@pytest.mark.office_cameras()
 async def test_a_source_of_another_size_is_refused(office: Office) -> None:
     rec = office.recorded["cam1"]
     proc = ManagedProcess.entry_point(

@@ -17,7 +17,7 @@ from drvs.registry import Claims
 from drvs.server import DrvsServer
 from drvs.v1 import registry_pb2, registry_pb2_grpc
 
-from .test_server import register_message
+from .helpers import register_message
 
 LEASE = 5.0
 GRACE = 2.0

@@ -4,21 +4,14 @@ from __future__ import annotations
 
 import json
 
+import pytest
+
 from drvs.launch import ManagedProcess
 
-from .conftest import CAM1_REGION, OBJECTS, YELLOW, Office, nearest
+from .helpers import CAM1_REGION, OBJECTS, YELLOW, Office, nearest, roi, run_robot
 
 
-def roi(region: tuple[float, float, float, float]) -> str:
-    return ",".join(str(v) for v in region)
-
-
-async def run_robot(*args: str) -> tuple[int, list[str]]:
-    proc = await ManagedProcess.entry_point("robot", "drvs-robot", *args).start()
-    code = await proc.wait(timeout=30)
-    return code, proc.lines
-
-
+@pytest.mark.office_cameras("cam1")
 async def test_robot_detect_json_prints_one_object_per_report(office: Office) -> None:
     code, lines = await run_robot(
         "detect", "--server", office.address, "--filter", YELLOW, "--roi", roi(CAM1_REGION), "--json"
@@ -34,6 +27,7 @@ async def test_robot_detect_json_prints_one_object_per_report(office: Office) ->
         assert nearest(YELLOW, *d["centroid"])[1] < 0.03
 
 
+@pytest.mark.office_cameras("cam1")
 async def test_robot_detect_continuous_json(office: Office) -> None:
     code, lines = await run_robot(
         "detect", "--server", office.address, "--filter", YELLOW, "--roi", roi(CAM1_REGION),
@@ -45,6 +39,8 @@ async def test_robot_detect_continuous_json(office: Office) -> None:
     assert [r["final"] for r in reports] == [False] * 5 + [True]
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(180)  # its own waits (starts, runs, requests) add up to 150 s
 async def test_robot_detect_human_output_and_cameras(office: Office) -> None:
     code, lines = await run_robot("detect", "--server", office.address, "--filter", YELLOW, "--roi", roi(CAM1_REGION))
     assert code == 0, lines
@@ -55,12 +51,14 @@ async def test_robot_detect_human_output_and_cameras(office: Office) -> None:
     assert sorted(json.loads(line)["camera_id"] for line in lines) == ["cam1", "cam2"]
 
 
+@pytest.mark.office_cameras()
 async def test_robot_bad_filter_is_an_error_naming_the_field(office: Office) -> None:
     code, lines = await run_robot("detect", "--server", office.address, "--filter", "hsv_12", "--roi", "0,0,1,1")
     assert code != 0
     assert any("filter_def" in line for line in lines), lines
 
 
+@pytest.mark.office_cameras()
 async def test_robot_bad_roi_is_an_error(office: Office) -> None:
     code, lines = await run_robot("detect", "--server", office.address, "--filter", YELLOW, "--roi", "1,1,0,0")
     assert code != 0 and any("x_lower" in line for line in lines), lines
@@ -71,6 +69,7 @@ async def test_robot_unreachable_server_is_an_error() -> None:
     assert code != 0 and any("127.0.0.1:1" in line for line in lines), lines
 
 
+@pytest.mark.office_cameras()
 async def test_camera_with_missing_source_exits_with_an_error(tmp_path: object, office: Office) -> None:
     rec = office.recorded["cam1"]
     proc = ManagedProcess.entry_point(
@@ -82,6 +81,7 @@ async def test_camera_with_missing_source_exits_with_an_error(tmp_path: object, 
     assert "nonexistent.avi" in proc.output()
 
 
+@pytest.mark.office_cameras()
 async def test_camera_with_bad_homography_file_exits_with_an_error(tmp_path: object, office: Office) -> None:
     from pathlib import Path
 

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 from pathlib import Path
 
 import cv2
@@ -12,61 +11,21 @@ import pytest
 from numpy.typing import NDArray
 from shapely.geometry import Point
 
-from drvs.detection import DEFAULT_MIN_AREA_PX, CameraView, FrameAnalysis, HsvDetector
+from drvs.detection import DEFAULT_MIN_AREA_PX, FrameAnalysis
 from drvs.detection import Frame as DetFrame
-from drvs.filters import HsvRange
-from drvs.geometry import FieldOfView, Homography, box_region, homography_from_pose
+from drvs.geometry import box_region
 from drvs.model import Detection
-from drvs.sim.scene import FloorPatch, render_view, write_video
+from drvs.sim.scene import write_video
 
-YELLOW = "hsv_014110130035225200"
-GREEN = "hsv_040080080080255255"
-RED = "hsv_170100100010255255"
-BLUE = "hsv_100150100130255255"
-SIZE = (640, 480)
+from .helpers import BIG, BLUE, GREEN, IMAGE_SIZE, RED, YELLOW, Disc, camera, detector, render
+
+SIZE = IMAGE_SIZE
 CAPTURE_TIME = 1_700_000_123.25
 
-
-@dataclass(frozen=True)
-class Disc:
-    filter_def: str
-    center: tuple[float, float]
-    radius: float
-
-    @property
-    def area(self) -> float:
-        return math.pi * self.radius**2
-
-    def patch(self) -> FloorPatch:
-        return FloorPatch.disc(self.center, self.radius, HsvRange.parse(self.filter_def).centre_bgr())
-
-
-#: All lie well inside the reference camera's view (x -1.8..1.8 at y 1.5, x -5.6..5.6 at y 10.1).
-BIG = [
-    Disc(YELLOW, (-1.0, 4.0), 0.25),
-    Disc(YELLOW, (1.5, 3.0), 0.20),
-    Disc(GREEN, (0.0, 5.5), 0.30),
-    Disc(RED, (-2.0, 7.0), 0.30),
-]
 #: About 75 pixels in the image: above the default minimum blob size.
 SMALL = Disc(YELLOW, (2.0, 7.0), 0.10)
 #: About 10 pixels in the image: below the default minimum blob size.
 TINY = Disc(YELLOW, (0.0, 9.0), 0.05)
-
-
-def camera() -> Homography:
-    return homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, SIZE)
-
-
-def detector(h: Homography, max_range_m: float = 15.0, min_area_px: float = DEFAULT_MIN_AREA_PX) -> HsvDetector:
-    fov = FieldOfView.compute(h, SIZE, max_range_m)
-    return HsvDetector(CameraView(h, fov, SIZE, camera_id="cam1", min_area_px=min_area_px))
-
-
-def render(discs: list[Disc], noise_sigma: float = 0.0) -> NDArray[np.uint8]:
-    return render_view(
-        camera(), SIZE, [d.patch() for d in discs], noise_sigma=noise_sigma, rng=np.random.default_rng(3)
-    )
 
 
 def analysis_of(image: NDArray[np.uint8]) -> FrameAnalysis:

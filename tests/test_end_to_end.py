@@ -12,7 +12,7 @@ from shapely.ops import unary_union
 from drvs.errors import Unavailable
 from drvs.robot import DrvsClient
 
-from .conftest import BOTH_REGION, CAM1_REGION, CAM2_REGION, OBJECTS, YELLOW, Office, nearest
+from .helpers import BOTH_REGION, CAM1_REGION, CAM2_REGION, OBJECTS, YELLOW, Office, nearest
 
 
 async def test_region_of_one_camera_reaches_only_that_camera(office: Office) -> None:
@@ -45,6 +45,7 @@ async def test_region_of_one_camera_reaches_only_that_camera(office: Office) -> 
         assert sub.request_id not in cam2.output()
 
 
+@pytest.mark.slow
 async def test_region_over_both_cameras_gets_both(office: Office) -> None:
     async with DrvsClient(office.address, robot_id="r1") as robot:
         result = await robot.detect(YELLOW, BOTH_REGION, timeout_s=10)
@@ -55,6 +56,7 @@ async def test_region_over_both_cameras_gets_both(office: Office) -> None:
     assert max(nearest(YELLOW, d.centroid.x, d.centroid.y)[1] for d in result.detections) < 0.03
 
 
+@pytest.mark.office_cameras("cam1")
 async def test_polygon_region_and_other_colours(office: Office) -> None:
     green = next(o for o in OBJECTS if o.filter_def != YELLOW)
     triangle = [(-0.5, 5.0), (0.5, 5.0), (0.0, 6.5)]
@@ -65,12 +67,14 @@ async def test_polygon_region_and_other_colours(office: Office) -> None:
     assert nearest(green.filter_def, result.detections[0].centroid.x, result.detections[0].centroid.y)[1] < 0.03
 
 
+@pytest.mark.office_cameras()
 async def test_region_seen_by_no_camera_dispatches_nowhere(office: Office) -> None:
     async with DrvsClient(office.address) as robot:
         result = await robot.detect(YELLOW, (100, 100, 101, 101), timeout_s=10)
     assert result.camera_ids == () and result.reports == [] and result.complete
 
 
+@pytest.mark.slow
 async def test_continuous_request_streams_at_its_rate(office: Office) -> None:
     async with DrvsClient(office.address) as robot:
         sub = await robot.subscribe(YELLOW, BOTH_REGION, rate_hz=10, duration_s=1.0, timeout_s=10)
@@ -91,6 +95,8 @@ async def test_continuous_request_streams_at_its_rate(office: Office) -> None:
         assert 0.7 <= times[-1] - times[0] <= 1.5
 
 
+@pytest.mark.slow
+@pytest.mark.office_cameras("cam1")
 async def test_robot_that_stops_listening_stops_the_cameras(office: Office) -> None:
     async with DrvsClient(office.address) as robot:
         sub = await robot.subscribe(YELLOW, CAM1_REGION, rate_hz=20, duration_s=30.0, timeout_s=5)
@@ -101,6 +107,7 @@ async def test_robot_that_stops_listening_stops_the_cameras(office: Office) -> N
         await cam1.wait_for_line(rf"request {sub.request_id} cancelled by the robot", timeout=5)
 
 
+@pytest.mark.office_cameras("cam1")
 async def test_robot_that_closes_mid_request_stops_the_cameras_quietly(office: Office) -> None:
     """A robot that exits with a continuous request still running tells the cameras to stop: they
     do not go on dialling the address it has left, warning for every report."""
@@ -118,6 +125,8 @@ async def test_robot_that_closes_mid_request_stops_the_cameras_quietly(office: O
     assert robot_gone == [], robot_gone
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(160)  # its own waits (starts, runs, requests) add up to 130 s
 async def test_dead_camera_does_not_hold_up_the_other_and_leaves_routing(office: Office) -> None:
     cam2 = office.cameras["cam2"]
     async with DrvsClient(office.address) as robot:
@@ -156,6 +165,8 @@ async def test_camera_deregisters_on_sigterm(office: Office) -> None:
         assert [c.camera_id for c in await robot.cameras()] == ["cam1"]
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(180)  # its own waits (starts, runs, requests) add up to 150 s
 async def test_cameras_reregister_after_server_restart(office: Office) -> None:
     port = office.address.rsplit(":", 1)[1]
     assert await office.server.stop() == 0
@@ -177,6 +188,7 @@ async def test_unreachable_server_fails_fast_with_a_clear_error() -> None:
             await robot.detect(YELLOW, CAM1_REGION, timeout_s=1)
 
 
+@pytest.mark.office_cameras("cam1")
 async def test_boxes_only_reports_keep_positions_and_drop_outlines(office: Office) -> None:
     async with DrvsClient(office.address) as robot:
         full = await robot.detect(YELLOW, CAM1_REGION, timeout_s=10)

@@ -33,8 +33,8 @@ from drvs.server.policy import RequestLimits
 from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
-from .conftest import CAM1_REGION, YELLOW
 from .fakes import server_process, start_recorded_camera
+from .helpers import CAM1_REGION, YELLOW
 
 ROLES = Path(__file__).with_name("fault_roles.py")
 
@@ -208,6 +208,7 @@ async def _error_of_first_report(robot: DrvsClient, *, camera: str = "cam1") -> 
     raise AssertionError("no report")
 
 
+@pytest.mark.slow
 async def test_continuous_caps_per_robot_on_server_and_camera_and_their_slots_come_back(
     recorded: dict[str, RecordedCamera],
 ) -> None:
@@ -273,6 +274,7 @@ async def test_a_cancelled_continuous_request_frees_its_place_at_the_server(
 # --- a camera that stops reading -----------------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_a_camera_that_heartbeats_but_never_reads_is_cut_off_and_costs_the_server_no_memory(
     recorded: dict[str, RecordedCamera],
 ) -> None:
@@ -333,6 +335,7 @@ async def test_a_camera_that_heartbeats_but_never_reads_is_cut_off_and_costs_the
 BOX = geometry_pb2.Region(box=geometry_pb2.Box(x_lower=0, y_lower=0, x_upper=1, y_upper=1))
 
 
+@pytest.mark.slow
 async def test_streams_per_connection_are_capped_and_idle_connections_closed() -> None:
     async with (
         server_process("--max-streams-per-connection", "2", "--max-connection-idle", "1") as address,
@@ -367,6 +370,7 @@ async def test_streams_per_connection_are_capped_and_idle_connections_closed() -
         assert channel.get_state() != grpc.ChannelConnectivity.READY
 
 
+@pytest.mark.slow
 async def test_old_connections_are_ended_and_clients_reconnect() -> None:
     server, address = await start_server("--max-connection-age", "1", "--max-connection-age-grace", "0.5")
     try:

@@ -32,8 +32,8 @@ from drvs.robot import DrvsClient, RetryPolicy
 from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc
 
-from .conftest import BOTH_REGION, CAM1_REGION, YELLOW, Office, start_office, stop_office
 from .fakes import start_recorded_camera
+from .helpers import BOTH_REGION, CAM1_REGION, YELLOW, Office, start_office, stop_office
 
 ROLES = Path(__file__).with_name("fault_roles.py")
 #: The lease in the killed-camera test (cameras heartbeat every third of it).
@@ -75,6 +75,7 @@ def p90(values: list[float]) -> float:
 # --- a camera killed mid-request -----------------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_camera_killed_mid_request_does_not_cost_the_robot_the_other_cameras_reports(
     recorded: dict[str, RecordedCamera],
 ) -> None:
@@ -151,6 +152,8 @@ async def _routes_only(robot: DrvsClient, camera_ids: list[str]) -> bool:
 HEARTBEAT_S = 1.0
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(180)  # its own waits (starts, runs, requests) add up to 150 s
 async def test_server_restart_fails_fast_retries_and_cameras_return_within_a_heartbeat(
     recorded: dict[str, RecordedCamera], caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -268,6 +271,8 @@ async def unhelpful_listeners() -> AsyncIterator[dict[str, str]]:
         closed.close()
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(170)  # its own waits (starts, runs, requests) add up to 140 s
 async def test_unreachable_or_stuck_robot_listeners_cost_nobody_else(office: Office) -> None:
     loop = asyncio.get_running_loop()
     cameras = list(office.cameras.values())
@@ -367,6 +372,8 @@ async def beside_a_slow_camera(
         await slow.stop()
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(170)  # its own waits (starts, runs, requests) add up to 140 s
 async def test_a_slow_camera_delays_nobody_else(office: Office) -> None:
     """A camera whose detection takes three seconds: it accepts each request at once, and reports late."""
     loop = asyncio.get_running_loop()
@@ -392,6 +399,8 @@ async def test_a_slow_camera_delays_nobody_else(office: Office) -> None:
     assert statistics.median(during) <= 1.5 * statistics.median(baseline) + 5, (baseline, during)
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(170)  # its own waits (starts, runs, requests) add up to 140 s
 async def test_a_camera_slow_to_accept_is_answered_for_and_delays_nobody_else(office: Office) -> None:
     """A camera that takes five seconds to accept a request: the server gives up on it after its
     forward timeout (2 s), answers the robot for it, and nobody else waits."""

@@ -24,12 +24,12 @@ from drvs.detectors.foreground import ForegroundDetector
 from drvs.errors import FailedPrecondition, InvalidArgument
 from drvs.geometry import FieldOfView, Homography, homography_from_pose
 from drvs.homography_file import save_homography
-from drvs.launch import CAMERA_REGISTERED, ManagedProcess, start_server
+from drvs.launch import ManagedProcess, camera_ready, start_server
 from drvs.model import Detection
 from drvs.robot import DrvsClient
 from drvs.sim.scene import FloorPatch, render_view, write_video
 
-from .test_people import footage
+from .helpers import footage
 
 SIZE = (640, 480)
 FOREGROUND = parse_object_type("foreground")
@@ -136,6 +136,7 @@ OBJECTS = [
 ]
 
 
+@pytest.mark.slow
 def test_objects_of_any_colour_that_never_move_are_found_where_they_lie(tmp_path: Path) -> None:
     scene = Scene(1)
     det = ForegroundDetector(view(), {"background": str(write_empty_floor(tmp_path / "empty.png", scene))})
@@ -152,6 +153,7 @@ def test_objects_of_any_colour_that_never_move_are_found_where_they_lie(tmp_path
         assert step(motion_only, scene, scene.image(OBJECTS)) == ()
 
 
+@pytest.mark.slow
 def test_slow_lighting_changes_and_cast_shadows_are_not_objects(tmp_path: Path) -> None:
     scene = Scene(2)
     det = ForegroundDetector(view(), {"background": str(write_empty_floor(tmp_path / "empty.png", scene))})
@@ -189,6 +191,7 @@ def test_slow_lighting_changes_and_cast_shadows_are_not_objects(tmp_path: Path) 
     assert_found(found, objects)
 
 
+@pytest.mark.slow
 def test_a_moving_object_is_found_at_once_without_a_background_picture() -> None:
     scene = Scene(3)
     det = ForegroundDetector(view())
@@ -200,6 +203,7 @@ def test_a_moving_object_is_found_at_once_without_a_background_picture() -> None
         assert_found(step(det, scene, scene.image([disc])), [disc])
 
 
+@pytest.mark.slow
 def test_a_thing_that_stops_fades_from_the_motion_model_but_not_from_the_picture(tmp_path: Path) -> None:
     scene = Scene(8)
     empty = write_empty_floor(tmp_path / "empty.png", scene)
@@ -221,6 +225,7 @@ def test_a_thing_that_stops_fades_from_the_motion_model_but_not_from_the_picture
     assert gone is not None and 40 <= gone <= 70, gone
 
 
+@pytest.mark.slow
 def test_a_request_on_a_frame_not_yet_observed_uses_the_model_without_teaching_it(tmp_path: Path) -> None:
     scene = Scene(4)
     det = ForegroundDetector(view())
@@ -232,6 +237,7 @@ def test_a_request_on_a_frame_not_yet_observed_uses_the_model_without_teaching_i
         assert_found(det.find(FrameAnalysis(frame), FOREGROUND), [disc])
 
 
+@pytest.mark.slow
 def test_observe_and_find_on_different_threads() -> None:
     scene = Scene(5)
     det = ForegroundDetector(view())
@@ -287,6 +293,7 @@ def box(x0: float, y0: float, x1: float, y1: float) -> Polygon:
     return Polygon([(x0, y0), (x1, y0), (x1, y1), (x0, y1)])
 
 
+@pytest.mark.slow
 def test_people_walking_in_real_footage_are_foreground() -> None:
     """Motion alone (no picture of the empty hall): after 300 frames of learning, every person is
     found, and what is found is people (the wind also moves the barrier tape: small blobs)."""
@@ -373,6 +380,7 @@ def test_config_background_is_relative_to_the_config_file(tmp_path: Path) -> Non
         load_config({"detectors": "hsv"}, {}, cfg)
 
 
+@pytest.mark.slow
 def test_snapshot_refuses_what_it_cannot_write(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     video = write_video(tmp_path / "v.avi", [Scene(6).image() for _ in range(3)])
     cases = [
@@ -403,6 +411,8 @@ def test_snapshot_refuses_what_it_cannot_write(tmp_path: Path, capsys: pytest.Ca
 # --- end to end -------------------------------------------------------------------------------
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(190)  # its own waits (starts, runs, requests) add up to 160 s
 async def test_a_camera_with_a_background_answers_foreground_with_the_objects_position(tmp_path: Path) -> None:
     """Real processes: snapshot the empty floor, then a camera whose config names it finds a box no
     colour filter matches where it lies; a camera whose background file is missing stops at start."""
@@ -432,7 +442,7 @@ async def test_a_camera_with_a_background_answers_foreground_with_the_objects_po
         (tmp_path / "cam.yaml").write_text(yaml.safe_dump(config))
         cam = await ManagedProcess.entry_point("fgcam", "drvs-camera", "--config", str(tmp_path / "cam.yaml")).start()
         try:
-            await cam.wait_for_line(CAMERA_REGISTERED.format(id="fgcam"), timeout=30)
+            await camera_ready(cam, "fgcam")
             async with DrvsClient(address) as robot:
                 result = await robot.detect("foreground", (-3.0, 1.0, 3.0, 8.0), timeout_s=10)
             reports = [r for r in result.reports if r.camera_id == "fgcam"]
@@ -455,6 +465,7 @@ async def test_a_camera_with_a_background_answers_foreground_with_the_objects_po
         await server.stop()
 
 
+@pytest.mark.slow
 def test_on_a_textured_floor_an_object_of_the_floors_own_colour_is_found_and_shadows_are_not(
     tmp_path: Path,
 ) -> None:

@@ -254,6 +254,7 @@ SETTINGS = settings(
 )
 
 
+@pytest.mark.slow
 @SETTINGS
 @given(messages=st.lists(detection_requests(), min_size=1, max_size=6))
 def test_hostile_detect_streams_are_answered_cleanly_and_touch_nobody_else(

@@ -49,7 +49,7 @@ from drvs.detectors.model import ModelDetector, ModelSpec, letterbox, parse_mode
 from drvs.errors import FailedPrecondition, InvalidArgument
 from drvs.filters import object_type
 from drvs.geometry import FieldOfView, homography_from_pose
-from drvs.launch import CAMERA_REGISTERED, ManagedProcess, start_server
+from drvs.launch import ManagedProcess, camera_ready, start_server
 from drvs.robot import DrvsClient
 from drvs.sim.scene import FloorPatch, record_camera, render_view
 
@@ -432,6 +432,8 @@ async def robot_cli(*args: str) -> ManagedProcess:
     return proc
 
 
+@pytest.mark.slow
+@pytest.mark.timeout(320)  # its own waits (starts, runs, requests) add up to 290 s
 async def test_camera_with_a_model_serves_it_end_to_end(tmp_path: Path) -> None:
     rec = record_camera(tmp_path, "modelcam", HOMOGRAPHY, IMAGE_SIZE, patches(), frames=10)
     colour_box_model(tmp_path / "colours.onnx", "v8")
@@ -445,7 +447,7 @@ async def test_camera_with_a_model_serves_it_end_to_end(tmp_path: Path) -> None:
     camera = ManagedProcess.entry_point("modelcam", "drvs-camera", "--config", str(cfg), "--log-level", "INFO")
     try:
         await camera.start()
-        await camera.wait_for_line(CAMERA_REGISTERED.format(id="modelcam"), timeout=60)
+        await camera_ready(camera, "modelcam", timeout=60)
         listing = await robot_cli("cameras", "--server", address, "--json")
         (shown,) = [json.loads(line) for line in listing.lines if line.startswith("{")]
         assert shown["camera_id"] == "modelcam" and sorted(shown["detector_kinds"]) == ["hsv", "model_colours"]

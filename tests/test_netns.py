@@ -24,7 +24,7 @@ import pytest_asyncio
 from drvs.launch import CAMERA_REGISTERED, SERVER_READY, ManagedProcess
 from drvs.sim.scene import RecordedCamera
 
-from .conftest import CAM1_REGION, MAX_RANGE
+from .helpers import CAM1_REGION, MAX_RANGE
 
 ROLES = Path(__file__).with_name("fault_roles.py")
 LEASE_S = 2.0
@@ -125,6 +125,7 @@ def healthy(r: dict[str, Any]) -> bool:
     return r.get("reported") == ["cam1"] and r["complete"] and not r["errors"] and r["detections"] == 2
 
 
+@pytest.mark.netns
 async def test_links_cut_and_restored_recover_without_restarts(
     network: Network, recorded: dict[str, RecordedCamera]
 ) -> None:

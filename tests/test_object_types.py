@@ -20,9 +20,8 @@ from drvs.launch import ManagedProcess, start_server
 from drvs.robot import DrvsClient
 from drvs.sim.scene import RecordedCamera
 
-from .conftest import CAM1_REGION, OBJECTS, YELLOW
 from .fakes import start_recorded_camera
-from .test_observability import metrics_port, scrape
+from .helpers import CAM1_REGION, OBJECTS, YELLOW, metrics_port, scrape
 
 PLUGINS = Path(__file__).parent / "plugins"
 
@@ -89,6 +88,7 @@ async def test_requests_go_only_to_cameras_that_serve_their_type(floor: Floor) -
             await client.detect("purple_1", CAM1_REGION, timeout_s=20)
 
 
+@pytest.mark.slow
 async def test_drvs_robot_cameras_shows_each_cameras_types(floor: Floor) -> None:
     proc = await ManagedProcess.entry_point("robot", "drvs-robot", "cameras", "--server", floor.address).start()
     assert await proc.wait() == 0, proc.output()
@@ -164,6 +164,7 @@ async def test_requests_for_a_frame_being_searched_by_a_heavy_detector_share_tha
     assert len({r.reports[0].capture_time for r in results}) == 1  # all from the one frame searched
 
 
+@pytest.mark.slow
 async def test_continuous_requests_share_the_heavy_search_that_is_running(slow: tuple[str, int]) -> None:
     """Six robots following people at 10 Hz: each report needs a search of a few hundred ms, on a
     newer frame each time. A request that comes while a search runs takes that search's result

@@ -3,40 +3,15 @@ real requests, and one request id runs through every hop's log."""
 
 from __future__ import annotations
 
-import asyncio
 import json
-import re
-import urllib.request
 
 from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.robot import DrvsClient
 from drvs.sim.scene import RecordedCamera
 
-from .conftest import CAM1_REGION, MAX_RANGE, YELLOW
+from .helpers import CAM1_REGION, MAX_RANGE, YELLOW, metrics_port, scrape
 
 OBSERVE = ("--metrics-port", "0", "--log-format", "json", "--log-level", "DEBUG")
-
-
-def metrics_port(proc: ManagedProcess) -> int:
-    for line in proc.lines:
-        m = re.search(r"metrics on http://[^:]+:(\d+)/metrics", line)
-        if m:
-            return int(m.group(1))
-    raise AssertionError(f"{proc.name} did not say where its metrics are:\n{proc.output()}")
-
-
-async def scrape(port: int) -> dict[str, float]:
-    def get() -> str:
-        with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as response:
-            return str(response.read().decode())
-
-    text = await asyncio.to_thread(get)
-    values: dict[str, float] = {}
-    for line in text.splitlines():
-        if line and not line.startswith("#"):
-            name, value = line.rsplit(" ", 1)
-            values[name] = float(value)
-    return values
 
 
 def json_lines(proc: ManagedProcess) -> list[dict[str, object]]:

@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import cv2
+import pytest
 from shapely.geometry import LineString, Point, Polygon, box
 
 from drvs.launch import ManagedProcess
@@ -41,6 +42,7 @@ def check_map(out: Path) -> None:
     assert image is not None and image.shape[0] > 400 and image.shape[1] > 800
 
 
+@pytest.mark.slow
 async def test_navigate_with_drvs_avoids_the_unknown_obstacle(tmp_path: Path) -> None:
     code, result, log = await run_office(tmp_path, "--scenario", str(SMALL_ROOM))
     assert code == 0, log
@@ -71,6 +73,7 @@ async def test_navigate_with_drvs_avoids_the_unknown_obstacle(tmp_path: Path) ->
     check_map(tmp_path)
 
 
+@pytest.mark.slow
 async def test_navigate_without_drvs_collides_and_replans(tmp_path: Path) -> None:
     code, result, log = await run_office(tmp_path, "--scenario", str(SMALL_ROOM), "--no-drvs")
     assert code == 0, log
@@ -80,6 +83,7 @@ async def test_navigate_without_drvs_collides_and_replans(tmp_path: Path) -> Non
     check_map(tmp_path)
 
 
+@pytest.mark.slow
 async def test_charging_station_is_the_true_one_over_mutual_tls(tmp_path: Path) -> None:
     code, result, log = await run_office(
         tmp_path, "--scenario", str(SMALL_ROOM), "--mission", "find_charging_station", "--tls"
@@ -95,6 +99,7 @@ async def test_charging_station_is_the_true_one_over_mutual_tls(tmp_path: Path) 
     check_map(tmp_path)
 
 
+@pytest.mark.slow
 async def test_default_office_station_mission(tmp_path: Path) -> None:
     code, result, log = await run_office(tmp_path, "--mission", "find_charging_station")
     assert code == 0, log
@@ -110,6 +115,7 @@ async def test_bad_scenario_is_refused_naming_the_key(tmp_path: Path) -> None:
     assert "cameras[0].yaw_degrees: unknown key" in log
 
 
+@pytest.mark.slow
 async def test_same_seed_same_run(tmp_path: Path) -> None:
     runs = []
     for name in ("a", "b"):
@@ -121,6 +127,7 @@ async def test_same_seed_same_run(tmp_path: Path) -> None:
     assert a["detections"] == b["detections"] and a["replans"] == b["replans"]
 
 
+@pytest.mark.slow
 async def test_robot_slows_where_a_killed_camera_looked(tmp_path: Path) -> None:
     """cam-east crashes one second into the mission. The robot learns it at once (its report stream
     breaks), and where only cam-east looked it creeps instead of driving through at full speed: no
@@ -147,6 +154,7 @@ async def test_robot_slows_where_a_killed_camera_looked(tmp_path: Path) -> None:
 ANY_COLOUR = Path(__file__).parent / "scenarios" / "any_colour.yaml"
 
 
+@pytest.mark.slow
 async def test_foreground_avoids_obstacles_of_any_colour_and_localises_by_marker(tmp_path: Path) -> None:
     """--detector foreground: a brown box on the straight line and a grey trolley, colours no
     filter matches, are found as anything-not-empty-floor and driven around without a touch; the
@@ -175,6 +183,7 @@ async def test_foreground_avoids_obstacles_of_any_colour_and_localises_by_marker
     check_map(tmp_path)
 
 
+@pytest.mark.slow
 async def test_charging_station_marked_by_an_aruco_id(tmp_path: Path) -> None:
     """The dock is the marker with id 7; markers 3 and 9 lie elsewhere. The robot finds only id 7,
     docks there, and with foreground goes round the box of no known colour on its way."""

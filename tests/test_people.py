@@ -13,8 +13,6 @@ from __future__ import annotations
 import asyncio
 import json
 import math
-import os
-import shutil
 import statistics
 from collections.abc import Iterator
 from dataclasses import dataclass
@@ -35,9 +33,8 @@ from drvs.model import Detection
 from drvs.robot import DrvsClient
 from drvs.sim.scene import write_video
 
-from .test_observability import metrics_port, scrape
+from .helpers import VTEST, footage, metrics_port, scrape
 
-VTEST = Path("/usr/share/doc/opencv-doc/examples/data/vtest.avi")
 FEET = Path(__file__).parent / "data" / "vtest_feet.json"
 SIZE = (768, 576)
 #: A plausible pose for the footage (the real one is not published): 8 m up, looking 35 degrees
@@ -50,16 +47,6 @@ MIN_HEIGHT_PX = 85
 MATCH_FRACTION = 0.12
 MIN_PRECISION = 0.9
 MIN_RECALL = 0.75
-
-
-def footage() -> Path:
-    """OpenCV's vtest.avi (Debian's opencv-doc): a failure where ./run test could have installed it, a
-    skip only where it cannot (no root or no apt-get)."""
-    if VTEST.is_file():
-        return VTEST
-    if os.geteuid() == 0 and shutil.which("apt-get"):
-        pytest.fail(f"{VTEST} is missing on a machine that can install it: ./run test installs opencv-doc")
-    pytest.skip(f"{VTEST} is absent and only root with apt-get can install it (apt-get install opencv-doc)")
 
 
 @dataclass(frozen=True)
@@ -149,6 +136,7 @@ def score(detector: PeopleDetector, frames: list[Marked]) -> Score:
     return s
 
 
+@pytest.mark.slow
 def test_finds_the_hand_marked_people_with_their_feet(marked: list[Marked]) -> None:
     detector = PeopleDetector(view(), {"min_height_px": MIN_HEIGHT_PX})
     s = score(detector, marked)
@@ -289,6 +277,7 @@ async def _start(video: Path, hfile: Path) -> tuple[list[ManagedProcess], str, M
     return procs, address, camera
 
 
+@pytest.mark.slow
 async def test_camera_process_answers_people_on_real_footage(still_camera: tuple[Path, Path, Marked]) -> None:
     video, hfile, frame = still_camera
     procs, address, _camera = await _start(video, hfile)

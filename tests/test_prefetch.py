@@ -10,7 +10,7 @@ import numpy as np
 from drvs.camera.prefetch import Analyses
 from drvs.detection import Frame
 
-from .test_detection import BIG, GREEN, YELLOW, camera, detector, render
+from .helpers import BIG, GREEN, YELLOW, camera, detector, render
 
 
 class _Frames:

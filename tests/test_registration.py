@@ -37,9 +37,8 @@ from drvs.v1 import (
     stream_pb2_grpc,
 )
 
-from .conftest import CAM1_REGION, MAX_RANGE, YELLOW
 from .fakes import server_process, start_recorded_camera
-from .test_server import register_message
+from .helpers import CAM1_REGION, MAX_RANGE, YELLOW, register_message
 
 LOBBY_TOKEN = "lobby-token-0123456789abcdef"
 YARD_TOKEN = "yard-token-fedcba9876543210"
@@ -142,6 +141,7 @@ async def tokens_server(tmp_path: Path, *args: str) -> tuple[ManagedProcess, str
 # --- a camera id belongs to its registration ------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_a_second_client_cannot_take_over_a_live_anonymous_camera_id(
     recorded: dict[str, RecordedCamera],
 ) -> None:
@@ -211,6 +211,7 @@ async def test_a_reregistration_never_inherits_the_previous_registrations_token(
         await server.stop()
 
 
+@pytest.mark.slow
 async def test_a_stale_registration_secret_is_refused_and_the_camera_registers_again(
     tmp_path: Path, recorded: dict[str, RecordedCamera]
 ) -> None:
@@ -250,6 +251,7 @@ async def test_a_stale_registration_secret_is_refused_and_the_camera_registers_a
         await server.stop()
 
 
+@pytest.mark.slow
 async def test_a_squatted_id_lapses_with_its_lease_and_grace_and_the_camera_says_why(
     tmp_path: Path, recorded: dict[str, RecordedCamera]
 ) -> None:
@@ -357,6 +359,7 @@ async def test_under_mutual_tls_only_camera_certificates_register_and_each_camer
         await server.stop()
 
 
+@pytest.mark.slow
 async def test_beyond_loopback_registration_needs_a_credential_unless_the_network_is_trusted(
     role_certs: Path,
 ) -> None:
@@ -446,6 +449,7 @@ async def test_one_identity_holds_at_most_the_configured_number_of_camera_ids(tm
         await server.stop()
 
 
+@pytest.mark.slow
 async def test_list_cameras_pages_past_the_message_limit_and_clients_follow_the_pages() -> None:
     """4 500 cameras with long ids and addresses list as about 4.5 MB, past the 4 MB message limit:
     the server answers in pages, and DrvsClient.cameras and `drvs-robot cameras` follow them."""
@@ -476,6 +480,7 @@ async def test_list_cameras_pages_past_the_message_limit_and_clients_follow_the_
 # --- a camera serves only its server --------------------------------------------------------------
 
 
+@pytest.mark.slow
 async def test_a_camera_without_credentials_takes_requests_and_gives_frames_only_with_its_secret(
     tmp_path: Path, recorded: dict[str, RecordedCamera]
 ) -> None:

@@ -276,6 +276,7 @@ def test_invalid_registration_changes_nothing(
         assert three.remaining_s(cid) == before_remaining[cid]
 
 
+@pytest.mark.slow
 def test_many_cameras_route_to_the_few_near_the_region(clock: Clock) -> None:
     # 50 x 40 cameras, 10 m apart. Neighbours along x overlap only near their far edges (y + 9..10);
     # rows 10 m apart along y never overlap (each sees y + 1.5 .. y + 10.1).

@@ -27,8 +27,7 @@ from drvs.server.policy import CallbackPolicy, IPAddress
 from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
-from .conftest import CAM1_REGION, CAM2_REGION, MAX_RANGE, YELLOW
-from .test_server import detect_message, register_message
+from .helpers import CAM1_REGION, CAM2_REGION, MAX_RANGE, YELLOW, detect_message, register_message
 
 
 class _CapturingCamera(AckingCamera):
@@ -75,6 +74,7 @@ async def _write_reports(callback: str, reports: list[Any]) -> list[str]:
         return cancelled
 
 
+@pytest.mark.slow
 async def test_reports_only_from_dispatched_cameras_on_their_own_streams(
     recorded: dict[str, RecordedCamera],
 ) -> None:

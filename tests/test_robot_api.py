@@ -28,7 +28,7 @@ from drvs.model import CameraError, DetectionReport
 from drvs.robot import DrvsClient, RetryPolicy
 from drvs.v1 import registry_pb2, registry_pb2_grpc
 
-from .conftest import BOTH_REGION, CAM1_REGION, YELLOW, Office
+from .helpers import BOTH_REGION, CAM1_REGION, YELLOW, Office
 
 
 @pytest.fixture

@@ -23,9 +23,8 @@ from drvs.server.policy import RequestLimits
 from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
-from .conftest import CAM1_REGION, MAX_RANGE, YELLOW
 from .fakes import start_recorded_camera
-from .test_server import detect_message, register_message
+from .helpers import CAM1_REGION, MAX_RANGE, YELLOW, detect_message, register_message
 
 CAMERA_TOKEN = "camera-token-0123456789abcdef"
 OTHER_CAMERA_TOKEN = "camera-token-fedcba9876543210"
@@ -54,6 +53,7 @@ def tls(certs: Path, role: str, ca: Path | None = None) -> Security:
     )
 
 
+@pytest.mark.slow
 async def test_mutual_tls_on_every_hop(certs: Path, recorded: dict[str, RecordedCamera]) -> None:
     """Robot -> server, server -> camera, camera -> server and camera -> robot all run over mutual
     TLS: the detection comes back, and a peer without a certificate from the CA gets nowhere."""
@@ -112,6 +112,7 @@ def bearer(token: str) -> tuple[tuple[str, str], ...]:
     return (("authorization", f"Bearer {token}"),)
 
 
+@pytest.mark.slow
 async def test_tokens_robots_and_cameras_need_their_own(token_office: tuple[str, ManagedProcess, Path]) -> None:
     address, camera, _ = token_office
     robot_token = Security(token=ROBOT_TOKEN)

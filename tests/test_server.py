@@ -18,7 +18,7 @@ from drvs.robot import DrvsClient
 from drvs.server import DrvsServer
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
-YELLOW = "hsv_014110130035225200"
+from .helpers import YELLOW, detect_message, register_message
 
 
 @pytest_asyncio.fixture
@@ -31,37 +31,6 @@ async def server() -> AsyncIterator[DrvsServer]:
 async def channel(server: DrvsServer) -> AsyncIterator[aio.Channel]:
     async with aio.insecure_channel(server.address) as ch:
         yield ch
-
-
-def register_message(camera_id: str = "cam1", x: float = 0.0) -> registry_pb2.RegisterRequest:
-    h = homography_from_pose((x, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
-    return registry_pb2.RegisterRequest(
-        camera_id=camera_id,
-        address="127.0.0.1:9",
-        homography=registry_pb2.Homography(m=h.to_list()),
-        image_width=640,
-        image_height=480,
-        max_range_m=6.0,
-        detector_kinds=["hsv"],
-    )
-
-
-def detect_message(**overrides: object) -> detection_pb2.DetectionRequest:
-    msg = detection_pb2.DetectionRequest(
-        request_id="req-1",
-        robot_id="r",
-        filter_def=YELLOW,
-        region=geometry_pb2.Region(box=geometry_pb2.Box(x_lower=-1, y_lower=0, x_upper=1, y_upper=5)),
-        callback_address="127.0.0.1:9",
-    )
-    for key, value in overrides.items():
-        if value is None:
-            msg.ClearField(key)
-        elif isinstance(value, str):
-            setattr(msg, key, value)
-        else:
-            getattr(msg, key).CopyFrom(value)
-    return msg
 
 
 async def test_health_and_reflection(channel: aio.Channel) -> None:

@@ -87,6 +87,7 @@ def test_markers_are_found_where_they_lie_close_up(robot: tuple[float, float, fl
         assert d.heading_deg is not None and heading_error(d.heading_deg, heading) < 1.0, (marker_id, d.heading_deg)
 
 
+@pytest.mark.slow
 def test_markers_from_the_ceiling_camera_with_noise() -> None:
     """The office test's ceiling camera, with sensor noise, lighting and a textured floor: every
     floor marker and the robot's, at every pose, within 1 cm and 2 degrees (measured: 4 mm, 1.0)."""

@@ -23,7 +23,7 @@ from drvs.launch import ManagedProcess
 from drvs.server import DrvsServer
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
-from .test_server import detect_message
+from .helpers import detect_message
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "validation.md"
 YELLOW = "hsv_014110130035225200"
@@ -387,7 +387,7 @@ async def run_cli(command: str, args: tuple[str, ...], env: tuple[tuple[str, str
     return proc
 
 
-@pytest.mark.parametrize("which", ["all", "registration"])
+@pytest.mark.parametrize("which", [pytest.param("all", marks=pytest.mark.slow), "registration"])
 async def test_command_line_rows(tmp_path: Path, which: str) -> None:
     cases = cli_cases(tmp_path) if which == "all" else REGISTRATION_CLI_CASES
     procs = await asyncio.gather(*(run_cli(c.command, c.args, c.env) for c in cases))

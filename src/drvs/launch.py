@@ -1,23 +1,51 @@
-"""Start DRVS roles as separate processes and wait for what they log: used by the demo and the tests."""
+"""Start DRVS roles as separate processes and wait until they are ready: used by the demo and the tests.
+
+Readiness: a role prints its address once ("drvs-server listening on ADDR", "camera ID listening on
+ADDR"); then its gRPC health service must answer SERVING. Registration with the server has no health
+service of its own, so `start_camera` also waits for the camera's "registered with" line.
+Every helper here stops and reaps the process it started when it fails or times out.
+"""
 
 from __future__ import annotations
 
+import argparse
 import asyncio
 import contextlib
 import os
 import re
 import signal
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequence
 from pathlib import Path
-from typing import TextIO, TypeVar
+from types import TracebackType
+from typing import Any, TextIO, TypeVar
+
+from grpc import aio
+from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+from drvs._cli import add_security_arguments, security_from
+from drvs.net import format_address, parse_address
 
 T = TypeVar("T")
 
 #: Longest output line read (a benchmark's result line can be large); a longer one is dropped.
 MAX_LINE_BYTES = 16 * 1024 * 1024
 SERVER_READY = re.compile(r"drvs-server listening on (\S+)")
+#: A camera's own listener (format with id=re.escape(camera_id)); group 1 is the address.
+CAMERA_LISTENING = r"camera {id} listening on (\S+)"
 CAMERA_REGISTERED = r"camera {id} (?:re-)?registered with"
+#: How long the start helpers wait for each step (address, health, registration) by default.
+READY_TIMEOUT_S = 30.0
+
+
+def running() -> set[ManagedProcess]:
+    """Every ManagedProcess started and not yet seen to exit (a test harness kills what a failed
+    test left behind: see `kill`)."""
+    _STARTED.difference_update([p for p in _STARTED if p.returncode is not None])
+    return set(_STARTED)
+
+
+_STARTED: set[ManagedProcess] = set()
 
 
 class ManagedProcess:
@@ -63,6 +91,15 @@ class ManagedProcess:
     def returncode(self) -> int | None:
         return None if self.process is None else self.process.returncode
 
+    async def __aenter__(self) -> ManagedProcess:
+        """`async with ManagedProcess(...) as proc:` starts it, and stops and reaps it on the way out."""
+        return await self.start()
+
+    async def __aexit__(
+        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        await self.stop()
+
     async def start(self) -> ManagedProcess:
         env = dict(os.environ if self.env is None else self.env)
         env.setdefault("PYTHONUNBUFFERED", "1")
@@ -75,6 +112,7 @@ class ManagedProcess:
             limit=MAX_LINE_BYTES,
         )
         self._reader = asyncio.get_running_loop().create_task(self._read())
+        _STARTED.add(self)
         return self
 
     async def _read(self) -> None:
@@ -123,11 +161,15 @@ class ManagedProcess:
                     if found is not None:
                         return found
                     if self._eof:
-                        raise RuntimeError(
-                            f"{self.name} exited (code {self.returncode}) before {what}:\n"
-                            + "\n".join(self.lines[-20:])
-                        )
+                        break
                     await self._changed.wait()
+            # Its output has ended: it is exiting. Its exit code makes the error clearer.
+            if self.process is not None:
+                with contextlib.suppress(asyncio.TimeoutError):
+                    await asyncio.wait_for(asyncio.shield(self.process.wait()), 5)
+            raise RuntimeError(
+                f"{self.name} exited (code {self.returncode}) before {what}:\n" + "\n".join(self.lines[-20:])
+            )
 
         try:
             return await asyncio.wait_for(wait(), timeout)
@@ -140,16 +182,34 @@ class ManagedProcess:
         return "\n".join(self.lines)
 
     def kill(self) -> None:
-        """SIGKILL: simulate a crash."""
+        """SIGKILL: simulate a crash. Safe without a running event loop (the child is reaped anyway)."""
         if self.process is not None and self.process.returncode is None:
-            self.process.kill()
+            with contextlib.suppress(ProcessLookupError):
+                os.kill(self.process.pid, signal.SIGKILL)
 
     async def wait(self, timeout: float = 10.0) -> int:
+        """Its exit code once it exits by itself. If it has not within `timeout` (or the wait is
+        cancelled), it is killed and reaped, and TimeoutError (or the cancellation) is raised."""
         assert self.process is not None
-        code = await asyncio.wait_for(self.process.wait(), timeout)
+        try:
+            code = await asyncio.wait_for(self.process.wait(), timeout)
+        except BaseException as exc:
+            self.kill()
+            await asyncio.shield(self._reap())
+            if isinstance(exc, asyncio.TimeoutError):
+                raise TimeoutError(
+                    f"{self.name} did not exit within {timeout:g} s (killed):\n" + "\n".join(self.lines[-20:])
+                ) from None
+            raise
         if self._reader is not None:
             await self._reader
         return code
+
+    async def _reap(self) -> None:
+        assert self.process is not None
+        await self.process.wait()
+        if self._reader is not None:
+            await self._reader
 
     async def stop(self, timeout: float = 10.0) -> int | None:
         """SIGTERM and wait; SIGKILL only if it does not stop in time. Always reaps."""
@@ -168,14 +228,124 @@ class ManagedProcess:
         return self.process.returncode
 
 
+def _loopback_if_wildcard(address: str) -> str:
+    """A listener bound to every interface (0.0.0.0, ::) is probed on this host's loopback."""
+    host, port = parse_address(address, allow_port_zero=True)
+    wildcard = {"0.0.0.0": "127.0.0.1", "::": "::1"}
+    return format_address(wildcard[host], port) if host in wildcard else address
+
+
+def _probe_security_args(args: Sequence[str]) -> dict[str, object]:
+    """The security flags among a role's arguments (the rest ignored)."""
+    p = argparse.ArgumentParser(add_help=False, allow_abbrev=False)
+    add_security_arguments(p, "")
+    known, _ = p.parse_known_args(list(args))
+    return vars(known)
+
+
+async def wait_serving(
+    address: str,
+    proc: ManagedProcess | None = None,
+    *,
+    args: Sequence[str] = (),
+    env: Mapping[str, str] | None = None,
+    timeout: float = READY_TIMEOUT_S,
+) -> None:
+    """Until the gRPC health service at `address` answers SERVING (for the whole server, service "").
+    `args`/`env`: the role's own command line and environment, for its TLS files (the probe dials it
+    as the role itself would be dialled; health needs no token). Raises, with the process's last
+    lines, if `proc` exits first or `timeout` passes."""
+    security = security_from(_probe_security_args(args), os.environ if env is None else env)
+    dial = _loopback_if_wildcard(address)
+
+    async def serving() -> None:
+        async with security.channel(dial) as channel:
+            stub = health_pb2_grpc.HealthStub(channel)
+            request = health_pb2.HealthCheckRequest(service="")
+            # Watch sends the current status, then every change: no polling.
+            async for reply in stub.Watch(request, timeout=timeout, wait_for_ready=True):
+                if reply.status == health_pb2.HealthCheckResponse.SERVING:
+                    return
+            raise RuntimeError(f"{address}: the health watch ended before SERVING")
+
+    what = f"gRPC health SERVING at {address}"
+    name = proc.name if proc is not None else address
+    try:
+        await _unless_exited(proc, serving(), what, timeout, name)
+    except aio.AioRpcError as exc:  # its deadline: the same timeout
+        tail = "" if proc is None else ":\n" + "\n".join(proc.lines[-20:])
+        raise TimeoutError(f"{name}: still no {what} after {timeout:g} s ({exc.code().name}){tail}") from None
+
+
+async def _unless_exited(
+    proc: ManagedProcess | None, awaitable: Awaitable[T], what: str, timeout: float, name: str = "wait"
+) -> T:
+    """`awaitable`'s result, unless `proc` exits first (RuntimeError) or `timeout` passes (TimeoutError)."""
+    task = asyncio.ensure_future(awaitable)
+    waits: set[asyncio.Future[Any]] = {task}
+    exited: asyncio.Future[int] | None = None
+    if proc is not None and proc.process is not None:
+        exited = asyncio.ensure_future(proc.process.wait())
+        waits.add(exited)
+    try:
+        done, _ = await asyncio.wait(waits, timeout=timeout, return_when=asyncio.FIRST_COMPLETED)
+        if task in done:
+            return task.result()
+        if exited is not None and exited in done:
+            assert proc is not None
+            if proc._reader is not None:
+                await proc._reader
+            raise RuntimeError(
+                f"{proc.name} exited (code {proc.returncode}) before {what}:\n" + "\n".join(proc.lines[-20:])
+            )
+        name = proc.name if proc is not None else name
+        tail = "" if proc is None else ":\n" + "\n".join(proc.lines[-20:])
+        raise TimeoutError(f"{name}: still no {what} after {timeout:g} s{tail}")
+    finally:
+        for waiting in waits:
+            waiting.cancel()
+        await asyncio.gather(*waits, return_exceptions=True)
+
+
+def _deadline(timeout: float) -> Callable[[], float]:
+    """Seconds left of `timeout` from now (at least a little, so a last step can still report why)."""
+    end = asyncio.get_running_loop().time() + timeout
+
+    def left() -> float:
+        return max(0.01, end - asyncio.get_running_loop().time())
+
+    return left
+
+
 async def start_server(
-    *args: str, echo: TextIO | None = None, env: dict[str, str] | None = None
+    *args: str, echo: TextIO | None = None, env: dict[str, str] | None = None, timeout: float = READY_TIMEOUT_S
 ) -> tuple[ManagedProcess, str]:
+    """drvs-server on 127.0.0.1 port 0 (unless `args` say otherwise): (process, address) once its
+    health service answers SERVING, all within `timeout` s. On failure or timeout the process is
+    stopped and reaped."""
     proc = await ManagedProcess.entry_point(
         "server", "drvs-server", "--listen", "127.0.0.1:0", *args, echo=echo, env=env
     ).start()
-    m = await proc.wait_for_line(SERVER_READY)
-    return proc, m.group(1)
+    left = _deadline(timeout)
+    try:
+        address = (await proc.wait_for_line(SERVER_READY, timeout=left())).group(1)
+        await wait_serving(address, proc, args=args, env=env, timeout=left())
+    except BaseException:
+        await asyncio.shield(proc.stop())
+        raise
+    return proc, address
+
+
+@contextlib.asynccontextmanager
+async def running_server(
+    *args: str, echo: TextIO | None = None, env: dict[str, str] | None = None, timeout: float = READY_TIMEOUT_S
+) -> AsyncIterator[tuple[ManagedProcess, str]]:
+    """`async with running_server(...) as (proc, address):` start_server, stopped and reaped on exit."""
+    proc, address = await start_server(*args, echo=echo, env=env, timeout=timeout)
+    try:
+        yield proc, address
+    finally:
+        await proc.stop()
 
 
 async def start_camera(
@@ -186,7 +356,11 @@ async def start_camera(
     *args: str,
     echo: TextIO | None = None,
     env: dict[str, str] | None = None,
+    timeout: float = READY_TIMEOUT_S,
 ) -> ManagedProcess:
+    """drvs-camera listening on 127.0.0.1 port 0, returned once its health service answers SERVING
+    and it has registered with `server`, all within `timeout` s. On failure or timeout it is
+    stopped and reaped."""
     proc = ManagedProcess.entry_point(
         camera_id,
         "drvs-camera",
@@ -205,5 +379,30 @@ async def start_camera(
         env=env,
     )
     await proc.start()
-    await proc.wait_for_line(CAMERA_REGISTERED.format(id=re.escape(camera_id)))
+    await camera_ready(proc, camera_id, args=args, env=env, timeout=timeout)
     return proc
+
+
+async def camera_ready(
+    proc: ManagedProcess,
+    camera_id: str,
+    *,
+    args: Sequence[str] = (),
+    env: Mapping[str, str] | None = None,
+    timeout: float = READY_TIMEOUT_S,
+) -> str:
+    """A started drvs-camera's own address, once its health service answers SERVING and it has
+    registered with its server, all within `timeout` s. `args`/`env`: its command line and
+    environment, for its TLS files (a camera configured by --config file must not use TLS here).
+    On failure or timeout the process is stopped and reaped."""
+    left = _deadline(timeout)
+    try:
+        listening = await proc.wait_for_line(CAMERA_LISTENING.format(id=re.escape(camera_id)), timeout=left())
+        address = listening.group(1)
+        await wait_serving(address, proc, args=args, env=env, timeout=left())
+        # No health service says "registered": the camera's log line does.
+        await proc.wait_for_line(CAMERA_REGISTERED.format(id=re.escape(camera_id)), timeout=left())
+    except BaseException:
+        await asyncio.shield(proc.stop())
+        raise
+    return address

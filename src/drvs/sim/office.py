@@ -20,7 +20,7 @@ import yaml
 from drvs.certs import make_all
 from drvs.errors import DrvsError
 from drvs.homography_file import save_homography
-from drvs.launch import ManagedProcess, start_camera, start_server
+from drvs.launch import ManagedProcess, start_camera, start_server, wait_serving
 from drvs.sim.cli import PROGRESS_PREFIX
 from drvs.sim.scenario import DEFAULT_SCENARIO, CameraDef, Scenario, load_scenario
 
@@ -95,6 +95,7 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
         ).start()
         procs.append(world)
         world_address = (await world.wait_for_line(WORLD_READY)).group(1)
+        await wait_serving(world_address, world)
         say(f"world      {scenario.name!r} on {world_address}")
         robot_args = ["robot", "--world", world_address, "--out", str(out), "--max-time", str(args.max_time)]
         robot_args += ["--detector", args.detector]

@@ -1,0 +1,242 @@
+"""Builders and constants the tests share. conftest.py holds fixtures only; a test module imports
+what it needs from here, never from another test module."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import os
+import re
+import shutil
+import urllib.request
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from drvs.detection import DEFAULT_MIN_AREA_PX, CameraView, HsvDetector
+from drvs.filters import HsvRange
+from drvs.geometry import FieldOfView, Homography, homography_from_pose
+from drvs.launch import ManagedProcess, start_camera, start_server
+from drvs.sim.scene import FloorPatch, RecordedCamera, record_camera, render_view
+from drvs.v1 import detection_pb2, geometry_pb2, registry_pb2
+
+# --- the recorded two-camera floor (the `recorded` and `office` fixtures) -----------------------
+
+YELLOW = "hsv_014110130035225200"
+GREEN = "hsv_040080080080255255"
+RED = "hsv_170100100010255255"
+BLUE = "hsv_100150100130255255"
+IMAGE_SIZE = (640, 480)
+#: Fields of view: cam1 sees about x -3.8..3.8, y 1.5..7.5; cam2 the same 20 m further along x.
+CAMERA_POSES = {"cam1": (0.0, 0.0, 3.0), "cam2": (20.0, 0.0, 3.0)}
+CAM1_REGION = (-6.0, 0.0, 6.0, 10.0)
+CAM2_REGION = (14.0, 0.0, 26.0, 10.0)
+BOTH_REGION = (-6.0, 0.0, 26.0, 10.0)
+MAX_RANGE = "6"
+
+
+@dataclass(frozen=True)
+class TrueObject:
+    filter_def: str
+    center: tuple[float, float]
+    radius: float
+
+
+OBJECTS = [
+    TrueObject(YELLOW, (-1.0, 4.0), 0.25),
+    TrueObject(YELLOW, (1.5, 3.0), 0.20),
+    TrueObject(GREEN, (0.0, 5.5), 0.30),
+    TrueObject(YELLOW, (19.0, 4.5), 0.30),
+    TrueObject(YELLOW, (21.5, 6.0), 0.25),
+]
+
+
+def nearest(filter_def: str, x: float, y: float) -> tuple[TrueObject, float]:
+    obj = min((o for o in OBJECTS if o.filter_def == filter_def), key=lambda o: math.dist(o.center, (x, y)))
+    return obj, math.dist(obj.center, (x, y))
+
+
+def record_floor(directory: Path) -> dict[str, RecordedCamera]:
+    """Two cameras' video files of the same floor (OBJECTS), with their homography files."""
+    patches = [FloorPatch.disc(o.center, o.radius, HsvRange.parse(o.filter_def).centre_bgr()) for o in OBJECTS]
+    out = {}
+    for seed, (camera_id, position) in enumerate(CAMERA_POSES.items()):
+        h = homography_from_pose(position, 90.0, 40.0, 60.0, IMAGE_SIZE)
+        out[camera_id] = record_camera(directory, camera_id, h, IMAGE_SIZE, patches, seed=seed)
+    return out
+
+
+@dataclass
+class Office:
+    """A drvs-server process and the camera processes started on it (none, one or both of `recorded`)."""
+
+    server: ManagedProcess
+    address: str
+    cameras: dict[str, ManagedProcess]
+    recorded: dict[str, RecordedCamera]
+
+    async def start_camera(self, camera_id: str) -> ManagedProcess:
+        rec = self.recorded[camera_id]
+        # DEBUG: the tests read which requests each camera received from its log.
+        proc = await start_camera(
+            camera_id, rec.video, rec.homography_file, self.address, "--max-range", MAX_RANGE, "--log-level", "DEBUG"
+        )
+        self.cameras[camera_id] = proc
+        return proc
+
+
+async def start_office(
+    recorded: dict[str, RecordedCamera], lease_ttl: float, cameras: tuple[str, ...] | None = None
+) -> Office:
+    """The server, then the cameras named (default: every recorded one). All stopped if one fails."""
+    server, address = await start_server("--lease-ttl", str(lease_ttl))
+    office = Office(server, address, {}, recorded)
+    try:
+        for camera_id in recorded if cameras is None else cameras:
+            await office.start_camera(camera_id)
+    except BaseException:
+        await asyncio.shield(stop_office(office))
+        raise
+    return office
+
+
+async def stop_office(office: Office) -> None:
+    """Stops (and reaps) every process, even when one of them fails to stop cleanly."""
+    try:
+        for proc in office.cameras.values():
+            await proc.stop()
+    finally:
+        await office.server.stop()
+
+
+# --- command lines -----------------------------------------------------------------------------
+
+
+def roi(region: tuple[float, float, float, float]) -> str:
+    return ",".join(str(v) for v in region)
+
+
+async def run_robot(*args: str) -> tuple[int, list[str]]:
+    """drvs-robot with `args`: (exit code, output lines). Killed and reaped if it runs over 30 s."""
+    proc = await ManagedProcess.entry_point("robot", "drvs-robot", *args).start()
+    code = await proc.wait(timeout=30)
+    return code, proc.lines
+
+
+# --- raw protobuf messages ---------------------------------------------------------------------
+
+
+def register_message(camera_id: str = "cam1", x: float = 0.0) -> registry_pb2.RegisterRequest:
+    h = homography_from_pose((x, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
+    return registry_pb2.RegisterRequest(
+        camera_id=camera_id,
+        address="127.0.0.1:9",
+        homography=registry_pb2.Homography(m=h.to_list()),
+        image_width=640,
+        image_height=480,
+        max_range_m=6.0,
+        detector_kinds=["hsv"],
+    )
+
+
+def detect_message(**overrides: object) -> detection_pb2.DetectionRequest:
+    msg = detection_pb2.DetectionRequest(
+        request_id="req-1",
+        robot_id="r",
+        filter_def=YELLOW,
+        region=geometry_pb2.Region(box=geometry_pb2.Box(x_lower=-1, y_lower=0, x_upper=1, y_upper=5)),
+        callback_address="127.0.0.1:9",
+    )
+    for key, value in overrides.items():
+        if value is None:
+            msg.ClearField(key)
+        elif isinstance(value, str):
+            setattr(msg, key, value)
+        else:
+            getattr(msg, key).CopyFrom(value)
+    return msg
+
+
+# --- metrics -----------------------------------------------------------------------------------
+
+
+def metrics_port(proc: ManagedProcess) -> int:
+    for line in proc.lines:
+        m = re.search(r"metrics on http://[^:]+:(\d+)/metrics", line)
+        if m:
+            return int(m.group(1))
+    raise AssertionError(f"{proc.name} did not say where its metrics are:\n{proc.output()}")
+
+
+async def scrape(port: int) -> dict[str, float]:
+    def get() -> str:
+        with urllib.request.urlopen(f"http://127.0.0.1:{port}/metrics", timeout=5) as response:
+            return str(response.read().decode())
+
+    text = await asyncio.to_thread(get)
+    values: dict[str, float] = {}
+    for line in text.splitlines():
+        if line and not line.startswith("#"):
+            name, value = line.rsplit(" ", 1)
+            values[name] = float(value)
+    return values
+
+
+# --- real footage ------------------------------------------------------------------------------
+
+VTEST = Path("/usr/share/doc/opencv-doc/examples/data/vtest.avi")
+
+
+def footage() -> Path:
+    """OpenCV's vtest.avi (Debian's opencv-doc): a failure where ./run test could have installed it, a
+    skip only where it cannot (no root or no apt-get)."""
+    if VTEST.is_file():
+        return VTEST
+    if os.geteuid() == 0 and shutil.which("apt-get"):
+        pytest.fail(f"{VTEST} is missing on a machine that can install it: ./run test installs opencv-doc")
+    pytest.skip(f"{VTEST} is absent and only root with apt-get can install it (apt-get install opencv-doc)")
+
+
+# --- discs rendered by one reference camera (colour detection) ---------------------------------
+
+
+@dataclass(frozen=True)
+class Disc:
+    filter_def: str
+    center: tuple[float, float]
+    radius: float
+
+    @property
+    def area(self) -> float:
+        return math.pi * self.radius**2
+
+    def patch(self) -> FloorPatch:
+        return FloorPatch.disc(self.center, self.radius, HsvRange.parse(self.filter_def).centre_bgr())
+
+
+#: All lie well inside the reference camera's view (x -1.8..1.8 at y 1.5, x -5.6..5.6 at y 10.1).
+BIG = [
+    Disc(YELLOW, (-1.0, 4.0), 0.25),
+    Disc(YELLOW, (1.5, 3.0), 0.20),
+    Disc(GREEN, (0.0, 5.5), 0.30),
+    Disc(RED, (-2.0, 7.0), 0.30),
+]
+
+
+def camera() -> Homography:
+    """The reference camera: 3 m up at the origin, looking 40 degrees down along +y."""
+    return homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, IMAGE_SIZE)
+
+
+def detector(h: Homography, max_range_m: float = 15.0, min_area_px: float = DEFAULT_MIN_AREA_PX) -> HsvDetector:
+    fov = FieldOfView.compute(h, IMAGE_SIZE, max_range_m)
+    return HsvDetector(CameraView(h, fov, IMAGE_SIZE, camera_id="cam1", min_area_px=min_area_px))
+
+
+def render(discs: list[Disc], noise_sigma: float = 0.0) -> NDArray[np.uint8]:
+    return render_view(
+        camera(), IMAGE_SIZE, [d.patch() for d in discs], noise_sigma=noise_sigma, rng=np.random.default_rng(3)
+    )
