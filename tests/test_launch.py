@@ -54,7 +54,8 @@ async def test_start_server_that_exits_fails_at_once_with_its_output() -> None:
     # RuntimeError, not TimeoutError: the exit itself ends the wait, not the (long) timeout.
     with pytest.raises(RuntimeError, match=r"server exited \(code 2\) before logging") as err:
         await start_server("--lease-ttl", "-1", timeout=600)
-    assert "--lease-ttl: -1.0 must be in (0, 3600]" in str(err.value)  # its own complaint comes with it
+    # Its own complaint comes with it.
+    assert "lease_ttl_s (--lease-ttl, DRVS_LEASE_TTL): -1 must be in (0, 3600]" in str(err.value)
 
 
 async def test_start_server_that_times_out_is_reaped() -> None:
