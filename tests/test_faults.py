@@ -150,11 +150,15 @@ async def _routes_only(robot: DrvsClient, camera_ids: list[str]) -> bool:
 # --- the server restarted ------------------------------------------------------------------------
 
 HEARTBEAT_S = 1.0
+#: The longest a camera's channel waits between attempts to reach a server that went away
+#: (drvs._grpc's grpc.max_reconnect_backoff_ms, 2 s, plus gRPC's 20 % jitter): a camera's next
+#: heartbeat after the restart may first wait out one such attempt.
+RECONNECT_S = 2.4
 
 
 @pytest.mark.slow
 @pytest.mark.timeout(180)  # its own waits (starts, runs, requests) add up to 150 s
-async def test_server_restart_fails_fast_retries_and_cameras_return_within_a_heartbeat(
+async def test_server_restart_fails_fast_retries_and_cameras_return_within_a_heartbeat_and_a_reconnect(
     recorded: dict[str, RecordedCamera], caplog: pytest.LogCaptureFixture
 ) -> None:
     caplog.set_level(logging.INFO, logger="drvs.robot")
@@ -204,7 +208,7 @@ async def test_server_restart_fails_fast_retries_and_cameras_return_within_a_hea
                 proc.name: log_time((await server.wait_for_line(rf"camera {proc.name} registered at")).string) - up_at
                 for proc in cameras
             }
-            assert max(back.values()) <= HEARTBEAT_S + 0.5, f"back in routing after {back} s"
+            assert max(back.values()) <= HEARTBEAT_S + RECONNECT_S + 0.5, f"back in routing after {back} s"
 
             outcome = await asyncio.wait_for(patient_call, 15)
             assert outcome.request_id
