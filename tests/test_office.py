@@ -115,8 +115,9 @@ async def test_bad_scenario_is_refused_naming_the_key(tmp_path: Path) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text(SMALL_ROOM.read_text().replace("yaw_deg: 90", "yaw_degrees: 90"))
     code, result, log = await run_office(tmp_path / "out", "--scenario", str(bad))
-    assert code == 2 and result == {}
-    assert "cameras[0].yaw_degrees: unknown key" in log
+    assert code == 2 and result == {} and "Traceback" not in log, log
+    message = f"drvs-office: {bad}: cameras[0].yaw_degrees: unknown key"
+    assert any(line.startswith(message) for line in log.splitlines()), log
 
 
 async def test_same_seed_same_run(tmp_path: Path) -> None:
