@@ -113,8 +113,8 @@ async def test_camera_with_bad_homography_file_exits_with_an_error(tmp_path: obj
 @pytest.mark.parametrize(
     ("command", "args", "message"),
     [
-        ("drvs-server", ["--listen", "nonsense"], "drvs-server: error: --listen: 'nonsense' is not host:port"),
-        ("drvs-server", ["--forward-timeout", "0"], "drvs-server: error: --forward-timeout: 0.0 must be in (0, 60]"),
+        ("drvs-server", ["--allow-callback", "bogus"], "drvs-server: error: --allow-callback: 'bogus' is not"),
+        ("drvs-server", ["--metrics-port", "abc"], "drvs-server: error: --metrics-port: 'abc' is not host:port"),
         ("drvs-server", ["--no-such-flag"], "drvs-server: error: unrecognized arguments: --no-such-flag"),
         ("drvs-camera", ["--id", "c", "--source", "0", "--homography", "/nonexistent.json", "--server", "127.0.0.1:1"],
          "drvs-camera: error: homography file /nonexistent.json: No such file or directory"),
