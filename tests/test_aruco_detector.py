@@ -372,8 +372,11 @@ async def test_end_to_end_robot_cli_gets_marker_id_and_heading(tmp_path: Path) -
             code, lines = await run_robot(
                 "detect", "--server", address, "--filter", "aruco_4x4_50_50", "--roi", region, "--json"
             )
-            assert code != 0
-            assert any("marker id '50'" in line and "0-49" in line for line in lines), lines
+            assert code == 2 and not any("Traceback" in line for line in lines), lines
+            assert any(
+                line.startswith("drvs-robot: filter_def: ") and "marker id '50'" in line and "0-49" in line
+                for line in lines
+            ), lines
         finally:
             await cam.stop()
     finally:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import re
 from collections.abc import Awaitable, Callable, Iterator
 
 import grpc
@@ -19,6 +20,9 @@ from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb
 
 FIELDS = ("request_id", "robot_id", "filter_def", "region", "callback_address", "continuous", "camera_id",
           "address", "homography", "image size", "max_range_m", "detector_kinds", "field_of_view")  # fmt: skip
+
+#: A message starts with the field it is about, then ":", "." (a part of it) or "[" (an element).
+FIELD_FIRST = re.compile(rf"^({'|'.join(map(re.escape, FIELDS))})[:.\[]")
 
 numbers = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True),
@@ -123,7 +127,8 @@ def call(loop: asyncio.AbstractEventLoop, make_call: Callable[[], Awaitable[obje
         if exc.code() == grpc.StatusCode.PERMISSION_DENIED:
             # ... and a re-registration of a held id (`keep`) without its secret, by ownership.
             assert details.startswith(("callback_address:", "camera_id: 'keep' belongs to another")), details
-        assert any(field in details for field in FIELDS), details
+        # The field comes first ("region.box: x_lower ..."), not somewhere in the sentence.
+        assert FIELD_FIRST.match(details), details
         return exc.code()
 
 

@@ -11,22 +11,26 @@ import cv2
 import pytest
 from drvs_bench.common import VTEST, record_scene
 from drvs_bench.load import QUICK_ROBOTS, Sampler, check_load_work, expected_requests, schedule, summarise
-from drvs_bench.paper import PEOPLE_QUICK_REQUESTS, check_drvs, check_stream, run_mode
+from drvs_bench.paper import check_drvs, check_stream, run_mode
 from drvs_bench.service import check_latency_run
 from drvs_bench.stats import QUICK_ROUNDS, WorkMismatch
 
 from drvs.launch import ManagedProcess, start_camera, start_server
+
+#: The people modes' requests per run in the smoke run: 3 s at 2 Hz instead of --quick's 8 s.
+SMOKE_PEOPLE_REQUESTS = 6
 
 
 @pytest.mark.bench
 @pytest.mark.slow
 @pytest.mark.timeout(600)  # 30 runs, each a process of its own: two minutes alone, more on a loaded machine
 async def test_paper_benchmark_smoke(tmp_path: Path) -> None:
-    """--quick's three interleaved rounds (of 15 requests here), every mode and floor, checked work;
-    with vtest.avi installed, the people modes too."""
+    """--quick's three interleaved rounds (of 15 requests, 6 in the people modes, here), every mode
+    and floor, checked work; with vtest.avi installed, the people modes too."""
     proc = ManagedProcess.entry_point(
-        "bench", "drvs-bench", "paper", "--quick", "--requests", "15", "--out", str(tmp_path)
-    )
+        "bench", "drvs-bench", "paper", "--quick", "--requests", "15",
+        "--people-requests", str(SMOKE_PEOPLE_REQUESTS), "--out", str(tmp_path),
+    )  # fmt: skip
     await proc.start()
     assert await proc.wait(timeout=560) == 0, proc.output()
     result = json.loads((tmp_path / "paper.json").read_text())
@@ -66,8 +70,8 @@ async def test_paper_benchmark_smoke(tmp_path: Path) -> None:
         return
     assert set(result["targets"]) == {*targets, "robot_cpu_ratio_people"}
     people = result["people"]["modes"]
-    assert people["drvs_people"]["requests_delivered"] == PEOPLE_QUICK_REQUESTS
-    assert people["drvs_people"]["reports"] == 2 * PEOPLE_QUICK_REQUESTS and people["drvs_people"]["detections"] > 0
+    assert people["drvs_people"]["requests_delivered"] == SMOKE_PEOPLE_REQUESTS
+    assert people["drvs_people"]["reports"] == 2 * SMOKE_PEOPLE_REQUESTS and people["drvs_people"]["detections"] > 0
     assert people["raw_people"]["frames"] == people["raw_people"]["frames_analysed"] > 0
     assert people["raw_people"]["detections"] > 0
     # The robot running the HOG detector itself costs it more than asking DRVS, in every round.
@@ -210,23 +214,47 @@ def check_service_rounds(result: dict[str, Any]) -> None:
         assert v["verdict"] in ("met", "missed", "spread crosses target")
 
 
+#: The load smoke run: --quick's robots, workers, cameras and rate, for 4 s after a 1 s warm-up
+#: (--quick alone: 10 s after 2 s).
+LOAD_SMOKE_SECONDS, LOAD_SMOKE_WARMUP = 4, 1
+#: Of the reports that should arrive, at most this share may be missing without a word (neither a
+#: report nor a camera's "busy" within the report timeout): a report path that drops them fails.
+LOAD_MAX_SILENTLY_LOST = 0.01
+#: ... and fewer than one camera's share (1/3) lost in all, busy answers included: a camera whose
+#: reports never arrive fails. (A loaded shared machine makes cameras answer busy; the benchmark's
+#: no_report_lost target, not this smoke test, holds the service to none.)
+LOAD_MAX_LOST = 0.30
+
+
+def check_reports_lost(result: dict[str, Any], expected: int) -> None:
+    """Bound the reports lost against `expected`, counted by the caller rather than by the benchmark."""
+    received, lost, busy = result["reports_received"], result["reports_lost"], result["reports_with_error"]
+    assert received + lost == expected and 0 <= busy <= lost, (received, lost, busy, expected)
+    assert lost - busy <= LOAD_MAX_SILENTLY_LOST * expected, (received, lost, busy, expected)
+    assert lost <= LOAD_MAX_LOST * expected, (received, lost, busy, expected)
+
+
 @pytest.mark.bench
 @pytest.mark.slow
 @pytest.mark.timeout(300)
 async def test_load_benchmark_smoke(tmp_path: Path) -> None:
-    proc = ManagedProcess.entry_point("bench", "drvs-bench", "load", "--quick", "--out", str(tmp_path))
+    proc = ManagedProcess.entry_point(
+        "bench", "drvs-bench", "load", "--quick", "--seconds", str(LOAD_SMOKE_SECONDS),
+        "--warmup", str(LOAD_SMOKE_WARMUP), "--out", str(tmp_path),
+    )  # fmt: skip
     await proc.start()
     assert await proc.wait(timeout=240) == 0, proc.output()
     result = json.loads((tmp_path / "load.json").read_text())
     # --quick sits at the capacity the last full sweep found (12 robots), not below it.
     assert (result["robots"], result["workers"], result["cameras"], result["rate_hz"]) == (QUICK_ROBOTS, 2, 3, 30)
     assert "sweep" in result["quick_robots_source"]
-    # Twelve robots at 30 Hz for 10 s after a 2 s warm-up whose requests count nowhere, every
-    # request over all three cameras.
-    assert result["requests"] == 3600 and result["reports_expected"] == 10800
-    assert result["warmup_requests"] == 720 and result["latency_from"] == "each request's scheduled send time"
-    assert 0 < result["reports_received"] <= result["reports_expected"]
-    assert result["reports_lost"] == result["reports_expected"] - result["reports_received"]
+    # What should arrive, counted here, not by the benchmark: twelve robots at 30 Hz for 4 s after a
+    # 1 s warm-up whose requests count nowhere, every request answered by all three cameras.
+    requests = QUICK_ROBOTS * 30 * LOAD_SMOKE_SECONDS
+    assert result["requests"] == requests == 1440 and result["reports_expected"] == 3 * requests
+    assert result["warmup_requests"] == QUICK_ROBOTS * 30 * LOAD_SMOKE_WARMUP
+    assert result["latency_from"] == "each request's scheduled send time"
+    check_reports_lost(result, 3 * requests)
     assert 0 < result["latency_p50_ms"] <= result["latency_p99_ms"] <= result["latency_max_ms"]
     # Timed from the scheduled send: at most the send's lag, the server's reply (5 s at most) and the
     # report timeout after it.
@@ -234,7 +262,7 @@ async def test_load_benchmark_smoke(tmp_path: Path) -> None:
     for key in ("server_rss_growth", "camera_rss_growth"):
         assert -0.5 < result[key] < 0.5, key  # a ratio, not bytes
     assert result["server_rss_start_bytes"] > 10 * 2**20 and len(result["camera_rss_start_bytes"]) == 3
-    assert len(result["timeline"]) == 12
+    assert len(result["timeline"]) == LOAD_SMOKE_WARMUP + LOAD_SMOKE_SECONDS
     assert set(result["targets"]) == {
         "no_report_lost",
         "rss_growth_under_10_percent",
@@ -261,6 +289,7 @@ async def test_load_abuse_smoke(tmp_path: Path) -> None:
     abused = json.loads((tmp_path / "load-abuse.json").read_text())
     assert result["baseline_reports_expected"] == result["abuse_reports_expected"] == 2 * 30 * 3 * 3
     assert result["baseline_reports_lost"] == result["reports_lost"]
+    check_reports_lost(result, 2 * 30 * 3 * 3)  # the baseline run: two robots, 30 Hz, 3 s, three cameras
     assert result["abuse_reports_lost"] == abused["reports_lost"] and "abuse_p99_ms" in result
     abuser = result["abuser"]
     assert abuser["registrations_sent"] > 0 and abuser["oversized_sent"] > 0 and abuser["stalled_streams"] == 8

@@ -3,12 +3,22 @@
 from __future__ import annotations
 
 import json
+import sys
+from pathlib import Path
 
 import pytest
 
 from drvs.launch import ManagedProcess
 
 from .helpers import CAM1_REGION, OBJECTS, YELLOW, Office, nearest, roi, run_robot
+
+
+def assert_refused(code: int, output: str, message: str, status: int = 2) -> None:
+    """Bad input: exactly the documented exit code (2 unless said), no traceback, and the message
+    itself as a line of its own (`drvs-robot: filter_def: ...`), not a substring a traceback has too."""
+    assert code == status, (code, output)
+    assert "Traceback" not in output, output
+    assert any(line.strip().startswith(message) for line in output.splitlines()), (message, output)
 
 
 @pytest.mark.office_cameras("cam1")
@@ -54,19 +64,18 @@ async def test_robot_detect_human_output_and_cameras(office: Office) -> None:
 @pytest.mark.office_cameras()
 async def test_robot_bad_filter_is_an_error_naming_the_field(office: Office) -> None:
     code, lines = await run_robot("detect", "--server", office.address, "--filter", "hsv_12", "--roi", "0,0,1,1")
-    assert code != 0
-    assert any("filter_def" in line for line in lines), lines
+    assert_refused(code, "\n".join(lines), "drvs-robot: filter_def: 'hsv_12' is not 'hsv_' followed by 18 digits")
 
 
 @pytest.mark.office_cameras()
 async def test_robot_bad_roi_is_an_error(office: Office) -> None:
     code, lines = await run_robot("detect", "--server", office.address, "--filter", YELLOW, "--roi", "1,1,0,0")
-    assert code != 0 and any("x_lower" in line for line in lines), lines
+    assert_refused(code, "\n".join(lines), "drvs-robot: region.box: x_lower 1 must be less than x_upper 0")
 
 
 async def test_robot_unreachable_server_is_an_error() -> None:
     code, lines = await run_robot("detect", "--server", "127.0.0.1:1", "--filter", YELLOW, "--roi", "0,0,1,1")
-    assert code != 0 and any("127.0.0.1:1" in line for line in lines), lines
+    assert_refused(code, "\n".join(lines), "drvs-robot: server 127.0.0.1:1: ")
 
 
 @pytest.mark.office_cameras()
@@ -77,8 +86,11 @@ async def test_camera_with_missing_source_exits_with_an_error(tmp_path: object, 
         "--homography", str(rec.homography_file), "--server", office.address,
     )  # fmt: skip
     await proc.start()
-    assert await proc.wait(timeout=30) != 0
-    assert "nonexistent.avi" in proc.output()
+    # Found only at start, so exit 1 and a log line (docs/validation.md), still no traceback.
+    message = "camera bad cannot start: source: '/nonexistent.avi' is neither a device index"
+    code = await proc.wait(timeout=30)
+    assert code == 1 and "Traceback" not in proc.output(), proc.output()
+    assert any(message in line for line in proc.lines), proc.output()
 
 
 @pytest.mark.office_cameras()
@@ -92,5 +104,45 @@ async def test_camera_with_bad_homography_file_exits_with_an_error(tmp_path: obj
         "--homography", str(bad), "--server", office.address,
     )  # fmt: skip
     await proc.start()
-    assert await proc.wait(timeout=30) != 0
-    assert "homography" in proc.output()
+    code = await proc.wait(timeout=30)
+    assert_refused(code, proc.output(), f"drvs-camera: error: homography file {bad}: 'homography' must be a 3x3")
+
+
+@pytest.mark.parametrize(
+    ("command", "args", "message"),
+    [
+        ("drvs-server", ["--allow-callback", "bogus"], "drvs-server: error: --allow-callback: 'bogus' is not"),
+        ("drvs-server", ["--metrics-port", "abc"], "drvs-server: error: --metrics-port: 'abc' is not host:port"),
+        ("drvs-server", ["--no-such-flag"], "drvs-server: error: unrecognized arguments: --no-such-flag"),
+        ("drvs-camera", ["--id", "c", "--source", "0", "--homography", "/nonexistent.json", "--server", "127.0.0.1:1"],
+         "drvs-camera: error: homography file /nonexistent.json: No such file or directory"),
+        ("drvs-camera", ["calibrate", "--points", "p.json", "--image-size", "abc", "--out", "h.json"],
+         "drvs-camera calibrate: --image-size: expected W,H in pixels"),
+        ("drvs-robot", ["detect", "--server", "nonsense", "--filter", YELLOW, "--roi", "0,0,1,1"],
+         "drvs-robot: server: 'nonsense' is not host:port"),
+        ("drvs-office", ["--kill-camera", "nonsense"], "drvs-office: --kill-camera: 'nonsense' is not ID@SECONDS"),
+        ("drvs-office", ["--scenario", "/nonexistent.yaml"], "drvs-office: scenario /nonexistent.yaml: No such file"),
+        ("drvs-sim", ["world", "--no-such-flag"], "drvs-sim: error: unrecognized arguments: --no-such-flag"),
+        ("drvs-bench", ["paper", "--requests", "-5"], "drvs-bench paper: --requests, --rounds, --people-requests"),
+        ("drvs-bench", ["load", "--robots", "-1"], "drvs-bench load: --robots, --workers, --seconds, --rate and"),
+        ("drvs-certs", ["--days", "0"], "drvs-certs: days: 0 must be from 1 to 3650"),
+        ("drvs-certs", ["--role", "boss"], "drvs-certs: role: 'boss' must be server, camera, robot"),
+    ],
+)  # fmt: skip
+async def test_every_cli_refuses_bad_input_with_exit_2_and_no_traceback(
+    tmp_path: Path, command: str, args: list[str], message: str
+) -> None:
+    """Bad flags are refused before anything starts: exit code 2 (argparse's), the message naming
+    the flag on a line of its own, and never a traceback. Nothing is written to --out."""
+    out = tmp_path / "out"
+    if command in ("drvs-office", "drvs-bench", "drvs-certs"):
+        args = [*args, "--out", str(out)]
+    if command == "drvs-certs":
+        proc = ManagedProcess(
+            "certs", [sys.executable, "-c", "from drvs.certs import main; raise SystemExit(main())", *args]
+        )
+    else:
+        proc = ManagedProcess.entry_point("bad", command, *args)
+    await proc.start()
+    assert_refused(await proc.wait(timeout=60), proc.output(), message)
+    assert not out.exists() or not any(out.iterdir())

@@ -249,8 +249,8 @@ async def test_server_cli_refuses_a_bad_token_file(tmp_path: Path) -> None:
         "server", "drvs-server", "--listen", "127.0.0.1:0", "--robot-tokens", str(tmp_path / "robots.txt")
     ).start()
     try:
-        assert await proc.wait(timeout=30) == 2
-        assert "--robot-tokens" in proc.output() and "shorter than 16" in proc.output()
+        assert await proc.wait(timeout=30) == 2 and "Traceback" not in proc.output(), proc.output()
+        assert proc.lines[-1].startswith("drvs-server: error: --robot-tokens: ") and "shorter than 16" in proc.lines[-1]
     finally:
         await proc.stop()
 

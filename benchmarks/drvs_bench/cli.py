@@ -22,12 +22,12 @@ def paper_main(args: argparse.Namespace) -> int:
 
     requests = args.requests or (QUICK_REQUESTS if args.quick else FULL_REQUESTS)
     rounds = args.rounds or (QUICK_ROUNDS if args.quick else FULL_ROUNDS)
-    if requests < 1 or rounds < 1 or not args.rate > 0:
-        print("drvs-bench paper: --requests, --rounds and --rate must be > 0", file=sys.stderr)
+    people = args.people_requests or (PEOPLE_QUICK_REQUESTS if args.quick else PEOPLE_FULL_REQUESTS)
+    if requests < 1 or rounds < 1 or not args.rate > 0 or people < 1:
+        print("drvs-bench paper: --requests, --rounds, --people-requests and --rate must be > 0", file=sys.stderr)
         return 2
     out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
     try:
-        people = PEOPLE_QUICK_REQUESTS if args.quick else PEOPLE_FULL_REQUESTS
         result = asyncio.run(run_paper(out, requests, args.rate, rounds, people))
     except WorkMismatch as exc:
         print(f"drvs-bench paper: FAILED: {exc}", file=sys.stderr)
@@ -113,6 +113,9 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--requests", type=int, default=0, help="override the number of requests per run")
     p.add_argument("--rounds", type=int, default=0, help="override the number of interleaved rounds")
+    p.add_argument(
+        "--people-requests", type=int, default=0, help="override the people modes' requests per run (at 2 Hz)"
+    )
     p.add_argument("--rate", type=float, default=30.0, help="requests per second (default 30)")
     p.add_argument("--out", type=Path, default=None)
     p.set_defaults(func=paper_main)

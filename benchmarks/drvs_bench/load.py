@@ -496,6 +496,12 @@ def load_main(args: argparse.Namespace) -> int:
     seconds = args.seconds or (10.0 if args.quick else 60.0)
     warmup = args.warmup if args.warmup is not None else (2.0 if args.quick else 5.0)
     workers = args.workers or (2 if args.quick else 5)
+    # 0 picks the default above; a negative count or a rate or timeout of 0 is a mistake, refused
+    # before any process starts.
+    if min(robots, workers) < 1 or seconds <= 0 or warmup < 0 or not (args.rate > 0 and args.timeout > 0):
+        print("drvs-bench load: --robots, --workers, --seconds, --rate and --timeout must be > 0, --warmup >= 0",
+              file=sys.stderr)  # fmt: skip
+        return 2
     settings = dict(robots=robots, workers=workers, rate=args.rate, seconds=seconds, warmup=warmup,
                     timeout=args.timeout)  # fmt: skip
     result = asyncio.run(run_load(out, **settings))

@@ -197,6 +197,7 @@ def snapshot_main(argv: list[str]) -> int:
     args = p.parse_args(argv)
     setup_logging("WARNING")
     out = Path(args.out)
+    code = 2  # bad flags or config, refused before a frame is grabbed
     try:
         check_writable(out)
         spec, camera_id = args.source, args.id or "snapshot"
@@ -208,12 +209,13 @@ def snapshot_main(argv: list[str]) -> int:
         if not spec:
             raise DrvsError("give --source SRC or --config FILE")
         source = make_source(spec, camera_id, loop_file=False, resolution=resolution, fps=fps)
+        code = 1  # found only now: the source gives no frame, or the file cannot be written
         frame = asyncio.run(grab_one(spec, args.timeout, source))
         if not cv2.imwrite(str(out), frame.image):
             raise DrvsError(f"--out {out}: OpenCV could not write it")
     except (DrvsError, OSError, cv2.error) as exc:
         print(f"drvs-camera snapshot: {exc}", file=sys.stderr)
-        return 1
+        return code
     print(f"{out}: {frame.size[0]}x{frame.size[1]} from {spec}")
     return 0
 
