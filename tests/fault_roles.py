@@ -25,12 +25,11 @@ from collections.abc import AsyncIterator
 from typing import Any
 
 import grpc
-from drvs_bench.fakes import AckingCamera, serve_camera
+from drvs_bench.fakes import AckingCamera, register_message, serve_camera
 from grpc import aio
 
 from drvs._cli import shutdown_event
 from drvs.errors import DrvsError
-from drvs.geometry import homography_from_pose
 from drvs.robot import DrvsClient
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
 
@@ -126,16 +125,7 @@ async def slow_camera(args: argparse.Namespace) -> None:
     )
     server, address = await serve_camera(camera)
     print(f"LISTENING {address}", flush=True)
-    h = homography_from_pose((args.x, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
-    register = registry_pb2.RegisterRequest(
-        camera_id=args.id,
-        address=address,
-        homography=registry_pb2.Homography(m=h.to_list()),
-        image_width=640,
-        image_height=480,
-        max_range_m=6.0,
-        detector_kinds=["hsv"],
-    )
+    register = register_message(args.id, x=args.x, address=address)
 
     secret = ""
 

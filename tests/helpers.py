@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from drvs_bench.fakes import register_message as register_message  # re-exported for the tests
 from numpy.typing import NDArray
 
 from drvs.detection import DEFAULT_MIN_AREA_PX, CameraView, HsvDetector
@@ -21,7 +22,7 @@ from drvs.filters import HsvRange
 from drvs.geometry import FieldOfView, Homography, homography_from_pose
 from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.sim.scene import FloorPatch, RecordedCamera, record_camera, render_view
-from drvs.v1 import detection_pb2, geometry_pb2, registry_pb2
+from drvs.v1 import detection_pb2, geometry_pb2
 
 # --- the recorded two-camera floor (the `recorded` and `office` fixtures) -----------------------
 
@@ -127,19 +128,6 @@ async def run_robot(*args: str) -> tuple[int, list[str]]:
 
 
 # --- raw protobuf messages ---------------------------------------------------------------------
-
-
-def register_message(camera_id: str = "cam1", x: float = 0.0) -> registry_pb2.RegisterRequest:
-    h = homography_from_pose((x, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
-    return registry_pb2.RegisterRequest(
-        camera_id=camera_id,
-        address="127.0.0.1:9",
-        homography=registry_pb2.Homography(m=h.to_list()),
-        image_width=640,
-        image_height=480,
-        max_range_m=6.0,
-        detector_kinds=["hsv"],
-    )
 
 
 def detect_message(**overrides: object) -> detection_pb2.DetectionRequest:

@@ -22,13 +22,12 @@ from grpc import aio
 import drvs
 from drvs import errors, model
 from drvs.errors import DrvsError, InvalidArgument, Unavailable
-from drvs.geometry import homography_from_pose
 from drvs.launch import ManagedProcess, start_server
 from drvs.model import CameraError, DetectionReport
 from drvs.robot import DrvsClient, RetryPolicy
-from drvs.v1 import registry_pb2, registry_pb2_grpc
+from drvs.v1 import registry_pb2_grpc
 
-from .helpers import BOTH_REGION, CAM1_REGION, YELLOW, Office
+from .helpers import BOTH_REGION, CAM1_REGION, YELLOW, Office, register_message
 
 
 @pytest.fixture
@@ -277,18 +276,9 @@ async def test_errors_carry_their_code_and_the_failed_camera(refused_address: st
     result says so as a typed value whose exception carries .code and .camera_id."""
     server, address = await start_server()
     try:
-        h = homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
         async with aio.insecure_channel(address) as channel:
             await registry_pb2_grpc.RegisterVisionServiceStub(channel).Register(
-                registry_pb2.RegisterRequest(
-                    camera_id="ghost",
-                    address=refused_address,
-                    homography=registry_pb2.Homography(m=h.to_list()),
-                    image_width=640,
-                    image_height=480,
-                    max_range_m=6.0,
-                    detector_kinds=["hsv"],
-                ),
+                register_message("ghost", address=refused_address),
                 timeout=5,
             )
         async with DrvsClient.connect(address, robot_id="r") as robot:

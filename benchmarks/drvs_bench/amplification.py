@@ -26,16 +26,15 @@ from typing import Any
 from grpc import aio
 
 from drvs.errors import DrvsError, ResourceExhausted
-from drvs.geometry import homography_from_pose
 from drvs.launch import start_server
 from drvs.meter import CountingRelay, MeteredClient
-from drvs.v1 import detection_pb2, registry_pb2, registry_pb2_grpc
+from drvs.v1 import detection_pb2, registry_pb2_grpc
 
-from .fakes import AckingCamera, serve_camera
+from .fakes import AckingCamera, register_message, serve_camera
 
 YELLOW = "hsv_014110130035225200"
-#: Every camera stands at the origin looking along +y: it sees about x -3.8..3.8, y 1.5..7.5.
-CAMERA_POSE = (0.0, 0.0, 3.0)
+# Every camera is fakes.register_message's, at the origin looking along +y: it sees about x -3.8..3.8,
+# y 1.5..7.5.
 
 
 def big_region(points: int = 1000) -> list[tuple[float, float]]:
@@ -73,7 +72,6 @@ async def measure(
     accepting: list[_AcceptingCamera] = []
     read = asyncio.Event()
     try:
-        h = homography_from_pose(CAMERA_POSE, 90.0, 40.0, 60.0, (640, 480))
         async with aio.insecure_channel(address) as channel:
             registry = registry_pb2_grpc.RegisterVisionServiceStub(channel)
             for i in range(cameras):
@@ -84,15 +82,7 @@ async def measure(
                 await relay.start()
                 relays.append(relay)
                 await registry.Register(
-                    registry_pb2.RegisterRequest(
-                        camera_id=f"acc{i}",
-                        address=f"127.0.0.1:{relay.port}",
-                        homography=registry_pb2.Homography(m=h.to_list()),
-                        image_width=640,
-                        image_height=480,
-                        max_range_m=6.0,
-                        detector_kinds=["hsv"],
-                    ),
+                    register_message(f"acc{i}", address=f"127.0.0.1:{relay.port}"),
                     timeout=5,
                 )
         region = big_region(points)

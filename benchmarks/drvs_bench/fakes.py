@@ -9,7 +9,8 @@ from typing import Any
 
 from grpc import aio
 
-from drvs.v1 import detection_pb2, detection_pb2_grpc
+from drvs.geometry import homography_from_pose
+from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2
 
 _Context = aio.ServicerContext[Any, Any]
 _Requests = AsyncIterator[detection_pb2.DetectionRequest]
@@ -68,3 +69,20 @@ async def serve_camera(
     port = server.add_insecure_port(listen)
     await server.start()
     return server, f"{listen.rsplit(':', 1)[0]}:{port}"
+
+
+def register_message(
+    camera_id: str = "cam1", x: float = 0.0, address: str = "127.0.0.1:9"
+) -> registry_pb2.RegisterRequest:
+    """A fake camera's registration: 3 m up at (x, 0), looking along +y, pitched 40° down, 60° wide,
+    640×480, seeing 6 m of floor (about x-3.8..x+3.8, y 1.5..6) with the hsv detector."""
+    h = homography_from_pose((x, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
+    return registry_pb2.RegisterRequest(
+        camera_id=camera_id,
+        address=address,
+        homography=registry_pb2.Homography(m=h.to_list()),
+        image_width=640,
+        image_height=480,
+        max_range_m=6.0,
+        detector_kinds=["hsv"],
+    )
