@@ -144,12 +144,13 @@ def test_a_role_runs_without_any_extra_or_the_simulator(command: str) -> None:
 
 def test_a_sim_source_without_the_simulator_names_the_extra(tmp_path: Path) -> None:
     """drvs-camera --source sim://... finds the simulator through an entry point; when it cannot
-    load, the camera says so and which extra brings it, and exits as for any unusable source."""
+    load, the camera says so and which extra brings it, and exits 2 as for any bad flag, before it
+    grabs a frame."""
     done = run_without(
         ["drvs.sim"], "drvs-camera", "snapshot", "--source", "sim://127.0.0.1:1", "--id", "cam1",
         "--out", str(tmp_path / "frame.png"),
     )  # fmt: skip
-    assert done.returncode == 1, done.stderr
+    assert done.returncode == 2, done.stderr
     assert done.stderr == (
         "drvs-camera snapshot: source sim://127.0.0.1:1: the sim:// frame source (drvs.sim.source:SimSource) "
         "cannot load: No module named 'drvs.sim' (the simulator: pip install 'drvs[sim]')\n"
