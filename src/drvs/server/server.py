@@ -666,7 +666,10 @@ class DrvsServer(Lifecycle):
 
         def done(result: detection_pb2.DetectionReply | DrvsError) -> None:
             if isinstance(result, DrvsError):
-                self._not_accepted(camera, request, result, key)
+                # A link the camera has replaced since (it registered again, at another address)
+                # says nothing of the camera now: closing it fails what was still in flight on it.
+                current = self._links.get(camera.camera_id) is link
+                self._not_accepted(camera, request, result, key, mark_unreachable=current)
                 if outcome is not None:
                     outcome.failed()
             else:
@@ -681,9 +684,18 @@ class DrvsServer(Lifecycle):
             message = forwarded
         link.requests.submit(message, done)
 
-    def _not_accepted(self, camera: CameraEntry, request: DetectionRequest, exc: DrvsError, key: bytes = b"") -> None:
+    def _not_accepted(
+        self,
+        camera: CameraEntry,
+        request: DetectionRequest,
+        exc: DrvsError,
+        key: bytes = b"",
+        *,
+        mark_unreachable: bool = True,
+    ) -> None:
         """The camera will not report on this request: tell the robot in the camera's name, so it
-        need not wait for it. A camera that could not be reached is skipped until it heartbeats."""
+        need not wait for it. A camera that could not be reached is skipped until it heartbeats
+        (unless `mark_unreachable` is False: the failure was on a link it has since replaced)."""
         if self._stopped:
             return  # the server's own shutdown closed the links: nobody is waiting to hear
         metrics.ROUTED_FAILED.inc()
@@ -692,7 +704,7 @@ class DrvsServer(Lifecycle):
         token = logs.request_id.set(request.request_id)
         try:
             log.warning("request %s: %s", request.request_id, reason)
-            if isinstance(exc, (Unavailable, DeadlineExceeded)):
+            if mark_unreachable and isinstance(exc, (Unavailable, DeadlineExceeded)):
                 self._unreachable.add(camera.camera_id)
                 self._unreachable_why[camera.camera_id] = f"{code} {exc}"
             report = DetectionReport(
