@@ -19,21 +19,38 @@ from drvs.security import Security
 ENV_LOG_LEVEL = "DRVS_LOG_LEVEL"
 
 
-def env(name: str, default: str | None = None) -> str | None:
+def env(name: str, default: str | None = None, environ: Mapping[str, str] = os.environ) -> str | None:
     """A DRVS_* environment variable, or the default (flags override both)."""
-    value = os.environ.get(name)
+    value = environ.get(name)
     return value if value not in (None, "") else default
 
 
-def env_number(name: str, default: float, *, integer: bool = False) -> float:
+def env_number(name: str, default: float, *, integer: bool = False, environ: Mapping[str, str] = os.environ) -> float:
     """A numeric DRVS_* environment variable, or the default; InvalidArgument names the variable."""
-    value = env(name)
+    value = env(name, environ=environ)
     if value is None:
         return default
     try:
         return int(value) if integer else float(value)
     except ValueError:
         raise InvalidArgument(f"{name}: {value!r} is not {'an integer' if integer else 'a number'}") from None
+
+
+def parse_bool(raw: object, where: str) -> bool:
+    """A setting's true/false (1/0, yes/no, on/off, any case), or InvalidArgument naming `where`."""
+    if isinstance(raw, bool):
+        return raw
+    text = str(raw).strip().lower()
+    if text in ("1", "true", "yes", "on"):
+        return True
+    if text in ("0", "false", "no", "off"):
+        return False
+    raise InvalidArgument(f"{where}: {raw!r} is not true or false")
+
+
+def format_number(value: float) -> str:
+    """A setting's value or bound as messages show it: 1e7 rather than 1e+07."""
+    return f"{value:g}".replace("e+0", "e").replace("e+", "e")
 
 
 #: text (default) or json: one JSON object per line, with the request id on every hop.

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from drvs._cli import SECURITY_ENV, read_token
+from drvs._cli import SECURITY_ENV, format_number, parse_bool, read_token
 from drvs._files import read_yaml
 from drvs.detection import DEFAULT_MIN_AREA_PX
 from drvs.detectors.model import ModelSpec, parse_models
@@ -164,11 +164,6 @@ LIMITS: dict[str, tuple[float, float, bool]] = {
 }
 
 
-def _number(value: float) -> str:
-    """1e7 rather than 1e+07."""
-    return f"{value:g}".replace("e+0", "e").replace("e+", "e")
-
-
 def check_setting(name: str, value: Any) -> None:
     """InvalidArgument('name: value must be …') when a numeric setting is out of its range (None:
     not set, allowed). The one check for the config, the CLI and CameraNode(...) alike."""
@@ -179,9 +174,9 @@ def check_setting(name: str, value: Any) -> None:
     if whole and not (isinstance(number, int) or (math.isfinite(number) and number == int(number))):
         number = math.nan
     if not (math.isfinite(number) and low <= number <= high):
-        shown = _number(value) if not math.isnan(number) else repr(value)
+        shown = format_number(value) if not math.isnan(number) else repr(value)
         kind = "a whole number" if whole else "a number"
-        bounds = f"{int(low)} to {int(high)}" if whole else f"{_number(low)} to {_number(high)}"
+        bounds = f"{int(low)} to {int(high)}" if whole else f"{format_number(low)} to {format_number(high)}"
         raise InvalidArgument(f"{name}: {shown} must be {kind} from {bounds}")
 
 
@@ -289,14 +284,7 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
                 raise InvalidArgument(f"{where}: {raw!r} must be one of {', '.join(FORMATS)}")
             return str(raw)
         if name in ("loop", "serve_frames", "tls_client_auth"):
-            if isinstance(raw, bool):
-                return raw
-            text = str(raw).strip().lower()
-            if text in ("1", "true", "yes", "on"):
-                return True
-            if text in ("0", "false", "no", "off"):
-                return False
-            raise InvalidArgument(f"{where}: {raw!r} is not true or false")
+            return parse_bool(raw, where)
         if not isinstance(raw, (str, int)) or isinstance(raw, bool):
             raise InvalidArgument(f"{where}: expected a string, got {type(raw).__name__}")
         text = str(raw)

@@ -17,6 +17,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from drvs import _grpc
+from drvs._cli import env_number, format_number, parse_bool
 from drvs.errors import InvalidArgument
 from drvs.geometry import DEFAULT_MAX_RANGE_M
 from drvs.net import parse_address
@@ -93,11 +94,6 @@ _RANGES: dict[str, tuple[float, float, bool, str]] = {
 _INTEGERS = ("max_queued_forwards", "max_continuous", "max_streams_per_connection", "max_cameras_per_identity")
 
 
-def _number(value: float) -> str:
-    """1e6 rather than 1e+06."""
-    return f"{value:g}".replace("e+0", "e").replace("e+", "e")
-
-
 def setting(name: str) -> str:
     """How messages name a setting: its keyword, then where an operator gives it."""
     where = ", ".join(w for w in (FLAGS.get(name), ENVIRONMENT.get(name)) if w)
@@ -166,10 +162,9 @@ class ServerConfig:
                 number = math.nan
             inside = (low <= number if closed else low < number) and number <= high
             if not inside:
-                interval = f"{'[' if closed else '('}{_number(low)}, {_number(high)}]"
-                shown = (
-                    _number(value) if isinstance(value, (int, float)) and not isinstance(value, bool) else repr(value)
-                )
+                interval = f"{'[' if closed else '('}{format_number(low)}, {format_number(high)}]"
+                numeric = isinstance(value, (int, float)) and not isinstance(value, bool)
+                shown = format_number(value) if numeric else repr(value)
                 raise InvalidArgument(f"{setting(name)}: {shown} must be in {interval}{unit}")
         if not (0 < self.default_max_range_m <= self.max_fov_range_m):
             raise InvalidArgument(
@@ -209,15 +204,9 @@ class ServerConfig:
             if name in values or text == "":
                 continue
             if name == "lease_ttl_s":
-                try:
-                    values[name] = float(text)
-                except ValueError:
-                    raise InvalidArgument(f"{variable}: {text!r} is not a number") from None
+                values[name] = env_number(variable, DEFAULT_LEASE_TTL_S, environ=environ)
             elif name == "trust_network":
-                word = text.strip().lower()
-                if word not in ("1", "true", "yes", "on", "0", "false", "no", "off"):
-                    raise InvalidArgument(f"{variable}: {word!r} is not true or false")
-                values[name] = word in ("1", "true", "yes", "on")
+                values[name] = parse_bool(text.strip().lower(), variable)
             else:
                 values[name] = text
         if "allow_callback" in values:
