@@ -167,19 +167,23 @@ class ManagedProcess:
             if self.process is not None:
                 with contextlib.suppress(asyncio.TimeoutError):
                     await asyncio.wait_for(asyncio.shield(self.process.wait()), 5)
-            raise RuntimeError(
-                f"{self.name} exited (code {self.returncode}) before {what}:\n" + "\n".join(self.lines[-20:])
-            )
+            raise self.exited_before(what)
 
         try:
             return await asyncio.wait_for(wait(), timeout)
         except asyncio.TimeoutError:
-            raise TimeoutError(
-                f"{self.name}: still no {what} after {timeout:g} s:\n" + "\n".join(self.lines[-20:])
-            ) from None
+            raise TimeoutError(f"{self.name}: still no {what} after {timeout:g} s:\n{self.tail()}") from None
 
     def output(self) -> str:
         return "\n".join(self.lines)
+
+    def tail(self) -> str:
+        """Its last 20 lines, for an error message."""
+        return "\n".join(self.lines[-20:])
+
+    def exited_before(self, what: str) -> RuntimeError:
+        """The error for a process that exited before `what` ("logging 'READY'")."""
+        return RuntimeError(f"{self.name} exited (code {self.returncode}) before {what}:\n{self.tail()}")
 
     def kill(self) -> None:
         """SIGKILL: simulate a crash. Safe without a running event loop (the child is reaped anyway)."""
@@ -197,9 +201,7 @@ class ManagedProcess:
             self.kill()
             await asyncio.shield(self._reap())
             if isinstance(exc, asyncio.TimeoutError):
-                raise TimeoutError(
-                    f"{self.name} did not exit within {timeout:g} s (killed):\n" + "\n".join(self.lines[-20:])
-                ) from None
+                raise TimeoutError(f"{self.name} did not exit within {timeout:g} s (killed):\n{self.tail()}") from None
             raise
         if self._reader is not None:
             await self._reader
@@ -273,7 +275,7 @@ async def wait_serving(
     try:
         await _unless_exited(proc, serving(), what, timeout, name)
     except aio.AioRpcError as exc:  # its deadline: the same timeout
-        tail = "" if proc is None else ":\n" + "\n".join(proc.lines[-20:])
+        tail = "" if proc is None else ":\n" + proc.tail()
         raise TimeoutError(f"{name}: still no {what} after {timeout:g} s ({exc.code().name}){tail}") from None
 
 
@@ -295,11 +297,9 @@ async def _unless_exited(
             assert proc is not None
             if proc._reader is not None:
                 await proc._reader
-            raise RuntimeError(
-                f"{proc.name} exited (code {proc.returncode}) before {what}:\n" + "\n".join(proc.lines[-20:])
-            )
+            raise proc.exited_before(what)
         name = proc.name if proc is not None else name
-        tail = "" if proc is None else ":\n" + "\n".join(proc.lines[-20:])
+        tail = "" if proc is None else ":\n" + proc.tail()
         raise TimeoutError(f"{name}: still no {what} after {timeout:g} s{tail}")
     finally:
         for waiting in waits:
