@@ -10,7 +10,7 @@ from typing import Any
 import cv2
 import pytest
 from drvs_bench.common import VTEST, record_scene
-from drvs_bench.load import QUICK_ROBOTS, Sampler, check_load_work, expected_requests, schedule, summarise
+from drvs_bench.load import Sampler, check_load_work, expected_requests, schedule, summarise
 from drvs_bench.paper import check_drvs, check_stream, run_mode
 from drvs_bench.service import check_latency_run
 from drvs_bench.stats import QUICK_ROUNDS, WorkMismatch
@@ -214,9 +214,11 @@ def check_service_rounds(result: dict[str, Any]) -> None:
         assert v["verdict"] in ("met", "missed", "spread crosses target")
 
 
-#: The load smoke run: --quick's robots, workers, cameras and rate, for 4 s after a 1 s warm-up
-#: (--quick alone: 10 s after 2 s).
-LOAD_SMOKE_SECONDS, LOAD_SMOKE_WARMUP = 4, 1
+#: The load smoke run: --quick's workers, cameras and rate, for 4 s after a 1 s warm-up (--quick
+#: alone: 10 s after 2 s), with a third of --quick's robots: at --quick's 12, the capacity the last
+#: sweep found, a CI machine busy with other work answered busy for a third of the reports (CI
+#: failed so once); this test checks what happens to reports, the sweep measures capacity.
+LOAD_SMOKE_SECONDS, LOAD_SMOKE_WARMUP, LOAD_SMOKE_ROBOTS = 4, 1, 4
 #: Of the reports that should arrive, at most this share may be missing without a word (neither a
 #: report nor a camera's "busy" within the report timeout): a report path that drops them fails.
 LOAD_MAX_SILENTLY_LOST = 0.01
@@ -240,19 +242,19 @@ def check_reports_lost(result: dict[str, Any], expected: int) -> None:
 async def test_load_benchmark_smoke(tmp_path: Path) -> None:
     proc = ManagedProcess.entry_point(
         "bench", "drvs-bench", "load", "--quick", "--seconds", str(LOAD_SMOKE_SECONDS),
-        "--warmup", str(LOAD_SMOKE_WARMUP), "--out", str(tmp_path),
+        "--warmup", str(LOAD_SMOKE_WARMUP), "--robots", str(LOAD_SMOKE_ROBOTS), "--out", str(tmp_path),
     )  # fmt: skip
     await proc.start()
     assert await proc.wait(timeout=240) == 0, proc.output()
     result = json.loads((tmp_path / "load.json").read_text())
-    # --quick sits at the capacity the last full sweep found (12 robots), not below it.
-    assert (result["robots"], result["workers"], result["cameras"], result["rate_hz"]) == (QUICK_ROBOTS, 2, 3, 30)
-    assert "sweep" in result["quick_robots_source"]
-    # What should arrive, counted here, not by the benchmark: twelve robots at 30 Hz for 4 s after a
+    assert (result["robots"], result["workers"], result["cameras"], result["rate_hz"]) == (LOAD_SMOKE_ROBOTS, 2, 3, 30)
+    # --robots overrides --quick's count, so the result does not claim the sweep's capacity.
+    assert "quick_robots_source" not in result
+    # What should arrive, counted here, not by the benchmark: four robots at 30 Hz for 4 s after a
     # 1 s warm-up whose requests count nowhere, every request answered by all three cameras.
-    requests = QUICK_ROBOTS * 30 * LOAD_SMOKE_SECONDS
-    assert result["requests"] == requests == 1440 and result["reports_expected"] == 3 * requests
-    assert result["warmup_requests"] == QUICK_ROBOTS * 30 * LOAD_SMOKE_WARMUP
+    requests = LOAD_SMOKE_ROBOTS * 30 * LOAD_SMOKE_SECONDS
+    assert result["requests"] == requests == 480 and result["reports_expected"] == 3 * requests
+    assert result["warmup_requests"] == LOAD_SMOKE_ROBOTS * 30 * LOAD_SMOKE_WARMUP
     assert result["latency_from"] == "each request's scheduled send time"
     check_reports_lost(result, 3 * requests)
     assert 0 < result["latency_p50_ms"] <= result["latency_p99_ms"] <= result["latency_max_ms"]

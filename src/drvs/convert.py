@@ -4,13 +4,24 @@ from __future__ import annotations
 
 import threading
 from collections import OrderedDict
+from typing import Any
 
 import numpy as np
 from shapely.geometry import Polygon
 
 from drvs.errors import InvalidArgument
 from drvs.geometry import MAX_REGION_VERTICES, Homography, box_region, polygon_coords, polygon_region
-from drvs.model import ContinuousMode, Detection, DetectionReport, DetectionRequest, PixelBox
+from drvs.model import (
+    CameraError,
+    ContinuousMode,
+    Detection,
+    DetectionReport,
+    DetectionRequest,
+    FusionOptions,
+    PixelBox,
+    Snapshot,
+    WorldObject,
+)
 from drvs.v1 import detection_pb2, geometry_pb2, registry_pb2
 
 
@@ -129,6 +140,9 @@ def request_to_pb(
         if req.continuous.single_shot
         else detection_pb2.ContinuousMode(rate_hz=req.continuous.rate_hz, duration_s=req.continuous.duration_s),
         omit_outlines=req.omit_outlines,
+        fusion=None
+        if req.fusion is None
+        else detection_pb2.FusionOptions(deadline_s=req.fusion.deadline_s, drop_after_s=req.fusion.drop_after_s),
     )
 
 
@@ -143,6 +157,8 @@ def request_from_pb(msg: detection_pb2.DetectionRequest, *, require_request_id: 
         continuous=ContinuousMode(msg.continuous.rate_hz, msg.continuous.duration_s),
         omit_outlines=msg.omit_outlines,
         report_key=msg.report_key,
+        fusion=FusionOptions(msg.fusion.deadline_s, msg.fusion.drop_after_s) if msg.HasField("fusion") else None,
+        report_to_server=msg.report_to_server,
     )
     req.validate(require_request_id=require_request_id)
     return req
@@ -239,3 +255,85 @@ def homography_to_pb(h: Homography) -> registry_pb2.Homography:
 
 def homography_from_pb(msg: registry_pb2.Homography) -> Homography:
     return Homography.from_values(list(msg.m), "homography")
+
+
+def _timestamp(ts: Any, seconds: float) -> None:
+    if seconds:
+        ts.FromNanoseconds(round(seconds * 1e9))
+
+
+def _seconds(msg: Any, name: str) -> float:
+    return getattr(msg, name).ToNanoseconds() / 1e9 if msg.HasField(name) else 0.0
+
+
+def world_object_to_pb(o: WorldObject, outline: bool = True) -> detection_pb2.WorldObject:
+    x0, y0, x1, y1 = o.bounds
+    msg = detection_pb2.WorldObject(
+        track_id=o.track_id,
+        bounds=geometry_pb2.FloorBox(x_lower=x0, y_lower=y0, x_upper=x1, y_upper=y1),
+        centroid=geometry_pb2.FloorPoint(x=o.centroid_xy[0], y=o.centroid_xy[1]),
+        velocity=geometry_pb2.FloorPoint(x=o.velocity_xy[0], y=o.velocity_xy[1]),
+        uncertainty_m=o.uncertainty_m,
+        camera_ids=o.camera_ids,
+        label=o.label,
+        score=o.score,
+        area_m2=o.area_m2,
+    )
+    if outline and not o.outline.is_empty:
+        msg.outline_xy.extend(v for xy in polygon_coords(o.outline) for v in xy)
+    if o.heading_deg is not None:
+        msg.heading_deg = o.heading_deg
+    if o.marker_id is not None:
+        msg.marker_id = o.marker_id
+    if o.marker_heading_deg is not None:
+        msg.marker_heading_deg = o.marker_heading_deg
+    _timestamp(msg.last_seen, o.last_seen)
+    return msg
+
+
+def world_object_from_pb(msg: detection_pb2.WorldObject) -> WorldObject:
+    b = msg.bounds
+    xy = msg.outline_xy
+    return WorldObject(
+        track_id=msg.track_id,
+        outline=Polygon(np.asarray(xy, dtype=float).reshape(-1, 2)) if len(xy) >= 6 else _NO_OUTLINE,
+        bounds=(b.x_lower, b.y_lower, b.x_upper, b.y_upper),
+        centroid_xy=(msg.centroid.x, msg.centroid.y),
+        velocity_xy=(msg.velocity.x, msg.velocity.y),
+        heading_deg=msg.heading_deg if msg.HasField("heading_deg") else None,
+        uncertainty_m=msg.uncertainty_m,
+        camera_ids=tuple(msg.camera_ids),
+        last_seen=_seconds(msg, "last_seen"),
+        marker_id=msg.marker_id if msg.HasField("marker_id") else None,
+        marker_heading_deg=msg.marker_heading_deg if msg.HasField("marker_heading_deg") else None,
+        label=msg.label,
+        score=msg.score,
+        area_m2=msg.area_m2,
+    )
+
+
+def snapshot_to_pb(s: Snapshot, outlines: bool = True) -> detection_pb2.WorldSnapshot:
+    msg = detection_pb2.WorldSnapshot(
+        sequence=s.sequence,
+        final=s.final,
+        objects=[world_object_to_pb(o, outlines) for o in s.objects],
+        missing_cameras=[
+            detection_pb2.MissingCamera(camera_id=m.camera_id, code=m.code, message=m.message)
+            for m in s.missing_cameras
+        ],
+        camera_ids=s.camera_ids,
+    )
+    _timestamp(msg.time, s.time)
+    return msg
+
+
+def snapshot_from_pb(msg: detection_pb2.WorldSnapshot, request_id: str = "") -> Snapshot:
+    return Snapshot(
+        time=_seconds(msg, "time"),
+        objects=tuple(world_object_from_pb(o) for o in msg.objects),
+        missing_cameras=tuple(CameraError(m.code, m.message, m.camera_id) for m in msg.missing_cameras),
+        camera_ids=tuple(msg.camera_ids),
+        sequence=msg.sequence,
+        final=msg.final,
+        request_id=request_id,
+    )

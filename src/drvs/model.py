@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import overload
 
@@ -206,9 +206,118 @@ class ReportTimes(Sequence[float]):
         return f"ReportTimes(count={self._count}, period={self._period:g})"
 
 
+#: Fused requests: the longest a single shot may wait for its cameras, and the longest a track may
+#: go unseen before it is dropped, seconds.
+MAX_FUSION_DEADLINE_S = 30.0
+MAX_FUSION_DROP_AFTER_S = 60.0
+#: ... and what zero means.
+DEFAULT_FUSION_DEADLINE_S = 2.0
+DEFAULT_FUSION_DROP_AFTER_S = 1.0
+
+
+@dataclass(frozen=True)
+class FusionOptions:
+    """How the server fuses a request's reports into world objects (see `WorldObject`).
+
+    - `deadline_s`: a single shot answers with what it has this many seconds after dispatch, naming
+      the cameras that did not report; in a continuous request, how late after its period a report
+      may still count. 0: the default (2 s single shot, one period continuous).
+    - `drop_after_s`: continuous requests: a track no camera has seen for this long is dropped.
+      0: the default (1 s).
+    """
+
+    deadline_s: float = 0.0
+    drop_after_s: float = 0.0
+
+    def validate(self) -> None:
+        for name, value, most in (
+            ("deadline_s", self.deadline_s, MAX_FUSION_DEADLINE_S),
+            ("drop_after_s", self.drop_after_s, MAX_FUSION_DROP_AFTER_S),
+        ):
+            if not (math.isfinite(value) and 0 <= value <= most):
+                raise InvalidArgument(f"fusion.{name}: {value!r} is not between 0 and {most:g} seconds")
+
+    @property
+    def single_shot_deadline_s(self) -> float:
+        return self.deadline_s or DEFAULT_FUSION_DEADLINE_S
+
+    @property
+    def track_drop_after_s(self) -> float:
+        return self.drop_after_s or DEFAULT_FUSION_DROP_AFTER_S
+
+
+@dataclass(frozen=True)
+class WorldObject:
+    """One physical object as the server's fusion of several cameras sees it, in the map frame.
+
+    - `track_id`: stable across a continuous request's snapshots while the object is tracked;
+      numbered 1, 2, ... in a single shot;
+    - `outline`: the fused floor outline (shapely Polygon, metres; empty when outlines were omitted);
+      `bounds`: (x0, y0, x1, y1), metres;
+    - `centroid_xy`: the precision-weighted (and, when tracked, filtered) centre, metres;
+    - `velocity_xy`: m/s in the map frame, (0, 0) in a single shot; `heading_deg`: the direction of
+      motion, degrees counter-clockwise from +x, None when not moving;
+    - `uncertainty_m`: one standard deviation of the centroid, metres;
+    - `camera_ids`: the cameras merged into it in this snapshot (empty: predicted, unseen this period);
+    - `last_seen`: capture time of the newest frame that saw it, seconds since the Unix epoch;
+    - `marker_id`, `marker_heading_deg`, `label`: type fields as the cameras reported them;
+      `score`: the best detector confidence merged; `area_m2`: the fused outline's area.
+    """
+
+    track_id: int
+    outline: Polygon
+    bounds: tuple[float, float, float, float]
+    centroid_xy: tuple[float, float]
+    velocity_xy: tuple[float, float] = (0.0, 0.0)
+    heading_deg: float | None = None
+    uncertainty_m: float = 0.0
+    camera_ids: tuple[str, ...] = ()
+    last_seen: float = 0.0
+    marker_id: int | None = None
+    marker_heading_deg: float | None = None
+    label: str = ""
+    score: float = 0.0
+    area_m2: float = 0.0
+
+    @property
+    def speed_mps(self) -> float:
+        """|velocity|, m/s."""
+        return math.hypot(*self.velocity_xy)
+
+    def predicted_xy(self, at: float) -> tuple[float, float]:
+        """The centroid moved on at constant velocity to time `at` (seconds since the Unix epoch)."""
+        dt = at - self.last_seen
+        return (self.centroid_xy[0] + self.velocity_xy[0] * dt, self.centroid_xy[1] + self.velocity_xy[1] * dt)
+
+
+@dataclass(frozen=True)
+class Snapshot:
+    """The fused answer to a request at one instant: once for a single shot, once per period for a
+    continuous request. Unpacks as `time, objects, missing_cameras`.
+
+    - `time`: the instant described, seconds since the Unix epoch;
+    - `objects`: the world objects;
+    - `missing_cameras`: a `CameraError` per camera that should have counted and did not;
+    - `camera_ids`: the cameras whose reports were merged; `sequence`: 0, 1, ...; `final`: the last;
+    - `request_id`: the request it answers.
+    """
+
+    time: float
+    objects: tuple[WorldObject, ...] = ()
+    missing_cameras: tuple[CameraError, ...] = ()
+    camera_ids: tuple[str, ...] = ()
+    sequence: int = 0
+    final: bool = True
+    request_id: str = ""
+
+    def __iter__(self) -> Iterator[object]:
+        return iter((self.time, self.objects, self.missing_cameras))
+
+
 @dataclass(frozen=True)
 class DetectionRequest:
-    """A validated request: what to look for, where, and where to send the reports."""
+    """A validated request: what to look for, where, and where to send the reports (or, with
+    `fusion` set, that the server fuses them and answers on the request's own call)."""
 
     request_id: str
     robot_id: str
@@ -219,6 +328,10 @@ class DetectionRequest:
     omit_outlines: bool = False
     #: What the camera presents to the robot for this request (see drvs.report_auth); from the server.
     report_key: bytes = b""
+    #: Set: the server fuses the cameras' reports; callback_address is not used.
+    fusion: FusionOptions | None = None
+    #: Server -> camera: report to the server this camera registered with, not to callback_address.
+    report_to_server: bool = False
 
     def validate(self, *, require_request_id: bool = True, unknown_types: bool = False) -> None:
         """Everything but the region, which is validated when it is built. unknown_types=True (the
@@ -234,7 +347,10 @@ class DetectionRequest:
             validate_filter_def(self.filter_def)
         elif len(self.filter_def) > MAX_ID_LENGTH:
             raise InvalidArgument(f"filter_def: longer than {MAX_ID_LENGTH} characters")
-        parse_address(self.callback_address, "callback_address")
+        if self.fusion is not None:
+            self.fusion.validate()
+        if self.fusion is None and not self.report_to_server:
+            parse_address(self.callback_address, "callback_address")
         self.continuous.validate()
         if len(self.report_key) > MAX_KEY_BYTES:
             raise InvalidArgument(f"report_key: longer than {MAX_KEY_BYTES} bytes")

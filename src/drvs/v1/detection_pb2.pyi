@@ -19,7 +19,7 @@ class ContinuousMode(_message.Message):
     def __init__(self, rate_hz: _Optional[float] = ..., duration_s: _Optional[float] = ...) -> None: ...
 
 class DetectionRequest(_message.Message):
-    __slots__ = ("request_id", "robot_id", "filter_def", "region", "callback_address", "continuous", "omit_outlines", "report_secret", "report_key", "cancel")
+    __slots__ = ("request_id", "robot_id", "filter_def", "region", "callback_address", "continuous", "omit_outlines", "report_secret", "report_key", "cancel", "fusion", "report_to_server")
     REQUEST_ID_FIELD_NUMBER: _ClassVar[int]
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     FILTER_DEF_FIELD_NUMBER: _ClassVar[int]
@@ -30,6 +30,8 @@ class DetectionRequest(_message.Message):
     REPORT_SECRET_FIELD_NUMBER: _ClassVar[int]
     REPORT_KEY_FIELD_NUMBER: _ClassVar[int]
     CANCEL_FIELD_NUMBER: _ClassVar[int]
+    FUSION_FIELD_NUMBER: _ClassVar[int]
+    REPORT_TO_SERVER_FIELD_NUMBER: _ClassVar[int]
     request_id: str
     robot_id: str
     filter_def: str
@@ -40,7 +42,65 @@ class DetectionRequest(_message.Message):
     report_secret: bytes
     report_key: bytes
     cancel: bool
-    def __init__(self, request_id: _Optional[str] = ..., robot_id: _Optional[str] = ..., filter_def: _Optional[str] = ..., region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., callback_address: _Optional[str] = ..., continuous: _Optional[_Union[ContinuousMode, _Mapping]] = ..., omit_outlines: bool = ..., report_secret: _Optional[bytes] = ..., report_key: _Optional[bytes] = ..., cancel: bool = ...) -> None: ...
+    fusion: FusionOptions
+    report_to_server: bool
+    def __init__(self, request_id: _Optional[str] = ..., robot_id: _Optional[str] = ..., filter_def: _Optional[str] = ..., region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., callback_address: _Optional[str] = ..., continuous: _Optional[_Union[ContinuousMode, _Mapping]] = ..., omit_outlines: bool = ..., report_secret: _Optional[bytes] = ..., report_key: _Optional[bytes] = ..., cancel: bool = ..., fusion: _Optional[_Union[FusionOptions, _Mapping]] = ..., report_to_server: bool = ...) -> None: ...
+
+class FusionOptions(_message.Message):
+    __slots__ = ("deadline_s", "drop_after_s")
+    DEADLINE_S_FIELD_NUMBER: _ClassVar[int]
+    DROP_AFTER_S_FIELD_NUMBER: _ClassVar[int]
+    deadline_s: float
+    drop_after_s: float
+    def __init__(self, deadline_s: _Optional[float] = ..., drop_after_s: _Optional[float] = ...) -> None: ...
+
+class WorldObject(_message.Message):
+    __slots__ = ("track_id", "outline_xy", "bounds", "centroid", "velocity", "heading_deg", "uncertainty_m", "camera_ids", "marker_id", "label", "score", "area_m2", "last_seen", "marker_heading_deg")
+    TRACK_ID_FIELD_NUMBER: _ClassVar[int]
+    OUTLINE_XY_FIELD_NUMBER: _ClassVar[int]
+    BOUNDS_FIELD_NUMBER: _ClassVar[int]
+    CENTROID_FIELD_NUMBER: _ClassVar[int]
+    VELOCITY_FIELD_NUMBER: _ClassVar[int]
+    HEADING_DEG_FIELD_NUMBER: _ClassVar[int]
+    UNCERTAINTY_M_FIELD_NUMBER: _ClassVar[int]
+    CAMERA_IDS_FIELD_NUMBER: _ClassVar[int]
+    MARKER_ID_FIELD_NUMBER: _ClassVar[int]
+    LABEL_FIELD_NUMBER: _ClassVar[int]
+    SCORE_FIELD_NUMBER: _ClassVar[int]
+    AREA_M2_FIELD_NUMBER: _ClassVar[int]
+    LAST_SEEN_FIELD_NUMBER: _ClassVar[int]
+    MARKER_HEADING_DEG_FIELD_NUMBER: _ClassVar[int]
+    track_id: int
+    outline_xy: _containers.RepeatedScalarFieldContainer[float]
+    bounds: _geometry_pb2.FloorBox
+    centroid: _geometry_pb2.FloorPoint
+    velocity: _geometry_pb2.FloorPoint
+    heading_deg: float
+    uncertainty_m: float
+    camera_ids: _containers.RepeatedScalarFieldContainer[str]
+    marker_id: int
+    label: str
+    score: float
+    area_m2: float
+    last_seen: _timestamp_pb2.Timestamp
+    marker_heading_deg: float
+    def __init__(self, track_id: _Optional[int] = ..., outline_xy: _Optional[_Iterable[float]] = ..., bounds: _Optional[_Union[_geometry_pb2.FloorBox, _Mapping]] = ..., centroid: _Optional[_Union[_geometry_pb2.FloorPoint, _Mapping]] = ..., velocity: _Optional[_Union[_geometry_pb2.FloorPoint, _Mapping]] = ..., heading_deg: _Optional[float] = ..., uncertainty_m: _Optional[float] = ..., camera_ids: _Optional[_Iterable[str]] = ..., marker_id: _Optional[int] = ..., label: _Optional[str] = ..., score: _Optional[float] = ..., area_m2: _Optional[float] = ..., last_seen: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., marker_heading_deg: _Optional[float] = ...) -> None: ...
+
+class WorldSnapshot(_message.Message):
+    __slots__ = ("time", "sequence", "final", "objects", "missing_cameras", "camera_ids")
+    TIME_FIELD_NUMBER: _ClassVar[int]
+    SEQUENCE_FIELD_NUMBER: _ClassVar[int]
+    FINAL_FIELD_NUMBER: _ClassVar[int]
+    OBJECTS_FIELD_NUMBER: _ClassVar[int]
+    MISSING_CAMERAS_FIELD_NUMBER: _ClassVar[int]
+    CAMERA_IDS_FIELD_NUMBER: _ClassVar[int]
+    time: _timestamp_pb2.Timestamp
+    sequence: int
+    final: bool
+    objects: _containers.RepeatedCompositeFieldContainer[WorldObject]
+    missing_cameras: _containers.RepeatedCompositeFieldContainer[MissingCamera]
+    camera_ids: _containers.RepeatedScalarFieldContainer[str]
+    def __init__(self, time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., sequence: _Optional[int] = ..., final: bool = ..., objects: _Optional[_Iterable[_Union[WorldObject, _Mapping]]] = ..., missing_cameras: _Optional[_Iterable[_Union[MissingCamera, _Mapping]]] = ..., camera_ids: _Optional[_Iterable[str]] = ...) -> None: ...
 
 class RequestError(_message.Message):
     __slots__ = ("code", "message")
@@ -61,20 +121,22 @@ class MissingCamera(_message.Message):
     def __init__(self, camera_id: _Optional[str] = ..., code: _Optional[str] = ..., message: _Optional[str] = ...) -> None: ...
 
 class DetectionReply(_message.Message):
-    __slots__ = ("request_id", "camera_ids", "error", "missing_cameras", "uncovered", "coverage_uncertain_s")
+    __slots__ = ("request_id", "camera_ids", "error", "missing_cameras", "uncovered", "coverage_uncertain_s", "snapshot")
     REQUEST_ID_FIELD_NUMBER: _ClassVar[int]
     CAMERA_IDS_FIELD_NUMBER: _ClassVar[int]
     ERROR_FIELD_NUMBER: _ClassVar[int]
     MISSING_CAMERAS_FIELD_NUMBER: _ClassVar[int]
     UNCOVERED_FIELD_NUMBER: _ClassVar[int]
     COVERAGE_UNCERTAIN_S_FIELD_NUMBER: _ClassVar[int]
+    SNAPSHOT_FIELD_NUMBER: _ClassVar[int]
     request_id: str
     camera_ids: _containers.RepeatedScalarFieldContainer[str]
     error: RequestError
     missing_cameras: _containers.RepeatedCompositeFieldContainer[MissingCamera]
     uncovered: _containers.RepeatedCompositeFieldContainer[_geometry_pb2.Polygon]
     coverage_uncertain_s: float
-    def __init__(self, request_id: _Optional[str] = ..., camera_ids: _Optional[_Iterable[str]] = ..., error: _Optional[_Union[RequestError, _Mapping]] = ..., missing_cameras: _Optional[_Iterable[_Union[MissingCamera, _Mapping]]] = ..., uncovered: _Optional[_Iterable[_Union[_geometry_pb2.Polygon, _Mapping]]] = ..., coverage_uncertain_s: _Optional[float] = ...) -> None: ...
+    snapshot: WorldSnapshot
+    def __init__(self, request_id: _Optional[str] = ..., camera_ids: _Optional[_Iterable[str]] = ..., error: _Optional[_Union[RequestError, _Mapping]] = ..., missing_cameras: _Optional[_Iterable[_Union[MissingCamera, _Mapping]]] = ..., uncovered: _Optional[_Iterable[_Union[_geometry_pb2.Polygon, _Mapping]]] = ..., coverage_uncertain_s: _Optional[float] = ..., snapshot: _Optional[_Union[WorldSnapshot, _Mapping]] = ...) -> None: ...
 
 class DetectionRequests(_message.Message):
     __slots__ = ("requests",)

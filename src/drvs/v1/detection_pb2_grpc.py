@@ -65,9 +65,10 @@ class DetectObjectBoundaryServicer(object):
 
     def DetectStream(self, request_iterator, context):
         """Many requests on one long-lived call, each answered by a reply carrying its request_id, in
-        order. A refused request gets a reply with error set; the stream goes on. This is how the
-        client and the server send requests: a request costs one message, not a call's headers,
-        trailers and round of call set-up.
+        order, except fused single shots, whose one reply comes when their snapshot is ready, and the
+        snapshots of fused continuous requests, which follow as they are made. A refused request gets
+        a reply with error set; the stream goes on. This is how the client and the server send
+        requests: a request costs one message, not a call's headers, trailers and round of call set-up.
         """
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
         context.set_details('Method not implemented!')
