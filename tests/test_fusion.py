@@ -1,0 +1,327 @@
+"""drvs.fusion on real camera geometry: ground sampling distance from real homographies, merging of
+one object seen by several cameras, what must never merge, precision weighting, and the whole path
+on real pixels (two overlapping simulated cameras, the HSV detector the camera node runs, fuse)."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+from shapely.geometry import Point, Polygon
+from shapely.geometry import box as floor_box
+
+from drvs.detection import CameraView, FrameAnalysis, HsvDetector
+from drvs.detection import Frame as DetFrame
+from drvs.errors import InvalidArgument
+from drvs.filters import HsvRange
+from drvs.fusion import PIXEL_SIGMA, fuse, ground_sampling_distance
+from drvs.geometry import FieldOfView, Homography, homography_from_pose
+from drvs.model import Detection, DetectionReport
+from drvs.sim.scene import FloorPatch, render_view
+
+from .helpers import GREEN, IMAGE_SIZE, YELLOW
+
+T0 = 1_700_000_000.0
+#: Two cameras 3 m up on opposite walls of a 12 m room, looking at each other 40 degrees down:
+#: both see the middle (y about 2.5 .. 9.5) at different distances.
+SOUTH = homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, IMAGE_SIZE)
+NORTH = homography_from_pose((0.0, 12.0, 3.0), -90.0, 40.0, 60.0, IMAGE_SIZE)
+CAMERAS = {"south": SOUTH, "north": NORTH}
+
+
+def view(camera_id: str) -> CameraView:
+    h = CAMERAS[camera_id]
+    return CameraView(h, FieldOfView.compute(h, IMAGE_SIZE, 15.0), IMAGE_SIZE, camera_id=camera_id)
+
+
+def seen(
+    camera_id: str,
+    shape: Polygon,
+    *,
+    shift_px: tuple[float, float] = (0.0, 0.0),
+    filter_def: str = YELLOW,
+    marker_id: int | None = None,
+    label: str = "",
+    t: float = T0,
+) -> Detection:
+    """The detection a camera makes of a floor shape: its outline projected into the image (through
+    the real homography), moved by shift_px (the detector's error, pixels), mapped back to the floor."""
+    v = view(camera_id)
+    floor = np.asarray(shape.exterior.coords)[:-1]
+    pixels = v.homography.inverse().apply(floor) + np.asarray(shift_px)
+    d = v.detection(pixels, filter_def, t, score=0.9, marker_id=marker_id, label=label)
+    assert d is not None
+    return d
+
+
+def report(camera_id: str, *detections: Detection, t: float = T0, error: str = "") -> DetectionReport:
+    return DetectionReport("r1", camera_id, t, 0, True, tuple(detections), error=error)
+
+
+def square(x: float, y: float, side: float = 0.4) -> Polygon:
+    return floor_box(x - side / 2, y - side / 2, x + side / 2, y + side / 2)
+
+
+# --- ground sampling distance ------------------------------------------------------------------
+
+
+def pixel_footprint(h: Homography, floor_xy: tuple[float, float]) -> float:
+    """The floor area one pixel covers at floor_xy, measured: the pixel's four corners mapped with
+    OpenCV's perspectiveTransform and the quadrilateral's area (shapely)."""
+    u, v = h.inverse().apply([floor_xy])[0]
+    corners = np.array([[[u - 0.5, v - 0.5], [u + 0.5, v - 0.5], [u + 0.5, v + 0.5], [u - 0.5, v + 0.5]]])
+    floor = cv2.perspectiveTransform(corners, h.matrix)[0]
+    return float(Polygon(floor).area)
+
+
+@pytest.mark.parametrize("xy", [(0.0, 2.5), (1.0, 5.0), (-2.0, 8.0), (0.5, 9.5)])
+def test_gsd_is_the_side_of_the_floor_a_pixel_covers(xy: tuple[float, float]) -> None:
+    assert ground_sampling_distance(SOUTH, xy) == pytest.approx(math.sqrt(pixel_footprint(SOUTH, xy)), rel=1e-3)
+
+
+def test_a_far_spot_is_resolved_worse_than_a_near_one() -> None:
+    near, far = ground_sampling_distance(SOUTH, (0.0, 3.0)), ground_sampling_distance(SOUTH, (0.0, 9.0))
+    assert far > 3 * near
+    # The camera on the other wall sees the same two spots the other way round.
+    assert ground_sampling_distance(NORTH, (0.0, 3.0)) > 3 * ground_sampling_distance(NORTH, (0.0, 9.0))
+
+
+def test_gsd_of_a_top_down_camera_is_its_scale() -> None:
+    # A camera looking straight down, 100 pixels per metre: the four image corners of a 640 x 480
+    # image map to a 6.4 x 4.8 m rectangle (cv2.getPerspectiveTransform).
+    image = np.float32([[0, 0], [640, 0], [640, 480], [0, 480]])
+    floor = np.float32([[1, 1], [7.4, 1], [7.4, 5.8], [1, 5.8]])
+    h = Homography.from_values(cv2.getPerspectiveTransform(image, floor))
+    for xy in [(1.5, 1.5), (4.0, 3.0), (7.0, 5.5)]:
+        assert ground_sampling_distance(h, xy) == pytest.approx(0.01, rel=1e-6)
+
+
+def test_gsd_on_the_horizon_is_infinite_and_bad_points_are_refused() -> None:
+    # The south camera looks along +y: the floor point that would be at its horizon is infinitely far.
+    horizon_px = SOUTH.inverse().apply([(0.0, 1e9)])[0]
+    assert ground_sampling_distance(SOUTH, tuple(SOUTH.apply([horizon_px])[0])) > 1.0
+    with pytest.raises(InvalidArgument, match=r"^floor_xy: \(nan, 1.0\) must be finite"):
+        ground_sampling_distance(SOUTH, (math.nan, 1.0))
+    with pytest.raises(InvalidArgument, match=r"^floor_xy: expected two numbers"):
+        ground_sampling_distance(SOUTH, (1.0,))  # type: ignore[arg-type]
+
+
+# --- merging -----------------------------------------------------------------------------------
+
+
+def test_two_cameras_seeing_one_box_give_one_object_more_precise_than_either() -> None:
+    truth = square(0.5, 6.0)
+    a = seen("south", truth, shift_px=(1.0, -1.0), t=T0)
+    b = seen("north", truth, shift_px=(-1.0, 1.5), t=T0 + 0.03)
+    [obj] = fuse([report("south", a), report("north", b, t=T0 + 0.03)], CAMERAS.get)
+    sigma_a = PIXEL_SIGMA * ground_sampling_distance(SOUTH, a.centroid_xy)
+    sigma_b = PIXEL_SIGMA * ground_sampling_distance(NORTH, b.centroid_xy)
+    assert obj.uncertainty_m < min(sigma_a, sigma_b)
+    assert obj.uncertainty_m == pytest.approx(1 / math.sqrt(sigma_a**-2 + sigma_b**-2), rel=1e-6)
+    assert obj.camera_ids == ("north", "south")
+    assert obj.track_id == 1
+    assert obj.last_seen == T0 + 0.03
+    assert obj.velocity_xy == (0.0, 0.0) and obj.heading_deg is None
+    assert obj.score == pytest.approx(0.9)
+    # The union of the two views: it covers both, and its bounds and area are the outline's.
+    assert obj.outline.covers(a.outline.buffer(-1e-9)) and obj.outline.covers(b.outline.buffer(-1e-9))
+    assert obj.bounds == pytest.approx(obj.outline.bounds)
+    assert obj.area_m2 == pytest.approx(obj.outline.area)
+    error = math.dist(obj.centroid_xy, (0.5, 6.0))
+    assert error < max(math.dist(a.centroid_xy, (0.5, 6.0)), math.dist(b.centroid_xy, (0.5, 6.0)))
+
+
+def test_weighting_favours_the_camera_that_is_near() -> None:
+    # At y = 3 the south camera is near (fine pixels), the north one 9 m away (coarse pixels).
+    # Both are off by the same two pixels: the fused centroid lies near the south camera's.
+    truth = square(0.0, 3.0)
+    a = seen("south", truth, shift_px=(2.0, 0.0))
+    b = seen("north", truth, shift_px=(2.0, 0.0))
+    [obj] = fuse([report("south", a), report("north", b)], CAMERAS.get)
+    sa = ground_sampling_distance(SOUTH, a.centroid_xy)
+    sb = ground_sampling_distance(NORTH, b.centroid_xy)
+    assert sb > 2.5 * sa
+    wa, wb = sa**-2, sb**-2
+    expected = (np.array(a.centroid_xy) * wa + np.array(b.centroid_xy) * wb) / (wa + wb)
+    assert obj.centroid_xy == pytest.approx(tuple(expected), abs=1e-9)
+    assert math.dist(obj.centroid_xy, a.centroid_xy) < 0.2 * math.dist(obj.centroid_xy, b.centroid_xy)
+
+
+def test_two_distinct_boxes_close_together_stay_two() -> None:
+    # 0.4 m boxes 0.1 m apart, seen by both cameras with a pixel of error each.
+    left, right = square(-0.25, 6.0), square(0.25, 6.0)
+    south = report("south", seen("south", left, shift_px=(1, 0)), seen("south", right, shift_px=(-1, 1)))
+    north = report("north", seen("north", left, shift_px=(0, 1)), seen("north", right, shift_px=(1, -1)))
+    objects = fuse([south, north], CAMERAS.get)
+    assert len(objects) == 2
+    assert [o.camera_ids for o in objects] == [("north", "south")] * 2
+    # Numbered by x: the left box is 1.
+    assert [o.track_id for o in objects] == [1, 2]
+    assert objects[0].centroid_xy[0] < 0 < objects[1].centroid_xy[0]
+    for o, x in zip(objects, (-0.25, 0.25), strict=True):
+        assert math.dist(o.centroid_xy, (x, 6.0)) < 0.05
+
+
+def test_two_detections_of_one_camera_never_merge() -> None:
+    # One camera sees two overlapping blobs (two objects, or a split one): they stay two, even
+    # though a second camera's single detection overlaps both.
+    a1, a2 = seen("south", square(0.0, 6.0)), seen("south", square(0.15, 6.0))
+    assert a1.outline.intersects(a2.outline)
+    b = seen("north", square(0.05, 6.0))
+    objects = fuse([report("south", a1, a2), report("north", b)], CAMERAS.get)
+    assert len(objects) == 2
+    assert sorted(o.camera_ids for o in objects) == [("north", "south"), ("south",)]
+    alone = fuse([report("south", a1, a2)], CAMERAS.get)
+    assert len(alone) == 2
+
+
+def test_markers_merge_by_id_and_different_ids_never_merge() -> None:
+    marker = square(1.0, 5.0, 0.2)
+    # Same id from two cameras, 0.5 m apart (a camera badly calibrated): the id says it is one marker.
+    seven_s = seen("south", marker, filter_def="aruco_4x4_50_7", marker_id=7)
+    seven_n = seen("north", square(1.5, 5.0, 0.2), filter_def="aruco_4x4_50_7", marker_id=7)
+    # A different id exactly where 7 is: never the same object.
+    eight = seen("north", marker, filter_def="aruco_4x4_50", marker_id=8)
+    objects = fuse([report("south", seven_s), report("north", seven_n, eight)], CAMERAS.get)
+    by_id = {o.marker_id: o for o in objects}
+    assert sorted(by_id) == [7, 8] and len(objects) == 2
+    assert by_id[7].camera_ids == ("north", "south")
+    assert by_id[8].camera_ids == ("north",)
+
+
+def test_labels_never_cross() -> None:
+    spot = square(0.0, 6.0, 0.5)
+    person = seen("south", spot, filter_def="people", label="person")
+    chair = seen("north", spot, filter_def="model_x", label="chair")
+    objects = fuse([report("south", person), report("north", chair)], CAMERAS.get)
+    assert sorted(o.label for o in objects) == ["chair", "person"]
+    assert all(len(o.camera_ids) == 1 for o in objects)
+
+
+def test_a_camera_that_failed_contributes_nothing() -> None:
+    truth = square(0.0, 6.0)
+    failed = DetectionReport(
+        "r1", "north", T0, 0, True, (seen("north", truth),), error="gone", error_code="UNAVAILABLE"
+    )
+    [obj] = fuse([report("south", seen("south", truth)), failed], CAMERAS.get)
+    assert obj.camera_ids == ("south",)
+    assert fuse([failed], CAMERAS.get) == []
+    assert fuse([], CAMERAS.get) == []
+
+
+def test_without_outlines_bounds_and_centroids_fuse() -> None:
+    # A request with omit_outlines: detections carry bounds and centroids, no outline, no areas.
+    truth = square(0.0, 6.0)
+
+    def bare(d: Detection) -> Detection:
+        return Detection(
+            Polygon(),
+            d.bounds,
+            d.centroid_xy,
+            d.ground_contact_xy,
+            d.pixel_box,
+            0.0,
+            0.0,
+            0.0,
+            YELLOW,
+            d.camera_id,
+            d.capture_time,
+        )
+
+    a, b = bare(seen("south", truth, shift_px=(1, 0))), bare(seen("north", truth, shift_px=(0, 1)))
+    [obj] = fuse([report("south", a), report("north", b)], CAMERAS.get)
+    assert obj.outline.is_empty
+    assert obj.bounds == pytest.approx(
+        (
+            min(a.bounds[0], b.bounds[0]),
+            min(a.bounds[1], b.bounds[1]),
+            max(a.bounds[2], b.bounds[2]),
+            max(a.bounds[3], b.bounds[3]),
+        )
+    )
+    assert math.dist(obj.centroid_xy, (0.0, 6.0)) < 0.03
+
+
+def test_a_camera_without_a_known_homography_uses_its_detections_own_scale() -> None:
+    truth = square(0.0, 6.0)
+    a, b = seen("south", truth), seen("north", truth)
+    known = fuse([report("south", a), report("north", b)], CAMERAS.get)
+    unknown = fuse([report("south", a), report("north", b)], lambda _camera_id: None)
+    assert len(known) == len(unknown) == 1
+    # The blob's own floor area per pixel is the GSD averaged over it: close to the point value.
+    assert unknown[0].uncertainty_m == pytest.approx(known[0].uncertainty_m, rel=0.3)
+
+
+def test_detections_with_non_finite_coordinates_are_skipped() -> None:
+    good = seen("south", square(0.0, 6.0))
+    bad = Detection(
+        Polygon(), (math.nan, 0, 1, 1), (math.nan, 1.0), (0.0, 0.0), good.pixel_box, 0.0, 0.0, 0.5, YELLOW, "north", T0
+    )
+    [obj] = fuse([report("south", good), report("north", bad)], CAMERAS.get)
+    assert obj.camera_ids == ("south",)
+
+
+@pytest.mark.parametrize("sigma", [0.0, -1.0, math.nan, math.inf])
+def test_pixel_sigma_must_be_positive(sigma: float) -> None:
+    with pytest.raises(InvalidArgument, match=r"^pixel_sigma: .* must be a positive finite number of pixels"):
+        fuse([], CAMERAS.get, pixel_sigma=sigma)
+
+
+def test_track_ids_follow_x_then_y_whatever_the_report_order() -> None:
+    spots = [(1.0, 4.0), (-1.0, 7.0), (-1.0, 5.0), (0.5, 8.0)]
+    dets = [seen("south", square(x, y, 0.3)) for x, y in spots]
+    forward = fuse([report("south", *dets)], CAMERAS.get)
+    backward = fuse([report("south", *reversed(dets))], CAMERAS.get)
+    order = [o.centroid_xy for o in forward]
+    assert order == sorted(order)
+    assert [o.track_id for o in forward] == [1, 2, 3, 4]
+    assert [(o.track_id, o.centroid_xy) for o in forward] == [(o.track_id, o.centroid_xy) for o in backward]
+
+
+# --- real pixels -------------------------------------------------------------------------------
+
+#: Flat objects lying in both cameras' views: two yellow boxes, one close to the other, a yellow
+#: disc, and a green box where a yellow one also lies near (type must keep them apart).
+SCENE: list[tuple[str, Polygon]] = [
+    (YELLOW, square(-1.0, 4.5, 0.5)),
+    (YELLOW, square(-0.3, 4.5, 0.5)),
+    (YELLOW, Point(1.2, 6.5).buffer(0.3, quad_segs=32)),
+    (YELLOW, square(0.0, 8.0, 0.45)),
+    (GREEN, square(1.2, 8.0, 0.45)),
+]
+
+
+def frame_of(camera_id: str, seed: int) -> NDArray[np.uint8]:
+    patches = [FloorPatch(shape, HsvRange.parse(f).centre_bgr()) for f, shape in SCENE]
+    return render_view(CAMERAS[camera_id], IMAGE_SIZE, patches, noise_sigma=6.0, rng=np.random.default_rng(seed))
+
+
+def detect(camera_id: str, filter_def: str, seed: int) -> DetectionReport:
+    detector = HsvDetector(view(camera_id))
+    found = detector.detect(FrameAnalysis(DetFrame(frame_of(camera_id, seed), T0, seed)), filter_def)
+    return DetectionReport("r1", camera_id, T0, 0, True, tuple(found))
+
+
+@pytest.mark.parametrize("filter_def", [YELLOW, GREEN])
+def test_real_pixels_two_cameras_one_object_per_physical_object(filter_def: str) -> None:
+    truths = [shape for f, shape in SCENE if f == filter_def]
+    reports = [detect("south", filter_def, 1), detect("north", filter_def, 2)]
+    # Each camera sees every object once (the scene lies in both views).
+    for r in reports:
+        assert len(r.detections) == len(truths), (r.camera_id, [d.centroid_xy for d in r.detections])
+    objects = fuse(reports, CAMERAS.get)
+    assert len(objects) == len(truths), [o.centroid_xy for o in objects]
+    for truth in truths:
+        c = (truth.centroid.x, truth.centroid.y)
+        [obj] = [o for o in objects if o.outline.contains(Point(c))]
+        assert obj.camera_ids == ("north", "south")
+        singles = [min(r.detections, key=lambda d: math.dist(d.centroid_xy, c)) for r in reports]
+        errors = [math.dist(d.centroid_xy, c) for d in singles]
+        fused_error = math.dist(obj.centroid_xy, c)
+        # Better than the worse camera, and within 3 sigma of the truth by its own uncertainty.
+        assert fused_error <= max(errors)
+        assert fused_error < 3 * obj.uncertainty_m + 0.01, (fused_error, obj.uncertainty_m)
+        assert obj.uncertainty_m < 0.03
