@@ -92,8 +92,8 @@ def test_a_far_spot_is_resolved_worse_than_a_near_one() -> None:
 def test_gsd_of_a_top_down_camera_is_its_scale() -> None:
     # A camera looking straight down, 100 pixels per metre: the four image corners of a 640 x 480
     # image map to a 6.4 x 4.8 m rectangle (cv2.getPerspectiveTransform).
-    image = np.float32([[0, 0], [640, 0], [640, 480], [0, 480]])
-    floor = np.float32([[1, 1], [7.4, 1], [7.4, 5.8], [1, 5.8]])
+    image = np.array([[0, 0], [640, 0], [640, 480], [0, 480]], dtype=np.float32)
+    floor = np.array([[1, 1], [7.4, 1], [7.4, 5.8], [1, 5.8]], dtype=np.float32)
     h = Homography.from_values(cv2.getPerspectiveTransform(image, floor))
     for xy in [(1.5, 1.5), (4.0, 3.0), (7.0, 5.5)]:
         assert ground_sampling_distance(h, xy) == pytest.approx(0.01, rel=1e-6)
@@ -186,7 +186,7 @@ def test_markers_merge_by_id_and_different_ids_never_merge() -> None:
     # A different id exactly where 7 is: never the same object.
     eight = seen("north", marker, filter_def="aruco_4x4_50", marker_id=8)
     objects = fuse([report("south", seven_s), report("north", seven_n, eight)], CAMERAS.get)
-    by_id = {o.marker_id: o for o in objects}
+    by_id = {o.marker_id or 0: o for o in objects}
     assert sorted(by_id) == [7, 8] and len(objects) == 2
     assert by_id[7].camera_ids == ("north", "south")
     assert by_id[8].camera_ids == ("north",)
