@@ -157,6 +157,8 @@ def test_a_track_unseen_for_drop_after_s_is_dropped() -> None:
     assert len(tracker) == 0
     # A new object afterwards is a new track: ids are never reused.
     assert [o.track_id for o in tracker.update([seen((1, 1))], T0 + 0.6)] == [2]
+    # Also when no period came in between: the object back where track 2 was, 0.5 s later.
+    assert [o.track_id for o in tracker.update([seen((1, 1))], T0 + 1.1)] == [3]
 
 
 def test_velocity_and_heading_on_a_constant_velocity_path() -> None:

@@ -24,8 +24,9 @@ feeds it each period's `drvs.fusion.fuse` output. docs/fusion.md explains the mo
   periods' own clock) is dropped. Ids are never reused within a Tracker.
 - Time: `at` going backwards or repeating does not move the filter (no prediction, no division by
   time): the objects are assimilated at the track's current time.
-- Bounds: at most `MAX_TRACKS` tracks live at once. Objects that would open a track beyond it are
-  left untracked (the least confident first), never an error: the robot still gets the others.
+- Bounds: at most `max_tracks` (default `MAX_TRACKS`) tracks live at once, and at most that many
+  objects (the most confident) are considered per period. Objects that would open a track beyond
+  it are left untracked (the least confident first), never an error: the robot still gets the others.
 """
 
 from __future__ import annotations
@@ -126,20 +127,22 @@ class Tracker:
         InvalidArgument (and nothing changes) when `at` is not finite or an object's centroid or
         uncertainty_m is not finite (or negative)."""
         _check(objects, at)
+        if len(objects) > self.max_tracks:
+            objects = sorted(objects, key=lambda o: -o.score)[: self.max_tracks]
         dt = 0.0 if self._time is None else max(0.0, at - self._time)
         now = at if self._time is None else max(self._time, at)
         self._time = now
+        # What has been unseen for drop_after_s is gone before this period's objects are matched:
+        # an object that comes back after that is a new track.
+        self._tracks = [t for t in self._tracks if now - t.seen_at < self.drop_after_s - 1e-9]
         for t in self._tracks:
             self._predict(t, dt)
-        matched = self._associate(objects)
         seen: set[int] = set()
-        for ti, oi in matched:
+        for ti, oi in self._associate(objects):
             t, o = self._tracks[ti], objects[oi]
             self._correct(t, o)
             t.last, t.seen_at, t.seen_xy = o, now, o.centroid_xy
             seen.add(oi)
-        # Drop what has been unseen too long (a track seen this period has seen_at == now).
-        self._tracks = [t for t in self._tracks if now - t.seen_at < self.drop_after_s - 1e-9]
         fresh = sorted((i for i in range(len(objects)) if i not in seen), key=lambda i: -objects[i].score)
         for oi in fresh:
             if len(self._tracks) >= self.max_tracks:
@@ -191,27 +194,33 @@ class Tracker:
         t.kf.correct(np.array([[o.centroid_xy[0]], [o.centroid_xy[1]]], dtype=np.float32))
 
     def _associate(self, objects: Sequence[WorldObject]) -> list[tuple[int, int]]:
+        """(track index, object index) pairs: the assignment minimising the summed squared
+        Mahalanobis distance, over the pairs of one type within the gate (markers: any distance)."""
         if not self._tracks or not objects:
             return []
+        xy = np.array([o.centroid_xy for o in objects], dtype=np.float64)
+        r = np.array([self._measurement_var(o) for o in objects], dtype=np.float64)
+        keys = [_type_key(o) for o in objects]
         cost = np.full((len(self._tracks), len(objects)), _UNMATCHED)
         for ti, t in enumerate(self._tracks):
+            same = np.array([k == t.key for k in keys])
+            if not same.any():
+                continue
             x, p = t.state()
-            ps = p[:2, :2]
-            for oi, o in enumerate(objects):
-                key = _type_key(o)
-                if key != t.key:
-                    continue
-                r = self._measurement_var(o)
-                s = ps + np.eye(2) * r
-                innov = np.array(o.centroid_xy) - x[:2]
-                d2 = float(innov @ np.linalg.solve(s, innov))
-                if key[0] == "marker":
-                    # By id: the gate does not apply; among same-id objects the nearest wins.
-                    cost[ti, oi] = min(d2, _UNMATCHED / 2)
-                elif d2 <= GATE_CHI2:
-                    cost[ti, oi] = d2
+            # Innovation covariance S = P_xy + r I per object; d^2 = v' S^-1 v in closed form (2 x 2).
+            a, b, d = p[0, 0] + r, p[0, 1], p[1, 1] + r
+            det = a * d - b * b
+            dx, dy = xy[:, 0] - x[0], xy[:, 1] - x[1]
+            d2 = (d * dx * dx - 2 * b * dx * dy + a * dy * dy) / det
+            if t.key[0] == "marker":
+                # By id: the gate does not apply; among same-id objects the nearest wins.
+                ok = same
+                d2 = np.minimum(d2, _UNMATCHED / 2)
+            else:
+                ok = same & (d2 <= GATE_CHI2)
+            cost[ti] = np.where(ok, d2, _UNMATCHED)
         rows, cols = linear_sum_assignment(cost)
-        return [(r, c) for r, c in zip(rows.tolist(), cols.tolist(), strict=True) if cost[r, c] < _UNMATCHED]
+        return [(r_, c) for r_, c in zip(rows.tolist(), cols.tolist(), strict=True) if cost[r_, c] < _UNMATCHED]
 
     def _report(self, t: _Track, now: float) -> WorldObject:
         x, p = t.state()
