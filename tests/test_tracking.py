@@ -4,18 +4,29 @@ truth, markers by id, labels apart, time going backwards, bad input and the trac
 
 from __future__ import annotations
 
+import functools
 import itertools
 import math
 from collections.abc import Callable
 from dataclasses import replace
 
+import cv2
 import numpy as np
 import pytest
+from numpy.typing import NDArray
 from shapely.geometry import box as floor_box
 
+from drvs.detection import CameraView, FrameAnalysis, HsvDetector
+from drvs.detection import Frame as DetFrame
 from drvs.errors import InvalidArgument
-from drvs.model import WorldObject
+from drvs.filters import HsvRange
+from drvs.fusion import fuse
+from drvs.geometry import FieldOfView, homography_from_pose
+from drvs.model import DetectionReport, WorldObject
+from drvs.sim.scene import FloorPatch, render_view
 from drvs.tracking import MIN_HEADING_SPEED_MPS, Tracker
+
+from .helpers import IMAGE_SIZE, YELLOW
 
 T0 = 1_700_000_000.0
 RATE_HZ = 10.0
@@ -276,3 +287,66 @@ def test_the_number_of_tracks_is_capped_without_refusing() -> None:
     # The cap holds on later periods too, and the tracked ones keep their ids.
     again = tracker.update(objects, T0 + 0.1)
     assert [o.track_id for o in again] == [o.track_id for o in out]
+
+
+# --- real pixels: a disc moving under two side-by-side cameras, detected, fused, tracked --------
+
+WEST = homography_from_pose((-2.5, 0.0, 3.0), 90.0, 40.0, 60.0, IMAGE_SIZE)
+EAST = homography_from_pose((2.5, 0.0, 3.0), 90.0, 40.0, 60.0, IMAGE_SIZE)
+PAIR = {"west": WEST, "east": EAST}
+
+
+@functools.cache
+def noise_bank(count: int = 6, sigma: float = 6.0) -> list[tuple[NDArray[np.uint8], NDArray[np.uint8]]]:
+    """Sensor noise, drawn once (as the simulator's renderer does): (added, subtracted) uint8 pairs."""
+    rng = np.random.default_rng(23)
+    bank = []
+    for _ in range(count):
+        n = rng.normal(0.0, sigma, (IMAGE_SIZE[1], IMAGE_SIZE[0], 3))
+        bank.append((np.clip(n, 0, 255).astype(np.uint8), np.clip(-n, 0, 255).astype(np.uint8)))
+    return bank
+
+
+def noisy(image: NDArray[np.uint8], index: int) -> NDArray[np.uint8]:
+    bank = noise_bank()
+    up, down = bank[index % len(bank)]
+    return np.asarray(cv2.subtract(cv2.add(image, up), down), dtype=np.uint8)
+
+
+def test_real_pixels_a_moving_object_handed_over_between_cameras_keeps_one_track() -> None:
+    """A yellow disc crosses from the west camera's view (x < 0.8 at y = 5) through the overlap into
+    the east camera's (x > -0.8) at 1 m/s. Each period: both cameras' frames rendered, the HSV
+    detector, fuse, the tracker. One track from start to end, through the overlap and the edges
+    where one camera sees only part of the disc; its velocity close to the truth."""
+    speed = 1.0
+    views = {
+        c: CameraView(h, FieldOfView.compute(h, IMAGE_SIZE, 15.0), IMAGE_SIZE, camera_id=c) for c, h in PAIR.items()
+    }
+    detectors = {c: HsvDetector(v) for c, v in views.items()}
+    tracker = Tracker()
+    ids: set[int] = set()
+    cameras_seen: list[tuple[str, ...]] = []
+    velocity_errors = []
+    for k in range(int(7.0 / speed * RATE_HZ)):
+        t = k / RATE_HZ
+        x = -3.5 + speed * t
+        patch = FloorPatch.disc((x, 5.0), 0.25, HsvRange.parse(YELLOW).centre_bgr())
+        reports = []
+        for seed, (cam, h) in enumerate(PAIR.items()):
+            image = noisy(render_view(h, IMAGE_SIZE, [patch]), k + seed)
+            found = detectors[cam].detect(FrameAnalysis(DetFrame(image, T0 + t, k)), YELLOW)
+            reports.append(DetectionReport("r", cam, T0 + t, k, False, tuple(found)))
+        objects = fuse(reports, PAIR.get)
+        assert len(objects) == 1, (x, [o.centroid_xy for o in objects])
+        [obj] = tracker.update(objects, T0 + t)
+        ids.add(obj.track_id)
+        cameras_seen.append(obj.camera_ids)
+        assert math.dist(obj.centroid_xy, (x, 5.0)) < 0.03, (x, obj.centroid_xy)
+        if t >= 1.0:
+            velocity_errors.append(math.dist(obj.velocity_xy, (speed, 0.0)))
+    assert ids == {1}
+    # It was handed over: seen by the west camera alone, then both, then the east camera alone.
+    assert cameras_seen[0] == ("west",) and cameras_seen[-1] == ("east",)
+    assert ("east", "west") in cameras_seen
+    assert max(velocity_errors) < 0.08
+    assert math.sqrt(np.mean(np.square(velocity_errors))) < 0.03

@@ -62,6 +62,9 @@ OVERLAP_FRACTION = 0.2
 #: (sqrt of its floor area, or of its bounds' area). Two views of a raised box put its floor
 #: projection on different sides of its footprint; their centroids differ by up to about half its size.
 SIZE_ALLOWANCE = 0.5
+#: A member that saw less of an object than another member: this share of the difference of their
+#: extents is added to its sigma (half: its centroid is off by up to half of what it missed).
+PARTIAL_VIEW_SHARE = 0.5
 #: The gate's width in combined sigmas.
 GATE_SIGMAS = 3.0
 #: At most this many detections are fused per call (in camera order); the rest are dropped.
@@ -125,7 +128,7 @@ class _Group:
 
     def add(self, m: _Member) -> None:
         self.members.append(m)
-        weights = np.array([1.0 / (x.sigma * x.sigma) for x in self.members])
+        weights = 1.0 / np.square(_partial_view_sigmas(self.members))
         xy = np.array([x.det.centroid_xy for x in self.members], dtype=np.float64)
         c = weights @ xy / weights.sum()
         self.centroid = (float(c[0]), float(c[1]))
@@ -137,6 +140,21 @@ class _Group:
         else:
             self.bounds = _bounds_of(self.outline, self.bounds)
         self.extent = min(self.extent, m.extent)
+
+
+def _partial_view_sigmas(members: Sequence[_Member]) -> NDArray[np.float64]:
+    """Each member's sigma, widened when it saw less of the object than the others did.
+
+    A camera that sees only part of an object (cut by its image's edge, partly hidden) puts the
+    centroid in the middle of the part it sees: off by up to half of what it misses. The member's
+    extent (sqrt of its floor area) against the largest member's says how much that is; half the
+    difference is added in quadrature. Full views of one object differ by little, so this hardly
+    changes their weights; a sliver at an image edge counts for almost nothing.
+    """
+    sigma = np.array([m.sigma for m in members], dtype=np.float64)
+    extent = np.array([m.extent for m in members], dtype=np.float64)
+    widened: NDArray[np.float64] = np.hypot(sigma, (extent.max() - extent) * PARTIAL_VIEW_SHARE)
+    return widened
 
 
 def _bounds_of(outline: Polygon, fallback: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
@@ -274,8 +292,11 @@ def _world_object(g: _Group) -> WorldObject:
     outline = g.outline
     area = max(m.det.area_m2 for m in members) if outline.is_empty else float(outline.area)
     first = members[0].det
+    sigmas = _partial_view_sigmas(members).tolist()
     heading = _circular_mean(
-        (m.det.heading_deg, 1.0 / (m.sigma * m.sigma)) for m in members if m.det.heading_deg is not None
+        (m.det.heading_deg, 1.0 / (s * s))
+        for m, s in zip(members, sigmas, strict=True)
+        if m.det.heading_deg is not None
     )
     return WorldObject(
         track_id=0,
