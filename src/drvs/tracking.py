@@ -200,12 +200,13 @@ class Tracker:
             return []
         xy = np.array([o.centroid_xy for o in objects], dtype=np.float64)
         r = np.array([self._measurement_var(o) for o in objects], dtype=np.float64)
-        keys = [_type_key(o) for o in objects]
+        codes: dict[tuple[str, int | str], int] = {}
+        kinds = np.array([codes.setdefault(_type_key(o), len(codes)) for o in objects])
         cost = np.full((len(self._tracks), len(objects)), _UNMATCHED)
         for ti, t in enumerate(self._tracks):
-            same = np.array([k == t.key for k in keys])
-            if not same.any():
+            if t.key not in codes:
                 continue
+            same = kinds == codes[t.key]
             x, p = t.state()
             # Innovation covariance S = P_xy + r I per object; d^2 = v' S^-1 v in closed form (2 x 2).
             a, b, d = p[0, 0] + r, p[0, 1], p[1, 1] + r
@@ -225,8 +226,9 @@ class Tracker:
     def _report(self, t: _Track, now: float) -> WorldObject:
         x, p = t.state()
         cx, cy, vx, vy = (float(v) for v in x)
-        eig = np.linalg.eigvalsh(p[:2, :2])
-        sigma = math.sqrt(max(0.0, float(eig.max())))
+        # The largest eigenvalue of the 2 x 2 position covariance, in closed form.
+        a, b, d = float(p[0, 0]), float(p[0, 1]), float(p[1, 1])
+        sigma = math.sqrt(max(0.0, (a + d) / 2 + math.hypot((a - d) / 2, b)))
         speed = math.hypot(vx, vy)
         heading = math.degrees(math.atan2(vy, vx)) if speed >= MIN_HEADING_SPEED_MPS else None
         last = t.last
