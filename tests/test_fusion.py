@@ -229,6 +229,19 @@ def test_a_camera_that_failed_contributes_nothing() -> None:
     assert fuse([], CAMERAS.get) == []
 
 
+def test_of_a_cameras_several_reports_only_the_newest_counts() -> None:
+    # A continuous request: the south camera reported twice in the period (the box moved 5 cm).
+    older = DetectionReport("r1", "south", T0, 4, False, (seen("south", square(0.0, 6.0), t=T0),))
+    newer = DetectionReport("r1", "south", T0 + 0.05, 5, False, (seen("south", square(0.05, 6.0), t=T0 + 0.05),))
+    north = report("north", seen("north", square(0.05, 6.0), t=T0 + 0.04), t=T0 + 0.04)
+    failed_later = DetectionReport("r1", "south", T0 + 0.09, 6, False, error="no frame", error_code="UNAVAILABLE")
+    for reports in ([older, newer, north], [newer, north, older, failed_later]):
+        [obj] = fuse(reports, CAMERAS.get)
+        assert obj.camera_ids == ("north", "south")
+        assert obj.last_seen == T0 + 0.05
+        assert math.dist(obj.centroid_xy, (0.05, 6.0)) < 0.01
+
+
 def test_without_outlines_bounds_and_centroids_fuse() -> None:
     # A request with omit_outlines: detections carry bounds and centroids, no outline, no areas.
     truth = square(0.0, 6.0)

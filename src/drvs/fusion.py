@@ -29,9 +29,11 @@ model; in short:
   outline's area (without outlines: the largest member's). score: the best member's. last_seen:
   the newest capture time. camera_ids: sorted. marker_heading_deg: the members' headings averaged
   on the circle with the same weights. track_id: 1, 2, ... by x, then y, of the fused centroid.
-- Reports carrying an error contribute nothing (the caller reports that camera as missing); a
-  detection with non-finite coordinates is skipped (a camera's garbage must not cost the others
-  their answer).
+- A camera that saw only part of an object (at its image's edge) has its sigma widened by half
+  the extent it missed, measured against the group's largest view (`PARTIAL_VIEW_SHARE`).
+- Reports carrying an error contribute nothing (the caller reports that camera as missing); of a
+  camera's several reports only the newest counts (a camera is one view); a detection with
+  non-finite coordinates is skipped (a camera's garbage must not cost the others their answer).
 """
 
 from __future__ import annotations
@@ -50,8 +52,9 @@ from drvs.errors import InvalidArgument
 from drvs.geometry import Homography
 from drvs.model import Detection, DetectionReport, WorldObject
 
-#: The detector's 1-sigma error of an object's centroid, in image pixels: contour centroids of the
-#: HSV detector on rendered frames scatter by about a pixel; more for blurred or partly hidden blobs.
+#: The detector's 1-sigma error of an object's centroid, in image pixels. The HSV detector's contour
+#: centroids on the simulator's noisy frames are off by 0.3 px RMS; real cameras add blur, partial
+#: occlusion and their calibration's error (about a pixel), which this deliberately covers.
 PIXEL_SIGMA = 1.5
 #: Floor sigma (metres) of a detection whose camera has no homography the caller knows and whose
 #: report carries no areas to derive one from.
@@ -314,6 +317,23 @@ def _world_object(g: _Group) -> WorldObject:
     )
 
 
+def _newest_per_camera(reports: Sequence[DetectionReport]) -> list[DetectionReport]:
+    """Each camera's newest report without an error (by capture time, then sequence), by camera id.
+
+    A camera that reported twice in one period (a continuous request's reports are not aligned
+    with the server's periods) would otherwise see each object twice, and one camera's two
+    detections are never merged.
+    """
+    newest: dict[str, DetectionReport] = {}
+    for r in reports:
+        if r.error:
+            continue
+        old = newest.get(r.camera_id)
+        if old is None or (r.capture_time, r.sequence) > (old.capture_time, old.sequence):
+            newest[r.camera_id] = r
+    return [newest[c] for c in sorted(newest)]
+
+
 def fuse(
     reports: Sequence[DetectionReport],
     homography_of: Callable[[str], Homography | None],
@@ -323,9 +343,10 @@ def fuse(
     """Merge the detections of one physical object seen by several cameras into one WorldObject.
 
     reports: the camera reports of one request (or one period); reports with an error contribute
-    nothing. homography_of: camera_id -> that camera's image->floor homography, or None when
-    unknown (its precision then comes from the detection's own floor area per pixel, or
-    FALLBACK_SIGMA_M). pixel_sigma: the detector's 1-sigma centroid error in pixels.
+    nothing, and of a camera's several reports only the newest counts. homography_of: camera_id ->
+    that camera's image->floor homography, or None when unknown (its precision then comes from the
+    detection's own floor area per pixel, or FALLBACK_SIGMA_M). pixel_sigma: the detector's 1-sigma
+    centroid error in pixels.
 
     Same type only (marker_id for markers: same id merges; else label); match by outline overlap
     or centroid distance gated by the cameras' precision there; two detections of one camera never
@@ -338,9 +359,7 @@ def fuse(
     homographies: dict[str, Homography | None] = {}
     by_type: dict[tuple[str, int | str], dict[str, list[_Member]]] = {}
     count = 0
-    for report in sorted(reports, key=lambda r: r.camera_id):
-        if report.error:
-            continue
+    for report in _newest_per_camera(reports):
         cam = report.camera_id
         if cam not in homographies:
             homographies[cam] = homography_of(cam)
