@@ -350,3 +350,17 @@ def test_real_pixels_a_moving_object_handed_over_between_cameras_keeps_one_track
     assert ("east", "west") in cameras_seen
     assert max(velocity_errors) < 0.08
     assert math.sqrt(np.mean(np.square(velocity_errors))) < 0.03
+
+
+def test_large_map_coordinates_keep_their_precision() -> None:
+    # A site grid far from its origin: the filter works in double precision.
+    origin = (512_345.678, 4_123_456.789)
+    tracker = Tracker()
+    out: list[WorldObject] = []
+    for k in range(20):
+        t = k / RATE_HZ
+        out = tracker.update([seen((origin[0] + 0.5 * t, origin[1]), sigma=0.002)], T0 + t)
+    [obj] = out
+    assert obj.centroid_xy[0] == pytest.approx(origin[0] + 0.5 * 1.9, abs=0.005)
+    assert obj.centroid_xy[1] == pytest.approx(origin[1], abs=0.005)
+    assert obj.velocity_xy == pytest.approx((0.5, 0.0), abs=0.05)

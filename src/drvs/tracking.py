@@ -58,7 +58,7 @@ DEFAULT_FLOOR_SIGMA_M = 0.03
 INITIAL_SPEED_SIGMA_MPS = 1.5
 
 _UNMATCHED = 1e9
-_H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]], dtype=np.float32)
+_H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]], dtype=np.float64)
 
 
 def _type_key(o: WorldObject) -> tuple[str, int | str]:
@@ -158,12 +158,14 @@ class Tracker:
         return float(o.uncertainty_m**2 + self.floor_sigma_m**2) or 1e-6
 
     def _start(self, o: WorldObject, now: float) -> _Track:
-        kf = cv2.KalmanFilter(4, 2, 0, cv2.CV_32F)
+        # Double precision: map coordinates may be large (a site grid in the 1e5 m range), where float32
+        # would round positions to centimetres.
+        kf = cv2.KalmanFilter(4, 2, 0, cv2.CV_64F)
         kf.measurementMatrix = _H.copy()
-        kf.statePost = np.array([[o.centroid_xy[0]], [o.centroid_xy[1]], [0.0], [0.0]], dtype=np.float32)
+        kf.statePost = np.array([[o.centroid_xy[0]], [o.centroid_xy[1]], [0.0], [0.0]], dtype=np.float64)
         r = self._measurement_var(o)
         v = INITIAL_SPEED_SIGMA_MPS**2
-        kf.errorCovPost = np.diag([r, r, v, v]).astype(np.float32)
+        kf.errorCovPost = np.diag([r, r, v, v]).astype(np.float64)
         track = _Track(self._next_id, kf, _type_key(o), o, now, o.centroid_xy)
         self._next_id += 1
         return track
@@ -171,12 +173,12 @@ class Tracker:
     def _predict(self, t: _Track, dt: float) -> None:
         if dt <= 0:
             return
-        f = np.eye(4, dtype=np.float32)
+        f = np.eye(4, dtype=np.float64)
         f[0, 2] = f[1, 3] = dt
         q = self.accel_mps2**2
         # Discrete white-noise acceleration: G q G' with G = (dt^2/2, dt) per axis.
         a, b, c = dt**4 / 4 * q, dt**3 / 2 * q, dt**2 * q
-        qm = np.array([[a, 0, b, 0], [0, a, 0, b], [b, 0, c, 0], [0, b, 0, c]], dtype=np.float32)
+        qm = np.array([[a, 0, b, 0], [0, a, 0, b], [b, 0, c, 0], [0, b, 0, c]], dtype=np.float64)
         t.kf.transitionMatrix = f
         t.kf.processNoiseCov = qm
         t.kf.predict()
@@ -187,11 +189,11 @@ class Tracker:
 
     def _correct(self, t: _Track, o: WorldObject) -> None:
         r = self._measurement_var(o)
-        t.kf.measurementNoiseCov = np.diag([r, r]).astype(np.float32)
+        t.kf.measurementNoiseCov = np.diag([r, r]).astype(np.float64)
         # correct() starts from statePre/errorCovPre: the prediction (or the state when dt was 0).
         t.kf.statePre = t.kf.statePost.copy()
         t.kf.errorCovPre = t.kf.errorCovPost.copy()
-        t.kf.correct(np.array([[o.centroid_xy[0]], [o.centroid_xy[1]]], dtype=np.float32))
+        t.kf.correct(np.array([[o.centroid_xy[0]], [o.centroid_xy[1]]], dtype=np.float64))
 
     def _associate(self, objects: Sequence[WorldObject]) -> list[tuple[int, int]]:
         """(track index, object index) pairs: the assignment minimising the summed squared
