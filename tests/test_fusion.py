@@ -9,6 +9,8 @@ import math
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from numpy.typing import NDArray
 from shapely.geometry import Point, Polygon
 from shapely.geometry import box as floor_box
@@ -423,3 +425,38 @@ def test_real_pixels_from_the_simulators_renderer_boxes_and_markers() -> None:
         assert math.dist(o.centroid_xy, truth_markers[o.marker_id]) < 0.03
     three = next(o for o in fused_markers if o.marker_id == 3)
     assert three.marker_heading_deg is not None and abs(three.marker_heading_deg - 30.0) < 3.0
+
+
+# --- properties over random scenes ---------------------------------------------------------------
+
+spots = st.lists(
+    st.tuples(st.floats(-2.5, 2.5), st.floats(3.0, 9.0), st.floats(0.1, 0.6), st.sampled_from(["", "person"])),
+    min_size=0,
+    max_size=8,
+)
+shifts = st.tuples(st.floats(-2.0, 2.0), st.floats(-2.0, 2.0))
+
+
+@settings(max_examples=60, deadline=None)
+@given(scene=spots, seen_by=st.lists(st.sampled_from(["south", "north", "both"]), min_size=8, max_size=8), shift=shifts)
+def test_every_detection_lands_in_exactly_one_object(
+    scene: list[tuple[float, float, float, str]], seen_by: list[str], shift: tuple[float, float]
+) -> None:
+    """Whatever the scene (objects anywhere, overlapping or not, of two labels): each detection is
+    in exactly one object, no object holds two of one camera's, labels never mix, ids are 1..N."""
+    per_camera: dict[str, list[Detection]] = {"south": [], "north": []}
+    for (x, y, side, label), who in zip(scene, seen_by, strict=False):
+        for cam in ("south", "north") if who == "both" else (who,):
+            per_camera[cam].append(seen(cam, square(x, y, side), shift_px=shift, label=label))
+    objects = fuse([report(c, *ds) for c, ds in per_camera.items()], CAMERAS.get)
+    assert sum(len(o.camera_ids) for o in objects) == sum(len(ds) for ds in per_camera.values())
+    assert all(len(set(o.camera_ids)) == len(o.camera_ids) for o in objects)
+    assert max(len(ds) for ds in per_camera.values()) <= len(objects) <= sum(len(ds) for ds in per_camera.values())
+    assert [o.track_id for o in objects] == list(range(1, len(objects) + 1))
+    for label in ("", "person"):
+        assert sum(1 for o in objects for _ in o.camera_ids if o.label == label) == sum(
+            1 for ds in per_camera.values() for d in ds if d.label == label
+        )
+    for o in objects:
+        assert math.isfinite(o.uncertainty_m) and o.uncertainty_m > 0
+        assert o.outline.is_valid and not o.outline.is_empty
