@@ -13,6 +13,8 @@ from dataclasses import replace
 import cv2
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 from numpy.typing import NDArray
 from shapely.geometry import box as floor_box
 
@@ -364,3 +366,40 @@ def test_large_map_coordinates_keep_their_precision() -> None:
     assert obj.centroid_xy[0] == pytest.approx(origin[0] + 0.5 * 1.9, abs=0.005)
     assert obj.centroid_xy[1] == pytest.approx(origin[1], abs=0.005)
     assert obj.velocity_xy == pytest.approx((0.5, 0.0), abs=0.05)
+
+
+periods = st.lists(
+    st.tuples(
+        st.floats(-0.3, 0.5),  # time step, backwards too
+        st.lists(
+            st.tuples(st.floats(-5, 5), st.floats(-5, 5), st.sampled_from([None, 1, 2]), st.floats(0, 0.2)), max_size=6
+        ),
+    ),
+    max_size=25,
+)
+
+
+@settings(max_examples=60, deadline=None)
+@given(steps=periods)
+def test_any_sequence_of_periods_gives_consistent_tracks(
+    steps: list[tuple[float, list[tuple[float, float, int | None, float]]]],
+) -> None:
+    """Whatever arrives (objects anywhere, markers, time going back): distinct ids that are never
+    reused, finite values, at most max_tracks tracks, an object per track that was seen this period."""
+    tracker = Tracker(drop_after_s=0.6, max_tracks=8)
+    at = T0
+    retired: set[int] = set()
+    alive: set[int] = set()
+    for step, found in steps:
+        at += step
+        objects = [seen((x, y), marker_id=m, sigma=s) for x, y, m, s in found]
+        out = tracker.update(objects, at)
+        ids = [o.track_id for o in out]
+        assert len(ids) == len(set(ids)) <= 8
+        assert not retired & set(ids)
+        retired |= alive - set(ids)
+        alive = set(ids)
+        assert sum(1 for o in out if o.camera_ids) <= len(objects)
+        for o in out:
+            assert all(math.isfinite(v) for v in (*o.centroid_xy, *o.velocity_xy, o.uncertainty_m))
+            assert o.uncertainty_m > 0

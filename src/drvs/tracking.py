@@ -138,17 +138,21 @@ class Tracker:
         for t in self._tracks:
             self._predict(t, dt)
         seen: set[int] = set()
+        matched: set[int] = set()
         for ti, oi in self._associate(objects):
             t, o = self._tracks[ti], objects[oi]
             self._correct(t, o)
             t.last, t.seen_at, t.seen_xy = o, now, o.centroid_xy
             seen.add(oi)
+            matched.add(t.track_id)
         fresh = sorted((i for i in range(len(objects)) if i not in seen), key=lambda i: -objects[i].score)
         for oi in fresh:
             if len(self._tracks) >= self.max_tracks:
                 break
-            self._tracks.append(self._start(objects[oi], now))
-        out = [self._report(t, now) for t in self._tracks]
+            track = self._start(objects[oi], now)
+            self._tracks.append(track)
+            matched.add(track.track_id)
+        out = [self._report(t, t.track_id in matched) for t in self._tracks]
         out.sort(key=lambda o: o.track_id)
         return out
 
@@ -225,7 +229,7 @@ class Tracker:
         rows, cols = linear_sum_assignment(cost)
         return [(r_, c) for r_, c in zip(rows.tolist(), cols.tolist(), strict=True) if cost[r_, c] < _UNMATCHED]
 
-    def _report(self, t: _Track, now: float) -> WorldObject:
+    def _report(self, t: _Track, seen_now: bool) -> WorldObject:
         x, p = t.state()
         cx, cy, vx, vy = (float(v) for v in x)
         # The largest eigenvalue of the 2 x 2 position covariance, in closed form.
@@ -237,7 +241,6 @@ class Tracker:
         dx, dy = cx - t.seen_xy[0], cy - t.seen_xy[1]
         outline = last.outline if last.outline.is_empty else affinity.translate(last.outline, dx, dy)
         x0, y0, x1, y1 = last.bounds
-        seen_now = t.seen_at == now
         return replace(
             last,
             track_id=t.track_id,
