@@ -24,18 +24,21 @@ import pytest_asyncio
 from drvs_bench.fakes import AckingCamera, serve_camera
 from grpc import aio
 
+from drvs.camera.node import CameraNode
+from drvs.camera.source import VideoSource
 from drvs.certs import make_all
+from drvs.errors import FailedPrecondition
 from drvs.filters import HsvRange
-from drvs.geometry import homography_from_pose
+from drvs.geometry import box_region, homography_from_pose
 from drvs.launch import ManagedProcess, start_server
+from drvs.model import DetectionRequest
 from drvs.report_auth import KEY_BYTES
+from drvs.server import DrvsServer
 from drvs.sim.scene import FloorPatch, RecordedCamera, record_camera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2_grpc
 
 from .fakes import start_recorded_camera
 from .helpers import IMAGE_SIZE, YELLOW, metrics_port, register_message, scrape
-
-pytestmark = pytest.mark.slow
 
 #: Two cameras 3 m apart, both 3 m up looking along +y: at y = 4.5 "left" sees x -4.6..1.6 and
 #: "right" x -1.6..4.6. SHARED lies where both see it, LONE where only left does.
@@ -163,6 +166,7 @@ def stopped(proc: ManagedProcess) -> Iterator[None]:
         proc.process.send_signal(signal.SIGCONT)
 
 
+@pytest.mark.slow
 async def test_two_overlapping_cameras_seeing_one_box_give_one_object(office: Scene) -> None:
     """A fused single shot: one reply naming both cameras, whose snapshot holds ONE object for the
     disc both cameras see (with both camera ids) and one for the disc only left sees. The same on
@@ -187,6 +191,7 @@ async def test_two_overlapping_cameras_seeing_one_box_give_one_object(office: Sc
         assert len(shared.outline_xy) >= 6 and shared.last_seen.ToNanoseconds() > 0
 
 
+@pytest.mark.slow
 async def test_continuous_fused_request_tracks_at_its_rate_and_ends_final(office: Scene) -> None:
     """5 Hz for 2 s: the first reply at once without a snapshot, then 11 snapshots (one per report
     time) about 0.2 s apart, numbered 0..10, the last final, each with both objects under the same
@@ -213,6 +218,7 @@ async def test_continuous_fused_request_tracks_at_its_rate_and_ends_final(office
     assert len(set(ids)) == 1, ids  # stable track ids
 
 
+@pytest.mark.slow
 async def test_a_camera_killed_mid_request_is_missing_and_holds_back_nobody(office: Scene) -> None:
     """Right is killed during a continuous request: the snapshots go on at the rate with left's
     objects, and name right as missing (DEADLINE_EXCEEDED) once it has been silent beyond the
@@ -235,6 +241,7 @@ async def test_a_camera_killed_mid_request_is_missing_and_holds_back_nobody(offi
         assert list(shared.camera_ids) == ["left"]
 
 
+@pytest.mark.slow
 async def test_a_frozen_camera_does_not_hold_a_single_shot_beyond_its_deadline(
     overlap: dict[str, RecordedCamera],
 ) -> None:
@@ -259,6 +266,7 @@ async def test_a_frozen_camera_does_not_hold_a_single_shot_beyond_its_deadline(
     assert list(reply.snapshot.camera_ids) == ["left"] and len(reply.snapshot.objects) == 2
 
 
+@pytest.mark.slow
 async def test_a_waiting_fused_single_shot_does_not_delay_later_replies(office: Scene) -> None:
     """With right frozen, a fused single shot waits for its deadline; a per-camera request sent
     after it on the same stream is answered first, and the fused answer follows."""
@@ -282,6 +290,45 @@ async def test_a_waiting_fused_single_shot_does_not_delay_later_replies(office: 
     assert "right" in missing(second.snapshot) and near(second.snapshot.objects, LONE)
 
 
+async def dropped_at_least(ports: dict[str, int], count: int) -> None:
+    """Until every camera has dropped `count` reports of a request its server cancelled (at most 10 s)."""
+    name = 'drvs_reports_sent_total{outcome="dropped"}'
+    deadline = time.monotonic() + 10
+    while True:
+        values = {c: (await scrape(port)).get(name, 0.0) for c, port in ports.items()}
+        if all(v >= count for v in values.values()):
+            return
+        assert time.monotonic() < deadline, f"cameras dropped {values}, not {count} each, within 10 s"
+        await asyncio.sleep(0.1)  # polling the cameras' metrics, not waiting for anything to happen
+
+
+@pytest.mark.slow
+async def test_cameras_stop_when_the_robot_cancels_or_its_stream_ends(overlap: dict[str, RecordedCamera]) -> None:
+    """Two 30 s continuous fused requests: the robot cancels the first on its stream, and no
+    snapshot of it follows the cancel's reply; then it closes the stream with the second running.
+    Each time, the server tells both cameras to stop (each drops its next report of the request and
+    ends it), rather than letting them report for 30 s."""
+    async with scene(overlap, camera_args=("--metrics-port", "0")) as running:
+        ports = {camera_id: metrics_port(proc) for camera_id, proc in running.cameras.items()}
+        async with aio.insecure_channel(running.address) as channel:
+            call = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
+            await call.write(fused("a", rate_hz=5, duration_s=30))
+            await read(call)
+            await read(call)
+            await read(call)
+            await call.write(detection_pb2.DetectionRequest(request_id="a", cancel=True))
+            while (reply := await read(call)).HasField("snapshot"):
+                assert reply.request_id == "a"
+            assert reply.request_id == "a"  # the cancel's own reply
+            await dropped_at_least(ports, 1)
+            await call.write(fused("b", rate_hz=5, duration_s=30))
+            assert (await read(call)).request_id == "b"  # nothing more of a
+            assert (await read(call)).snapshot.sequence == 0
+            call.cancel()
+            await dropped_at_least(ports, 2)
+
+
+@pytest.mark.slow
 async def test_a_robot_may_not_ask_cameras_to_report_to_the_server(office: Scene) -> None:
     """report_to_server is the server's to set on its forwards: a robot's request with it is
     refused, on DetectObjects and on a stream (where the stream goes on); and a continuous fused
@@ -339,6 +386,7 @@ def forged(request_id: str, camera_id: str, xy: tuple[float, float], key: bytes 
     )
 
 
+@pytest.mark.slow
 async def test_injected_reports_do_not_count(office: Scene) -> None:
     """evil, a registered camera far away, is dispatched a fused single shot of its own and so holds
     a valid key, for that request. Into a continuous fused request dispatched to left and right it
@@ -406,6 +454,7 @@ def tls_args(certs: Path, role: str) -> tuple[str, ...]:
             "--tls-ca", str(certs / "ca.pem"), "--tls-client-auth")  # fmt: skip
 
 
+@pytest.mark.slow
 async def test_with_tokens_only_cameras_report_to_the_server(
     overlap: dict[str, RecordedCamera], tmp_path: Path
 ) -> None:
@@ -426,6 +475,7 @@ async def test_with_tokens_only_cameras_report_to_the_server(
     assert code == grpc.StatusCode.UNAUTHENTICATED and "needs a valid camera token" in details
 
 
+@pytest.mark.slow
 async def test_with_mutual_tls_only_camera_certificates_report_to_the_server(
     overlap: dict[str, RecordedCamera], certs: Path
 ) -> None:
@@ -457,3 +507,58 @@ async def _report_as(channel: aio.Channel, metadata: tuple[tuple[str, str], ...]
         async for _ in call:
             pass
     return await call.code(), await call.details() or ""
+
+
+async def test_a_camera_counts_fused_continuous_requests_per_robot(overlap: dict[str, RecordedCamera]) -> None:
+    """A camera's per-robot cap on continuous requests counts fused ones by the robot's id (they
+    all report to the server): with a cap of one, robot r's second is refused there, and the
+    refusal is in that request's snapshot; robot q's is taken."""
+    rec = overlap["left"]
+    async with DrvsServer("127.0.0.1:0") as server:
+        node = CameraNode(
+            "left", VideoSource(str(rec.video)), rec.homography, server.address, max_range_m=6.0, max_continuous=1
+        )
+        async with node, aio.insecure_channel(server.address) as channel:
+            await asyncio.wait_for(node.registered.wait(), 10)
+            call = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
+            await call.write(fused("a", LEFT_ONLY, rate_hz=2, duration_s=5))
+            assert list((await read(call)).camera_ids) == ["left"]
+            await call.write(fused("b", LEFT_ONLY, rate_hz=2, duration_s=5))
+            assert list((await read(call)).camera_ids) == ["left"]
+            other = fused("c", LEFT_ONLY, rate_hz=2, duration_s=5)
+            other.robot_id = "q"
+            await call.write(other)
+            assert list((await read(call)).camera_ids) == ["left"]
+            refused = None
+            while refused is None:
+                reply = await read(call)
+                if reply.request_id == "b":
+                    refused = reply.snapshot
+            assert node.continuous_running(("server", "r")) == 1
+            assert node.continuous_running(("server", "q")) == 1
+            call.cancel()
+    [why] = refused.missing_cameras
+    assert why.camera_id == "left" and why.code == "RESOURCE_EXHAUSTED"
+    assert "running for robot 'r' (fused, via the server)" in why.message, why.message
+
+
+async def test_a_camera_without_its_server_refuses_to_report_to_it(overlap: dict[str, RecordedCamera]) -> None:
+    """A camera that is not registered with a server (none answers at its address) has nowhere to
+    send a fused request's reports: it refuses the request (FAILED_PRECONDITION) and runs nothing."""
+    rec = overlap["left"]
+    node = CameraNode("left", VideoSource(str(rec.video)), rec.homography, "127.0.0.1:1", max_range_m=6.0)
+    async with node:
+        request = DetectionRequest(
+            request_id="x",
+            robot_id="r",
+            filter_def=YELLOW,
+            region=box_region(*LEFT_ONLY),
+            callback_address="",
+            report_to_server=True,
+        )
+        with pytest.raises(FailedPrecondition) as err:
+            node.accept(request)
+        assert not node._jobs
+    assert str(err.value) == (
+        "report_to_server: camera left is not registered with its server (127.0.0.1:1), so it has nowhere to report"
+    )
