@@ -34,6 +34,7 @@ from drvs.launch import ManagedProcess, start_server
 from drvs.model import DetectionRequest
 from drvs.report_auth import KEY_BYTES
 from drvs.server import DrvsServer
+from drvs.server import server as server_module
 from drvs.sim.scene import FloorPatch, RecordedCamera, record_camera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2_grpc
 
@@ -247,7 +248,7 @@ async def test_a_frozen_camera_does_not_hold_a_single_shot_beyond_its_deadline(
 ) -> None:
     """Right is frozen (SIGSTOP): a fused single shot with a 1 s deadline answers with left's
     objects and names right missing (DEADLINE_EXCEEDED), long before right's forward would time out
-    (10 s here)."""
+    (10 s here). Its report, once it is thawed, counts as late."""
     async with (
         scene(overlap, server_args=("--forward-timeout", "10")) as slow,
         aio.insecure_channel(slow.address) as channel,
@@ -261,6 +262,9 @@ async def test_a_frozen_camera_does_not_hold_a_single_shot_beyond_its_deadline(
             started = time.monotonic()
             reply = await stub.DetectObjects(fused("frozen", deadline_s=1.0), timeout=20)
             took = time.monotonic() - started
+        # Thawed, right takes the request and reports: late, which is not a forgery.
+        values = await metric_at_least(slow.server, 'drvs_fusion_reports_total{outcome="late"}', 1)
+        assert values.get('drvs_fusion_reports_total{outcome="rejected"}', 0.0) == 0.0
     assert took < 5.0, took  # the deadline, not the forward timeout
     assert missing(reply.snapshot) == {"right": "DEADLINE_EXCEEDED"}, reply.snapshot.missing_cameras
     assert list(reply.snapshot.camera_ids) == ["left"] and len(reply.snapshot.objects) == 2
@@ -288,6 +292,16 @@ async def test_a_waiting_fused_single_shot_does_not_delay_later_replies(office: 
     assert first.request_id == "later" and list(first.camera_ids) == ["left"] and not first.HasField("snapshot")
     assert second.request_id == "slow" and second.snapshot.final
     assert "right" in missing(second.snapshot) and near(second.snapshot.objects, LONE)
+
+
+async def metric_at_least(proc: ManagedProcess, name: str, value: float) -> dict[str, float]:
+    """The process's metrics once `name` has reached `value` (at most 10 s)."""
+    port = metrics_port(proc)
+    deadline = time.monotonic() + 10
+    while (values := await scrape(port)).get(name, 0.0) < value:
+        assert time.monotonic() < deadline, f"{name} is {values.get(name)}, not {value}, after 10 s"
+        await asyncio.sleep(0.1)  # polling the metrics, not waiting for anything to happen
+    return values
 
 
 async def dropped_at_least(ports: dict[str, int], count: int) -> None:
@@ -562,3 +576,45 @@ async def test_a_camera_without_its_server_refuses_to_report_to_it(overlap: dict
     assert str(err.value) == (
         "report_to_server: camera left is not registered with its server (127.0.0.1:1), so it has nowhere to report"
     )
+
+
+async def test_fused_requests_are_bounded_and_end_with_their_stream(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A camera that never reports keeps fused single shots waiting: a second fused request with the
+    same id on the stream is refused, so is one past the stream's waiting single shots and one past
+    the server's sessions; the refusals hold nothing. When the robot's stream ends, its session
+    ends: nothing is left in flight."""
+    monkeypatch.setattr(server_module, "MAX_FUSED_WAITING_PER_STREAM", 2)
+    quiet = _CapturingCamera()
+    quiet_server, quiet_address = await serve_camera(quiet)
+    try:
+        async with DrvsServer("127.0.0.1:0") as server, aio.insecure_channel(server.address) as channel:
+            await registry_pb2_grpc.RegisterVisionServiceStub(channel).Register(
+                register_message("quiet", address=quiet_address)
+            )
+            region = (-1.0, 2.0, 1.0, 5.0)
+            call = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
+            await call.write(fused("a", region, deadline_s=30))
+            await call.write(fused("a", region, deadline_s=30))
+            assert (await asyncio.wait_for(call.read(), 10)).error.message == (
+                "request_id: 'a' is already a fused request in flight on this stream"
+            )
+            await call.write(fused("b", region, deadline_s=30))
+            await call.write(fused("c", region, deadline_s=30))
+            refused = await asyncio.wait_for(call.read(), 10)
+            assert refused.request_id == "c" and refused.error.code == "RESOURCE_EXHAUSTED"
+            assert refused.error.message.startswith("fusion: 2 fused single shots already waiting")
+            server.fusion.max_sessions = 2
+            other = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
+            await other.write(fused("d", region, deadline_s=30))
+            refused = await asyncio.wait_for(other.read(), 10)
+            assert refused.error.code == "RESOURCE_EXHAUSTED"
+            assert refused.error.message.startswith("fusion: 2 fused requests already in flight on this server")
+            assert server.fusion.count == 2 and len(server.limits._active) == 0
+            call.cancel()
+            other.cancel()
+            deadline = time.monotonic() + 10
+            while server.fusion.count:
+                assert time.monotonic() < deadline, server.fusion.count
+                await asyncio.sleep(0.05)  # polling the server's state
+    finally:
+        await quiet_server.stop(0)

@@ -51,6 +51,9 @@ MAX_SESSIONS = 4096
 MAX_VERIFIED = 4096
 #: Request ids waiting to be written back to a camera as cancelled.
 MAX_CANCELS = 4096
+#: Ended sessions remembered, so that a camera's report that comes after its request ended counts as
+#: late, not as a forgery.
+MAX_ENDED = 1024
 
 HomographyOf = Callable[[str], Homography | None]
 
@@ -156,6 +159,7 @@ class FusionSession:
         if self.ended:
             return
         self.ended = True
+        self._forget()
         for camera_id, stream in self._streams.items():
             if camera_id not in self._finished:
                 stream.cancel(self.request_id)
@@ -164,6 +168,9 @@ class FusionSession:
             self._settled = True
             self._delivery.abandon()
         self._on_end(self)
+
+    def _forget(self) -> None:
+        """Drop what the session gathered: an ended one is remembered only by its keys."""
 
     def _missing(self, extra: Sequence[CameraError] = ()) -> tuple[CameraError, ...]:
         failed = [self._failed[c] for c in self.cameras if c in self._failed]
@@ -251,6 +258,9 @@ class SingleShot(FusionSession):
         if self._timer is not None:
             self._timer.cancel()
         super()._close()
+
+    def _forget(self) -> None:
+        self._reports.clear()
 
 
 class Continuous(FusionSession):
@@ -370,6 +380,9 @@ class Continuous(FusionSession):
             task.cancel()
         super()._close()
 
+    def _forget(self) -> None:
+        self._fresh.clear()
+
 
 class FusionSessions:
     """The fused requests in flight in one server, by request id (ids are the robots' own, so two
@@ -378,6 +391,7 @@ class FusionSessions:
     def __init__(self, max_sessions: int = MAX_SESSIONS) -> None:
         self.max_sessions = max_sessions
         self._by_id: dict[str, list[FusionSession]] = {}
+        self._ended: OrderedDict[FusionSession, None] = OrderedDict()
         self.count = 0
 
     def check_room(self) -> None:
@@ -399,6 +413,9 @@ class FusionSessions:
         sessions.remove(session)
         if not sessions:
             del self._by_id[session.request_id]
+        self._ended[session] = None
+        while len(self._ended) > MAX_ENDED:
+            self._ended.popitem(last=False)
         self.count -= 1
         metrics.FUSION_SESSIONS.set(self.count)
 
@@ -406,6 +423,13 @@ class FusionSessions:
         """The session in flight whose key for `camera_id` is `key`."""
         for session in self._by_id.get(request_id, ()):
             if session.accepts(camera_id, key):
+                return session
+        return None
+
+    def find_ended(self, request_id: str, camera_id: str, key: bytes) -> FusionSession | None:
+        """A recently ended session whose key for `camera_id` is `key`: its report is late."""
+        for session in reversed(self._ended):
+            if session.request_id == request_id and session.accepts(camera_id, key):
                 return session
         return None
 
@@ -436,7 +460,9 @@ class ReportIntake:
         pair = (message.request_id, message.camera_id)
         session: FusionSession | None = None
         if message.report_key:
-            session = self._sessions.find(message.request_id, message.camera_id, message.report_key)
+            key = message.report_key
+            session = self._sessions.find(message.request_id, message.camera_id, key)
+            session = session or self._sessions.find_ended(message.request_id, message.camera_id, key)
             if session is not None:
                 self._verified[pair] = session
                 while len(self._verified) > MAX_VERIFIED:
