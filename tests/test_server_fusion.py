@@ -178,7 +178,12 @@ async def test_two_overlapping_cameras_seeing_one_box_give_one_object(office: Sc
         await call.write(fused("one"))
         reply = await read(call)
         unary = await stub.DetectObjects(fused("two"), timeout=20)
+        bare = fused("three")
+        bare.omit_outlines = True
+        lean = await stub.DetectObjects(bare, timeout=20)
         call.cancel()
+    # A robot that asks for no outlines gets none, and the same two objects.
+    assert len(lean.snapshot.objects) == 2 and all(not o.outline_xy for o in lean.snapshot.objects)
     for answer in (reply, unary):
         assert sorted(answer.camera_ids) == ["left", "right"]
         snapshot = answer.snapshot
