@@ -424,6 +424,10 @@ async def test_injected_reports_do_not_count(office: Scene) -> None:
             await call.write(fused("lure", (17.0, 2.0, 23.0, 6.0), deadline_s=20))
             lure = await asyncio.wait_for(evil.requests.get(), 10)
             assert lure.report_to_server and not lure.callback_address and not lure.HasField("fusion")
+            # Forwarded under an id unique in the server; the next fused request's is easily guessed.
+            prefix, _, number = lure.request_id.rpartition(":")
+            assert prefix == "lure"
+            victim_id = f"victim:{int(number, 16) + 1:x}"
             key = lure.report_key
             assert len(key) == KEY_BYTES
             await call.write(fused("victim", rate_hz=4, duration_s=2.5))
@@ -432,10 +436,10 @@ async def test_injected_reports_do_not_count(office: Scene) -> None:
             fake = (0.5, 3.0)
             reports = detection_pb2_grpc.CallbackCoordinatesStub(channel).ReportDetections()
             for message in (
-                forged("victim", "left", fake, key),
-                forged("victim", "evil", fake, key),
-                forged("victim", "left", fake, secrets.token_bytes(KEY_BYTES)),
-                forged("victim", "left", fake),
+                forged(victim_id, "left", fake, key),
+                forged(victim_id, "evil", fake, key),
+                forged(victim_id, "left", fake, secrets.token_bytes(KEY_BYTES)),
+                forged(victim_id, "left", fake),
             ):
                 await reports.write(message)
             cancelled: list[str] = []
@@ -443,13 +447,13 @@ async def test_injected_reports_do_not_count(office: Scene) -> None:
                 control = await asyncio.wait_for(reports.read(), 10)
                 assert control is not aio.EOF
                 cancelled.extend(control.cancelled_request_ids)
-            await reports.write(forged("lure", "evil", (21.0, 4.0), key))
+            await reports.write(forged(lure.request_id, "evil", (21.0, 4.0), key))
             replies = [await read(call) for _ in range(12)]
             await reports.done_writing()
             call.cancel()
     finally:
         await evil_server.stop(0)
-    assert cancelled == ["victim"] * 4
+    assert cancelled == [victim_id] * 4
     victim = [r.snapshot for r in replies if r.request_id == "victim"]
     assert len(victim) == 11 and victim[-1].final
     assert all(not near(s.objects, fake, 0.3) for s in victim)

@@ -82,10 +82,13 @@ class FusionSession:
         delivery: Delivery,
         on_end: Callable[[FusionSession], None],
         missing: Sequence[CameraError] = (),
+        forward_id: str = "",
     ) -> None:
         assert request.fusion is not None
         self.request = request
         self.request_id = request.request_id
+        #: The id the cameras know the request by (unique in the server: robots choose theirs).
+        self.forward_id = forward_id or request.request_id
         self.options = request.fusion
         self.cameras = tuple(cameras)
         self.keys = keys
@@ -162,7 +165,7 @@ class FusionSession:
         self._forget()
         for camera_id, stream in self._streams.items():
             if camera_id not in self._finished:
-                stream.cancel(self.request_id)
+                stream.cancel(self.forward_id)
         self._streams.clear()
         if not self._settled:
             self._settled = True
@@ -385,8 +388,8 @@ class Continuous(FusionSession):
 
 
 class FusionSessions:
-    """The fused requests in flight in one server, by request id (ids are the robots' own, so two
-    robots may use one: the key a report presents tells their sessions apart)."""
+    """The fused requests in flight in one server, by the id they were forwarded with (unique in the
+    server); the key a report presents proves the camera was dispatched the request."""
 
     def __init__(self, max_sessions: int = MAX_SESSIONS) -> None:
         self.max_sessions = max_sessions
@@ -402,17 +405,17 @@ class FusionSessions:
             )
 
     def add(self, session: FusionSession) -> None:
-        self._by_id.setdefault(session.request_id, []).append(session)
+        self._by_id.setdefault(session.forward_id, []).append(session)
         self.count += 1
         metrics.FUSION_SESSIONS.set(self.count)
 
     def remove(self, session: FusionSession) -> None:
-        sessions = self._by_id.get(session.request_id)
+        sessions = self._by_id.get(session.forward_id)
         if sessions is None or session not in sessions:
             return
         sessions.remove(session)
         if not sessions:
-            del self._by_id[session.request_id]
+            del self._by_id[session.forward_id]
         self._ended[session] = None
         while len(self._ended) > MAX_ENDED:
             self._ended.popitem(last=False)
@@ -420,7 +423,7 @@ class FusionSessions:
         metrics.FUSION_SESSIONS.set(self.count)
 
     def find(self, request_id: str, camera_id: str, key: bytes) -> FusionSession | None:
-        """The session in flight whose key for `camera_id` is `key`."""
+        """The session in flight forwarded as `request_id` whose key for `camera_id` is `key`."""
         for session in self._by_id.get(request_id, ()):
             if session.accepts(camera_id, key):
                 return session
@@ -429,7 +432,7 @@ class FusionSessions:
     def find_ended(self, request_id: str, camera_id: str, key: bytes) -> FusionSession | None:
         """A recently ended session whose key for `camera_id` is `key`: its report is late."""
         for session in reversed(self._ended):
-            if session.request_id == request_id and session.accepts(camera_id, key):
+            if session.forward_id == request_id and session.accepts(camera_id, key):
                 return session
         return None
 
