@@ -627,3 +627,44 @@ async def test_fused_requests_are_bounded_and_end_with_their_stream(monkeypatch:
                 await asyncio.sleep(0.05)  # polling the server's state
     finally:
         await quiet_server.stop(0)
+
+
+def crowd(request_id: str, camera_id: str, key: bytes, count: int) -> detection_pb2.DetectionReport:
+    """A final report of `count` small objects 1 m apart on a grid."""
+    report = forged(request_id, camera_id, (0.0, 0.0), key)
+    del report.detections[:]
+    for i in range(count):
+        x, y = float(i % 16), float(i // 16)
+        report.detections.add(
+            bounds=geometry_pb2.FloorBox(x_lower=x - 0.1, y_lower=y - 0.1, x_upper=x + 0.1, y_upper=y + 0.1),
+            centroid=geometry_pb2.FloorPoint(x=x, y=y),
+            ground_contact=geometry_pb2.FloorPoint(x=x, y=y - 0.1),
+        )
+    return report
+
+
+async def test_a_crowded_report_is_fused_aside_and_capped() -> None:
+    """A camera reporting 20 objects (more than are fused on the event loop) gets them fused in a
+    worker thread: 20 objects in the answer. One reporting 200 has the first 128 fused."""
+    quiet = _CapturingCamera()
+    quiet_server, quiet_address = await serve_camera(quiet)
+    try:
+        async with DrvsServer("127.0.0.1:0") as server, aio.insecure_channel(server.address) as channel:
+            await registry_pb2_grpc.RegisterVisionServiceStub(channel).Register(
+                register_message("quiet", address=quiet_address)
+            )
+            stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
+            counts = []
+            for count in (20, 200):
+                answer = asyncio.ensure_future(
+                    stub.DetectObjects(fused(f"n{count}", (-1.0, 2.0, 1.0, 5.0)), timeout=20)
+                )
+                forwarded = await asyncio.wait_for(quiet.requests.get(), 10)
+                reports = detection_pb2_grpc.CallbackCoordinatesStub(channel).ReportDetections()
+                await reports.write(crowd(forwarded.request_id, "quiet", forwarded.report_key, count))
+                reply = await answer
+                await reports.done_writing()
+                counts.append(len(reply.snapshot.objects))
+    finally:
+        await quiet_server.stop(0)
+    assert counts == [20, 128]
