@@ -78,10 +78,11 @@ render: {noise_sigma: 3, lighting: 0.08, floor_texture: 10}
 #: coordinate of the position (m). A camera 3 m up that is 0.2 degrees off in pitch misplaces a
 #: point 5 m away by about 4 cm; the two cameras' errors differ, as two calibrations' do.
 CALIBRATION_ERROR = (0.2, 0.02)
-#: Accuracy: placements per round (each a few discs at once) and discs per placement.
+#: Accuracy: placements per round, and discs per placement wholly inside both views (each
+#: placement has one more disc, across one view's edge: place_edge_disc).
 FULL_PLACEMENTS = 40
 QUICK_PLACEMENTS = 8
-DISCS_PER_PLACEMENT = 3
+INSIDE_DISCS = 2
 #: Disc radii (m), and the least gap between two discs' edges (m): close, but apart.
 RADIUS_RANGE = (0.15, 0.3)
 MIN_GAP_M = 0.3
@@ -108,6 +109,8 @@ TARGETS: dict[str, tuple[float, bool]] = {
     "accuracy_missed": (0.0, False),
     "accuracy_miscalibrated_duplicates": (0.0, False),
     "accuracy_miscalibrated_missed": (0.0, False),
+    "accuracy_edge_duplicates": (0.0, False),
+    "accuracy_miscalibrated_edge_duplicates": (0.0, False),
     "tracking_id_switches": (0.0, False),
     "tracking_fragmentations": (0.0, False),
     # The fused error is never worse than the worse camera's, disc by disc (a fraction of discs).
@@ -234,20 +237,42 @@ def _near(truths: Sequence[tuple[float, float]], point: tuple[float, float]) -> 
     return k, dists[k]
 
 
-def place_discs(rng: np.random.Generator, area: Polygon, count: int) -> list[Disc]:
-    """`count` discs of random radius wholly inside `area`, at least MIN_GAP_M apart (edge to edge)."""
-    x0, y0, x1, y1 = area.bounds
+def place_discs(rng: np.random.Generator, area: Polygon, count: int, others: Sequence[Disc] = ()) -> list[Disc]:
+    """`count` discs of random radius wholly inside `area` (0.2 m in from its edge: a miscalibrated
+    view's edges move), at least MIN_GAP_M apart (edge to edge) from each other and from `others`."""
     discs: list[Disc] = []
     for _ in range(10_000):
         if len(discs) == count:
             return discs
-        radius = float(rng.uniform(*RADIUS_RANGE))
-        xy = (float(rng.uniform(x0, x1)), float(rng.uniform(y0, y1)))
-        if not Point(xy).buffer(radius + 0.2).within(area):  # 0.2 m: a miscalibrated view moves its edges
-            continue
-        if all(math.dist(xy, d.xy) >= radius + d.radius + MIN_GAP_M for d in discs):
-            discs.append(Disc(xy, radius))
-    raise RuntimeError(f"could not place {count} discs in the overlap ({area.area:.1f} m²)")
+        disc = _random_disc(rng, area.bounds)
+        if disc.shape.buffer(0.2).within(area) and _apart(disc, [*others, *discs]):
+            discs.append(disc)
+    raise RuntimeError(f"could not place {count} discs in {area.area:.1f} m²")
+
+
+def place_edge_disc(rng: np.random.Generator, fovs: Sequence[Polygon], others: Sequence[Disc]) -> Disc:
+    """A disc wholly in one camera's view (0.2 m in from its edge) and across the other's edge, a
+    quarter to three quarters of it inside: the second camera sees only part of it (its blob is cut
+    at the image's edge or the view's range), as when an object is handed over between cameras."""
+    x0, y0, x1, y1 = fovs[0].union(fovs[1]).bounds
+    for _ in range(20_000):
+        disc = _random_disc(rng, (x0, y0, x1, y1))
+        shape = disc.shape
+        for whole, part in ((fovs[0], fovs[1]), (fovs[1], fovs[0])):
+            across = 0.25 <= shape.intersection(part).area / shape.area <= 0.75
+            if across and shape.buffer(0.2).within(whole) and _apart(disc, others):
+                return disc
+    raise RuntimeError("could not place a disc across a view's edge")
+
+
+def _random_disc(rng: np.random.Generator, bounds: tuple[float, float, float, float]) -> Disc:
+    x0, y0, x1, y1 = bounds
+    radius = float(rng.uniform(*RADIUS_RANGE))
+    return Disc((float(rng.uniform(x0, x1)), float(rng.uniform(y0, y1))), radius)
+
+
+def _apart(disc: Disc, others: Sequence[Disc]) -> bool:
+    return all(math.dist(disc.xy, d.xy) >= disc.radius + d.radius + MIN_GAP_M for d in others)
 
 
 def _pct(values: Sequence[float], q: float) -> float:
@@ -255,33 +280,42 @@ def _pct(values: Sequence[float], q: float) -> float:
 
 
 def run_accuracy(placements: int, seed: int, miscalibrated: bool = False) -> dict[str, Any]:
-    """One round of the accuracy part: `placements` placements of DISCS_PER_PLACEMENT discs; with
-    miscalibrated, the cameras' homographies are off as a real calibration's are (Cameras)."""
+    """One round of the accuracy part: `placements` placements of INSIDE_DISCS discs wholly in both
+    views and one across a view's edge (place_edge_disc); with miscalibrated, the cameras'
+    homographies are off as a real calibration's are (Cameras)."""
     from drvs.fusion import fuse
 
     cams = Cameras(seed, miscalibrated)
     rng = np.random.default_rng([seed, 17])
     overlap = cams.overlap
+    fovs = list(cams.fovs.values())
     single: dict[str, list[float]] = {c.id: [] for c in cams.cameras}
     single_missed = dict.fromkeys(single, 0)
     fused_err: list[float] = []
+    edge_err: list[float] = []
+    edge_whole_err: list[float] = []  # the error of the camera that sees the edge disc whole
     sigma: list[float] = []
     within_2_sigma = duplicates = missed = spurious = merged = discs_total = 0
+    edge_duplicates = edge_missed = 0
     not_worse = better_than_best = 0
     per_disc_best: list[float] = []
     t0 = time.time()
     for p in range(placements):
-        discs = place_discs(rng, overlap, DISCS_PER_PLACEMENT)
-        discs_total += len(discs)
+        discs = place_discs(rng, overlap, INSIDE_DISCS)
+        discs.append(place_edge_disc(rng, fovs, discs))
+        inside = [True] * INSIDE_DISCS + [False]
+        discs_total += INSIDE_DISCS
         truths = [d.xy for d in discs]
         reports = cams.reports(discs, t0 + p)
         errors_by_disc: list[dict[str, float]] = [{} for _ in discs]
         for report in reports:
             pairs = _match(truths, [det.centroid_xy for det in report.detections])
             for ti, _fi, dist in pairs:
-                single[report.camera_id].append(dist * 100)
                 errors_by_disc[ti][report.camera_id] = dist * 100
-            single_missed[report.camera_id] += len(discs) - len(pairs)
+                if inside[ti]:
+                    single[report.camera_id].append(dist * 100)
+            found = {ti for ti, _fi, _dist in pairs}
+            single_missed[report.camera_id] += sum(1 for ti in range(INSIDE_DISCS) if ti not in found)
         objects = fuse(reports, cams.homography_of)
         counts = [0] * len(discs)
         for obj in objects:
@@ -290,11 +324,18 @@ def run_accuracy(placements: int, seed: int, miscalibrated: bool = False) -> dic
                 spurious += 1
                 continue
             counts[k] += 1
-        duplicates += sum(max(0, c - 1) for c in counts)
-        missed += sum(1 for c in counts if c == 0)
+        duplicates += sum(max(0, c - 1) for c, ok in zip(counts, inside, strict=True) if ok)
+        missed += sum(1 for c, ok in zip(counts, inside, strict=True) if ok and c == 0)
+        edge_duplicates += max(0, counts[-1] - 1)
+        edge_missed += counts[-1] == 0
+        whole = [cid for cid in cams.seen_by(discs[-1]) if cid in errors_by_disc[-1]]
+        edge_whole_err.extend(errors_by_disc[-1][cid] for cid in whole)
         for ti, fi, dist in _match(truths, [o.centroid_xy for o in objects]):
             obj = objects[fi]
             err = dist * 100
+            if not inside[ti]:
+                edge_err.append(err)
+                continue
             fused_err.append(err)
             sigma.append(obj.uncertainty_m * 100)
             within_2_sigma += dist <= 2 * obj.uncertainty_m
@@ -323,6 +364,13 @@ def run_accuracy(placements: int, seed: int, miscalibrated: bool = False) -> dic
         "fused_not_worse_than_better_camera": better_than_best / max(1, compared),
         "better_camera_error_cm_p50": _pct(per_disc_best, 50),
         "better_camera_error_cm_p95": _pct(per_disc_best, 95),
+        "edge_discs": placements,
+        "edge_duplicates": edge_duplicates,
+        "edge_missed": edge_missed,
+        "edge_fused_error_cm_p50": _pct(edge_err, 50),
+        "edge_fused_error_cm_p95": _pct(edge_err, 95),
+        "edge_whole_camera_error_cm_p50": _pct(edge_whole_err, 50),
+        "edge_whole_camera_error_cm_p95": _pct(edge_whole_err, 95),
     }
     for cid, errs in single.items():
         key = cid.replace("-", "_")
@@ -548,14 +596,17 @@ async def run_fusion(
             _publish_rounds(result, name, run_runs)
         result["accuracy"] = {
             "placements_per_round": placements,
-            "discs_per_placement": DISCS_PER_PLACEMENT,
+            "discs_per_placement": {"inside_both_views": INSIDE_DISCS, "across_a_view_edge": 1},
             "radius_m": list(RADIUS_RANGE),
             "min_gap_m": MIN_GAP_M,
             "match_gate_m": MATCH_GATE_M,
             "calibration_error_sd": {"yaw_pitch_deg": CALIBRATION_ERROR[0], "position_m": CALIBRATION_ERROR[1]},
             "definition": "error: distance from a disc's true centre to the detection's (one camera) or the fused "
             "object's centroid; duplicates: fused objects beyond one per disc; missed: discs with no fused object "
-            "within the gate; spurious: fused objects with no disc within it. accuracy_*: the cameras' homographies "
+            "within the gate; spurious: fused objects with no disc within it (every figure without edge_ over the "
+            "discs wholly in both views); edge_*: the disc of each placement that lies wholly in one view and "
+            "across the other's edge (that camera sees part of it), edge_whole_camera_error: the first camera's "
+            "error on it. accuracy_*: the cameras' homographies "
             "exact (the detector's own error); accuracy_miscalibrated_*: each camera's homography from a pose off "
             "by calibration_error_sd (a new draw each round), the pixels from the true pose",
             "runs": runs["accuracy"],
@@ -605,11 +656,15 @@ def plot(result: dict[str, Any], out: Path) -> None:
     import matplotlib.pyplot as plt
 
     panels = [p for p in ("accuracy", "tracking", "cost") if p in result]
-    fig, axes = plt.subplots(1, max(1, len(panels)), figsize=(5 * max(1, len(panels)), 4.2), dpi=100, squeeze=False)
+    widths = [7.0 if p == "accuracy" else 5.0 for p in panels] or [5.0]
+    fig, axes = plt.subplots(
+        1, len(widths), figsize=(sum(widths), 4.6), dpi=100, squeeze=False, gridspec_kw={"width_ratios": widths}
+    )
     for ax, panel in zip(axes[0], panels, strict=False):
         if panel == "accuracy":
-            names = ["cam_a", "cam_b", "better_camera", "fused"]
-            labels = ["cam-a alone", "cam-b alone", "the better camera\n(per disc)", "fused"]
+            names = ["cam_a", "cam_b", "better_camera", "fused", "edge_whole_camera", "edge_fused"]
+            labels = ["cam-a\nalone", "cam-b\nalone", "better\ncamera", "fused"]
+            labels += ["edge disc:\nwhole cam.", "edge disc:\nfused"]
             bars = (
                 ("accuracy", 50, "exact calibration, p50"),
                 ("accuracy", 95, "exact calibration, p95"),
