@@ -46,7 +46,7 @@ async def test_fusion_accuracy_and_tracking_smoke(tmp_path: Path) -> None:
         assert 0 <= run["fused_error_cm_p50"] <= worse, prefix
         # The disc across a view's edge: found (its figures are the benchmark's to judge).
         assert run["edge_discs"] == run["placements"] and run["edge_missed"] == 0, prefix
-        assert 0 <= run["edge_whole_camera_error_cm_p50"] and 0 <= run["edge_fused_error_cm_p50"], prefix
+        assert run["edge_whole_camera_error_cm_p50"] < 50 and run["edge_fused_error_cm_p50"] < 50, prefix  # the gate
         for key in ("fused_error_cm_p50", "fused_error_cm_p95", "cam_a_error_cm_p50", "duplicates", "edge_duplicates"):
             name = f"{prefix}_{key}"
             assert result[name] == result[f"{name}_median"] == run[key] and result[f"{name}_runs"] == [run[key]]
