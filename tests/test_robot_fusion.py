@@ -175,9 +175,11 @@ async def test_fused_detect_returns_one_snapshot_and_opens_no_listener(fusing: t
         snapshot = await robot.detect(YELLOW, (0, 0, 5, 5), fuse=True, deadline_s=1.5)
         assert isinstance(snapshot, drvs.Snapshot)
         time, objects, missing = snapshot
+        assert (time, objects, missing) == (snapshot.time, snapshot.objects, snapshot.missing_cameras)
         assert time == 1_700_000_000.0 and snapshot.final and snapshot.camera_ids == ("camA", "camB")
-        assert [o.track_id for o in objects] == [1] and objects[0].centroid_xy == pytest.approx((1.0, 2.0))
-        assert missing == (CameraError("DEADLINE_EXCEEDED", "camera camC: no report in time", "camC"),)
+        assert [o.track_id for o in snapshot.objects] == [1]
+        assert snapshot.objects[0].centroid_xy == pytest.approx((1.0, 2.0))
+        assert snapshot.missing_cameras == (CameraError("DEADLINE_EXCEEDED", "camera camC: no report in time", "camC"),)
         assert snapshot.request_id == servicer.requests[-1].request_id
         sent = servicer.requests[-1]
         assert sent.fusion.deadline_s == 1.5 and sent.callback_address == "" and not sent.report_to_server
@@ -288,12 +290,13 @@ async def test_a_track_without_its_final_snapshot_raises_deadline_exceeded(fusin
 async def test_bad_fused_arguments_are_refused_before_anything_is_sent(fusing: tuple[FusingServer, str]) -> None:
     servicer, address = fusing
     async with DrvsClient.connect(address, robot_id="r1") as robot:
+        BAD: Any = "1"
         cases: list[tuple[Any, str]] = [
             (lambda: robot.track(YELLOW, (0, 0, 5, 5), duration_s=0), r"^duration_s: 0 must be a number > 0"),
             (lambda: robot.track(YELLOW, (0, 0, 5, 5), rate_hz=-1, duration_s=1), r"^rate_hz: -1 must be"),
             (lambda: robot.track(YELLOW, (0, 0, 5, 5), rate_hz=1000, duration_s=1), r"^continuous.rate_hz: "),
             (lambda: robot.track(YELLOW, (0, 0, 5, 5), duration_s=1, drop_after_s=99), r"^fusion.drop_after_s: "),
-            (lambda: robot.track(YELLOW, (0, 0, 5, 5), duration_s=1, deadline_s="1"), r"^deadline_s: '1' must be"),
+            (lambda: robot.track(YELLOW, (0, 0, 5, 5), duration_s=1, deadline_s=BAD), r"^deadline_s: '1' must be"),
             (lambda: robot.track(YELLOW, (0, 0, 5, 5), duration_s=1, max_queued=0), r"^max_queued: 0 must be"),
             (lambda: robot.track("hsv_1", (0, 0, 5, 5), duration_s=1), r"^filter_def: "),
         ]
@@ -301,11 +304,11 @@ async def test_bad_fused_arguments_are_refused_before_anything_is_sent(fusing: t
             with pytest.raises(InvalidArgument, match=message):
                 call()
         with pytest.raises(InvalidArgument, match=r"^fuse: detect\(fuse=True\) is a single shot"):
-            await robot.detect(YELLOW, (0, 0, 5, 5), fuse=True, rate_hz=1, duration_s=1)
+            await robot.detect(YELLOW, (0, 0, 5, 5), fuse=True, rate_hz=1, duration_s=1)  # type: ignore[call-overload]
         with pytest.raises(InvalidArgument, match=r"^fusion.deadline_s: 31"):
             await robot.detect(YELLOW, (0, 0, 5, 5), fuse=True, deadline_s=31)
         with pytest.raises(InvalidArgument, match=r"^deadline_s: only for fused requests"):
-            await robot.detect(YELLOW, (0, 0, 5, 5), deadline_s=1)
+            await robot.detect(YELLOW, (0, 0, 5, 5), deadline_s=1)  # type: ignore[call-overload]
         assert servicer.requests == [] and not robot.listening
 
 

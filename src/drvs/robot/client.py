@@ -1084,6 +1084,7 @@ class DrvsClient:
         timeout_s: float = ...,
         outlines: bool = ...,
         fuse: Literal[False] = ...,
+        request_id: str | None = ...,
     ) -> DetectionResult: ...
 
     @overload
