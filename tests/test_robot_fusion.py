@@ -14,9 +14,11 @@ import asyncio
 import json
 import math
 import os
+import re
 import sys
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -35,6 +37,7 @@ from drvs.v1 import detection_pb2, detection_pb2_grpc
 
 from .helpers import YELLOW
 
+DOC = Path(__file__).resolve().parents[1] / "docs" / "validation.md"
 #: Filters the in-test server treats specially.
 REFUSED = "hsv_000000000010010010"  # answered RESOURCE_EXHAUSTED
 BREAKS = "hsv_001001001011011011"  # its track's stream ends after two snapshots
@@ -287,29 +290,102 @@ async def test_a_track_without_its_final_snapshot_raises_deadline_exceeded(fusin
         await wait_until(lambda: servicer.requests[-1].cancel)  # told the server to stop it
 
 
+BAD: Any = "1"
+BOX = (0, 0, 5, 5)
+#: Bad arguments of the fused calls and their whole messages (docs/validation.md rows cite this file).
+API_CASES: list[tuple[Callable[[DrvsClient], Any], str]] = [
+    (
+        lambda r: r.track(YELLOW, BOX, duration_s=0),
+        "duration_s: 0 must be a number > 0 (a track runs at a rate for a time)",
+    ),
+    (
+        lambda r: r.track(YELLOW, BOX, rate_hz=-1, duration_s=1),
+        "rate_hz: -1 must be a number > 0 (a track runs at a rate for a time)",
+    ),
+    (
+        lambda r: r.track(YELLOW, BOX, duration_s=1, drop_after_s=99),
+        "fusion.drop_after_s: 99.0 is not between 0 and 60 seconds",
+    ),
+    (
+        lambda r: r.track(YELLOW, BOX, duration_s=1, deadline_s=BAD),
+        "deadline_s: '1' must be a number of seconds, or None for the server's default",
+    ),
+    (
+        lambda r: r.track(YELLOW, BOX, duration_s=1, drop_after_s=BAD),
+        "drop_after_s: '1' must be a number of seconds, or None for the server's default",
+    ),
+    (
+        lambda r: r.track(YELLOW, BOX, duration_s=1, max_queued=0),
+        "max_queued: 0 must be a whole number of snapshots >= 1",
+    ),
+    (
+        lambda r: r.detect(YELLOW, BOX, fuse=True, rate_hz=1, duration_s=1),  # type: ignore[call-overload]
+        "fuse: detect(fuse=True) is a single shot (rate_hz and duration_s 0); use track() for snapshots over time",
+    ),
+    (
+        lambda r: r.detect(YELLOW, BOX, fuse=True, deadline_s=31),
+        "fusion.deadline_s: 31.0 is not between 0 and 30 seconds",
+    ),
+    (
+        lambda r: r.detect(YELLOW, BOX, deadline_s=1),  # type: ignore[call-overload]
+        "deadline_s: only for fused requests (fuse=True)",
+    ),
+]
+#: Bad flags of drvs-robot track / detect --fuse and the line each prints (exit 2).
+CLI_CASES: list[tuple[list[str], str]] = [
+    (["track", "--duration", "0"], "--duration: 0 must be in (0, 3600]"),
+    (["track", "--duration", "1", "--rate", "0"], "--rate: 0 must be in (0, 100]"),
+    (["track", "--duration", "1", "--rate", "101"], "--rate: 101 must be in (0, 100]"),
+    (["track", "--duration", "1", "--drop-after", "-1"], "--drop-after: -1 must be in [0, 60]"),
+    (["track", "--duration", "1", "--deadline", "31"], "--deadline: 31 must be in [0, 30]"),
+    (["detect", "--fuse", "--deadline", "-2"], "--deadline: -2 must be in [0, 30]"),
+    (["track", "--duration", "1", "--timeout", "-1"], "--timeout: -1 must be >= 0"),
+    (
+        ["detect", "--fuse", "--rate", "1", "--duration", "1"],
+        "--fuse: a single shot; drvs-robot track gives snapshots at --rate for --duration",
+    ),
+    (["detect", "--fuse", "--listen", "127.0.0.1:0"], "--listen: a fused request needs no listener (--fuse)"),
+    (["detect", "--fuse", "--advertise", "127.0.0.1:9"], "--advertise: a fused request needs no listener (--fuse)"),
+    (["detect", "--deadline", "1"], "--deadline: only with --fuse (or drvs-robot track)"),
+    (["track"], "the following arguments are required: --duration"),
+]
+
+
 async def test_bad_fused_arguments_are_refused_before_anything_is_sent(fusing: tuple[FusingServer, str]) -> None:
     servicer, address = fusing
     async with DrvsClient.connect(address, robot_id="r1") as robot:
-        BAD: Any = "1"
-        cases: list[tuple[Any, str]] = [
-            (lambda: robot.track(YELLOW, (0, 0, 5, 5), duration_s=0), r"^duration_s: 0 must be a number > 0"),
-            (lambda: robot.track(YELLOW, (0, 0, 5, 5), rate_hz=-1, duration_s=1), r"^rate_hz: -1 must be"),
-            (lambda: robot.track(YELLOW, (0, 0, 5, 5), rate_hz=1000, duration_s=1), r"^continuous.rate_hz: "),
-            (lambda: robot.track(YELLOW, (0, 0, 5, 5), duration_s=1, drop_after_s=99), r"^fusion.drop_after_s: "),
-            (lambda: robot.track(YELLOW, (0, 0, 5, 5), duration_s=1, deadline_s=BAD), r"^deadline_s: '1' must be"),
-            (lambda: robot.track(YELLOW, (0, 0, 5, 5), duration_s=1, max_queued=0), r"^max_queued: 0 must be"),
-            (lambda: robot.track("hsv_1", (0, 0, 5, 5), duration_s=1), r"^filter_def: "),
-        ]
-        for call, message in cases:
-            with pytest.raises(InvalidArgument, match=message):
-                call()
-        with pytest.raises(InvalidArgument, match=r"^fuse: detect\(fuse=True\) is a single shot"):
-            await robot.detect(YELLOW, (0, 0, 5, 5), fuse=True, rate_hz=1, duration_s=1)  # type: ignore[call-overload]
-        with pytest.raises(InvalidArgument, match=r"^fusion.deadline_s: 31"):
-            await robot.detect(YELLOW, (0, 0, 5, 5), fuse=True, deadline_s=31)
-        with pytest.raises(InvalidArgument, match=r"^deadline_s: only for fused requests"):
-            await robot.detect(YELLOW, (0, 0, 5, 5), deadline_s=1)  # type: ignore[call-overload]
+        for call, message in API_CASES:
+            with pytest.raises(InvalidArgument) as refused:
+                result = call(robot)
+                if asyncio.iscoroutine(result):
+                    await result
+            assert str(refused.value) == message
+        # The request's own rules, as for DetectionRequest.
+        with pytest.raises(InvalidArgument, match=r"^filter_def: "):
+            robot.track("hsv_1", BOX, duration_s=1)
+        with pytest.raises(InvalidArgument, match=r"^continuous.rate_hz: 1000 exceeds the limit of 100"):
+            robot.track(YELLOW, BOX, rate_hz=1000, duration_s=1)
         assert servicer.requests == [] and not robot.listening
+
+
+def test_every_fused_refusal_is_in_validation_md() -> None:
+    """Each row of docs/validation.md that cites this file gives messages that these tests get,
+    and each message these tests get has its row."""
+    rows = [
+        line for line in DOC.read_text().splitlines() if line.startswith("|") and "tests/test_robot_fusion.py" in line
+    ]
+    patterns = []
+    for row in rows:
+        cells = row.strip("|").split(" | ")
+        for text in re.findall(r"`([^`]+)`", cells[2]):
+            if ": " in text:  # a message, not a name (`--advertise` alike)
+                parts = re.split(r"(…)", text)
+                patterns.append(re.compile("".join(".*" if p == "…" else re.escape(p) for p in parts)))
+    messages = [m for _, m in API_CASES] + [m for _, m in CLI_CASES]
+    for pattern in patterns:
+        assert any(pattern.fullmatch(m) for m in messages), f"validation.md's {pattern.pattern!r} is not tested here"
+    for message in messages:
+        assert any(p.fullmatch(message) for p in patterns), f"{message!r} has no row in docs/validation.md"
 
 
 # --- drvs-robot against the in-test server --------------------------------------------------------
@@ -386,28 +462,15 @@ async def test_drvs_robot_detect_fuse_prints_the_snapshot(fusing: tuple[FusingSe
     assert header[:3] == ["track", "x", "m"] and row[:3] == ["1", "1.000", "2.000"]
 
 
-@pytest.mark.parametrize(
-    ("argv", "message"),
-    [
-        (["track", "--duration", "0"], "drvs-robot: --duration: 0 must be in (0, 3600]"),
-        (["track", "--duration", "1", "--rate", "0"], "drvs-robot: --rate: 0 must be in (0, 100]"),
-        (["track", "--duration", "1", "--rate", "101"], "drvs-robot: --rate: 101 must be in (0, 100]"),
-        (["track", "--duration", "1", "--drop-after", "-1"], "drvs-robot: --drop-after: -1 must be in [0, 60]"),
-        (["track", "--duration", "1", "--deadline", "31"], "drvs-robot: --deadline: 31 must be in [0, 30]"),
-        (["track", "--duration", "1", "--timeout", "-1"], "drvs-robot: --timeout: -1 must be >= 0"),
-        (["detect", "--fuse", "--rate", "1", "--duration", "1"], "drvs-robot: --fuse: a single shot; drvs-robot track"),
-        (["detect", "--fuse", "--listen", "127.0.0.1:0"], "drvs-robot: --listen: a fused request needs no listener"),
-        (["detect", "--deadline", "1"], "drvs-robot: --deadline: only with --fuse"),
-        (["track"], "drvs-robot track: error: the following arguments are required: --duration"),
-    ],
-)
+@pytest.mark.parametrize(("argv", "message"), CLI_CASES)
 async def test_bad_fused_flags_exit_2_naming_the_flag(argv: list[str], message: str) -> None:
     proc = robot_cli(*argv, "--server", "127.0.0.1:9", "--filter", YELLOW, "--roi", "0,0,5,5")
     async with proc:
         code = await proc.wait(timeout=20)
     output = proc.output()
     assert code == 2 and "Traceback" not in output, output
-    assert any(line.startswith(message) for line in proc.lines), (message, output)
+    # Its own line: "drvs-robot: MESSAGE" (argparse: "drvs-robot track: error: MESSAGE").
+    assert any(line.startswith("drvs-robot") and line.endswith(": " + message) for line in proc.lines), output
 
 
 def test_snapshot_json_has_exactly_the_documented_keys() -> None:
