@@ -72,7 +72,7 @@ async def run_robot(mode: str, server: str, requests: int, pids: dict[str, list[
         return {"wall_s": wall, **{f"{k}_cpu_s": sum(cpu_seconds(p) for p in v) - before[k] for k, v in pids.items()}}
     region = ",".join(f"{v:g}" for v in REGION)
     args = ["robot", "--mode", "drvs", "--server", server, "--cameras", "2", "--requests", str(requests)]
-    args += ["--rate", f"{COST_RATE:g}", "--region", region, "--filter", YELLOW]
+    args += ["--rate", f"{COST_RATE:g}", f"--region={region}", "--filter", YELLOW]  # = : it starts with a minus
     if mode == "fused":
         args.append("--fuse")
     robot = await bench_process(f"robot-{mode}", *args).start()
