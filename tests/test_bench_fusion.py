@@ -152,3 +152,23 @@ async def test_paper_fused_mode_on_a_real_run(tmp_path: Path) -> None:
     assert run["objects_per_request"] == {"3": 15}
     assert run["bytes"] > run["payload_bytes"] > 0 and run["segments"] > 0
     assert 0 < run["latency_ms_p50"] <= run["latency_ms_p99"]
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (["--parts", "accuracy,speed"], "drvs-bench fusion: --parts: speed: name some of accuracy, tracking, cost"),
+        (["--parts", ","], "drvs-bench fusion: --parts: none: name some of accuracy, tracking, cost"),
+        (["--rounds", "-1"], "drvs-bench fusion: --rounds and --requests must be >= 0 (0: the default)"),
+        (["--requests", "-5"], "drvs-bench fusion: --rounds and --requests must be >= 0 (0: the default)"),
+    ],
+)
+def test_fusion_benchmark_refuses_bad_flags(
+    args: list[str], message: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Bad flags are refused before anything runs (docs/validation.md's drvs-bench rows), and nothing is written."""
+    from drvs_bench.cli import main
+
+    assert main(["fusion", *args, "--out", str(tmp_path / "out")]) == 2
+    assert message in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
