@@ -690,6 +690,7 @@ def plot(result: dict[str, Any], out: Path) -> None:
         ax.plot([i * BUCKET_S for i in range(len(smooth))], [100 * v for v in smooth], label=labels[mode], lw=1)
     for key, style, name in (
         ("robot_cpu_bare_path", "--", "bare grpc.aio, same messages"),
+        ("robot_cpu_floor", "-.", "one bare round trip per request"),
         ("robot_cpu_idle", ":", "idle asyncio loop at the same rate"),
     ):
         floor = result[key]
