@@ -323,7 +323,7 @@ API_CASES: list[tuple[Callable[[DrvsClient], Any], str]] = [
         "max_queued: 0 must be a whole number of snapshots >= 1",
     ),
     (
-        lambda r: r.detect(YELLOW, BOX, fuse=True, rate_hz=1, duration_s=1),  # type: ignore[call-overload]
+        lambda r: r.detect(YELLOW, BOX, fuse=True, rate_hz=1, duration_s=1),
         "fuse: detect(fuse=True) is a single shot (rate_hz and duration_s 0); use track() for snapshots over time",
     ),
     (
