@@ -1,5 +1,6 @@
 """drvs-bench: `paper` (the paper's comparison), `service` (DRVS's own costs), `load` (many robots at
-once), `detectors` (each detector's costs and accuracy); the rest are the benchmarks' internal processes."""
+once), `detectors` (each detector's costs and accuracy), `fusion` (fused delivery: accuracy, tracking,
+the server's cost); the rest are the benchmarks' internal processes."""
 
 from __future__ import annotations
 
@@ -11,6 +12,7 @@ import time
 from pathlib import Path
 
 from .bare import add_bare_parsers
+from .fusion import add_fusion_parser
 from .helpers import add_helper_parsers
 from .load import add_load_parser
 from .workload import add_workload_arguments, workload_main
@@ -28,12 +30,15 @@ def paper_main(args: argparse.Namespace) -> int:
         return 2
     out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
     try:
-        result = asyncio.run(run_paper(out, requests, args.rate, rounds, people))
+        result = asyncio.run(run_paper(out, requests, args.rate, rounds, people, args.fused))
     except WorkMismatch as exc:
         print(f"drvs-bench paper: FAILED: {exc}", file=sys.stderr)
         return 1
     summary: dict[str, object] = {
-        k: v for k, v in result.items() if ("ratio" in k or k.endswith("_over_bare_path")) and not k.endswith("_runs")
+        k: v
+        for k, v in result.items()
+        if ("ratio" in k or k.endswith(("_over_bare_path", "_over_floor", "_over_per_camera")) or "_per_request_" in k)
+        and not k.endswith("_runs")
     }
     for mode, data in result["modes"].items():
         summary[f"{mode}_bytes_per_s"] = round(data["bytes_per_s"])
@@ -117,6 +122,11 @@ def main(argv: list[str] | None = None) -> int:
         "--people-requests", type=int, default=0, help="override the people modes' requests per run (at 2 Hz)"
     )
     p.add_argument("--rate", type=float, default=30.0, help="requests per second (default 30)")
+    p.add_argument(
+        "--fused",
+        action="store_true",
+        help="also run the boxes-only requests with fused delivery (drvs_boxes_fused) in the same rounds",
+    )
     p.add_argument("--out", type=Path, default=None)
     p.set_defaults(func=paper_main)
     s = sub.add_parser("service", help="DRVS's own latency, routing throughput, lookup scaling, CPU and memory")
@@ -130,6 +140,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     d.add_argument("--out", type=Path, default=None)
     d.set_defaults(func=detectors_main)
+    add_fusion_parser(sub)
     add_load_parser(sub)
     add_helper_parsers(sub)
     add_bare_parsers(sub)

@@ -78,6 +78,15 @@ PEOPLE_QUICK_REQUESTS = 16
 #: argument is that heavier detection widens the gap, so it is held to the colour ratio's target.
 TARGETS = {"bandwidth_ratio_raw": 1000.0, "bandwidth_ratio_jpeg": 100.0, "robot_cpu_ratio": 20.0}
 PEOPLE_TARGETS = {"robot_cpu_ratio_people": 20.0}
+#: --fused (issue 17): the DRVS boxes-only single shots again with fused delivery: the robot sends one
+#: request and gets one snapshot on its own stream, no reports, no listener.
+FUSED_MODES = ("drvs_boxes_fused",)
+#: Its targets: (target, higher is better). robot_cpu_fused_over_floor is the fused robot's CPU over
+#: the one-round-trip floor's (rtt_floor), which is robot_cpu_ratio_at_floor / robot_cpu_ratio_fused.
+FUSED_TARGETS: dict[str, tuple[float, bool]] = {
+    "robot_cpu_fused_over_floor": (1.1, False),
+    "bandwidth_ratio_jpeg_fused": (100.0, True),
+}
 _TICK = os.sysconf("SC_CLK_TCK")
 
 CPU_COVERAGE = {
@@ -156,7 +165,13 @@ async def run_mode(
     if mode.endswith("_moving"):
         args.append("--moving")
     callback_relay: CountingRelay | None = None
-    if mode.startswith("drvs"):
+    if mode.endswith("_fused"):
+        # Fused delivery: everything travels on the robot's own connection to the server; it has no listener.
+        host, port = server.rsplit(":", 1)
+        relays = [CountingRelay(host, int(port), bucket_s=BUCKET_S)]
+        await relays[0].start()
+        args += ["--fuse", "--server", f"127.0.0.1:{relays[0].port}", "--cameras", str(len(cameras))]
+    elif mode.startswith("drvs"):
         host, port = server.rsplit(":", 1)
         server_relay = CountingRelay(host, int(port), bucket_s=BUCKET_S)
         # target: the robot's listener, once it is up; the socket to measure is the one to the robot
@@ -282,6 +297,26 @@ def check_drvs(mode: str, run: dict[str, Any], requests: int, cameras: int, dete
         raise
 
 
+def check_fused(mode: str, run: dict[str, Any], requests: int, objects: int | None) -> None:
+    """Every fused request delivered: one final snapshot merging every camera, none missing, none
+    refused; with a fixed scene, the objects the scene holds in every snapshot."""
+    expected: dict[str, float] = {
+        "requests": requests,
+        "requests_delivered": requests,
+        "snapshots": requests,
+        "missing_cameras": 0,
+        "refused_requests": 0,
+    }
+    if objects is not None:
+        expected["objects"] = objects * requests
+    try:
+        check_work(mode, expected, run)
+    except WorkMismatch as exc:
+        if run.get("failures"):
+            raise WorkMismatch(f"{exc}; first failures: {'; '.join(run['failures'])}") from None
+        raise
+
+
 def check_stream(mode: str, run: dict[str, Any], per_frame: list[int] | None) -> None:
     """Every frame received was analysed, each camera sent frames, and (with a fixed scene) each frame's
     detections were the objects its camera sees."""
@@ -315,8 +350,14 @@ def check_people(mode: str, run: dict[str, Any], requests: int, cameras: int) ->
 
 
 async def run_paper(
-    out: Path, requests: int, rate: float, rounds: int = FULL_ROUNDS, people_requests: int = PEOPLE_FULL_REQUESTS
+    out: Path,
+    requests: int,
+    rate: float,
+    rounds: int = FULL_ROUNDS,
+    people_requests: int = PEOPLE_FULL_REQUESTS,
+    fused: bool = False,
 ) -> dict[str, Any]:
+    """fused: run FUSED_MODES too, in the same rounds (needs a server with fused delivery)."""
     procs: list[ManagedProcess] = []
     runs: list[dict[str, dict[str, Any]]] = [{} for _ in range(rounds)]
     with tempfile.TemporaryDirectory(prefix="drvs-bench-") as tmp:
@@ -361,7 +402,8 @@ async def run_paper(
             ack, ack_address = await ack_server()
             procs.append(ack)
             bare_server = await start_bare_path(procs, len(cameras))
-            for r, mode in interleaved((*MODES, *people_modes, *FLOORS), rounds):
+            fused_modes = FUSED_MODES if fused else ()
+            for r, mode in interleaved((*MODES, *fused_modes, *people_modes, *FLOORS), rounds):
                 print(f"drvs-bench paper: round {r + 1}/{rounds}: {mode} ...", file=sys.stderr, flush=True)
                 if mode in PEOPLE_MODES:
                     run = await run_mode(
@@ -369,6 +411,10 @@ async def run_paper(
                         people_args(mode),
                     )  # fmt: skip
                     check_people(mode, run, people_requests, len(people_cameras))
+                elif mode in FUSED_MODES:
+                    run = await run_mode(mode, address, cameras, requests, rate, cpu_procs, camera_token)
+                    # The scene's cameras do not overlap: each object is one world object.
+                    check_fused(mode, run, requests, None if per_camera is None else sum(per_camera))
                 elif mode in MODES:
                     run = await run_mode(mode, address, cameras, requests, rate, cpu_procs, camera_token)
                     if mode.startswith("drvs"):
@@ -391,7 +437,7 @@ async def run_paper(
         finally:
             for proc in reversed(procs):
                 await proc.stop()
-    result = summarise(runs, requests, rate, len(scene), people_requests if people_modes else 0)
+    result = summarise(runs, requests, rate, len(scene), people_requests if people_modes else 0, fused)
     await asyncio.to_thread(write_outputs, result, out)
     return result
 
@@ -460,17 +506,23 @@ def _mode_figures(runs: list[dict[str, dict[str, Any]]], mode: str) -> dict[str,
 
 
 def summarise(
-    runs: list[dict[str, dict[str, Any]]], requests: int, rate: float, cameras: int, people_requests: int = 0
+    runs: list[dict[str, dict[str, Any]]],
+    requests: int,
+    rate: float,
+    cameras: int,
+    people_requests: int = 0,
+    fused: bool = False,
 ) -> dict[str, Any]:
     """paper.json from the rounds' runs: each figure and each ratio (within a round) as median and spread.
-    people_requests: the people modes' requests per run (0: they did not run, no footage)."""
-    modes = {mode: _mode_figures(runs, mode) for mode in MODES}
+    people_requests: the people modes' requests per run (0: they did not run, no footage); fused:
+    FUSED_MODES ran too (their figures join `modes`, their ratios and targets the rest)."""
+    modes = {mode: _mode_figures(runs, mode) for mode in (*MODES, *(FUSED_MODES if fused else ()))}
     result: dict[str, Any] = {
         "benchmark": "paper",
         "requests": requests,
         "rate_hz": rate,
         "rounds": len(runs),
-        "order": [*MODES, *FLOORS],
+        "order": [*MODES, *(FUSED_MODES if fused else ()), *FLOORS],
         "cameras": cameras,
         "frame": "640x480 BGR, 20 fps",
         "bytes": "bytes: wire bytes, both directions of the robot's sockets, every TCP segment (ACK-only, SYN, "
@@ -535,8 +587,47 @@ def summarise(
                 "spread": result[f"{name}_spread"],
                 "verdict": verdict(result[f"{name}_runs"], target),
             }
+    if fused:
+        summarise_fused(result, runs, requests, ratio)
     result["machine"] = machine()
     return result
+
+
+def summarise_fused(
+    result: dict[str, Any],
+    runs: list[dict[str, dict[str, Any]]],
+    requests: int,
+    ratio: Callable[[str, str, str, Callable[[dict[str, Any]], float]], None],
+) -> None:
+    """The fused mode's ratios (within each round, as every other) and targets: the robot's CPU
+    against raw frames and against the floor of one bare round trip per request, its wire bytes
+    against the streams and against per-camera delivery (drvs_boxes, the same requests)."""
+    fused = "drvs_boxes_fused"
+    ratio("robot_cpu_ratio_fused", "raw", fused, _cpu_rate)
+    ratio("robot_cpu_ratio_jpeg_fused", "jpeg", fused, _cpu_rate)
+    # The issue's robot_cpu_ratio_at_floor / robot_cpu_ratio, for per-camera and for fused delivery.
+    ratio("robot_cpu_fused_over_floor", fused, "rtt_floor", _cpu_rate)
+    ratio("robot_cpu_over_floor", "drvs_boxes", "rtt_floor", _cpu_rate)
+    ratio("robot_cpu_fused_over_per_camera", fused, "drvs_boxes", _cpu_rate)
+    for name, num in (("bandwidth_ratio_raw_fused", "raw"), ("bandwidth_ratio_jpeg_fused", "jpeg")):
+        ratio(name, num, fused, _figure("bytes_per_s"))
+        ratio(f"{name}_payload", num, fused, _figure("payload_bytes_per_s"))
+    ratio("bytes_fused_over_per_camera", fused, "drvs_boxes", _figure("bytes"))
+    ratio("payload_bytes_fused_over_per_camera", fused, "drvs_boxes", _figure("payload_bytes"))
+    for mode, key in ((fused, "fused"), ("drvs_boxes", "per_camera")):
+        publish(result, f"wire_bytes_per_request_{key}", [run[mode]["bytes"] / requests for run in runs])
+        publish(result, f"payload_bytes_per_request_{key}", [run[mode]["payload_bytes"] / requests for run in runs])
+        publish(result, f"segments_per_request_{key}", [run[mode]["segments"] / requests for run in runs])
+        server_ms = [1000 * run[mode]["server_cpu_s"] / requests for run in runs]
+        publish(result, f"server_cpu_ms_per_request_{key}", server_ms)
+    for name, (target, higher) in FUSED_TARGETS.items():
+        result["targets"][name] = {
+            "target": target,
+            "higher_is_better": higher,
+            "median": result[name],
+            "spread": result[f"{name}_spread"],
+            "verdict": verdict(result[f"{name}_runs"], target, higher_is_better=higher),
+        }
 
 
 async def start_bare_path(procs: list[ManagedProcess], cameras: int) -> str:
@@ -571,6 +662,7 @@ def plot(result: dict[str, Any], out: Path) -> None:
         "drvs_boxes_moving": "DRVS, boxes, moving region and alternating filter",
         "raw": "raw frame stream",
         "jpeg": "JPEG q80 frame stream",
+        "drvs_boxes_fused": "DRVS, boxes, fused delivery",
     }
     fig, ax = plt.subplots(figsize=(9, 4.5), dpi=100)
     for mode, data in result["modes"].items():
@@ -598,6 +690,7 @@ def plot(result: dict[str, Any], out: Path) -> None:
         ax.plot([i * BUCKET_S for i in range(len(smooth))], [100 * v for v in smooth], label=labels[mode], lw=1)
     for key, style, name in (
         ("robot_cpu_bare_path", "--", "bare grpc.aio, same messages"),
+        ("robot_cpu_floor", "-.", "one bare round trip per request"),
         ("robot_cpu_idle", ":", "idle asyncio loop at the same rate"),
     ):
         floor = result[key]

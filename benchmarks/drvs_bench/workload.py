@@ -16,6 +16,8 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import math
+import statistics
 import time
 from pathlib import Path
 from typing import Any
@@ -61,7 +63,20 @@ def _bump(histogram: dict[str, int], value: int) -> None:
     histogram[str(value)] = histogram.get(str(value), 0) + 1
 
 
+def _latency_figures(latencies: list[float]) -> dict[str, float]:
+    """Each request's time from the robot's call to its answer, ms: the median and the 99th percentile."""
+    if not latencies:
+        return {}
+    ordered = sorted(latencies)
+    return {
+        "latency_ms_p50": statistics.median(ordered),
+        "latency_ms_p99": ordered[min(len(ordered) - 1, max(0, math.ceil(0.99 * len(ordered)) - 1))],
+    }
+
+
 async def drvs_mode(args: argparse.Namespace) -> dict[str, object]:
+    if args.fuse:
+        return await fused_mode(args)
     async with DrvsClient(args.server, robot_id="bench", listen="127.0.0.1:0", advertise=args.advertise) as client:
         print(f"READY {client.port}", flush=True)
         # The floors' warm-up: requests back to back (connections, caches), before anything is measured.
@@ -79,12 +94,15 @@ async def drvs_mode(args: argparse.Namespace) -> dict[str, object]:
         reports_per_request: dict[str, int] = {}
         detections_per_request: dict[str, int] = {}
         failures: list[str] = []  # the first few, to name in a failed work check
+        latencies: list[float] = []
 
         async def one(i: int) -> None:
             nonlocal reports, detections, missing, refused, error_reports, busy_reports, delivered
             filter_def, region = moving_request(i) if args.moving else (args.filter, args.region)
             try:
+                asked = time.perf_counter()
                 result = await client.detect(filter_def, region, timeout_s=5.0, outlines=not args.no_outlines)
+                latencies.append((time.perf_counter() - asked) * 1000)
             except DrvsError as exc:  # refused (rate limit, invalid, unavailable): a failure, never delivered
                 refused += 1
                 print(f"request {i} refused: {exc}", flush=True)
@@ -131,6 +149,77 @@ async def drvs_mode(args: argparse.Namespace) -> dict[str, object]:
             "reports_per_request": reports_per_request,
             "detections_per_request": detections_per_request,
             "failures": failures,
+            **_latency_figures(latencies),
+        }
+
+
+async def fused_mode(args: argparse.Namespace) -> dict[str, object]:
+    """The same single shots with fused delivery: one request and one answer (a snapshot of world
+    objects) per request on the robot's own stream; the robot opens no listener."""
+    async with DrvsClient(args.server, robot_id="bench") as client:
+        print("READY 0", flush=True)
+        outlines = not args.no_outlines
+        for i in range(-args.warmup, 0):
+            filter_def, region = moving_request(i) if args.moving else (args.filter, args.region)
+            try:
+                await client.detect(filter_def, region, fuse=True, timeout_s=5.0, outlines=outlines)
+            except DrvsError as exc:
+                print(f"warm-up request {i} refused: {exc}", flush=True)
+        print("START", flush=True)
+        start_cpu = time.process_time()
+        loop = asyncio.get_running_loop()
+        t0 = loop.time()
+        snapshots = objects = missing = refused = delivered = 0
+        objects_per_request: dict[str, int] = {}
+        failures: list[str] = []
+        latencies: list[float] = []
+
+        async def one(i: int) -> None:
+            nonlocal snapshots, objects, missing, refused, delivered
+            filter_def, region = moving_request(i) if args.moving else (args.filter, args.region)
+            try:
+                asked = time.perf_counter()
+                snapshot = await client.detect(filter_def, region, fuse=True, timeout_s=5.0, outlines=outlines)
+                latencies.append((time.perf_counter() - asked) * 1000)
+            except DrvsError as exc:
+                refused += 1
+                print(f"request {i} refused: {exc}", flush=True)
+                if len(failures) < 10:
+                    failures.append(f"request {i} refused: {type(exc).__name__}: {exc}")
+                return
+            snapshots += 1
+            objects += len(snapshot.objects)
+            missing += len(snapshot.missing_cameras)
+            _bump(objects_per_request, len(snapshot.objects))
+            # Delivered: one final snapshot that merged every camera the request needs, none missing.
+            if snapshot.final and not snapshot.missing_cameras and len(snapshot.camera_ids) == args.cameras:
+                delivered += 1
+            elif len(failures) < 10:
+                failures.append(
+                    f"request {i}: cameras {sorted(snapshot.camera_ids)}, final {snapshot.final}, "
+                    f"missing {[(e.camera_id, e.code) for e in snapshot.missing_cameras]}"
+                )
+
+        tasks = []
+        for i in range(args.requests):
+            delay = t0 + i / args.rate - loop.time()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            tasks.append(loop.create_task(one(i)))
+        await asyncio.gather(*tasks)
+        return {
+            "cpu_s": time.process_time() - start_cpu,
+            "wall_s": loop.time() - t0,
+            "requests": args.requests,
+            "requests_delivered": delivered,
+            "snapshots": snapshots,
+            "objects": objects,
+            "missing_cameras": missing,
+            "refused_requests": refused,
+            "failed_requests": args.requests - delivered,
+            "objects_per_request": objects_per_request,
+            "failures": failures,
+            **_latency_figures(latencies),
         }
 
 
@@ -253,6 +342,7 @@ def add_workload_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--max-fps", type=float, default=FPS, help="raw/jpeg: frames per second to ask of each camera")
     p.add_argument("--no-outlines", action="store_true", help="drvs mode: ask for boxes only, as the paper's DRVS")
     p.add_argument("--moving", action="store_true", help="drvs mode: the region slides and the filter alternates")
+    p.add_argument("--fuse", action="store_true", help="drvs mode: fused delivery (one snapshot per request)")
     p.add_argument("--cameras", type=int, default=2, help="drvs mode: cameras every request needs a report from")
     p.add_argument("--warmup", type=int, default=50, help="drvs mode: requests back to back before measuring")
     p.add_argument("--warmup-frames", type=int, default=10, help="raw/jpeg: frames per camera before measuring")
