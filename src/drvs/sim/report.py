@@ -56,6 +56,13 @@ def draw_map(scenario: Scenario, result: dict[str, Any], path: Path, seed: int =
             ax.add_patch(_patch(obj.shape, fill=False, edgecolor="tab:purple", ls=":", lw=1.5))
             continue
         b, g, r = obj.paint
+        if obj.moving:  # its path, where it started (outlined) and where it was at the end (filled)
+            line = np.asarray(obj.path)
+            ax.plot(line[:, 0], line[:, 1], ":", color=(r / 255, g / 255, b / 255), lw=1.5)
+            ax.add_patch(_patch(obj.shape, fill=False, edgecolor=(r / 255, g / 255, b / 255), ls="--", lw=1))
+            end = obj.shape_at(float(result.get("world_time_s", 0.0)))
+            ax.add_patch(_patch(end, facecolor=(r / 255, g / 255, b / 255), alpha=0.45, edgecolor="none"))
+            continue
         ax.add_patch(_patch(obj.shape, facecolor=(r / 255, g / 255, b / 255), alpha=0.45, edgecolor="none"))
     for d in result.get("detections", []):
         ax.add_patch(MplPolygon(d["outline"], closed=True, fill=False, edgecolor="red", lw=1.4))
@@ -96,7 +103,9 @@ def draw_map(scenario: Scenario, result: dict[str, Any], path: Path, seed: int =
     heading = math.atan2(moves[-1][1], moves[-1][0]) if moves else 0.0  # as the robot drove its last step
     for i, cam in enumerate(cams):
         sub = fig.add_subplot(grid[1 + i // 3, i % 3])
-        frame = CameraRenderer(scenario, cam, seed=seed).render(final, len(result.get("path", [])), heading)
+        frame = CameraRenderer(scenario, cam, seed=seed).render(
+            final, len(result.get("path", [])), heading, float(result.get("world_time_s", 0.0))
+        )
         to_image = cam.homography.inverse()
         for d in result.get("detections", []):
             if d["camera_id"] == cam.id:

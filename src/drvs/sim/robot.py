@@ -530,6 +530,8 @@ async def run_robot(
         world = sim_pb2_grpc.SimulatedWorldStub(channel)
         scene = await world.GetScene(sim_pb2.GetSceneRequest(), timeout=10, wait_for_ready=True)
         scenario = parse_scenario(scene.scenario_yaml, f"world {world_address}")
+        # The mission starts: the world's clock starts and moving obstacles move from now on.
+        await world.Start(sim_pb2.StartRequest(), timeout=10)
         # The robot's two connections pass through counting relays: bytes_to_robot and
         # wire_bytes_to_robot are what its sockets received (drvs.meter).
         metered = MeteredClient(server_address, robot_id="sim-robot", security=security) if server_address else None
