@@ -81,7 +81,10 @@ async def test_connect_returns_a_started_client_of_a_real_server() -> None:
     try:
         drvs_client = await DrvsClient.connect(address, robot_id="r")
         try:
-            assert drvs_client.port > 0 and await drvs_client.cameras() == []
+            # The report listener starts with the first per-camera request, not before.
+            assert drvs_client.port == 0 and not drvs_client.listening and await drvs_client.cameras() == []
+            await drvs_client.detect(YELLOW, (0, 0, 1, 1), timeout_s=1)
+            assert drvs_client.listening and drvs_client.port > 0
         finally:
             await drvs_client.close()
         await drvs_client.close()  # closing again does nothing

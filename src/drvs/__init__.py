@@ -34,11 +34,17 @@ if TYPE_CHECKING:
     from drvs.model import CameraError as CameraError
     from drvs.model import Detection as Detection
     from drvs.model import DetectionReport as DetectionReport
+    from drvs.model import FusionOptions as FusionOptions
+    from drvs.model import Snapshot as Snapshot
+    from drvs.model import WorldObject as WorldObject
     from drvs.robot.client import CameraInfo as CameraInfo
     from drvs.robot.client import DetectionResult as DetectionResult
     from drvs.robot.client import DrvsClient as DrvsClient
     from drvs.robot.client import RetryPolicy as RetryPolicy
     from drvs.robot.client import Subscription as Subscription
+    from drvs.robot.client import Track as Track
+    from drvs.robot.client import Tracking as Tracking
+    from drvs.robot.snapshots import snapshot_json as snapshot_json
 
 _EXPORTS = {
     "DrvsClient": "drvs.robot.client",
@@ -46,6 +52,12 @@ _EXPORTS = {
     "DetectionResult": "drvs.robot.client",
     "Subscription": "drvs.robot.client",
     "CameraInfo": "drvs.robot.client",
+    "Track": "drvs.robot.client",
+    "Tracking": "drvs.robot.client",
+    "snapshot_json": "drvs.robot.snapshots",
+    "Snapshot": "drvs.model",
+    "WorldObject": "drvs.model",
+    "FusionOptions": "drvs.model",
     "Detection": "drvs.model",
     "DetectionReport": "drvs.model",
     "CameraError": "drvs.model",

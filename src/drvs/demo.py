@@ -79,7 +79,7 @@ async def run(args: argparse.Namespace) -> int:
                 print(f"drvs-demo: drvs-camera {camera_id} (pid {cam.pid}) registered")
 
             async with DrvsClient(address, robot_id="demo-robot") as robot:
-                print(f"drvs-demo: robot listening for reports on {robot.callback_address}\n")
+                print(f"drvs-demo: robot listening for reports on {await robot.start_listener()}\n")
                 for info in await robot.cameras():
                     x0, y0, x1, y1 = info.field_of_view.bounds
                     print(

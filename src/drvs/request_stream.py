@@ -40,6 +40,11 @@ class RequestStream:
 
     It leaves out robot_id, callback_address, filter_def and region when they repeat the previous
     request on the stream (the receiver fills them back in): it edits the messages it is given.
+
+    A fused continuous request is answered more than once: `request(message, timeout_s, consumer)`
+    returns its first reply as usual, and hands every later reply carrying a snapshot to `consumer`,
+    without waiting, until `release(request_id)`; when the call ends, `consumer` gets the DrvsError
+    that ended it (and is released).
     """
 
     def __init__(
@@ -55,6 +60,8 @@ class RequestStream:
         self._call: aio.StreamStreamCall[Request, Reply] | None = None
         self._reader: asyncio.Task[None] | None = None
         self._pending: dict[str, asyncio.Future[Reply]] = {}
+        # request_id -> (the call it was sent on, who takes its snapshots): fused continuous requests.
+        self._consumers: dict[str, tuple[aio.StreamStreamCall[Request, Reply], Consumer]] = {}
         self._write_lock = asyncio.Lock()
         self._sent = StreamContext()
         self._due_cancels: list[str] = []
@@ -76,6 +83,11 @@ class RequestStream:
         failure: errors.DrvsError
         try:
             async for reply in call:
+                if reply.HasField("snapshot"):
+                    taker = self._consumers.get(reply.request_id)
+                    if taker is not None:
+                        _consume(taker[1], reply, self._peer)
+                        continue
                 future = self._pending.pop(reply.request_id, None)
                 if future is not None and not future.done():
                     future.set_result(reply)
@@ -90,8 +102,14 @@ class RequestStream:
             if not future.done():
                 future.set_exception(failure)
         self._pending.clear()
+        for request_id, (on, consumer) in list(self._consumers.items()):
+            if on is call:
+                del self._consumers[request_id]
+                _consume(consumer, failure, self._peer)
 
-    async def request(self, message: Request, timeout_s: float) -> Reply:
+    async def request(self, message: Request, timeout_s: float, consumer: Consumer | None = None) -> Reply:
+        """Send `message` and return its (first) reply; `consumer` takes its later snapshots (see
+        the class). A refusal raises its DrvsError and releases the consumer."""
         if not message.request_id:
             raise errors.InvalidArgument("request_id: empty; a streamed request needs its own id")
         if message.request_id in self._pending:
@@ -109,6 +127,8 @@ class RequestStream:
                     if self._due_cancels:
                         await self._write_cancels()
                     call = self._call or self._open()
+                    if consumer is not None:  # before the write: a reply cannot come before it
+                        self._consumers[message.request_id] = (call, consumer)
                     restore = self._sent.elide(message)
                     try:
                         await call.write(message)
@@ -123,6 +143,10 @@ class RequestStream:
             # The stream ended: whoever sends this message again sends it whole, on a new stream.
             if restore is not None:
                 restore()
+            self.release(message.request_id)
+            raise
+        except BaseException:
+            self.release(message.request_id)
             raise
         finally:
             timer.cancel()
@@ -132,8 +156,13 @@ class RequestStream:
             else:
                 future.cancel()
         if reply.HasField("error"):
+            self.release(message.request_id)
             raise _grpc.error_from_code(reply.error.code, reply.error.message)
         return reply
+
+    def release(self, request_id: str) -> None:
+        """Stop handing `request_id`'s snapshots to its consumer (later ones are dropped)."""
+        self._consumers.pop(request_id, None)
 
     def cancel_soon(self, request_id: str) -> None:
         """Tell the peer to stop the continuous request `request_id`, sent earlier on this stream:
@@ -388,6 +417,18 @@ class BatchSender:
                 state.reader.cancel()
                 await asyncio.gather(state.reader, return_exceptions=True)
             self._end(state, failure)
+
+
+#: Who takes a fused continuous request's later replies: each reply, then the DrvsError that ended
+#: the call. Called on the stream's reader: it must not block.
+Consumer = Callable[[Reply | errors.DrvsError], None]
+
+
+def _consume(consumer: Consumer, item: Reply | errors.DrvsError, peer: str) -> None:
+    try:
+        consumer(item)
+    except Exception:
+        log.exception("%s: handing a snapshot over failed", peer)
 
 
 def _expire(future: asyncio.Future[Reply], peer: str, timeout_s: float) -> None:

@@ -7,7 +7,15 @@
         for d in result.detections:
             print(d.camera_id, d.centroid.x, d.centroid.y)
 
-See DrvsClient (connect, subscribe, detect, cameras), RetryPolicy, and drvs.errors.
+Fused delivery: the server merges what the cameras see into world objects and answers on the
+robot's own connection (no listener, so it works behind NAT):
+
+        snapshot = await drvs.detect("hsv_014110130035225200", (0, 0, 5, 5), fuse=True)
+        async for time, objects, missing in drvs.track("hsv_014110130035225200", (0, 0, 5, 5), duration_s=5):
+            ...
+
+See DrvsClient (connect, subscribe, detect, track, cameras), Snapshot, WorldObject, RetryPolicy,
+snapshot_json, and drvs.errors.
 """
 
 from drvs.errors import (
@@ -21,7 +29,7 @@ from drvs.errors import (
     Unauthenticated,
     Unavailable,
 )
-from drvs.model import CameraError, Detection, DetectionReport
+from drvs.model import CameraError, Detection, DetectionReport, FusionOptions, Snapshot, WorldObject
 from drvs.robot.client import (
     CameraInfo,
     Connecting,
@@ -31,7 +39,10 @@ from drvs.robot.client import (
     RetryPolicy,
     Subscribing,
     Subscription,
+    Track,
+    Tracking,
 )
+from drvs.robot.snapshots import snapshot_json, world_object_json
 
 __all__ = [
     "CameraError",
@@ -44,14 +55,21 @@ __all__ = [
     "DrvsClient",
     "DrvsError",
     "FailedPrecondition",
+    "FusionOptions",
     "InvalidArgument",
     "NotFound",
     "PermissionDenied",
     "RegionLike",
     "ResourceExhausted",
     "RetryPolicy",
+    "Snapshot",
     "Subscribing",
     "Subscription",
+    "Track",
+    "Tracking",
     "Unauthenticated",
     "Unavailable",
+    "WorldObject",
+    "snapshot_json",
+    "world_object_json",
 ]

@@ -5,14 +5,24 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import math
 import sys
 from typing import Any
 
 from drvs._cli import add_security_arguments, env, join_negative_values, security_from, setup_logging
 from drvs.errors import DrvsError, InvalidArgument
 from drvs.logs import FORMATS
-from drvs.model import Detection, DetectionReport
-from drvs.robot.client import DEFAULT_TIMEOUT_S, DrvsClient, RegionLike, RetryPolicy
+from drvs.model import (
+    MAX_DURATION_S,
+    MAX_FUSION_DEADLINE_S,
+    MAX_FUSION_DROP_AFTER_S,
+    MAX_RATE_HZ,
+    Detection,
+    DetectionReport,
+    Snapshot,
+)
+from drvs.robot.client import DEFAULT_TIMEOUT_S, DEFAULT_TRACK_RATE_HZ, DrvsClient, RegionLike, RetryPolicy
+from drvs.robot.snapshots import snapshot_json, snapshot_table
 
 ENV_SERVER = "DRVS_SERVER"
 
@@ -88,7 +98,112 @@ def print_report(r: DetectionReport) -> None:
         )
 
 
+def check_seconds(value: float | None, flag: str, low: float, high: float, *, open_low: bool) -> None:
+    """A flag's number of seconds (or hertz) in its range, or InvalidArgument naming the flag."""
+    if value is None:
+        return
+    inside = math.isfinite(value) and (value > low if open_low else value >= low) and value <= high
+    if not inside and high == math.inf:
+        raise InvalidArgument(f"{flag}: {value:g} must be >= {low:g}")
+    if not inside:
+        bracket = "(" if open_low else "["
+        raise InvalidArgument(f"{flag}: {value:g} must be in {bracket}{low:g}, {high:g}]")
+
+
+def check_fused_flags(args: argparse.Namespace, command: str) -> None:
+    """The flags of a fused request (drvs-robot track, detect --fuse), checked before connecting."""
+    if command == "track":
+        check_seconds(args.rate, "--rate", 0, MAX_RATE_HZ, open_low=True)
+        check_seconds(args.duration, "--duration", 0, MAX_DURATION_S, open_low=True)
+        check_seconds(args.drop_after, "--drop-after", 0, MAX_FUSION_DROP_AFTER_S, open_low=False)
+    else:
+        if args.rate or args.duration:
+            raise InvalidArgument("--fuse: a single shot; drvs-robot track gives snapshots at --rate for --duration")
+        for flag, value in (("--listen", args.listen), ("--advertise", args.advertise)):
+            if value:
+                raise InvalidArgument(f"{flag}: a fused request needs no listener (--fuse)")
+    check_seconds(args.deadline, "--deadline", 0, MAX_FUSION_DEADLINE_S, open_low=False)
+    check_seconds(args.timeout, "--timeout", 0, math.inf, open_low=False)
+
+
+def report_missing(snapshots: list[Snapshot]) -> bool:
+    """Print each camera missing from any snapshot once (the latest reason); True if there was one."""
+    missing: dict[str, tuple[int, str]] = {}
+    for s in snapshots:
+        for m in s.missing_cameras:
+            count, _ = missing.get(m.camera_id, (0, ""))
+            missing[m.camera_id] = (count + 1, f"{m.code} {m.message}")
+    for camera_id, (count, why) in sorted(missing.items()):
+        times = "" if len(snapshots) == 1 else f" in {count} of {len(snapshots)} snapshots"
+        print(f"drvs-robot: no answer from {camera_id}{times}: {why}", file=sys.stderr)
+    return bool(missing)
+
+
+def print_snapshot(snapshot: Snapshot, as_json: bool) -> None:
+    if as_json:
+        print(json.dumps(snapshot_json(snapshot)), flush=True)
+    else:
+        print("\n".join(snapshot_table(snapshot)), flush=True)
+
+
+async def detect_fused(args: argparse.Namespace) -> int:
+    region = parse_roi(args)
+    check_fused_flags(args, "detect")
+    async with DrvsClient.connect(
+        args.server,
+        robot_id=args.robot_id,
+        security=security_from(vars(args)),
+        retry=RetryPolicy.retries(args.retries),
+    ) as client:
+        snapshot = await client.detect(
+            args.filter,
+            region,
+            fuse=True,
+            deadline_s=args.deadline,
+            timeout_s=args.timeout,
+            outlines=not args.no_outlines,
+        )
+    print_snapshot(snapshot, args.json)
+    return 3 if report_missing([snapshot]) else 0
+
+
+async def track(args: argparse.Namespace) -> int:
+    region = parse_roi(args)
+    check_fused_flags(args, "track")
+    seen: list[Snapshot] = []
+    async with (
+        DrvsClient.connect(
+            args.server,
+            robot_id=args.robot_id,
+            security=security_from(vars(args)),
+            retry=RetryPolicy.retries(args.retries),
+        ) as client,
+        client.track(
+            args.filter,
+            region,
+            rate_hz=args.rate,
+            duration_s=args.duration,
+            drop_after_s=args.drop_after,
+            deadline_s=args.deadline,
+            timeout_s=args.timeout,
+            outlines=not args.no_outlines,
+        ) as tracking,
+    ):
+        if not args.json:
+            print(f"request {tracking.request_id}: dispatched to {', '.join(tracking.camera_ids) or 'no camera'}")
+        async for snapshot in tracking:
+            seen.append(snapshot)
+            print_snapshot(snapshot, args.json)
+        if tracking.dropped:
+            print(f"drvs-robot: {tracking.dropped} snapshot(s) dropped unread", file=sys.stderr)
+    return 3 if report_missing(seen) else 0
+
+
 async def detect(args: argparse.Namespace) -> int:
+    if args.fuse:
+        return await detect_fused(args)
+    if args.deadline is not None:
+        raise InvalidArgument("--deadline: only with --fuse (or drvs-robot track)")
     region = parse_roi(args)
     async with (
         DrvsClient.connect(
@@ -173,6 +288,15 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--log-format", choices=FORMATS, default=None, help="text or json (env DRVS_LOG_FORMAT)")
         add_security_arguments(sp, "file holding this robot's client token")
 
+    def retries(sp: argparse.ArgumentParser) -> None:
+        sp.add_argument(
+            "--retries",
+            type=int,
+            default=0,
+            metavar="N",
+            help="try again, with backoff, while the server is unavailable (N retries after the first try)",
+        )
+
     d = sub.add_parser("detect", help="detect objects in a region")
     common(d)
     d.add_argument("--filter", required=True, help="filter_def, e.g. hsv_014110130035225200 (yellow)")
@@ -188,14 +312,50 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--no-outlines", action="store_true", help="bounds, centroid, ground contact only (fewer bytes)")
     d.add_argument("--listen", default=None, help="HOST:PORT for the callback listener (default: ephemeral)")
     d.add_argument("--advertise", default=None, help="HOST:PORT cameras should call back, if not --listen")
+    retries(d)
     d.add_argument(
-        "--retries",
-        type=int,
-        default=0,
-        metavar="N",
-        help="try again, with backoff, while the server is unavailable (N retries after the first try)",
+        "--fuse",
+        action="store_true",
+        help="the server merges what the cameras see: one snapshot of world objects (no listener)",
+    )
+    d.add_argument(
+        "--deadline",
+        type=float,
+        default=None,
+        metavar="S",
+        help="--fuse: the server answers with what it has this long after dispatch (default 2)",
     )
     d.set_defaults(func=detect)
+
+    t = sub.add_parser("track", help="fused, tracked world objects in a region, one snapshot a period (no listener)")
+    common(t)
+    t.add_argument("--filter", required=True, help="filter_def, e.g. hsv_014110130035225200 (yellow)")
+    t.add_argument("--rate", type=float, default=DEFAULT_TRACK_RATE_HZ, metavar="HZ", help="snapshots per second")
+    t.add_argument("--duration", type=float, required=True, metavar="S", help="for how long, seconds")
+    t.add_argument(
+        "--drop-after",
+        type=float,
+        default=None,
+        metavar="S",
+        help="drop a track no camera has seen for this long (default 1)",
+    )
+    t.add_argument(
+        "--deadline",
+        type=float,
+        default=None,
+        metavar="S",
+        help="how late after its period a camera's report still counts (default: one period)",
+    )
+    t.add_argument(
+        "--timeout",
+        type=float,
+        default=DEFAULT_TIMEOUT_S,
+        metavar="S",
+        help="wait this long beyond the duration for the final snapshot",
+    )
+    t.add_argument("--no-outlines", action="store_true", help="bounds and centroid only (fewer bytes)")
+    retries(t)
+    t.set_defaults(func=track)
 
     c = sub.add_parser("cameras", help="list the registered cameras (optionally those seeing a region)")
     common(c)

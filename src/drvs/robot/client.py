@@ -29,19 +29,27 @@ import logging
 import math
 import secrets
 from collections.abc import AsyncIterator, Awaitable, Callable, Generator, Iterator, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from types import TracebackType
-from typing import Any, ClassVar, Generic, TypeAlias, TypeVar
+from typing import Any, ClassVar, Generic, Literal, TypeAlias, TypeVar, overload
 
 import grpc
 from grpc import aio
 from shapely.geometry import Polygon
 
 from drvs import _grpc
-from drvs.convert import polygon_from_pb, region_to_pb, report_from_pb, request_to_pb
-from drvs.errors import DrvsError, InvalidArgument, Unavailable
+from drvs.convert import polygon_from_pb, region_to_pb, report_from_pb, request_to_pb, snapshot_from_pb
+from drvs.errors import DeadlineExceeded, DrvsError, FailedPrecondition, InvalidArgument, Unavailable
 from drvs.geometry import box_region, polygon_region
-from drvs.model import CameraError, ContinuousMode, Detection, DetectionReport, DetectionRequest
+from drvs.model import (
+    CameraError,
+    ContinuousMode,
+    Detection,
+    DetectionReport,
+    DetectionRequest,
+    FusionOptions,
+    Snapshot,
+)
 from drvs.net import dialable_address, format_address, local_ip_towards, parse_address
 from drvs.report_auth import key_matches, new_secret
 from drvs.request_stream import RequestStream
@@ -60,6 +68,10 @@ DEFAULT_RPC_TIMEOUT_S = 5.0
 DEFAULT_CONNECT_TIMEOUT_S = 5.0
 #: Unread reports a continuous request keeps (the newest; older ones are dropped and counted).
 MAX_QUEUED_REPORTS = 1024
+#: Unread snapshots a track keeps (the newest; older ones are dropped and counted): 6.4 s at 10 Hz.
+MAX_QUEUED_SNAPSHOTS = 64
+#: Snapshots a second DrvsClient.track asks for unless told.
+DEFAULT_TRACK_RATE_HZ = 10.0
 #: The longest wait between retries, seconds (RetryPolicy's default max_backoff_s).
 MAX_BACKOFF_S = 5.0
 #: Regions a client keeps built and encoded, by the value robot code passed.
@@ -86,6 +98,27 @@ def _seconds(value: float, name: str, limit: float) -> float:
     if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0 < value <= limit):
         raise InvalidArgument(f"{name}: {value!r} must be a number of seconds in (0, {limit:g}]")
     return float(value)
+
+
+def _check_timeout(timeout_s: float) -> None:
+    if isinstance(timeout_s, bool) or not (
+        isinstance(timeout_s, (int, float)) and math.isfinite(timeout_s) and timeout_s >= 0
+    ):
+        raise InvalidArgument(f"timeout_s: {timeout_s!r} must be a finite number of seconds >= 0")
+
+
+def _fusion_options(deadline_s: float | None, drop_after_s: float | None) -> FusionOptions:
+    """FusionOptions from a fused call's arguments (None: 0, the server's default), checked."""
+    values = []
+    for name, value in (("deadline_s", deadline_s), ("drop_after_s", drop_after_s)):
+        if value is None:
+            value = 0.0
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise InvalidArgument(f"{name}: {value!r} must be a number of seconds, or None for the server's default")
+        values.append(float(value))
+    fusion = FusionOptions(deadline_s=values[0], drop_after_s=values[1])
+    fusion.validate()
+    return fusion
 
 
 @dataclass(frozen=True)
@@ -497,6 +530,183 @@ class Connecting(_Opening["DrvsClient"]):
         await opened.close()
 
 
+class Track:
+    """The snapshots of one fused continuous request (DrvsClient.track), as an async iterator that
+    ends after the final snapshot (`snapshot.final`).
+
+    The server fuses what every camera reports into world objects (`drvs.model.WorldObject`: one
+    per physical object, with a track id that stays the same from snapshot to snapshot) and sends
+    one `drvs.model.Snapshot` per period on the robot's own request stream: no listener is needed.
+
+    Unread snapshots never hold anything back: the stream's reader hands each one over without
+    waiting. The newest `max_queued` are kept and older ones dropped and counted in `dropped`; the
+    final snapshot is always kept. Leaving `async with` (or breaking out of `async for`) closes the
+    track, and the server stops it and its cameras.
+
+    Errors come out of the iteration: Unavailable when the request stream ends before the final
+    snapshot (the server restarted, the network broke; the track is over: call track() again for a
+    new one), DeadlineExceeded when no final snapshot came within `duration_s` plus the fusion
+    deadline plus `timeout_s` seconds of the server's reply.
+
+    - `request_id`: the request; `camera_ids`: the cameras the server dispatched it to;
+    - `missing_cameras`: CameraErrors for the cameras that see the region but were not asked (the
+      server's reply; each snapshot names the cameras missing from it too);
+    - `uncovered`: parts of the region (shapely Polygons, metres) nobody looks at because of them;
+    - `received`: snapshots that arrived; `dropped`: those dropped unread; `last`: the newest read.
+    """
+
+    def __init__(self, client: DrvsClient, request: DetectionRequest, timeout_s: float, max_queued: int) -> None:
+        self._client = client
+        self.request = request
+        self.request_id = request.request_id
+        self.camera_ids: tuple[str, ...] = ()
+        self.missing_cameras: tuple[CameraError, ...] = ()
+        self.uncovered: list[Polygon] = []
+        self.received = 0
+        self.dropped = 0
+        self.last: Snapshot | None = None
+        self.closed = False
+        #: The final snapshot has arrived (it may still be unread).
+        self.finished = False
+        self._timeout_s = timeout_s
+        self._max_queued = max_queued
+        self._pending: collections.deque[Snapshot] = collections.deque()
+        self._wakeup: asyncio.Future[None] | None = None
+        self._failure: DrvsError | None = None
+        self._timer: asyncio.TimerHandle | None = None
+
+    def _dispatched(self, reply: detection_pb2.DetectionReply) -> None:
+        self.camera_ids = tuple(reply.camera_ids)
+        self.missing_cameras = tuple(CameraError(m.code, m.message, m.camera_id) for m in reply.missing_cameras)
+        self.uncovered = [polygon_from_pb(p, "uncovered") for p in reply.uncovered]
+        request = self.request
+        assert request.fusion is not None
+        # The final snapshot is due at the end of the duration, the server's grace for late
+        # reports (its deadline, or one period) after it at most.
+        grace = request.fusion.deadline_s or 1.0 / request.continuous.rate_hz
+        limit = request.continuous.duration_s + grace + self._timeout_s
+        if not self.finished and not self.closed:
+            self._timer = asyncio.get_running_loop().call_later(limit, self._expire, limit)
+
+    def _expire(self, limit: float) -> None:
+        self._timer = None
+        if not self.finished and self._failure is None:
+            self._failure = DeadlineExceeded(
+                f"request {self.request_id}: no final snapshot within {limit:g} s of the server's reply"
+            )
+            self._wake()
+
+    def _wake(self) -> None:
+        if self._wakeup is not None and not self._wakeup.done():
+            self._wakeup.set_result(None)
+
+    def _take(self, item: detection_pb2.DetectionReply | DrvsError) -> None:
+        """The request stream's reader hands over a reply with a snapshot, or the error that ended
+        the stream. Never waits."""
+        if self.closed or self.finished:
+            return
+        if isinstance(item, DrvsError):
+            if self._failure is None:
+                self._failure = Unavailable(
+                    f"request {self.request_id}: the request stream ended before the final snapshot ({item})"
+                )
+            self._wake()
+            return
+        snapshot = snapshot_from_pb(item.snapshot, self.request_id)
+        self.received += 1
+        if snapshot.final:
+            self.finished = True
+            self._client._release(self.request_id)
+            if self._timer is not None:
+                self._timer.cancel()
+                self._timer = None
+        elif len(self._pending) >= self._max_queued:
+            self._pending.popleft()  # never the final one: nothing comes after it
+            self.dropped += 1
+        self._pending.append(snapshot)
+        self._wake()
+
+    def __aiter__(self) -> AsyncIterator[Snapshot]:
+        return self._iterate()
+
+    async def _iterate(self) -> AsyncIterator[Snapshot]:
+        try:
+            while True:
+                if self._pending:
+                    snapshot = self._pending.popleft()
+                    self.last = snapshot
+                    yield snapshot
+                    if snapshot.final:
+                        return
+                    continue
+                if self._failure is not None:
+                    raise self._failure
+                if self.closed or self.finished:
+                    return
+                self._wakeup = asyncio.get_running_loop().create_future()
+                await self._wakeup
+        finally:
+            self.close()
+
+    def close(self) -> None:
+        """Stop the track: the server is told to stop it (and its cameras) unless it is over."""
+        if self.closed:
+            return
+        self.closed = True
+        self._client._release(self.request_id)
+        if not self.finished and not isinstance(self._failure, Unavailable):
+            self._client._cancel_at_server(self.request_id)
+        if self._timer is not None:
+            self._timer.cancel()
+            self._timer = None
+        self._wake()
+        self._client._tracks.pop(self.request_id, None)
+
+    async def __aenter__(self) -> Track:
+        return self
+
+    async def __aexit__(
+        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+class Tracking(_Opening[Track]):
+    """What DrvsClient.track returns. Three ways to use it:
+
+        async for snapshot in drvs.track(YELLOW, region, rate_hz=10, duration_s=5):
+            ...                                 # sent on the first iteration; break stops it
+        async with drvs.track(...) as track:    # sent on entering; leaving stops it
+            async for snapshot in track: ...
+        track = await drvs.track(...)           # sent now; call track.close() when done
+
+    The request is sent when it is iterated, entered or awaited, not before; a server that refuses
+    it raises the DrvsError it stands for then (InvalidArgument, ResourceExhausted ...), and one
+    that cannot be reached Unavailable, after the attempts `retry` allows.
+    """
+
+    def __init__(self, send: Callable[[], Awaitable[Track]]) -> None:
+        super().__init__()
+        self._send = send
+
+    async def _open(self) -> Track:
+        return await self._send()
+
+    async def _close(self, opened: Track) -> None:
+        opened.close()
+
+    def __aiter__(self) -> AsyncIterator[Snapshot]:
+        return self._iterate()
+
+    async def _iterate(self) -> AsyncIterator[Snapshot]:
+        track = self._opened if self._opened is not None else await self._opening()
+        try:
+            async for snapshot in track:
+                yield snapshot
+        finally:
+            track.close()
+
+
 class DrvsClient:
     """A robot's connection to a DRVS server: ask where objects are, get Python objects back.
 
@@ -508,14 +718,19 @@ class DrvsClient:
     - `server`: the server's HOST:PORT;
     - `robot_id`: this robot's name in the server's logs and limits (letters, digits, - _ . :);
     - `listen`: HOST:PORT the robot's report listener binds (port 0: any free port); default: the
-      local address that reaches the server, port 0, chosen when the client starts;
+      local address that reaches the server, port 0, chosen when the listener starts;
     - `advertise`: HOST:PORT cameras dial to deliver reports (behind NAT, a relay ...); default:
       the bound listener's address;
+
+    The report listener is only for per-camera requests (subscribe, detect without fuse): it starts
+    with the first of them (at start() when `listen` or `advertise` is given, or on
+    `await start_listener()`). A robot whose requests are all fused (detect(fuse=True), track)
+    dials out only and opens no port, so it works behind NAT.
     - `retry`: a RetryPolicy for calls the server could not take (default: no retry);
     - `security`: a drvs.security.Security with TLS files and this robot's token (default: plain).
 
     Constructing one does no network work (no name is resolved); `start()` (or `async with
-    DrvsClient(...)`) opens the channel and the listener without checking the server, and a call
+    DrvsClient(...)`) opens the channel without checking the server, and a call
     to a server that is not there fails then, with Unavailable. Every error is a drvs.errors
     exception with `.code` (the gRPC status name) and `.camera_id`.
 
@@ -557,7 +772,9 @@ class DrvsClient:
         self.port = 0
         self._channel: aio.Channel | None = None
         self._listener: aio.Server | None = None
+        self._listener_lock = asyncio.Lock()
         self._subscriptions: dict[str, Subscription] = {}
+        self._tracks: dict[str, Track] = {}
         self.reports_received = 0
         #: Reports refused: not from a camera the request was dispatched to, or not on its stream.
         self.reports_rejected = 0
@@ -603,27 +820,47 @@ class DrvsClient:
 
     @property
     def callback_address(self) -> str:
-        """HOST:PORT cameras dial to deliver this robot's reports (`advertise`, or the listener's)."""
+        """HOST:PORT cameras dial to deliver this robot's reports (`advertise`, or the listener's);
+        "" while no listener runs (see `listening`)."""
         if self._advertise:
             return self._advertise
+        if self._listener is None:
+            return ""
         return dialable_address(self.listen, self.port, self.server)
 
+    @property
+    def listening(self) -> bool:
+        """True once the report listener runs (a per-camera request, `listen`/`advertise`, or
+        start_listener()); a robot whose requests are all fused never opens it."""
+        return self._listener is not None
+
     async def start(self) -> None:
-        """Open the channel to the server and start the report listener (no check of the server:
-        DrvsClient.connect does that)."""
-        if not self.listen:
-            # Resolving the server's name may block: not on the event loop.
-            self.listen = format_address(await asyncio.to_thread(local_ip_towards, self.server), 0)
-        listener = _grpc.new_server()
-        detection_pb2_grpc.add_CallbackCoordinatesServicer_to_server(_Listener(self), listener)
-        self.port = self.security.bind(listener, self.listen)
-        await listener.start()
-        self._listener = listener
+        """Open the channel to the server (no check of the server: DrvsClient.connect does that),
+        and the report listener when `listen` or `advertise` was given (otherwise it starts with the
+        first per-camera request)."""
         self._channel = self.security.channel(self.server)
         self._detect = detection_pb2_grpc.DetectObjectBoundaryStub(self._channel)
         self._requests = RequestStream(self._detect, f"server {self.server}", metadata=self.security.metadata())
         self._registry = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
-        log.debug("robot %r listening for reports on %s", self.robot_id, self.callback_address)
+        if self.listen or self._advertise:
+            await self.start_listener()
+
+    async def start_listener(self) -> str:
+        """Start the report listener cameras dial with the reports of per-camera requests, if it
+        is not running, and return `callback_address`. Per-camera requests start it themselves."""
+        self._require_started()
+        async with self._listener_lock:
+            if self._listener is None:
+                if not self.listen:
+                    # Resolving the server's name may block: not on the event loop.
+                    self.listen = format_address(await asyncio.to_thread(local_ip_towards, self.server), 0)
+                listener = _grpc.new_server()
+                detection_pb2_grpc.add_CallbackCoordinatesServicer_to_server(_Listener(self), listener)
+                self.port = self.security.bind(listener, self.listen)
+                await listener.start()
+                self._listener = listener
+                log.debug("robot %r listening for reports on %s", self.robot_id, self.callback_address)
+        return self.callback_address
 
     async def check_server(self, timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S) -> None:
         """Ask the server's gRPC health service whether it serves, each attempt waiting at most
@@ -689,6 +926,10 @@ class DrvsClient:
         if self._requests is not None:
             self._requests.cancel_soon(request_id)
 
+    def _release(self, request_id: str) -> None:
+        if self._requests is not None:
+            self._requests.release(request_id)
+
     async def close(self) -> None:
         """Close every open subscription (cameras are told to stop), the listener and the channel.
         Closing again does nothing."""
@@ -698,6 +939,8 @@ class DrvsClient:
         self._open_at_close = list(self._subscriptions)
         for sub in list(self._subscriptions.values()):
             sub.close()
+        for track in list(self._tracks.values()):
+            track.close()
         for task in list(self._report_streams):
             task.cancel()
         if self._requests is not None:
@@ -760,28 +1003,45 @@ class DrvsClient:
 
         A bad argument raises InvalidArgument at once; nothing is sent until the returned object
         is awaited or entered, and a server that cannot be reached raises Unavailable then, after
-        the attempts `retry` allows.
+        the attempts `retry` allows. Sending starts the report listener if it is not running.
         """
         self._require_started()
-        if not (isinstance(timeout_s, (int, float)) and math.isfinite(timeout_s) and timeout_s >= 0):
-            raise InvalidArgument(f"timeout_s: {timeout_s!r} must be a finite number of seconds >= 0")
+        _check_timeout(timeout_s)
         _seconds(rpc_timeout_s, "rpc_timeout_s", 3600.0)
         if isinstance(max_queued, bool) or not isinstance(max_queued, int) or max_queued < 1:
             raise InvalidArgument(f"max_queued: {max_queued!r} must be a whole number of reports >= 1")
+        request, message = self._build(
+            filter_def, region, ContinuousMode(float(rate_hz), float(duration_s)), outlines, request_id, None
+        )
+        message.report_secret = self._report_secret
+        return Subscribing(lambda: self._send(request, message, timeout_s, rpc_timeout_s, max_queued))
+
+    def _build(
+        self,
+        filter_def: str,
+        region: RegionLike,
+        continuous: ContinuousMode,
+        outlines: bool,
+        request_id: str | None,
+        fusion: FusionOptions | None,
+    ) -> tuple[DetectionRequest, detection_pb2.DetectionRequest]:
+        """A validated request and its message. A per-camera request's callback address is the
+        listener's, filled in when it is sent if the listener is not running yet."""
         polygon, region_pb = self._regions.get(region)
         request = DetectionRequest(
             request_id=request_id or self.new_request_id(),
             robot_id=self.robot_id,
             filter_def=filter_def,
             region=polygon,
-            callback_address=self.callback_address,
-            continuous=ContinuousMode(float(rate_hz), float(duration_s)),
+            callback_address=self.callback_address if fusion is None else "",
+            continuous=continuous,
             omit_outlines=not outlines,
+            fusion=fusion,
         )
-        request.validate(unknown_types=True)
-        message = request_to_pb(request, region=region_pb)
-        message.report_secret = self._report_secret
-        return Subscribing(lambda: self._send(request, message, timeout_s, rpc_timeout_s, max_queued))
+        # Every field but a callback address still to come (this client's own) is checked now.
+        checked = request if request.callback_address or fusion else replace(request, fusion=FusionOptions())
+        checked.validate(unknown_types=True)
+        return request, request_to_pb(request, region=region_pb)
 
     async def _send(
         self,
@@ -791,8 +1051,13 @@ class DrvsClient:
         rpc_timeout_s: float,
         max_queued: int,
     ) -> Subscription:
+        if not request.callback_address:
+            callback = await self.start_listener()
+            parse_address(callback, "callback_address")
+            request = replace(request, callback_address=callback)
+            message.callback_address = callback
         sub = Subscription(self, request, timeout_s, max_queued)
-        if sub.request_id in self._subscriptions:
+        if sub.request_id in self._subscriptions or sub.request_id in self._tracks:
             raise InvalidArgument(f"request_id: {sub.request_id!r} is already in use")
         # Registered before sending: a camera may report before the server's reply arrives.
         self._subscriptions[sub.request_id] = sub
@@ -808,6 +1073,33 @@ class DrvsClient:
         sub._dispatched(reply)
         return sub
 
+    @overload
+    async def detect(
+        self,
+        filter_def: str,
+        region: RegionLike,
+        *,
+        rate_hz: float = ...,
+        duration_s: float = ...,
+        timeout_s: float = ...,
+        outlines: bool = ...,
+        fuse: Literal[False] = ...,
+        request_id: str | None = ...,
+    ) -> DetectionResult: ...
+
+    @overload
+    async def detect(
+        self,
+        filter_def: str,
+        region: RegionLike,
+        *,
+        timeout_s: float = ...,
+        outlines: bool = ...,
+        fuse: Literal[True],
+        deadline_s: float | None = ...,
+        request_id: str | None = ...,
+    ) -> Snapshot: ...
+
     async def detect(
         self,
         filter_def: str,
@@ -817,14 +1109,161 @@ class DrvsClient:
         duration_s: float = 0.0,
         timeout_s: float = DEFAULT_TIMEOUT_S,
         outlines: bool = True,
-    ) -> DetectionResult:
+        fuse: bool = False,
+        deadline_s: float | None = None,
+        request_id: str | None = None,
+    ) -> DetectionResult | Snapshot:
         """Send a request and collect every report until each camera is done or `timeout_s` seconds
         beyond `duration_s` have passed; the arguments are subscribe's. Camera failures do not
-        raise: they are in `result.camera_errors` (or call `result.raise_for_errors()`)."""
+        raise: they are in `result.camera_errors` (or call `result.raise_for_errors()`).
+
+        `fuse=True`: the server gathers the cameras' reports itself and answers with one
+        `drvs.model.Snapshot` (`time, objects, missing_cameras = snapshot`): each physical object
+        once, as a `WorldObject`, however many cameras saw it. No listener is used. A single shot
+        only (rate_hz and duration_s 0; `track()` gives snapshots over time).
+
+        - `deadline_s`: the server answers with what it has this many seconds after it sent the
+          request to the cameras, naming the cameras that did not report in time in
+          `snapshot.missing_cameras` (DEADLINE_EXCEEDED); None or 0: the server's default (2 s);
+          at most 30;
+        - `timeout_s`: how long beyond `deadline_s` to wait for the server's answer; past it
+          DeadlineExceeded;
+        - `request_id`: an id of your own (default: a fresh one).
+
+        A server that refuses the request raises its DrvsError (InvalidArgument ...).
+        """
+        if fuse:
+            if rate_hz or duration_s:
+                raise InvalidArgument(
+                    "fuse: detect(fuse=True) is a single shot (rate_hz and duration_s 0); "
+                    "use track() for snapshots over time"
+                )
+            return await self._detect_fused(filter_def, region, timeout_s, outlines, deadline_s, request_id)
+        if deadline_s is not None:
+            raise InvalidArgument("deadline_s: only for fused requests (fuse=True)")
         async with self.subscribe(
-            filter_def, region, rate_hz=rate_hz, duration_s=duration_s, timeout_s=timeout_s, outlines=outlines
+            filter_def,
+            region,
+            rate_hz=rate_hz,
+            duration_s=duration_s,
+            timeout_s=timeout_s,
+            outlines=outlines,
+            request_id=request_id,
         ) as sub:
             return await sub.collect()
+
+    async def _detect_fused(
+        self,
+        filter_def: str,
+        region: RegionLike,
+        timeout_s: float,
+        outlines: bool,
+        deadline_s: float | None,
+        request_id: str | None,
+    ) -> Snapshot:
+        self._require_started()
+        _check_timeout(timeout_s)
+        fusion = _fusion_options(deadline_s, None)
+        _, message = self._build(filter_def, region, ContinuousMode(), outlines, request_id, fusion)
+        if message.request_id in self._subscriptions or message.request_id in self._tracks:
+            raise InvalidArgument(f"request_id: {message.request_id!r} is already in use")
+        requests = self._requests
+        assert requests is not None
+        wait = fusion.single_shot_deadline_s + timeout_s
+        reply = await self._retrying(f"request {message.request_id}", lambda: requests.request(message, wait))
+        if not reply.HasField("snapshot"):
+            raise FailedPrecondition(
+                f"server {self.server}: answered the fused request {message.request_id} without a snapshot "
+                "(a server without fused delivery?)"
+            )
+        return snapshot_from_pb(reply.snapshot, message.request_id)
+
+    def track(
+        self,
+        filter_def: str,
+        region: RegionLike,
+        *,
+        rate_hz: float = DEFAULT_TRACK_RATE_HZ,
+        duration_s: float,
+        drop_after_s: float | None = None,
+        deadline_s: float | None = None,
+        timeout_s: float = DEFAULT_TIMEOUT_S,
+        rpc_timeout_s: float = DEFAULT_RPC_TIMEOUT_S,
+        outlines: bool = True,
+        max_queued: int = MAX_QUEUED_SNAPSHOTS,
+        request_id: str | None = None,
+    ) -> Tracking:
+        """Track objects: the server fuses the cameras' reports and sends a `drvs.model.Snapshot`
+        `rate_hz` times a second for `duration_s` seconds, on the robot's own request stream (no
+        listener: works behind NAT). Objects keep their `track_id` from snapshot to snapshot, also
+        when they pass from one camera to another; each has a velocity (m/s) and an uncertainty (m).
+
+            async for time, objects, missing in drvs.track(YELLOW, (0, 0, 5, 5), duration_s=5):
+                ...
+
+        - `filter_def`, `region`: what and where, as for subscribe;
+        - `rate_hz`: snapshots a second (default 10, at most 100);
+        - `duration_s`: for how long, seconds (at most 3600); the last snapshot has `final` set;
+        - `drop_after_s`: a track no camera has seen for this long is dropped, seconds (None or 0:
+          the server's default, 1 s; at most 60);
+        - `deadline_s`: how late after its period a camera's report may still count, seconds (None
+          or 0: one period; at most 30); a camera without a report in time is in that snapshot's
+          `missing_cameras`;
+        - `timeout_s`: seconds beyond `duration_s` and the deadline to wait for the final snapshot
+          (past it the iteration raises DeadlineExceeded);
+        - `rpc_timeout_s`: seconds one attempt waits for the server's first reply (DeadlineExceeded);
+        - `outlines`: False leaves the objects' outlines out (bounds and centroid only);
+        - `max_queued`: unread snapshots kept; beyond it the oldest are dropped and counted in
+          `track.dropped` (the final one is always kept);
+        - `request_id`: an id of your own (default: a fresh one).
+
+        Returns a Tracking: iterate it, enter it (`async with ... as track`) or await it for the
+        Track. A bad argument raises InvalidArgument at once; nothing is sent before that.
+        """
+        self._require_started()
+        _check_timeout(timeout_s)
+        _seconds(rpc_timeout_s, "rpc_timeout_s", 3600.0)
+        if isinstance(max_queued, bool) or not isinstance(max_queued, int) or max_queued < 1:
+            raise InvalidArgument(f"max_queued: {max_queued!r} must be a whole number of snapshots >= 1")
+        for name, value in (("rate_hz", rate_hz), ("duration_s", duration_s)):
+            if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
+                raise InvalidArgument(f"{name}: {value!r} must be a number > 0 (a track runs at a rate for a time)")
+        fusion = _fusion_options(deadline_s, drop_after_s)
+        request, message = self._build(
+            filter_def, region, ContinuousMode(float(rate_hz), float(duration_s)), outlines, request_id, fusion
+        )
+        return Tracking(lambda: self._open_track(request, message, timeout_s, rpc_timeout_s, max_queued))
+
+    async def _open_track(
+        self,
+        request: DetectionRequest,
+        message: detection_pb2.DetectionRequest,
+        timeout_s: float,
+        rpc_timeout_s: float,
+        max_queued: int,
+    ) -> Track:
+        track = Track(self, request, timeout_s, max_queued)
+        if track.request_id in self._subscriptions or track.request_id in self._tracks:
+            raise InvalidArgument(f"request_id: {track.request_id!r} is already in use")
+        self._tracks[track.request_id] = track
+        requests = self._requests
+        assert requests is not None
+
+        async def attempt() -> detection_pb2.DetectionReply:
+            track._failure = None  # a stream that ended under an earlier attempt: that attempt's failure
+            return await requests.request(message, rpc_timeout_s, track._take)
+
+        try:
+            reply = await self._retrying(f"request {message.request_id}", attempt)
+        except DeadlineExceeded:
+            track.close()  # the server may have taken it: tell it to stop
+            raise
+        except BaseException:
+            track.finished = True  # refused or never taken: nothing to stop at the server
+            track.close()
+            raise
+        track._dispatched(reply)
+        return track
 
     async def cameras(
         self, region: RegionLike | None = None, *, rpc_timeout_s: float = DEFAULT_RPC_TIMEOUT_S
