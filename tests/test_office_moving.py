@@ -1,0 +1,54 @@
+"""drvs-office with a moving obstacle, end to end (world, server, camera, robot as processes): the
+robot plans from fused tracks and predicts the trolley from its velocity, so it neither hits it
+nor re-plans for it; the same robot told to ignore velocity (--no-predict) drives into it."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import pytest
+
+from drvs.sim.scenario import load_scenario
+
+from .test_office import GOAL_TOLERANCE_M, check_map, run_office
+
+CROSSING = Path(__file__).parent / "scenarios" / "crossing.yaml"
+
+
+def moving_tracks(result: dict[str, object]) -> list[dict[str, object]]:
+    tracks = result["tracks"]
+    assert isinstance(tracks, list)
+    return [t for t in tracks if str(t["used_as"]).startswith("moving")]
+
+
+@pytest.mark.slow
+async def test_the_robot_lets_a_crossing_trolley_pass_and_goes_behind_it(tmp_path: Path) -> None:
+    code, result, log = await run_office(tmp_path, "--scenario", str(CROSSING))
+    assert code == 0, log
+    scenario = load_scenario(CROSSING)
+    assert result["delivery"] == "fused" and result["predict"] is True
+    assert result["reached_goal"] is True and result["collisions"] == 0, result.get("contacts")
+    assert scenario.robot.goal is not None and math.dist(result["path"][-1], scenario.robot.goal) < GOAL_TOLERANCE_M
+    # It followed the trolley as one moving track, at about its true speed, northwards.
+    trolley = moving_tracks(result)
+    assert trolley, result["tracks"]
+    fastest = max(trolley, key=lambda t: float(t["max_speed_mps"]))  # type: ignore[arg-type]
+    assert 0.2 <= float(fastest["max_speed_mps"]) <= 0.6, fastest  # type: ignore[arg-type]
+    vx, vy = fastest["mean_velocity"]  # type: ignore[misc]
+    assert vy > 0.1 and abs(vx) < 0.1, fastest
+    # It waited for it (instead of driving on, or round it) and did not re-plan for it: the
+    # straight line y = 2 was free before and after.
+    assert result["wait_steps"] > 0
+    assert result["replans"] == 0, result["planned_paths"]
+    assert max(abs(y - 2.0) for _, y in result["path"]) < 0.05
+    check_map(tmp_path)
+
+
+@pytest.mark.slow
+async def test_a_robot_that_ignores_velocity_drives_into_the_trolley(tmp_path: Path) -> None:
+    """The same run with --no-predict: the trolley is taken to stand where it was last seen, so the
+    robot enters its way while it is still beside it, and it runs into the robot there."""
+    _code, result, log = await run_office(tmp_path, "--scenario", str(CROSSING), "--no-predict")
+    assert result["predict"] is False and moving_tracks(result), log
+    assert result["collisions"] >= 1, result
