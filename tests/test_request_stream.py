@@ -2,10 +2,15 @@
 
 from __future__ import annotations
 
+import asyncio
+import functools
+from collections.abc import AsyncIterator
+
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drvs.request_stream import StreamContext
+from drvs.errors import InvalidArgument
+from drvs.request_stream import ReplyQueue, StreamContext, serve_request_stream_queued
 from drvs.v1 import detection_pb2, geometry_pb2
 
 FILTERS = ["hsv_014110130035225200", "hsv_040080080080255255"]
@@ -79,3 +84,45 @@ def test_a_repeated_request_is_little_more_than_its_id() -> None:
     again = message(2, "turtle", "10.0.0.5:7000", FILTERS[0], (-6.0, 0.0, 26.0, 10.0))
     sender.elide(again)
     assert again.ByteSize() == len("r2") + 2 < first.ByteSize() / 10
+
+
+async def _requests(*messages: detection_pb2.DetectionRequest) -> AsyncIterator[detection_pb2.DetectionRequest]:
+    for message in messages:
+        yield message
+
+
+async def test_the_queued_stream_sends_later_replies_between_the_answers_in_order() -> None:
+    """serve_request_stream_queued: an answer that promises a later reply holds back none after it;
+    a refused request is answered with its error and the stream goes on; the stream ends once the
+    requests have and every promise is kept."""
+    out = ReplyQueue()
+    held: list[str] = []
+
+    async def answer(message: detection_pb2.DetectionRequest, queue: ReplyQueue) -> detection_pb2.DetectionReply | None:
+        if message.request_id == "bad":
+            raise InvalidArgument("filter_def: bad")
+        if message.request_id.startswith("later"):
+            queue.owe()
+            held.append(message.request_id)
+            return None
+        if message.request_id == "b":  # the promises are kept once b is answered
+            for request_id in held:
+                asyncio.get_running_loop().call_soon(
+                    functools.partial(out.put_later, detection_pb2.DetectionReply(request_id=request_id), last=True)
+                )
+        return detection_pb2.DetectionReply(request_id=message.request_id)
+
+    messages = [detection_pb2.DetectionRequest(request_id=i) for i in ("later-1", "a", "bad", "later-2", "b")]
+    replies = [r async for r in serve_request_stream_queued(_requests(*messages), answer, "here", out)]
+    assert [r.request_id for r in replies] == ["a", "bad", "b", "later-1", "later-2"]
+    assert replies[1].error.code == "INVALID_ARGUMENT" and replies[1].error.message == "filter_def: bad"
+
+
+async def test_a_reply_queue_drops_snapshots_for_a_robot_that_does_not_read_but_never_a_last_one() -> None:
+    out = ReplyQueue(max_backlog=2)
+    out.owe()
+    sent = [out.put_later(detection_pb2.DetectionReply(request_id=str(i)), last=False) for i in range(4)]
+    assert sent == [True, True, False, False] and out.dropped == 2
+    assert out.put_later(detection_pb2.DetectionReply(request_id="last"), last=True)
+    out.input_ended()
+    assert [r.request_id async for r in out.drain()] == ["0", "1", "last"]

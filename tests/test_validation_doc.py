@@ -98,6 +98,13 @@ def detect(**overrides: Any) -> Callable[[Any], Any]:
     return lambda ch: detection_pb2_grpc.DetectObjectBoundaryStub(ch).DetectObjects(request(**overrides))
 
 
+def reporting_to_server() -> detection_pb2.DetectionRequest:
+    """A robot's request that sets what only the server sets on its forwards."""
+    message = request()
+    message.report_to_server = True
+    return message
+
+
 def register(**overrides: Any) -> Callable[[Any], Any]:
     return lambda ch: registry_pb2_grpc.RegisterVisionServiceStub(ch).Register(registration(**overrides))
 
@@ -177,6 +184,22 @@ GRPC_CASES = [
         "continuous: rate_hz and duration_s must both be > 0 (continuous) or both 0 (single shot); "
         "got rate_hz=…, duration_s=…",
         detect(continuous=continuous(10, 0)),
+    ),
+    Case(
+        INVALID,
+        "fusion.deadline_s: … is not between 0 and 30 seconds",
+        detect(fusion=detection_pb2.FusionOptions(deadline_s=31)),
+    ),
+    Case(
+        INVALID,
+        "fusion: a continuous fused request needs a request stream (DetectStream), whose call carries its "
+        "snapshots; DetectObjects takes fused single shots only",
+        detect(fusion=detection_pb2.FusionOptions(), continuous=continuous(1, 5)),
+    ),
+    Case(
+        INVALID,
+        "report_to_server: set only by the server on its forwards to cameras; a robot asks for fusion instead",
+        lambda ch: detection_pb2_grpc.DetectObjectBoundaryStub(ch).DetectObjects(reporting_to_server()),
     ),
     Case(
         "RESOURCE_EXHAUSTED",

@@ -41,10 +41,12 @@ MAX_KEYED = 4096
 class RobotLink:
     """The open report stream to one robot."""
 
-    def __init__(self, address: str, security: Security) -> None:
+    def __init__(self, address: str, security: Security, metadata: tuple[tuple[str, str], ...] = ()) -> None:
         self.address = address
         self._channel = security.channel(address)
-        self._call: Any = detection_pb2_grpc.CallbackCoordinatesStub(self._channel).ReportDetections()
+        self._call: Any = detection_pb2_grpc.CallbackCoordinatesStub(self._channel).ReportDetections(
+            metadata=metadata or None
+        )
         self._write_lock = asyncio.Lock()
         self._cancelled: OrderedDict[str, None] = OrderedDict()
         self._presented: dict[str, bytes] = {}  # camera id -> the report key presented on this link
@@ -138,12 +140,18 @@ def _details(exc: BaseException) -> str:
 
 
 class CallbackSender:
-    """Keeps one RobotLink per robot address: bounded in number, idle ones closed."""
+    """Keeps one RobotLink per robot address: bounded in number, idle ones closed. `metadata`: sent
+    on every stream (a camera's token, when it reports to its server rather than to robots)."""
 
     def __init__(
-        self, max_links: int = MAX_LINKS, idle_close_s: float = IDLE_CLOSE_S, security: Security | None = None
+        self,
+        max_links: int = MAX_LINKS,
+        idle_close_s: float = IDLE_CLOSE_S,
+        security: Security | None = None,
+        metadata: tuple[tuple[str, str], ...] = (),
     ) -> None:
         self._security = security or Security()
+        self._metadata = metadata
         self._max = max_links
         self._idle_close_s = idle_close_s
         self._links: OrderedDict[str, RobotLink] = OrderedDict()
@@ -153,7 +161,7 @@ class CallbackSender:
         link = self._links.get(address)
         if link is None or link.broken:
             old = link
-            link = RobotLink(address, self._security)
+            link = RobotLink(address, self._security, self._metadata)
             if old is not None:
                 # What the robot cancelled stays cancelled: a robot that said stop and then closed
                 # its stream is not dialled again for those requests.

@@ -39,6 +39,18 @@ REPORTS = Counter(
     "drvs_reports_sent_total", "Reports a camera node sent to robots, by outcome (sent or dropped)", ["outcome"]
 )
 REPORT_BYTES = Counter("drvs_report_bytes_sent_total", "Serialised bytes of the reports a camera node sent")
+FUSION_REPORTS = Counter(
+    "drvs_fusion_reports_total",
+    "Camera reports the server received for fused requests, by outcome: accepted, late (its request had "
+    "ended), or rejected (no fused request in flight dispatched to that camera with the key presented)",
+    ["outcome"],
+)
+FUSION_SNAPSHOTS = Counter(
+    "drvs_fusion_snapshots_total",
+    "Fused snapshots the server made, by outcome: sent, or dropped (the robot was not reading its stream)",
+    ["outcome"],
+)
+FUSION_SESSIONS = Gauge("drvs_fusion_sessions", "Fused requests in flight in the server")
 STAGE = Histogram(
     "drvs_stage_seconds",
     "Time per stage: route (server: validate, check, route, dispatch), forward (server: until the camera "
@@ -83,6 +95,11 @@ ROUTED_OK = ROUTED.labels("ok")
 ROUTED_FAILED = ROUTED.labels("failed")
 REPORTS_SENT = REPORTS.labels("sent")
 REPORTS_DROPPED = REPORTS.labels("dropped")
+FUSION_REPORTS_ACCEPTED = FUSION_REPORTS.labels("accepted")
+FUSION_REPORTS_LATE = FUSION_REPORTS.labels("late")
+FUSION_REPORTS_REJECTED = FUSION_REPORTS.labels("rejected")
+FUSION_SNAPSHOTS_SENT = FUSION_SNAPSHOTS.labels("sent")
+FUSION_SNAPSHOTS_DROPPED = FUSION_SNAPSHOTS.labels("dropped")
 STAGE_ROUTE = STAGE.labels("route")
 STAGE_FORWARD = STAGE.labels("forward")
 STAGE_DETECT = STAGE.labels("detect")

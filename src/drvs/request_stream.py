@@ -514,6 +514,124 @@ async def serve_request_stream(
         yield reply
 
 
+#: Replies a request stream holds for a robot that is not reading: past this, answers wait (the
+#: next request is not read) and snapshots of continuous fused requests are dropped.
+MAX_REPLY_BACKLOG = 256
+
+
+class ReplyQueue:
+    """The replies a request stream is to write, in the order they are ready: each request's answer
+    in the order of the requests, and between them replies that come later (a fused single shot's
+    answer, a fused continuous request's snapshots), so a slow answer holds back no other.
+
+    `owe()` promises a later reply; `put_later(reply, last=True)` or `settle()` keeps the promise.
+    The stream ends once the requests have ended and no promise is open."""
+
+    def __init__(self, max_backlog: int = MAX_REPLY_BACKLOG) -> None:
+        self.max_backlog = max_backlog
+        self._replies: deque[Reply] = deque()
+        self._wake = asyncio.Event()
+        self._room = asyncio.Event()
+        self._room.set()
+        self._owed = 0
+        self._input_ended = False
+        self.closed = False
+        #: Later replies dropped because the robot was not reading.
+        self.dropped = 0
+
+    def owe(self) -> None:
+        self._owed += 1
+
+    def settle(self) -> None:
+        """A promised reply will not come (its request was cancelled or ended)."""
+        self._owed -= 1
+        self._wake.set()
+
+    def put_later(self, reply: Reply, *, last: bool) -> bool:
+        """Queue a later reply; `last` keeps its promise. One that is not `last` is dropped (False)
+        while the backlog is full; a last one always goes (there are as many as promises)."""
+        if last:
+            self.settle()
+        if self.closed:
+            return False
+        if not last and len(self._replies) >= self.max_backlog:
+            self.dropped += 1
+            return False
+        self._replies.append(reply)
+        self._wake.set()
+        return True
+
+    async def put(self, reply: Reply) -> None:
+        """Queue a request's answer, waiting while the backlog is full."""
+        while len(self._replies) >= self.max_backlog and not self.closed:
+            self._room.clear()
+            await self._room.wait()
+        self._replies.append(reply)
+        self._wake.set()
+
+    def input_ended(self) -> None:
+        self._input_ended = True
+        self._wake.set()
+
+    async def drain(self) -> AsyncIterator[Reply]:
+        while not self.closed:
+            while self._replies and not self.closed:
+                reply = self._replies.popleft()
+                if len(self._replies) < self.max_backlog:
+                    self._room.set()
+                yield reply
+            if self._input_ended and self._owed <= 0:
+                return
+            self._wake.clear()
+            await self._wake.wait()
+
+    def close(self) -> None:
+        self.closed = True
+        self._room.set()
+
+
+async def serve_request_stream_queued(
+    requests: AsyncIterator[Request],
+    answer: Callable[[Request, ReplyQueue], Awaitable[Reply | None]],
+    where: str,
+    out: ReplyQueue | None = None,
+) -> AsyncIterator[Reply]:
+    """`serve_request_stream` with an output queue: `answer(message, out)` may return None after
+    promising a later reply (`out.owe()`), which it then puts on `out` when it is ready. Requests
+    are read and answered in order, a DrvsError becomes a reply's error and the stream goes on."""
+    out = out or ReplyQueue()
+    failure: list[BaseException] = []
+
+    async def read() -> None:
+        context = StreamContext()
+        try:
+            async for message in requests:
+                context.fill(message)
+                try:
+                    reply = await answer(message, out)
+                except Exception as exc:
+                    reply = _refused(message, exc, where)
+                if reply is not None:
+                    await out.put(reply)
+        except Exception as exc:  # the call broke: it ends here too
+            failure.append(exc)
+            out.close()
+            out._wake.set()
+        finally:
+            out.input_ended()
+
+    reader = asyncio.get_running_loop().create_task(read())
+    try:
+        async for reply in out.drain():
+            yield reply
+        if failure:
+            raise failure[0]
+    finally:
+        out.close()
+        reader.cancel()
+        await asyncio.gather(reader, return_exceptions=True)
+
+
 async def serve_request_batches(
     batches: AsyncIterator[Requests], answer: Callable[[Request], Reply], where: str
 ) -> AsyncIterator[Replies]:

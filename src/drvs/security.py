@@ -46,6 +46,8 @@ METHOD_ROLES = {
     f"{_PREFIX}RegisterVisionService/ListCameras": ROBOT,
     f"{_PREFIX}DetectObjectBoundary/DetectObjects": ROBOT,
     f"{_PREFIX}DetectObjectBoundary/DetectStream": ROBOT,
+    # On the server: cameras' reports for fused requests (a robot's own listener has no interceptor).
+    f"{_PREFIX}CallbackCoordinates/ReportDetections": CAMERA,
 }
 
 

@@ -110,8 +110,9 @@ class CameraNode(Lifecycle):
         self.security = security or Security()
         #: Continuous requests one robot (callback address) may have running here at once.
         self.max_continuous = max_continuous
-        # callback address -> continuous requests of that robot running here
-        self._continuous: dict[str, int] = {}
+        # callback address, or ("server", robot id) for a fused request's -> continuous requests of
+        # that robot running here
+        self._continuous: dict[str | tuple[str, str], int] = {}
         self.resolution = resolution
         #: Detector prefixes to run (default: every built-in); options per prefix from the config.
         self.detectors = default_detectors() if detectors is None else tuple(detectors)
@@ -151,6 +152,9 @@ class CameraNode(Lifecycle):
         self.has_fresh_frame = True
         self._jobs: set[asyncio.Task[None]] = set()
         self._callbacks = CallbackSender(security=self.security)
+        # Reports of fused requests go to the server this node registers with, on a channel secured
+        # as registration's (its TLS, its token).
+        self._server_reports = CallbackSender(security=self.security, metadata=self.security.metadata())
         self._analyses: Analyses | None = None
         self._stopped = False
         # Handed to the server at registration; the server presents it on every forward, so this
@@ -239,6 +243,7 @@ class CameraNode(Lifecycle):
             job.cancel()
         await asyncio.gather(*self._jobs, return_exceptions=True)
         await self._callbacks.close()
+        await self._server_reports.close()
         if self._analyses is not None:
             await asyncio.to_thread(self._analyses.stop)
         if self._heavy_pool is not None:
@@ -350,12 +355,19 @@ class CameraNode(Lifecycle):
         runner.check(wanted)
         if len(self._jobs) >= MAX_ACTIVE_REQUESTS:
             raise ResourceExhausted(f"camera {self.camera_id}: {len(self._jobs)} requests active; try later")
-        robot = request.callback_address
+        robot: str | tuple[str, str] = request.callback_address
+        if request.report_to_server:
+            if not self.registration.registered.is_set():
+                raise FailedPrecondition(
+                    f"report_to_server: camera {self.camera_id} is not registered with its server "
+                    f"({self.server_address}), so it has nowhere to report"
+                )
+            robot = ("server", request.robot_id)
         continuous = not request.continuous.single_shot
         if continuous and self._continuous.get(robot, 0) >= self.max_continuous:
             raise ResourceExhausted(
                 f"camera {self.camera_id}: continuous: {self._continuous[robot]} continuous requests already "
-                f"running for {robot} (limit {self.max_continuous}); wait for one to end or cancel one"
+                f"running for {_robot_name(robot)} (limit {self.max_continuous}); wait for one to end or cancel one"
             )
         if log.isEnabledFor(logging.DEBUG):
             log.debug(
@@ -380,7 +392,7 @@ class CameraNode(Lifecycle):
             self._continuous[robot] = self._continuous.get(robot, 0) + 1
             job.add_done_callback(lambda _job: self._release(robot))
 
-    def _release(self, robot: str) -> None:
+    def _release(self, robot: str | tuple[str, str]) -> None:
         """A continuous request ended (done, cancelled by the robot, or stopped): its slot is free."""
         left = self._continuous.get(robot, 0) - 1
         if left > 0:
@@ -388,8 +400,9 @@ class CameraNode(Lifecycle):
         else:
             self._continuous.pop(robot, None)
 
-    def continuous_running(self, robot: str) -> int:
-        """Continuous requests running here whose reports go to `robot` (a callback address)."""
+    def continuous_running(self, robot: str | tuple[str, str]) -> int:
+        """Continuous requests running here whose reports go to `robot` (a callback address, or
+        ("server", robot id) for fused requests)."""
         return self._continuous.get(robot, 0)
 
     async def _serve(self, request: DetectionRequest) -> None:
@@ -397,6 +410,10 @@ class CameraNode(Lifecycle):
         offsets = request.continuous.report_times()  # lazy: nothing is allocated per report time
         last = len(offsets) - 1
         start = loop.time()
+        if request.report_to_server:
+            sender, address = self._server_reports, self.server_address
+        else:
+            sender, address = self._callbacks, request.callback_address
         try:
             for sequence, offset in enumerate(offsets):
                 delay = start + offset - loop.time()
@@ -404,9 +421,7 @@ class CameraNode(Lifecycle):
                     await asyncio.sleep(delay)
                 report = await self._look(request, sequence, final=sequence == last)
                 sending = time.perf_counter()
-                sent = await self._callbacks.send(
-                    request.callback_address, report, not request.omit_outlines, request.report_key
-                )
+                sent = await sender.send(address, report, not request.omit_outlines, request.report_key)
                 metrics.STAGE_REPORT.observe(time.perf_counter() - sending)
                 (metrics.REPORTS_SENT if sent else metrics.REPORTS_DROPPED).inc()
                 if not sent:
@@ -460,6 +475,13 @@ class CameraNode(Lifecycle):
             final=final,
             detections=tuple(detections),
         )
+
+
+def _robot_name(robot: str | tuple[str, str]) -> str:
+    """Whom a continuous request's slot counts for, for a message."""
+    if isinstance(robot, tuple):
+        return f"robot {robot[1]!r} (fused, via the server)"
+    return robot
 
 
 def _run(runner: Detector, analysis: FrameAnalysis, wanted: ObjectType) -> tuple[Detection, ...]:

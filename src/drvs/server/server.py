@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import bisect
+import contextlib
 import dataclasses
 import functools
 import logging
@@ -37,7 +38,7 @@ from drvs.errors import (
     Unavailable,
 )
 from drvs.geometry import DEFAULT_MAX_RANGE_M, Homography
-from drvs.model import DetectionReport, DetectionRequest, check_id
+from drvs.model import CameraError, DetectionReport, DetectionRequest, check_id
 from drvs.net import host_of, is_loopback_host
 from drvs.registry import (
     DEFAULT_GRACE_S,
@@ -49,8 +50,8 @@ from drvs.registry import (
     Claims,
     Registry,
 )
-from drvs.report_auth import MAX_SECRET_BYTES, report_key
-from drvs.request_stream import BatchSender, serve_request_stream
+from drvs.report_auth import MAX_SECRET_BYTES, new_secret, report_key
+from drvs.request_stream import BatchSender, ReplyQueue, serve_request_stream_queued
 from drvs.security import (
     CAMERA,
     ROBOT,
@@ -67,6 +68,7 @@ from drvs.server.config import (
     DEFAULT_MAX_QUEUED_FORWARDS,
     ServerConfig,
 )
+from drvs.server.fusion_session import Continuous, FusionSession, FusionSessions, ReportIntake, SingleShot
 from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits, peer_ip
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
@@ -89,6 +91,16 @@ UNCOVERED_CACHE_SIZE = 256
 SERVICE_NAMES = (
     detection_pb2.DESCRIPTOR.services_by_name["DetectObjectBoundary"].full_name,
     registry_pb2.DESCRIPTOR.services_by_name["RegisterVisionService"].full_name,
+    detection_pb2.DESCRIPTOR.services_by_name["CallbackCoordinates"].full_name,
+)
+#: Fused single shots one request stream may have waiting for their answers at once.
+MAX_FUSED_WAITING_PER_STREAM = 256
+REPORT_TO_SERVER_REFUSED = (
+    "report_to_server: set only by the server on its forwards to cameras; a robot asks for fusion instead"
+)
+FUSED_CONTINUOUS_UNARY = (
+    "fusion: a continuous fused request needs a request stream (DetectStream), whose call carries its "
+    "snapshots; DetectObjects takes fused single shots only"
 )
 
 
@@ -276,6 +288,8 @@ class DrvsServer(Lifecycle):
         self._tasks: set[asyncio.Task[None]] = set()
         self._sweeper: asyncio.Task[None] | None = None
         self._callbacks = CallbackSender(security=self.security)
+        #: Fused requests in flight, whose cameras report here (fusion_session.py).
+        self.fusion = FusionSessions()
         self._stopped = False
 
     @classmethod
@@ -301,6 +315,7 @@ class DrvsServer(Lifecycle):
     def _add_servicers(self, server: aio.Server) -> None:
         detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(_RobotFacing(self), server)
         registry_pb2_grpc.add_RegisterVisionServiceServicer_to_server(_Registration(self), server)
+        detection_pb2_grpc.add_CallbackCoordinatesServicer_to_server(_CameraReports(self), server)
 
     async def start(self) -> None:
         await self._endpoint.start()
@@ -365,6 +380,7 @@ class DrvsServer(Lifecycle):
         self._stopped = True
         if self._sweeper is not None:
             self._sweeper.cancel()
+        self.fusion.end_all("the server is stopping")
         await self._endpoint.stop(grace)
         for task in list(self._tasks):
             task.cancel()
@@ -548,15 +564,17 @@ class DrvsServer(Lifecycle):
         secret: bytes = b"",
         plan: tuple[list[CameraEntry], list[MissingCamera]] | None = None,
         on_none_accepted: Callable[[], None] | None = None,
+        session: FusionSession | None = None,
     ) -> detection_pb2.DetectionReply:
         """Forward to every camera planned (`plan`, by default the one `plan()` makes) and answer the
         robot: whom it asked, whom it could not, and what part of the region nobody looks at.
-        `secret`: the robot's report secret. `on_none_accepted` is called once if every camera
-        refused or failed the request (so it holds no resources anywhere)."""
+        `secret`: the robot's report secret (a fused request's: the server's own for it). `on_none_accepted`
+        is called once if every camera refused or failed the request (so it holds no resources
+        anywhere). `session`: a fused request's, told of cameras that do not take it."""
         cameras, missing = self.plan(request) if plan is None else plan
         outcome = _Outcome(len(cameras), on_none_accepted)
         for camera in cameras:
-            self._forward(camera, request, message, secret, outcome)
+            self._forward(camera, request, message, secret, outcome, session)
         log.debug(
             "request %s from robot %r (%s): dispatched to %s",
             request.request_id,
@@ -622,6 +640,69 @@ class DrvsServer(Lifecycle):
         metrics.FORWARDED_BYTES.inc(size * len(reply.camera_ids))
         return reply
 
+    def submit_fused(
+        self,
+        request: DetectionRequest,
+        message: detection_pb2.DetectionRequest,
+        robot: str,
+        delivery: Any,
+        slots: _Slots | None = None,
+        on_end: Callable[[FusionSession], None] | None = None,
+    ) -> tuple[detection_pb2.DetectionReply, FusionSession]:
+        """A robot's validated fused request: counted against `robot`'s limits as any request,
+        forwarded to the cameras that see its region with `report_to_server` and a key per camera
+        from a secret made for it, and gathered by a FusionSession whose replies go to `delivery`
+        (fusion_session.Delivery). Returns the reply to the request as dispatched (a single shot's
+        session answers with it later, its snapshot added) and the session. `on_end`: called when
+        the session ends."""
+        self.fusion.check_room()
+        plan = self.plan(request)
+        cameras, missing = plan
+        if not cameras and not missing:
+            self.refuse_unserved(request)
+        limits = self.limits
+        # The cameras report to the server, with outlines (fusion matches by them); no callback.
+        message.ClearField("fusion")
+        message.callback_address = ""
+        message.report_to_server = True
+        message.omit_outlines = False
+        size = message.ByteSize()
+        slot = limits.admit(robot, request.continuous.duration_s, size * len(cameras))
+        if slot is not None and slots is not None:
+            slots.hold(request.request_id, slot)
+        secret = new_secret()
+        keys = {c.camera_id: report_key(secret, c.camera_id) for c in cameras}
+
+        def ended(session: FusionSession) -> None:
+            self.fusion.remove(session)
+            if slots is not None:
+                slots.release(request.request_id)
+            elif slot is not None:
+                limits.release(robot, slot)
+            if on_end is not None:
+                on_end(session)
+
+        kind: type[FusionSession] = SingleShot if request.continuous.single_shot else Continuous
+        session = kind(
+            request,
+            [c.camera_id for c in cameras],
+            keys,
+            self._homography_of,
+            delivery,
+            ended,
+            [CameraError(m.code, m.message, m.camera_id) for m in missing],
+        )
+        self.fusion.add(session)
+        reply = self.dispatch(request, message, secret, plan, session=session)
+        session.start(reply)
+        metrics.FORWARDED_BYTES.inc(size * len(cameras))
+        return reply, session
+
+    def _homography_of(self, camera_id: str) -> Homography | None:
+        if camera_id not in self.registry:
+            return None
+        return self.registry.get(camera_id).homography
+
     def _spawn(self, coro: Any) -> None:
         task = asyncio.get_running_loop().create_task(coro)
         self._tasks.add(task)
@@ -644,6 +725,7 @@ class DrvsServer(Lifecycle):
         message: detection_pb2.DetectionRequest,
         secret: bytes = b"",
         outcome: _Outcome | None = None,
+        session: FusionSession | None = None,
     ) -> None:
         key = report_key(secret, camera.camera_id)
         link = self._link(camera)
@@ -658,6 +740,7 @@ class DrvsServer(Lifecycle):
                     f"(limit {self.max_queued_forwards}); try again later"
                 ),
                 key,
+                session=session,
             )
             if outcome is not None:
                 outcome.failed()
@@ -669,7 +752,7 @@ class DrvsServer(Lifecycle):
                 # A link the camera has replaced since (it registered again, at another address)
                 # says nothing of the camera now: closing it fails what was still in flight on it.
                 current = self._links.get(camera.camera_id) is link
-                self._not_accepted(camera, request, result, key, mark_unreachable=current)
+                self._not_accepted(camera, request, result, key, mark_unreachable=current, session=session)
                 if outcome is not None:
                     outcome.failed()
             else:
@@ -692,10 +775,12 @@ class DrvsServer(Lifecycle):
         key: bytes = b"",
         *,
         mark_unreachable: bool = True,
+        session: FusionSession | None = None,
     ) -> None:
         """The camera will not report on this request: tell the robot in the camera's name, so it
-        need not wait for it. A camera that could not be reached is skipped until it heartbeats
-        (unless `mark_unreachable` is False: the failure was on a link it has since replaced)."""
+        need not wait for it (a fused request: tell its `session`, which names it missing). A
+        camera that could not be reached is skipped until it heartbeats (unless `mark_unreachable`
+        is False: the failure was on a link it has since replaced)."""
         if self._stopped:
             return  # the server's own shutdown closed the links: nobody is waiting to hear
         metrics.ROUTED_FAILED.inc()
@@ -707,6 +792,9 @@ class DrvsServer(Lifecycle):
             if mark_unreachable and isinstance(exc, (Unavailable, DeadlineExceeded)):
                 self._unreachable.add(camera.camera_id)
                 self._unreachable_why[camera.camera_id] = f"{code} {exc}"
+            if session is not None:
+                session.failed(camera.camera_id, CameraError(code, reason, camera.camera_id))
+                return
             report = DetectionReport(
                 request_id=request.request_id,
                 camera_id=camera.camera_id,
@@ -767,12 +855,14 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         allowed: dict[str, str],
         robot: str,
         slots: _Slots | None = None,
-    ) -> detection_pb2.DetectionReply:
-        """Validate, check the callback (once per address per call), dispatch, reply at once."""
+        stream: _FusedOnStream | None = None,
+    ) -> detection_pb2.DetectionReply | None:
+        """Validate, check the callback (once per address per call), dispatch, reply at once (a
+        fused single shot on a stream: None, its reply follows on `stream` when it is ready)."""
         started = time.perf_counter()
         token = logs.request_id.set(message.request_id)
         try:
-            reply = await self._dispatch(message, peer, allowed, robot, slots)
+            reply = await self._dispatch(message, peer, allowed, robot, slots, stream)
         except DrvsError:
             metrics.REFUSED.inc()
             raise
@@ -789,8 +879,11 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         allowed: dict[str, str],
         robot: str,
         slots: _Slots | None,
-    ) -> detection_pb2.DetectionReply:
+        stream: _FusedOnStream | None = None,
+    ) -> detection_pb2.DetectionReply | None:
         request = request_from_pb(message, require_request_id=False)
+        if request.report_to_server:
+            raise InvalidArgument(REPORT_TO_SERVER_REFUSED)
         # Unknown fields are not forwarded: they would make every camera's copy as large as the sender likes.
         message.DiscardUnknownFields()
         secret = message.report_secret
@@ -803,7 +896,45 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
             request = dataclasses.replace(request, request_id=uuid.uuid4().hex)
             message.request_id = request.request_id
             logs.request_id.set(request.request_id)
+        if request.fusion is not None:
+            return await self._fused(request, message, robot, slots, stream)
         return await self._s.submit(request, message, secret, robot, peer, allowed, slots)
+
+    async def _fused(
+        self,
+        request: DetectionRequest,
+        message: detection_pb2.DetectionRequest,
+        robot: str,
+        slots: _Slots | None,
+        stream: _FusedOnStream | None,
+    ) -> detection_pb2.DetectionReply | None:
+        """A fused request: on a stream, its replies go on the stream's queue (a single shot's one
+        reply when it is ready: None now); on DetectObjects (single shots only), awaited here."""
+        single_shot = request.continuous.single_shot
+        if stream is None:
+            if not single_shot:
+                raise InvalidArgument(FUSED_CONTINUOUS_UNARY)
+            delivery = _CallDelivery()
+            _, session = self._s.submit_fused(request, message, robot, delivery)
+            try:
+                reply = await delivery.future
+            finally:
+                session.end("its call ended")
+            if reply.HasField("error"):
+                raise _grpc.error_from_code(reply.error.code, reply.error.message)
+            return reply
+        stream.check(request.request_id, single_shot)
+        out = stream.out
+        out.owe()
+        try:
+            reply, session = self._s.submit_fused(
+                request, message, robot, _QueueDelivery(out), slots, on_end=stream.ended
+            )
+        except BaseException:
+            out.settle()
+            raise
+        stream.sessions[request.request_id] = session
+        return None if single_shot else reply
 
     @_grpc.servicer_method
     async def DetectObjects(
@@ -811,7 +942,9 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
     ) -> detection_pb2.DetectionReply:
         if message.cancel:
             raise InvalidArgument("cancel: only a request stream (DetectStream) can cancel its continuous requests")
-        return await self._answer(message, peer_ip(context.peer()), {}, self._robot(context))
+        reply = await self._answer(message, peer_ip(context.peer()), {}, self._robot(context))
+        assert reply is not None  # only a fused single shot on a stream answers later
+        return reply
 
     async def DetectStream(
         self,
@@ -822,17 +955,28 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         allowed: dict[str, str] = {}
         robot = self._robot(context)
         slots = _Slots(self._s.limits, robot)
+        out = ReplyQueue()
+        fused = _FusedOnStream(out)
 
-        async def answer(message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
+        async def answer(
+            message: detection_pb2.DetectionRequest, out: ReplyQueue
+        ) -> detection_pb2.DetectionReply | None:
             if not message.request_id:
                 raise InvalidArgument("request_id: empty; a streamed request needs its own id")
             if message.cancel:
                 slots.release(message.request_id)
+                session = fused.sessions.get(message.request_id)
+                if session is not None:
+                    session.end("cancelled by the robot")
                 return detection_pb2.DetectionReply(request_id=message.request_id)
-            return await self._answer(message, peer, allowed, robot, slots)
+            return await self._answer(message, peer, allowed, robot, slots, fused)
 
-        async for reply in serve_request_stream(request_iterator, answer, "drvs-server"):
-            yield reply
+        try:
+            async for reply in serve_request_stream_queued(request_iterator, answer, "drvs-server", out):
+                yield reply
+        finally:
+            for session in list(fused.sessions.values()):
+                session.end("the robot's request stream ended")
 
     async def DetectBatches(
         self,
@@ -844,6 +988,104 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
             "DetectBatches is the hop from a server to its cameras; robots send requests on DetectStream",
         )
         yield detection_pb2.DetectionReplies()  # never reached: abort raises
+
+
+class _FusedOnStream:
+    """The fused requests of one robot's request stream, and the queue their replies go on."""
+
+    def __init__(self, out: ReplyQueue) -> None:
+        self.out = out
+        self.sessions: dict[str, FusionSession] = {}
+
+    def check(self, request_id: str, single_shot: bool) -> None:
+        if request_id in self.sessions:
+            raise InvalidArgument(
+                f"request_id: {request_id[:40]!r} is already a fused request in flight on this stream"
+            )
+        if single_shot:
+            waiting = sum(1 for s in self.sessions.values() if isinstance(s, SingleShot))
+            if waiting >= MAX_FUSED_WAITING_PER_STREAM:
+                raise ResourceExhausted(
+                    f"fusion: {waiting} fused single shots already waiting for their answers on this stream "
+                    f"(limit {MAX_FUSED_WAITING_PER_STREAM}); wait for one"
+                )
+
+    def ended(self, session: FusionSession) -> None:
+        if self.sessions.get(session.request_id) is session:
+            del self.sessions[session.request_id]
+
+
+class _QueueDelivery:
+    """A fused request's replies on its robot's request stream."""
+
+    __slots__ = ("out",)
+
+    def __init__(self, out: ReplyQueue) -> None:
+        self.out = out
+
+    def send(self, reply: detection_pb2.DetectionReply, last: bool) -> bool:
+        return self.out.put_later(reply, last=last)
+
+    def abandon(self) -> None:
+        self.out.settle()
+
+
+class _CallDelivery:
+    """A fused single shot's one reply, for its DetectObjects call."""
+
+    def __init__(self) -> None:
+        self.future: asyncio.Future[detection_pb2.DetectionReply] = asyncio.get_running_loop().create_future()
+
+    def send(self, reply: detection_pb2.DetectionReply, last: bool) -> bool:
+        if self.future.done():
+            return False
+        self.future.set_result(reply)
+        return True
+
+    def abandon(self) -> None:
+        if not self.future.done():
+            self.future.set_exception(Unavailable("drvs-server: the fused request ended before its answer"))
+
+
+class _CameraReports(detection_pb2_grpc.CallbackCoordinatesServicer):
+    """Cameras' reports for fused requests (CallbackCoordinates, as a robot serves it): only cameras
+    may call (a camera token or a camera certificate where those are configured, as for
+    registration); each stream is a ReportIntake, which takes only the reports a key proves."""
+
+    def __init__(self, server: DrvsServer) -> None:
+        self._s = server
+
+    async def ReportDetections(
+        self,
+        request_iterator: AsyncIterator[detection_pb2.DetectionReport],
+        context: aio.ServicerContext[Any, Any],
+    ) -> None:
+        server = self._s
+        try:
+            who = camera_identity(context, server.tokens, server.security.require_client_cert, "ReportDetections")
+            server._camera_owner(who, "ReportDetections")
+        except DrvsError as exc:
+            # Take the first message before refusing (see security._refusal).
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(anext(aiter(request_iterator)), 1.0)
+            await context.abort(_grpc.status_of(exc), str(exc))
+        intake = ReportIntake(server.fusion, context.peer())
+
+        async def read() -> None:
+            try:
+                async for message in request_iterator:
+                    intake.receive(message)
+            finally:
+                intake.input_ended()
+
+        reader = asyncio.get_running_loop().create_task(read())
+        try:
+            while (control := await intake.next_control()) is not None:
+                await context.write(control)
+        finally:
+            reader.cancel()
+            await asyncio.gather(reader, return_exceptions=True)
+            intake.end()
 
 
 class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
