@@ -13,9 +13,10 @@ import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import numpy as np
 import shapely
 from shapely import affinity
-from shapely.geometry import LineString, Point, Polygon
+from shapely.geometry import LineString, Polygon
 
 from drvs.model import WorldObject
 
@@ -87,17 +88,29 @@ def first_conflict(
     step_s: float = STEP_S,
 ) -> float | None:
     """The first time (seconds from `now`) at which the robot, at `positions[i]` at now + i * step_s,
-    would be within `clearance` of an obstacle's predicted footprint swept over that step; None
-    when the way is clear over the whole horizon."""
-    if not obstacles:
+    would be within `clearance` of an obstacle's predicted footprint swept over that step (what
+    `MovingObstacle.swept` draws); None when the way is clear over the whole horizon.
+
+    Computed in each obstacle's own frame, all instants at once: the robot's position less the
+    obstacle's motion over the step is a short segment, and the robot meets the swept footprint
+    when that segment comes within the grown clearance of the outline as last seen."""
+    if not obstacles or not positions:
         return None
-    for i, (x, y) in enumerate(positions):
-        t = now + i * step_s
-        here = Point(x, y)
-        for obstacle in obstacles:
-            if obstacle.swept(max(t - step_s, now), t + step_s, clearance).intersects(here):
-                return i * step_s
-    return None
+    where = np.asarray(positions, dtype=np.float64)
+    times = now + np.arange(len(where)) * step_s
+    start, stop = np.maximum(times - step_s, now), times + step_s
+    first: int | None = None
+    for obstacle in obstacles:
+        v = np.asarray(obstacle.velocity_xy, dtype=np.float64)
+        a = where - np.outer(start - obstacle.seen, v)
+        b = where - np.outer(stop - obstacle.seen, v) + 1e-9  # never a zero-length segment
+        distance = shapely.distance(obstacle.outline, shapely.linestrings(np.stack([a, b], axis=1)))
+        grow = clearance + UNCERTAINTY_SIGMAS * obstacle.uncertainty_m
+        grow = grow + DRIFT_FRACTION * obstacle.speed_mps * np.maximum(0.0, stop - obstacle.seen)
+        hits = np.flatnonzero(distance <= grow)
+        if len(hits) and (first is None or int(hits[0]) < first):
+            first = int(hits[0])
+    return None if first is None else first * step_s
 
 
 def decide(

@@ -75,7 +75,7 @@ SELF_SLIVER_M2 = 0.01
 #: server, or every camera's own reports (the paper's).
 DELIVERIES = ("fused", "per-camera")
 #: Snapshots a second of the obstacle tracks the robot follows while it drives.
-TRACK_RATE_HZ = 5.0
+TRACK_RATE_HZ = 2.0
 
 
 class MissionFailed(Exception):
