@@ -1,0 +1,332 @@
+"""Fusion: one world object per physical object, from the detections of several cameras.
+
+Pure logic (no role, no I/O): the server calls `fuse` on the reports of one request (a single shot)
+or of one period (a continuous request, then `drvs.tracking.Tracker`). docs/fusion.md explains the
+model; in short:
+
+- Precision. A camera's detector places an object's centroid to about `pixel_sigma` pixels; on the
+  floor that is `pixel_sigma * GSD` metres, where the ground sampling distance (GSD) is the floor
+  length one image pixel covers at that spot (`ground_sampling_distance`, from the camera's
+  image->floor homography). A camera far from a spot, or looking at it at a grazing angle, has a
+  larger GSD there and counts less.
+- Grouping. Only detections of one type are merged: markers by marker id, everything else by
+  label (within one request all detections come from one filter_def). Markers of one id merge
+  whatever their distance (the id says it is the same marker). Other detections are candidate
+  pairs when their floor outlines overlap (a share of the smaller one, `OVERLAP_FRACTION`) or when
+  their centroids are within a gate: 3 sigma of the two cameras' combined precision plus an
+  allowance for the object's size (`SIZE_ALLOWANCE`), because two cameras see a raised object's
+  sides and top from different directions and the floor projection of what each sees is displaced
+  away from it. Cameras are taken one at a time (sorted by id) and each camera's detections are
+  assigned to the groups built so far with `scipy.optimize.linear_sum_assignment` (the optimal
+  one-to-one assignment minimising gated, normalised distance), so two detections of one camera
+  never share a group. A detection left unassigned starts a group of its own.
+- Fused values. Centroid: the 1/sigma^2-weighted mean of the members' centroids; uncertainty_m:
+  the fused sigma, 1/sqrt(sum 1/sigma_i^2), smaller than any member's. Outline: the UNION of the
+  members' outlines, because a path planner must not drive into any part that any camera saw
+  (the intersection would be tighter for a tall object, but it loses real floor area whenever the
+  cameras' calibrations disagree by a few centimetres). Bounds: the outline's bounds, or without
+  outlines (a request with omit_outlines) the union of the members' bounds. area_m2: the fused
+  outline's area (without outlines: the largest member's). score: the best member's. last_seen:
+  the newest capture time. camera_ids: sorted. marker_heading_deg: the members' headings averaged
+  on the circle with the same weights. track_id: 1, 2, ... by x, then y, of the fused centroid.
+- Reports carrying an error contribute nothing (the caller reports that camera as missing); a
+  detection with non-finite coordinates is skipped (a camera's garbage must not cost the others
+  their answer).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass, replace
+
+import numpy as np
+import shapely
+from scipy.optimize import linear_sum_assignment
+from shapely.geometry import Polygon
+
+from drvs.errors import InvalidArgument
+from drvs.geometry import Homography
+from drvs.model import Detection, DetectionReport, WorldObject
+
+#: The detector's 1-sigma error of an object's centroid, in image pixels: contour centroids of the
+#: HSV detector on rendered frames scatter by about a pixel; more for blurred or partly hidden blobs.
+PIXEL_SIGMA = 1.5
+#: Floor sigma (metres) of a detection whose camera has no homography the caller knows and whose
+#: report carries no areas to derive one from.
+FALLBACK_SIGMA_M = 0.10
+#: Two outlines overlap when their intersection is at least this share of the smaller one's area.
+OVERLAP_FRACTION = 0.2
+#: The gate's allowance for an object's size: this share of the smaller member's extent
+#: (sqrt of its floor area, or of its bounds' area). Two views of a raised box put its floor
+#: projection on different sides of its footprint; their centroids differ by up to about half its size.
+SIZE_ALLOWANCE = 0.5
+#: The gate's width in combined sigmas.
+GATE_SIGMAS = 3.0
+#: At most this many detections are fused per call (in camera order); the rest are dropped.
+#: Cameras bound their own answers; this keeps one call's assignment work bounded whatever arrives.
+MAX_DETECTIONS = 2000
+
+_NO_OUTLINE = Polygon()
+_UNMATCHED = 1e9
+
+
+def ground_sampling_distance(h: Homography, floor_xy: tuple[float, float]) -> float:
+    """Metres of floor per image pixel at floor_xy for the camera whose image->floor homography is h.
+
+    The square root of |det J|, J the Jacobian of the image->floor mapping at the pixel that sees
+    floor_xy (found with the inverse homography): the side of the floor square one pixel covers
+    there. inf when floor_xy is on the camera's horizon (or behind it: no pixel sees it).
+    InvalidArgument when floor_xy is not two finite numbers.
+    """
+    try:
+        x, y = (float(v) for v in floor_xy)
+    except (TypeError, ValueError):
+        raise InvalidArgument(f"floor_xy: expected two numbers (x, y), got {floor_xy!r}") from None
+    if not (math.isfinite(x) and math.isfinite(y)):
+        raise InvalidArgument(f"floor_xy: ({x}, {y}) must be finite")
+    inv = h.inverse().matrix
+    pix = inv @ np.array([x, y, 1.0])
+    if pix[2] == 0.0 or not np.all(np.isfinite(pix)):
+        return math.inf
+    u, v = pix[0] / pix[2], pix[1] / pix[2]
+    return _gsd_at_pixel(h.matrix, u, v)
+
+
+def _gsd_at_pixel(m: np.ndarray, u: float, v: float) -> float:
+    w = m[2, 0] * u + m[2, 1] * v + m[2, 2]
+    if w == 0.0 or not math.isfinite(w):
+        return math.inf
+    x = (m[0, 0] * u + m[0, 1] * v + m[0, 2]) / w
+    y = (m[1, 0] * u + m[1, 1] * v + m[1, 2]) / w
+    # d(x, y)/d(u, v) of x = (a u + b v + c) / w: (a - x g) / w and so on.
+    j = np.array(
+        [
+            [(m[0, 0] - x * m[2, 0]) / w, (m[0, 1] - x * m[2, 1]) / w],
+            [(m[1, 0] - y * m[2, 0]) / w, (m[1, 1] - y * m[2, 1]) / w],
+        ]
+    )
+    det = abs(float(np.linalg.det(j)))
+    return math.sqrt(det) if math.isfinite(det) else math.inf
+
+
+@dataclass
+class _Member:
+    det: Detection
+    camera_id: str
+    capture_time: float
+    sigma: float
+    extent: float
+
+
+@dataclass
+class _Group:
+    members: list[_Member]
+    centroid: tuple[float, float]
+    sigma: float
+    outline: Polygon
+
+    @classmethod
+    def of(cls, first: _Member) -> _Group:
+        g = cls([first], first.det.centroid_xy, first.sigma, first.det.outline)
+        return g
+
+    def add(self, m: _Member) -> None:
+        self.members.append(m)
+        weights = np.array([1.0 / (x.sigma * x.sigma) for x in self.members])
+        xy = np.array([x.det.centroid_xy for x in self.members], dtype=np.float64)
+        c = weights @ xy / weights.sum()
+        self.centroid = (float(c[0]), float(c[1]))
+        self.sigma = float(1.0 / math.sqrt(weights.sum()))
+        outlines = [x.det.outline for x in self.members if not x.det.outline.is_empty]
+        self.outline = _union(outlines)
+
+    @property
+    def extent(self) -> float:
+        return min(m.extent for m in self.members)
+
+
+def _union(outlines: Sequence[Polygon]) -> Polygon:
+    if not outlines:
+        return _NO_OUTLINE
+    if len(outlines) == 1:
+        return outlines[0]
+    merged = shapely.union_all([o if o.is_valid else shapely.make_valid(o) for o in outlines])
+    if isinstance(merged, Polygon):
+        return merged
+    # Members that do not touch (matched by distance): their convex hull covers the object and
+    # the gap between the views, which a planner should treat as occupied too.
+    hull = merged.convex_hull
+    return hull if isinstance(hull, Polygon) else _NO_OUTLINE
+
+
+def _finite(d: Detection) -> bool:
+    values = (*d.centroid_xy, *d.bounds)
+    return all(math.isfinite(v) for v in values)
+
+
+def _extent(d: Detection) -> float:
+    if d.area_m2 > 0 and math.isfinite(d.area_m2):
+        return math.sqrt(d.area_m2)
+    x0, y0, x1, y1 = d.bounds
+    return math.sqrt(max(0.0, (x1 - x0) * (y1 - y0)))
+
+
+def _sigma(d: Detection, h: Homography | None, pixel_sigma: float) -> float:
+    if h is not None:
+        gsd = ground_sampling_distance(h, d.centroid_xy)
+        if math.isfinite(gsd) and gsd > 0:
+            return pixel_sigma * gsd
+    if d.area_px > 0 and d.area_m2 > 0:
+        # The object's own floor area per image pixel: the GSD averaged over its blob.
+        return pixel_sigma * math.sqrt(d.area_m2 / d.area_px)
+    return FALLBACK_SIGMA_M
+
+
+def _type_key(d: Detection) -> tuple[str, int | str]:
+    if d.marker_id is not None:
+        return ("marker", d.marker_id)
+    return ("label", d.label)
+
+
+def _overlap(a: Polygon, b: Polygon) -> float:
+    """Intersection over the smaller area (0 when either outline is missing)."""
+    if a.is_empty or b.is_empty:
+        return 0.0
+    smaller = min(a.area, b.area)
+    if smaller <= 0:
+        return 0.0
+    try:
+        return float(a.intersection(b).area / smaller)
+    except shapely.errors.GEOSException:
+        return 0.0
+
+
+def _cost(group: _Group, m: _Member, *, by_id: bool) -> float:
+    d = math.dist(group.centroid, m.det.centroid_xy)
+    combined = math.hypot(group.sigma, m.sigma)
+    gate = GATE_SIGMAS * combined + SIZE_ALLOWANCE * min(group.extent, m.extent)
+    normalised = d / gate if gate > 0 else (0.0 if d == 0 else math.inf)
+    if by_id:
+        return normalised
+    if normalised <= 1.0:
+        return normalised
+    if _overlap(group.outline, m.det.outline) >= OVERLAP_FRACTION:
+        return normalised
+    return _UNMATCHED
+
+
+def _assign(groups: list[_Group], members: list[_Member], *, by_id: bool) -> None:
+    """Assign one camera's detections (of one type) to the groups so far; the rest start groups."""
+    if groups:
+        cost = np.array([[_cost(g, m, by_id=by_id) for m in members] for g in groups], dtype=np.float64)
+        cost = np.where(np.isfinite(cost), cost, _UNMATCHED)
+        rows, cols = linear_sum_assignment(cost)
+        taken: set[int] = set()
+        for r, c in zip(rows.tolist(), cols.tolist(), strict=True):
+            if cost[r, c] < _UNMATCHED:
+                groups[r].add(members[c])
+                taken.add(c)
+        fresh = [m for i, m in enumerate(members) if i not in taken]
+    else:
+        fresh = members
+    groups.extend(_Group.of(m) for m in fresh)
+
+
+def _circular_mean(angles_deg: Iterable[tuple[float, float]]) -> float | None:
+    s = c = 0.0
+    seen = False
+    for angle, weight in angles_deg:
+        seen = True
+        s += weight * math.sin(math.radians(angle))
+        c += weight * math.cos(math.radians(angle))
+    if not seen or (s == 0.0 and c == 0.0):
+        return None
+    return math.degrees(math.atan2(s, c))
+
+
+def _world_object(g: _Group) -> WorldObject:
+    members = g.members
+    outline = g.outline
+    if outline.is_empty:
+        bs = np.array([m.det.bounds for m in members], dtype=np.float64)
+        bounds = (float(bs[:, 0].min()), float(bs[:, 1].min()), float(bs[:, 2].max()), float(bs[:, 3].max()))
+        area = max(m.det.area_m2 for m in members)
+    else:
+        x0, y0, x1, y1 = outline.bounds
+        bounds = (float(x0), float(y0), float(x1), float(y1))
+        area = float(outline.area)
+    first = members[0].det
+    heading = _circular_mean(
+        (m.det.heading_deg, 1.0 / (m.sigma * m.sigma)) for m in members if m.det.heading_deg is not None
+    )
+    return WorldObject(
+        track_id=0,
+        outline=outline,
+        bounds=bounds,
+        centroid_xy=g.centroid,
+        uncertainty_m=g.sigma,
+        camera_ids=tuple(sorted({m.camera_id for m in members})),
+        last_seen=max(m.capture_time for m in members),
+        marker_id=first.marker_id,
+        marker_heading_deg=heading,
+        label=first.label,
+        score=max(m.det.score for m in members),
+        area_m2=area,
+    )
+
+
+def fuse(
+    reports: Sequence[DetectionReport],
+    homography_of: Callable[[str], Homography | None],
+    *,
+    pixel_sigma: float = PIXEL_SIGMA,
+) -> list[WorldObject]:
+    """Merge the detections of one physical object seen by several cameras into one WorldObject.
+
+    reports: the camera reports of one request (or one period); reports with an error contribute
+    nothing. homography_of: camera_id -> that camera's image->floor homography, or None when
+    unknown (its precision then comes from the detection's own floor area per pixel, or
+    FALLBACK_SIGMA_M). pixel_sigma: the detector's 1-sigma centroid error in pixels.
+
+    Same type only (marker_id for markers: same id merges; else label); match by outline overlap
+    or centroid distance gated by the cameras' precision there; two detections of one camera never
+    merge; position weighted by 1/sigma^2, sigma = pixel_sigma * GSD; uncertainty_m the fused
+    sigma; outline the union of the members'; track_id 1, 2, ... by x then y; velocity 0;
+    camera_ids sorted; last_seen the newest capture. The module docstring says why.
+    """
+    if not (isinstance(pixel_sigma, (int, float)) and math.isfinite(pixel_sigma) and pixel_sigma > 0):
+        raise InvalidArgument(f"pixel_sigma: {pixel_sigma!r} must be a positive finite number of pixels")
+    homographies: dict[str, Homography | None] = {}
+    by_type: dict[tuple[str, int | str], dict[str, list[_Member]]] = {}
+    count = 0
+    for report in sorted(reports, key=lambda r: r.camera_id):
+        if report.error:
+            continue
+        cam = report.camera_id
+        if cam not in homographies:
+            homographies[cam] = homography_of(cam)
+        h = homographies[cam]
+        for d in report.detections:
+            if not _finite(d) or count >= MAX_DETECTIONS:
+                continue
+            count += 1
+            member = _Member(
+                det=d,
+                camera_id=cam,
+                capture_time=d.capture_time or report.capture_time,
+                sigma=_sigma(d, h, pixel_sigma),
+                extent=_extent(d),
+            )
+            by_type.setdefault(_type_key(d), {}).setdefault(cam, []).append(member)
+    groups: list[_Group] = []
+    for key, per_camera in by_type.items():
+        typed: list[_Group] = []
+        for cam in sorted(per_camera):
+            _assign(typed, per_camera[cam], by_id=key[0] == "marker")
+        groups.extend(typed)
+    objects = [_world_object(g) for g in groups]
+    objects.sort(
+        key=lambda o: (o.centroid_xy[0], o.centroid_xy[1], o.marker_id if o.marker_id is not None else -1, o.label)
+    )
+    return [replace(o, track_id=i + 1) for i, o in enumerate(objects)]
