@@ -4,20 +4,26 @@ through the camera's homography), and the world's bumper feels it there and nowh
 
 from __future__ import annotations
 
+import asyncio
 import math
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 import yaml
+from numpy.typing import NDArray
 from shapely.geometry import Point
 
+from drvs import _grpc
 from drvs.detectors.base import REGISTRY, CameraView, Frame, FrameAnalysis
 from drvs.filters import object_type
 from drvs.model import Detection
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import DEFAULT_SCENARIO, Scenario, ScenarioError, load_scenario, parse_scenario
-from drvs.sim.world import WorldState
+from drvs.sim.source import SimSource
+from drvs.sim.world import WorldServer, WorldState
+from drvs.v1 import sim_pb2, sim_pb2_grpc
 
 from .test_scenario import with_change
 
@@ -151,3 +157,46 @@ def test_a_world_that_was_never_started_starts_its_clock_at_the_first_move() -> 
     assert state.world_time(2000.0) == 0.0 and state.clock_start == 0.0
     state.move(1.05, 2.0, 0.0, now=2000.0)
     assert state.clock_start == 2000.0 and state.world_time(2001.5) == 1.5
+
+
+def blob_near(image: NDArray[np.uint8], scenario: Scenario, at: float) -> Detection:
+    """The one large yellow blob in a frame of the overhead camera (captured at `at`)."""
+    cam = scenario.cameras[0]
+    view = CameraView(cam.homography, cam.field_of_view, cam.resolution, camera_id=cam.id)
+    found = REGISTRY["hsv"](view, None).find(FrameAnalysis(Frame(image, at, 0)), object_type(YELLOW))
+    (blob,) = [d for d in found if d.outline.area > 0.1]
+    return blob
+
+
+async def test_a_sim_camera_shows_the_trolley_where_the_world_clock_puts_it() -> None:
+    """A real world service and a sim:// camera source (its render thread, the world's pose stream):
+    before the robot's Start the trolley stands at its start; after it, each frame shows it where
+    its path puts it at the frame's capture time less the clock's start, which the source learns
+    from the world's pose stream."""
+    scenario = small_room_with_trolley()
+    trolley = scenario.moving_obstacles[0]
+    async with WorldServer(scenario, "127.0.0.1:0", seed=1) as world:
+        source = SimSource(f"sim://{world.address}", "overhead")
+        await asyncio.to_thread(source.start)
+        try:
+            first = await source.wait_first_frame(10)
+            assert blob_near(first.image, scenario, first.capture_time).centroid.distance(trolley.shape.centroid) < 0.03
+            async with _grpc.insecure_channel(world.address) as channel:
+                reply = await sim_pb2_grpc.SimulatedWorldStub(channel).Start(sim_pb2.StartRequest(), timeout=5)
+            clock_start = reply.clock_start_unix
+            assert abs(clock_start - time.time()) < 1.0 and world.state.clock_start == clock_start
+            seen: list[tuple[float, Detection]] = []
+            deadline = time.monotonic() + 15
+            while len(seen) < 2 and time.monotonic() < deadline:  # frames 1 s and 2 s into world time
+                frame = source.latest()
+                assert frame is not None
+                if frame.capture_time - clock_start > 1.0 + len(seen):
+                    seen.append((frame.capture_time - clock_start, blob_near(frame.image, scenario, 0.0)))
+                await asyncio.sleep(0.02)
+        finally:
+            await asyncio.to_thread(source.stop)
+    assert len(seen) == 2, "no frames of the moving trolley"
+    for world_time, blob in seen:
+        truth = trolley.shape_at(world_time).centroid
+        assert blob.centroid.distance(truth) < 0.03, (world_time, blob.centroid, truth)
+    assert seen[1][1].centroid.y - seen[0][1].centroid.y > 0.3  # it moved north between them
