@@ -33,7 +33,7 @@ from drvs import _grpc
 from drvs.convert import polygon_from_pb
 from drvs.meter import MeteredClient
 from drvs.model import Detection, PixelBox, Snapshot, WorldObject
-from drvs.robot import DetectionResult, DrvsClient, Subscription
+from drvs.robot import DetectionResult, DrvsClient, Subscription, Track
 from drvs.security import Security
 from drvs.sim.planner import NoPath, OccupancyGrid, plan_path
 from drvs.sim.predict import MovingObstacle, TrackRecord, decide
@@ -243,7 +243,7 @@ class SimRobot:
                     for key in [k for k in self.moving if k.startswith(track.request_id + "/")]:
                         del self.moving[key]
 
-    async def _follow(self, filter_def: str, track: Any) -> None:
+    async def _follow(self, filter_def: str, track: Track) -> None:
         async for snapshot in track:
             self.use_snapshot(filter_def, track.request_id, snapshot)
 
