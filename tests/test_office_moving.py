@@ -52,3 +52,16 @@ async def test_a_robot_that_ignores_velocity_drives_into_the_trolley(tmp_path: P
     _code, result, log = await run_office(tmp_path, "--scenario", str(CROSSING), "--no-predict")
     assert result["predict"] is False and moving_tracks(result), log
     assert result["collisions"] >= 1, result
+
+
+@pytest.mark.slow
+async def test_the_default_office_with_its_trolley(tmp_path: Path) -> None:
+    """`./run office` as it ships: the trolley crosses the hallway about when the robot gets there;
+    the robot reaches the goal without touching anything, having followed the trolley as a
+    moving track and then seen it left standing by the south wall."""
+    code, result, log = await run_office(tmp_path)
+    assert code == 0, log
+    assert result["reached_goal"] is True and result["collisions"] == 0, result.get("contacts")
+    trolley = [t for t in moving_tracks(result) if float(t["max_speed_mps"]) > 0.2]
+    assert trolley, result["tracks"]  # (a re-plan's new request follows it as a new track)
+    assert any(t["used_as"] == "moving, then standing" and math.dist(t["last"], (16.8, 5.85)) < 0.05 for t in trolley)
