@@ -31,6 +31,7 @@ from shapely.geometry import LineString, Point, Polygon, box
 
 from drvs import _grpc
 from drvs.convert import polygon_from_pb
+from drvs.errors import DrvsError
 from drvs.meter import MeteredClient
 from drvs.model import Detection, PixelBox, Snapshot, WorldObject
 from drvs.robot import DetectionResult, DrvsClient, Subscription, Track
@@ -244,8 +245,12 @@ class SimRobot:
                         del self.moving[key]
 
     async def _follow(self, filter_def: str, track: Track) -> None:
-        async for snapshot in track:
-            self.use_snapshot(filter_def, track.request_id, snapshot)
+        try:
+            async for snapshot in track:
+                self.use_snapshot(filter_def, track.request_id, snapshot)
+        except DrvsError as exc:  # the stream broke (server gone ...): nobody looks for us any more
+            for camera_id in track.camera_ids:
+                self.lose(camera_id, f"track {track.request_id} ended: {exc}")
 
     def use_detections(self, detections: Sequence[Detection]) -> None:
         for d in detections:
@@ -472,6 +477,10 @@ class SimRobot:
             self._clock_started = True
         try:
             while True:
+                if watcher is not None and watcher.done() and not watcher.cancelled():
+                    if watcher.exception() is not None:
+                        log.warning("watching obstacles failed: %s", watcher.exception())
+                    watcher = None  # look again (a track ended early, e.g. a server restart)
                 if look and self.drvs is not None and watcher is None:
                     watch = self.watch_tracks if self.delivery == "fused" else self.watch_obstacles
                     watcher = asyncio.get_running_loop().create_task(watch(self.corridor(path)))
