@@ -125,6 +125,10 @@ def test_cameras_render_the_moving_obstacle_where_it_is_at_world_time(world_time
     (blob,) = blobs
     assert blob.centroid.distance(truth.centroid) < 0.03, (blob.centroid, truth.centroid)
     assert blob.outline.intersection(truth).area > 0.85 * truth.area
+    # A frame is a function of the seed and the world's state, time included: the same again.
+    cam = scenario.cameras[0]
+    frames = [CameraRenderer(scenario, cam, seed=2).render((1.0, 2.0), 1, 0.0, world_time) for _ in range(2)]
+    assert np.array_equal(frames[0], frames[1])
     # ... and nowhere it was a second earlier (the static render holds no ghost of it).
     if world_time >= 1.0:
         before = trolley.shape_at(world_time - 1.0)
