@@ -178,7 +178,12 @@ async def test_two_overlapping_cameras_seeing_one_box_give_one_object(office: Sc
         await call.write(fused("one"))
         reply = await read(call)
         unary = await stub.DetectObjects(fused("two"), timeout=20)
+        bare = fused("three")
+        bare.omit_outlines = True
+        lean = await stub.DetectObjects(bare, timeout=20)
         call.cancel()
+    # A robot that asks for no outlines gets none, and the same two objects.
+    assert len(lean.snapshot.objects) == 2 and all(not o.outline_xy for o in lean.snapshot.objects)
     for answer in (reply, unary):
         assert sorted(answer.camera_ids) == ["left", "right"]
         snapshot = answer.snapshot
@@ -419,6 +424,10 @@ async def test_injected_reports_do_not_count(office: Scene) -> None:
             await call.write(fused("lure", (17.0, 2.0, 23.0, 6.0), deadline_s=20))
             lure = await asyncio.wait_for(evil.requests.get(), 10)
             assert lure.report_to_server and not lure.callback_address and not lure.HasField("fusion")
+            # Forwarded under an id unique in the server; the next fused request's is easily guessed.
+            prefix, _, number = lure.request_id.rpartition(":")
+            assert prefix == "lure"
+            victim_id = f"victim:{int(number, 16) + 1:x}"
             key = lure.report_key
             assert len(key) == KEY_BYTES
             await call.write(fused("victim", rate_hz=4, duration_s=2.5))
@@ -427,10 +436,10 @@ async def test_injected_reports_do_not_count(office: Scene) -> None:
             fake = (0.5, 3.0)
             reports = detection_pb2_grpc.CallbackCoordinatesStub(channel).ReportDetections()
             for message in (
-                forged("victim", "left", fake, key),
-                forged("victim", "evil", fake, key),
-                forged("victim", "left", fake, secrets.token_bytes(KEY_BYTES)),
-                forged("victim", "left", fake),
+                forged(victim_id, "left", fake, key),
+                forged(victim_id, "evil", fake, key),
+                forged(victim_id, "left", fake, secrets.token_bytes(KEY_BYTES)),
+                forged(victim_id, "left", fake),
             ):
                 await reports.write(message)
             cancelled: list[str] = []
@@ -438,13 +447,13 @@ async def test_injected_reports_do_not_count(office: Scene) -> None:
                 control = await asyncio.wait_for(reports.read(), 10)
                 assert control is not aio.EOF
                 cancelled.extend(control.cancelled_request_ids)
-            await reports.write(forged("lure", "evil", (21.0, 4.0), key))
+            await reports.write(forged(lure.request_id, "evil", (21.0, 4.0), key))
             replies = [await read(call) for _ in range(12)]
             await reports.done_writing()
             call.cancel()
     finally:
         await evil_server.stop(0)
-    assert cancelled == ["victim"] * 4
+    assert cancelled == [victim_id] * 4
     victim = [r.snapshot for r in replies if r.request_id == "victim"]
     assert len(victim) == 11 and victim[-1].final
     assert all(not near(s.objects, fake, 0.3) for s in victim)
@@ -618,3 +627,44 @@ async def test_fused_requests_are_bounded_and_end_with_their_stream(monkeypatch:
                 await asyncio.sleep(0.05)  # polling the server's state
     finally:
         await quiet_server.stop(0)
+
+
+def crowd(request_id: str, camera_id: str, key: bytes, count: int) -> detection_pb2.DetectionReport:
+    """A final report of `count` small objects 1 m apart on a grid."""
+    report = forged(request_id, camera_id, (0.0, 0.0), key)
+    del report.detections[:]
+    for i in range(count):
+        x, y = float(i % 16), float(i // 16)
+        report.detections.add(
+            bounds=geometry_pb2.FloorBox(x_lower=x - 0.1, y_lower=y - 0.1, x_upper=x + 0.1, y_upper=y + 0.1),
+            centroid=geometry_pb2.FloorPoint(x=x, y=y),
+            ground_contact=geometry_pb2.FloorPoint(x=x, y=y - 0.1),
+        )
+    return report
+
+
+async def test_a_crowded_report_is_fused_aside_and_capped() -> None:
+    """A camera reporting 20 objects (more than are fused on the event loop) gets them fused in a
+    worker thread: 20 objects in the answer. One reporting 200 has the first 128 fused."""
+    quiet = _CapturingCamera()
+    quiet_server, quiet_address = await serve_camera(quiet)
+    try:
+        async with DrvsServer("127.0.0.1:0") as server, aio.insecure_channel(server.address) as channel:
+            await registry_pb2_grpc.RegisterVisionServiceStub(channel).Register(
+                register_message("quiet", address=quiet_address)
+            )
+            stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
+            counts = []
+            for count in (20, 200):
+                answer = asyncio.ensure_future(
+                    stub.DetectObjects(fused(f"n{count}", (-1.0, 2.0, 1.0, 5.0)), timeout=20)
+                )
+                forwarded = await asyncio.wait_for(quiet.requests.get(), 10)
+                reports = detection_pb2_grpc.CallbackCoordinatesStub(channel).ReportDetections()
+                await reports.write(crowd(forwarded.request_id, "quiet", forwarded.report_key, count))
+                reply = await answer
+                await reports.done_writing()
+                counts.append(len(reply.snapshot.objects))
+    finally:
+        await quiet_server.stop(0)
+    assert counts == [20, 128]

@@ -29,9 +29,11 @@ model; in short:
   outline's area (without outlines: the largest member's). score: the best member's. last_seen:
   the newest capture time. camera_ids: sorted. marker_heading_deg: the members' headings averaged
   on the circle with the same weights. track_id: 1, 2, ... by x, then y, of the fused centroid.
-- Reports carrying an error contribute nothing (the caller reports that camera as missing); a
-  detection with non-finite coordinates is skipped (a camera's garbage must not cost the others
-  their answer).
+- A camera that saw only part of an object (at its image's edge) has its sigma widened by half
+  the extent it missed, measured against the group's largest view (`PARTIAL_VIEW_SHARE`).
+- Reports carrying an error contribute nothing (the caller reports that camera as missing); of a
+  camera's several reports only the newest counts (a camera is one view); a detection with
+  non-finite coordinates is skipped (a camera's garbage must not cost the others their answer).
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import shapely
+from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 from shapely.geometry import Polygon
 
@@ -49,8 +52,9 @@ from drvs.errors import InvalidArgument
 from drvs.geometry import Homography
 from drvs.model import Detection, DetectionReport, WorldObject
 
-#: The detector's 1-sigma error of an object's centroid, in image pixels: contour centroids of the
-#: HSV detector on rendered frames scatter by about a pixel; more for blurred or partly hidden blobs.
+#: The detector's 1-sigma error of an object's centroid, in image pixels. The HSV detector's contour
+#: centroids on the simulator's noisy frames are off by 0.3 px RMS; real cameras add blur, partial
+#: occlusion and their calibration's error (about a pixel), which this deliberately covers.
 PIXEL_SIGMA = 1.5
 #: Floor sigma (metres) of a detection whose camera has no homography the caller knows and whose
 #: report carries no areas to derive one from.
@@ -61,6 +65,9 @@ OVERLAP_FRACTION = 0.2
 #: (sqrt of its floor area, or of its bounds' area). Two views of a raised box put its floor
 #: projection on different sides of its footprint; their centroids differ by up to about half its size.
 SIZE_ALLOWANCE = 0.5
+#: A member that saw less of an object than another member: this share of the difference of their
+#: extents is added to its sigma (half: its centroid is off by up to half of what it missed).
+PARTIAL_VIEW_SHARE = 0.5
 #: The gate's width in combined sigmas.
 GATE_SIGMAS = 3.0
 #: At most this many detections are fused per call (in camera order); the rest are dropped.
@@ -76,8 +83,9 @@ def ground_sampling_distance(h: Homography, floor_xy: tuple[float, float]) -> fl
 
     The square root of |det J|, J the Jacobian of the image->floor mapping at the pixel that sees
     floor_xy (found with the inverse homography): the side of the floor square one pixel covers
-    there. inf when floor_xy is on the camera's horizon (or behind it: no pixel sees it).
-    InvalidArgument when floor_xy is not two finite numbers.
+    there. For a homography that is |det H| / |w|^3, w the pixel's third homogeneous coordinate
+    under H. inf when floor_xy lies on the camera's horizon. InvalidArgument when floor_xy is not
+    two finite numbers.
     """
     try:
         x, y = (float(v) for v in floor_xy)
@@ -85,29 +93,17 @@ def ground_sampling_distance(h: Homography, floor_xy: tuple[float, float]) -> fl
         raise InvalidArgument(f"floor_xy: expected two numbers (x, y), got {floor_xy!r}") from None
     if not (math.isfinite(x) and math.isfinite(y)):
         raise InvalidArgument(f"floor_xy: ({x}, {y}) must be finite")
-    inv = h.inverse().matrix
-    pix = inv @ np.array([x, y, 1.0])
-    if pix[2] == 0.0 or not np.all(np.isfinite(pix)):
-        return math.inf
-    u, v = pix[0] / pix[2], pix[1] / pix[2]
-    return _gsd_at_pixel(h.matrix, u, v)
+    return float(_gsd(h.matrix, h.inverse().matrix, np.array([[x, y]]))[0])
 
 
-def _gsd_at_pixel(m: np.ndarray, u: float, v: float) -> float:
-    w = m[2, 0] * u + m[2, 1] * v + m[2, 2]
-    if w == 0.0 or not math.isfinite(w):
-        return math.inf
-    x = (m[0, 0] * u + m[0, 1] * v + m[0, 2]) / w
-    y = (m[1, 0] * u + m[1, 1] * v + m[1, 2]) / w
-    # d(x, y)/d(u, v) of x = (a u + b v + c) / w: (a - x g) / w and so on.
-    j = np.array(
-        [
-            [(m[0, 0] - x * m[2, 0]) / w, (m[0, 1] - x * m[2, 1]) / w],
-            [(m[1, 0] - y * m[2, 0]) / w, (m[1, 1] - y * m[2, 1]) / w],
-        ]
-    )
-    det = abs(float(np.linalg.det(j)))
-    return math.sqrt(det) if math.isfinite(det) else math.inf
+def _gsd(m: NDArray[np.float64], inv: NDArray[np.float64], floor_xy: NDArray[np.float64]) -> NDArray[np.float64]:
+    """ground_sampling_distance for an (N, 2) array of floor points; m the image->floor matrix, inv its inverse."""
+    pix = floor_xy @ inv[:, :2].T + inv[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        uv = pix[:, :2] / pix[:, 2:3]
+        w = uv @ m[2, :2] + m[2, 2]
+        det = abs(float(np.linalg.det(m))) / np.abs(w) ** 3
+    return np.where(np.isfinite(det), np.sqrt(det), np.inf)
 
 
 @dataclass
@@ -125,25 +121,50 @@ class _Group:
     centroid: tuple[float, float]
     sigma: float
     outline: Polygon
+    bounds: tuple[float, float, float, float]
+    extent: float
 
     @classmethod
     def of(cls, first: _Member) -> _Group:
-        g = cls([first], first.det.centroid_xy, first.sigma, first.det.outline)
-        return g
+        d = first.det
+        return cls([first], d.centroid_xy, first.sigma, d.outline, _bounds_of(d.outline, d.bounds), first.extent)
 
     def add(self, m: _Member) -> None:
         self.members.append(m)
-        weights = np.array([1.0 / (x.sigma * x.sigma) for x in self.members])
+        weights = 1.0 / np.square(_partial_view_sigmas(self.members))
         xy = np.array([x.det.centroid_xy for x in self.members], dtype=np.float64)
         c = weights @ xy / weights.sum()
         self.centroid = (float(c[0]), float(c[1]))
         self.sigma = float(1.0 / math.sqrt(weights.sum()))
-        outlines = [x.det.outline for x in self.members if not x.det.outline.is_empty]
-        self.outline = _union(outlines)
+        self.outline = _union([x.det.outline for x in self.members if not x.det.outline.is_empty])
+        if self.outline.is_empty:
+            bs = np.array([x.det.bounds for x in self.members], dtype=np.float64)
+            self.bounds = (float(bs[:, 0].min()), float(bs[:, 1].min()), float(bs[:, 2].max()), float(bs[:, 3].max()))
+        else:
+            self.bounds = _bounds_of(self.outline, self.bounds)
+        self.extent = min(self.extent, m.extent)
 
-    @property
-    def extent(self) -> float:
-        return min(m.extent for m in self.members)
+
+def _partial_view_sigmas(members: Sequence[_Member]) -> NDArray[np.float64]:
+    """Each member's sigma, widened when it saw less of the object than the others did.
+
+    A camera that sees only part of an object (cut by its image's edge, partly hidden) puts the
+    centroid in the middle of the part it sees: off by up to half of what it misses. The member's
+    extent (sqrt of its floor area) against the largest member's says how much that is; half the
+    difference is added in quadrature. Full views of one object differ by little, so this hardly
+    changes their weights; a sliver at an image edge counts for almost nothing.
+    """
+    sigma = np.array([m.sigma for m in members], dtype=np.float64)
+    extent = np.array([m.extent for m in members], dtype=np.float64)
+    widened: NDArray[np.float64] = np.hypot(sigma, (extent.max() - extent) * PARTIAL_VIEW_SHARE)
+    return widened
+
+
+def _bounds_of(outline: Polygon, fallback: tuple[float, float, float, float]) -> tuple[float, float, float, float]:
+    if outline.is_empty:
+        return fallback
+    x0, y0, x1, y1 = outline.bounds
+    return (float(x0), float(y0), float(x1), float(y1))
 
 
 def _union(outlines: Sequence[Polygon]) -> Polygon:
@@ -172,15 +193,23 @@ def _extent(d: Detection) -> float:
     return math.sqrt(max(0.0, (x1 - x0) * (y1 - y0)))
 
 
-def _sigma(d: Detection, h: Homography | None, pixel_sigma: float) -> float:
-    if h is not None:
-        gsd = ground_sampling_distance(h, d.centroid_xy)
-        if math.isfinite(gsd) and gsd > 0:
-            return pixel_sigma * gsd
-    if d.area_px > 0 and d.area_m2 > 0:
-        # The object's own floor area per image pixel: the GSD averaged over its blob.
-        return pixel_sigma * math.sqrt(d.area_m2 / d.area_px)
-    return FALLBACK_SIGMA_M
+def _sigmas(detections: Sequence[Detection], h: Homography | None, pixel_sigma: float) -> list[float]:
+    """Each detection's 1-sigma floor error at its centroid: pixel_sigma * the camera's GSD there."""
+    if h is not None and detections:
+        xy = np.array([d.centroid_xy for d in detections], dtype=np.float64)
+        gsd = _gsd(h.matrix, h.inverse().matrix, xy)
+    else:
+        gsd = np.full(len(detections), np.inf)
+    out = []
+    for d, g in zip(detections, gsd.tolist(), strict=True):
+        if math.isfinite(g) and g > 0:
+            out.append(pixel_sigma * g)
+        elif d.area_px > 0 and d.area_m2 > 0:
+            # The object's own floor area per image pixel: the GSD averaged over its blob.
+            out.append(pixel_sigma * math.sqrt(d.area_m2 / d.area_px))
+        else:
+            out.append(FALLBACK_SIGMA_M)
+    return out
 
 
 def _type_key(d: Detection) -> tuple[str, int | str]:
@@ -202,35 +231,51 @@ def _overlap(a: Polygon, b: Polygon) -> float:
         return 0.0
 
 
-def _cost(group: _Group, m: _Member, *, by_id: bool) -> float:
-    d = math.dist(group.centroid, m.det.centroid_xy)
-    combined = math.hypot(group.sigma, m.sigma)
-    gate = GATE_SIGMAS * combined + SIZE_ALLOWANCE * min(group.extent, m.extent)
-    normalised = d / gate if gate > 0 else (0.0 if d == 0 else math.inf)
-    if by_id:
-        return normalised
-    if normalised <= 1.0:
-        return normalised
-    if _overlap(group.outline, m.det.outline) >= OVERLAP_FRACTION:
-        return normalised
-    return _UNMATCHED
-
-
 def _assign(groups: list[_Group], members: list[_Member], *, by_id: bool) -> None:
-    """Assign one camera's detections (of one type) to the groups so far; the rest start groups."""
-    if groups:
-        cost = np.array([[_cost(g, m, by_id=by_id) for m in members] for g in groups], dtype=np.float64)
-        cost = np.where(np.isfinite(cost), cost, _UNMATCHED)
-        rows, cols = linear_sum_assignment(cost)
-        taken: set[int] = set()
-        for r, c in zip(rows.tolist(), cols.tolist(), strict=True):
-            if cost[r, c] < _UNMATCHED:
-                groups[r].add(members[c])
-                taken.add(c)
-        fresh = [m for i, m in enumerate(members) if i not in taken]
+    """Assign one camera's detections (of one type) to the groups so far; the rest start groups.
+
+    Cost: centroid distance over the gate (3 combined sigmas plus the size allowance). A pair is a
+    candidate when that is <= 1 or, failing that, when their outlines overlap; markers (by_id) are
+    all candidates. linear_sum_assignment picks the one-to-one matching of least total cost.
+    """
+    if not groups:
+        groups.extend(_Group.of(m) for m in members)
+        return
+    gxy = np.array([g.centroid for g in groups], dtype=np.float64)
+    mxy = np.array([m.det.centroid_xy for m in members], dtype=np.float64)
+    dist = np.hypot(gxy[:, None, 0] - mxy[None, :, 0], gxy[:, None, 1] - mxy[None, :, 1])
+    gs = np.array([g.sigma for g in groups])[:, None]
+    ms = np.array([m.sigma for m in members])[None, :]
+    ge = np.array([g.extent for g in groups])[:, None]
+    me = np.array([m.extent for m in members])[None, :]
+    gate = GATE_SIGMAS * np.hypot(gs, ms) + SIZE_ALLOWANCE * np.minimum(ge, me)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        normalised = np.where(gate > 0, dist / gate, np.where(dist == 0, 0.0, np.inf))
+    if by_id:
+        ok = np.isfinite(normalised)
     else:
-        fresh = members
-    groups.extend(_Group.of(m) for m in fresh)
+        ok = normalised <= 1.0
+        # Outside the distance gate: the outlines may still overlap (a large or raised object
+        # whose views' centroids differ by more than the allowance). Only pairs whose bounds meet.
+        gb = np.array([g.bounds for g in groups], dtype=np.float64)
+        mb = np.array([m.det.bounds for m in members], dtype=np.float64)
+        boxes_meet = (
+            (gb[:, None, 0] <= mb[None, :, 2])
+            & (mb[None, :, 0] <= gb[:, None, 2])
+            & (gb[:, None, 1] <= mb[None, :, 3])
+            & (mb[None, :, 1] <= gb[:, None, 3])
+        )
+        for gi, mi in zip(*np.nonzero(~ok & boxes_meet), strict=True):
+            if _overlap(groups[gi].outline, members[mi].det.outline) >= OVERLAP_FRACTION:
+                ok[gi, mi] = True
+    cost = np.where(ok & np.isfinite(normalised), normalised, _UNMATCHED)
+    rows, cols = linear_sum_assignment(cost)
+    taken: set[int] = set()
+    for r, c in zip(rows.tolist(), cols.tolist(), strict=True):
+        if cost[r, c] < _UNMATCHED:
+            groups[r].add(members[c])
+            taken.add(c)
+    groups.extend(_Group.of(m) for i, m in enumerate(members) if i not in taken)
 
 
 def _circular_mean(angles_deg: Iterable[tuple[float, float]]) -> float | None:
@@ -248,22 +293,18 @@ def _circular_mean(angles_deg: Iterable[tuple[float, float]]) -> float | None:
 def _world_object(g: _Group) -> WorldObject:
     members = g.members
     outline = g.outline
-    if outline.is_empty:
-        bs = np.array([m.det.bounds for m in members], dtype=np.float64)
-        bounds = (float(bs[:, 0].min()), float(bs[:, 1].min()), float(bs[:, 2].max()), float(bs[:, 3].max()))
-        area = max(m.det.area_m2 for m in members)
-    else:
-        x0, y0, x1, y1 = outline.bounds
-        bounds = (float(x0), float(y0), float(x1), float(y1))
-        area = float(outline.area)
+    area = max(m.det.area_m2 for m in members) if outline.is_empty else float(outline.area)
     first = members[0].det
+    sigmas = _partial_view_sigmas(members).tolist()
     heading = _circular_mean(
-        (m.det.heading_deg, 1.0 / (m.sigma * m.sigma)) for m in members if m.det.heading_deg is not None
+        (m.det.heading_deg, 1.0 / (s * s))
+        for m, s in zip(members, sigmas, strict=True)
+        if m.det.heading_deg is not None
     )
     return WorldObject(
         track_id=0,
         outline=outline,
-        bounds=bounds,
+        bounds=g.bounds,
         centroid_xy=g.centroid,
         uncertainty_m=g.sigma,
         camera_ids=tuple(sorted({m.camera_id for m in members})),
@@ -276,6 +317,23 @@ def _world_object(g: _Group) -> WorldObject:
     )
 
 
+def _newest_per_camera(reports: Sequence[DetectionReport]) -> list[DetectionReport]:
+    """Each camera's newest report without an error (by capture time, then sequence), by camera id.
+
+    A camera that reported twice in one period (a continuous request's reports are not aligned
+    with the server's periods) would otherwise see each object twice, and one camera's two
+    detections are never merged.
+    """
+    newest: dict[str, DetectionReport] = {}
+    for r in reports:
+        if r.error:
+            continue
+        old = newest.get(r.camera_id)
+        if old is None or (r.capture_time, r.sequence) > (old.capture_time, old.sequence):
+            newest[r.camera_id] = r
+    return [newest[c] for c in sorted(newest)]
+
+
 def fuse(
     reports: Sequence[DetectionReport],
     homography_of: Callable[[str], Homography | None],
@@ -285,9 +343,10 @@ def fuse(
     """Merge the detections of one physical object seen by several cameras into one WorldObject.
 
     reports: the camera reports of one request (or one period); reports with an error contribute
-    nothing. homography_of: camera_id -> that camera's image->floor homography, or None when
-    unknown (its precision then comes from the detection's own floor area per pixel, or
-    FALLBACK_SIGMA_M). pixel_sigma: the detector's 1-sigma centroid error in pixels.
+    nothing, and of a camera's several reports only the newest counts. homography_of: camera_id ->
+    that camera's image->floor homography, or None when unknown (its precision then comes from the
+    detection's own floor area per pixel, or FALLBACK_SIGMA_M). pixel_sigma: the detector's 1-sigma
+    centroid error in pixels.
 
     Same type only (marker_id for markers: same id merges; else label); match by outline overlap
     or centroid distance gated by the cameras' precision there; two detections of one camera never
@@ -300,24 +359,14 @@ def fuse(
     homographies: dict[str, Homography | None] = {}
     by_type: dict[tuple[str, int | str], dict[str, list[_Member]]] = {}
     count = 0
-    for report in sorted(reports, key=lambda r: r.camera_id):
-        if report.error:
-            continue
+    for report in _newest_per_camera(reports):
         cam = report.camera_id
         if cam not in homographies:
             homographies[cam] = homography_of(cam)
-        h = homographies[cam]
-        for d in report.detections:
-            if not _finite(d) or count >= MAX_DETECTIONS:
-                continue
-            count += 1
-            member = _Member(
-                det=d,
-                camera_id=cam,
-                capture_time=d.capture_time or report.capture_time,
-                sigma=_sigma(d, h, pixel_sigma),
-                extent=_extent(d),
-            )
+        detections = [d for d in report.detections if _finite(d)][: max(0, MAX_DETECTIONS - count)]
+        count += len(detections)
+        for d, sigma in zip(detections, _sigmas(detections, homographies[cam], pixel_sigma), strict=True):
+            member = _Member(d, cam, d.capture_time or report.capture_time, sigma, _extent(d))
             by_type.setdefault(_type_key(d), {}).setdefault(cam, []).append(member)
     groups: list[_Group] = []
     for key, per_camera in by_type.items():

@@ -24,8 +24,9 @@ feeds it each period's `drvs.fusion.fuse` output. docs/fusion.md explains the mo
   periods' own clock) is dropped. Ids are never reused within a Tracker.
 - Time: `at` going backwards or repeating does not move the filter (no prediction, no division by
   time): the objects are assimilated at the track's current time.
-- Bounds: at most `MAX_TRACKS` tracks live at once. Objects that would open a track beyond it are
-  left untracked (the least confident first), never an error: the robot still gets the others.
+- Bounds: at most `max_tracks` (default `MAX_TRACKS`) tracks live at once, and at most that many
+  objects (the most confident) are considered per period. Objects that would open a track beyond
+  it are left untracked (the least confident first), never an error: the robot still gets the others.
 """
 
 from __future__ import annotations
@@ -57,7 +58,7 @@ DEFAULT_FLOOR_SIGMA_M = 0.03
 INITIAL_SPEED_SIGMA_MPS = 1.5
 
 _UNMATCHED = 1e9
-_H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]], dtype=np.float32)
+_H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]], dtype=np.float64)
 
 
 def _type_key(o: WorldObject) -> tuple[str, int | str]:
@@ -126,20 +127,22 @@ class Tracker:
         InvalidArgument (and nothing changes) when `at` is not finite or an object's centroid or
         uncertainty_m is not finite (or negative)."""
         _check(objects, at)
+        if len(objects) > self.max_tracks:
+            objects = sorted(objects, key=lambda o: -o.score)[: self.max_tracks]
         dt = 0.0 if self._time is None else max(0.0, at - self._time)
         now = at if self._time is None else max(self._time, at)
         self._time = now
+        # What has been unseen for drop_after_s is gone before this period's objects are matched:
+        # an object that comes back after that is a new track.
+        self._tracks = [t for t in self._tracks if now - t.seen_at < self.drop_after_s - 1e-9]
         for t in self._tracks:
             self._predict(t, dt)
-        matched = self._associate(objects)
         seen: set[int] = set()
-        for ti, oi in matched:
+        for ti, oi in self._associate(objects):
             t, o = self._tracks[ti], objects[oi]
             self._correct(t, o)
             t.last, t.seen_at, t.seen_xy = o, now, o.centroid_xy
             seen.add(oi)
-        # Drop what has been unseen too long (a track seen this period has seen_at == now).
-        self._tracks = [t for t in self._tracks if now - t.seen_at < self.drop_after_s - 1e-9]
         fresh = sorted((i for i in range(len(objects)) if i not in seen), key=lambda i: -objects[i].score)
         for oi in fresh:
             if len(self._tracks) >= self.max_tracks:
@@ -155,12 +158,14 @@ class Tracker:
         return float(o.uncertainty_m**2 + self.floor_sigma_m**2) or 1e-6
 
     def _start(self, o: WorldObject, now: float) -> _Track:
-        kf = cv2.KalmanFilter(4, 2, 0, cv2.CV_32F)
+        # Double precision: map coordinates may be large (a site grid in the 1e5 m range), where float32
+        # would round positions to centimetres.
+        kf = cv2.KalmanFilter(4, 2, 0, cv2.CV_64F)
         kf.measurementMatrix = _H.copy()
-        kf.statePost = np.array([[o.centroid_xy[0]], [o.centroid_xy[1]], [0.0], [0.0]], dtype=np.float32)
+        kf.statePost = np.array([[o.centroid_xy[0]], [o.centroid_xy[1]], [0.0], [0.0]], dtype=np.float64)
         r = self._measurement_var(o)
         v = INITIAL_SPEED_SIGMA_MPS**2
-        kf.errorCovPost = np.diag([r, r, v, v]).astype(np.float32)
+        kf.errorCovPost = np.diag([r, r, v, v]).astype(np.float64)
         track = _Track(self._next_id, kf, _type_key(o), o, now, o.centroid_xy)
         self._next_id += 1
         return track
@@ -168,12 +173,12 @@ class Tracker:
     def _predict(self, t: _Track, dt: float) -> None:
         if dt <= 0:
             return
-        f = np.eye(4, dtype=np.float32)
+        f = np.eye(4, dtype=np.float64)
         f[0, 2] = f[1, 3] = dt
         q = self.accel_mps2**2
         # Discrete white-noise acceleration: G q G' with G = (dt^2/2, dt) per axis.
         a, b, c = dt**4 / 4 * q, dt**3 / 2 * q, dt**2 * q
-        qm = np.array([[a, 0, b, 0], [0, a, 0, b], [b, 0, c, 0], [0, b, 0, c]], dtype=np.float32)
+        qm = np.array([[a, 0, b, 0], [0, a, 0, b], [b, 0, c, 0], [0, b, 0, c]], dtype=np.float64)
         t.kf.transitionMatrix = f
         t.kf.processNoiseCov = qm
         t.kf.predict()
@@ -184,40 +189,48 @@ class Tracker:
 
     def _correct(self, t: _Track, o: WorldObject) -> None:
         r = self._measurement_var(o)
-        t.kf.measurementNoiseCov = np.diag([r, r]).astype(np.float32)
+        t.kf.measurementNoiseCov = np.diag([r, r]).astype(np.float64)
         # correct() starts from statePre/errorCovPre: the prediction (or the state when dt was 0).
         t.kf.statePre = t.kf.statePost.copy()
         t.kf.errorCovPre = t.kf.errorCovPost.copy()
-        t.kf.correct(np.array([[o.centroid_xy[0]], [o.centroid_xy[1]]], dtype=np.float32))
+        t.kf.correct(np.array([[o.centroid_xy[0]], [o.centroid_xy[1]]], dtype=np.float64))
 
     def _associate(self, objects: Sequence[WorldObject]) -> list[tuple[int, int]]:
+        """(track index, object index) pairs: the assignment minimising the summed squared
+        Mahalanobis distance, over the pairs of one type within the gate (markers: any distance)."""
         if not self._tracks or not objects:
             return []
+        xy = np.array([o.centroid_xy for o in objects], dtype=np.float64)
+        r = np.array([self._measurement_var(o) for o in objects], dtype=np.float64)
+        codes: dict[tuple[str, int | str], int] = {}
+        kinds = np.array([codes.setdefault(_type_key(o), len(codes)) for o in objects])
         cost = np.full((len(self._tracks), len(objects)), _UNMATCHED)
         for ti, t in enumerate(self._tracks):
+            if t.key not in codes:
+                continue
+            same = kinds == codes[t.key]
             x, p = t.state()
-            ps = p[:2, :2]
-            for oi, o in enumerate(objects):
-                key = _type_key(o)
-                if key != t.key:
-                    continue
-                r = self._measurement_var(o)
-                s = ps + np.eye(2) * r
-                innov = np.array(o.centroid_xy) - x[:2]
-                d2 = float(innov @ np.linalg.solve(s, innov))
-                if key[0] == "marker":
-                    # By id: the gate does not apply; among same-id objects the nearest wins.
-                    cost[ti, oi] = min(d2, _UNMATCHED / 2)
-                elif d2 <= GATE_CHI2:
-                    cost[ti, oi] = d2
+            # Innovation covariance S = P_xy + r I per object; d^2 = v' S^-1 v in closed form (2 x 2).
+            a, b, d = p[0, 0] + r, p[0, 1], p[1, 1] + r
+            det = a * d - b * b
+            dx, dy = xy[:, 0] - x[0], xy[:, 1] - x[1]
+            d2 = (d * dx * dx - 2 * b * dx * dy + a * dy * dy) / det
+            if t.key[0] == "marker":
+                # By id: the gate does not apply; among same-id objects the nearest wins.
+                ok = same
+                d2 = np.minimum(d2, _UNMATCHED / 2)
+            else:
+                ok = same & (d2 <= GATE_CHI2)
+            cost[ti] = np.where(ok, d2, _UNMATCHED)
         rows, cols = linear_sum_assignment(cost)
-        return [(r, c) for r, c in zip(rows.tolist(), cols.tolist(), strict=True) if cost[r, c] < _UNMATCHED]
+        return [(r_, c) for r_, c in zip(rows.tolist(), cols.tolist(), strict=True) if cost[r_, c] < _UNMATCHED]
 
     def _report(self, t: _Track, now: float) -> WorldObject:
         x, p = t.state()
         cx, cy, vx, vy = (float(v) for v in x)
-        eig = np.linalg.eigvalsh(p[:2, :2])
-        sigma = math.sqrt(max(0.0, float(eig.max())))
+        # The largest eigenvalue of the 2 x 2 position covariance, in closed form.
+        a, b, d = float(p[0, 0]), float(p[0, 1]), float(p[1, 1])
+        sigma = math.sqrt(max(0.0, (a + d) / 2 + math.hypot((a - d) / 2, b)))
         speed = math.hypot(vx, vy)
         heading = math.degrees(math.atan2(vy, vx)) if speed >= MIN_HEADING_SPEED_MPS else None
         last = t.last

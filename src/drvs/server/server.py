@@ -7,6 +7,7 @@ import bisect
 import contextlib
 import dataclasses
 import functools
+import itertools
 import logging
 import time
 import uuid
@@ -290,6 +291,7 @@ class DrvsServer(Lifecycle):
         self._callbacks = CallbackSender(security=self.security)
         #: Fused requests in flight, whose cameras report here (fusion_session.py).
         self.fusion = FusionSessions()
+        self._fused_ids = itertools.count(1)
         self._stopped = False
 
     @classmethod
@@ -666,6 +668,10 @@ class DrvsServer(Lifecycle):
         message.callback_address = ""
         message.report_to_server = True
         message.omit_outlines = False
+        # The cameras know it by an id unique in this server (robots choose theirs, and two may
+        # choose the same): a cancel one robot's request sends a camera stops no other's.
+        forward_id = f"{request.request_id[:100]}:{next(self._fused_ids):x}"
+        message.request_id = forward_id
         size = message.ByteSize()
         slot = limits.admit(robot, request.continuous.duration_s, size * len(cameras))
         if slot is not None and slots is not None:
@@ -691,6 +697,7 @@ class DrvsServer(Lifecycle):
             delivery,
             ended,
             [CameraError(m.code, m.message, m.camera_id) for m in missing],
+            forward_id,
         )
         self.fusion.add(session)
         reply = self.dispatch(request, message, secret, plan, session=session)
