@@ -375,9 +375,9 @@ def _readme_robot_examples() -> list[str]:
 
 
 async def test_the_readme_robot_examples_run_against_real_processes(office: Office) -> None:
-    five_lines, fuller = _readme_robot_examples()
+    five_lines, fuller, fused = _readme_robot_examples()
     assert len([line for line in five_lines.splitlines() if line.strip()]) <= 8  # imports, def, run included
-    for name, code in (("five-lines", five_lines), ("fuller", fuller)):
+    for name, code in (("five-lines", five_lines), ("fuller", fuller), ("fused", fused)):
         proc = await ManagedProcess(
             name, [sys.executable, "-c", code.replace("drvs.example:50051", office.address)]
         ).start()
@@ -390,5 +390,13 @@ async def test_the_readme_robot_examples_run_against_real_processes(office: Offi
             # The yellow disc at (1.5, 3.0), the one in the box (0, 0, 5, 5), seen by cam1.
             (camera_id, x, y), *others = ast.literal_eval(output.strip().splitlines()[-1])
             assert not others and camera_id == "cam1" and math.dist((x, y), (1.5, 3.0)) < 0.03, output
-        else:
+        elif name == "fuller":
             assert "dropped unread: 0" in output and "cam1" in output, output
+        else:
+            # The same disc as one world object, then a track of it: 21 snapshots, one id throughout.
+            lines = output.strip().splitlines()
+            shot = re.fullmatch(r"1 \(([-\d.e]+), ([-\d.e]+)\) [\d.e-]+ \('cam1',\)", lines[0])
+            assert shot and math.dist((float(shot[1]), float(shot[2])), (1.5, 3.0)) < 0.03, output
+            tracked = [line.split(" ", 2) for line in lines[1:]]
+            assert [int(n) for n, _, _ in tracked] == list(range(21)), output
+            assert {track_id for _, track_id, _ in tracked} == {"1"}, output

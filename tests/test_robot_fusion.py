@@ -29,13 +29,17 @@ import drvs
 from drvs import _grpc
 from drvs.convert import snapshot_to_pb
 from drvs.errors import DeadlineExceeded, InvalidArgument, ResourceExhausted, Unavailable
-from drvs.launch import ManagedProcess
+from drvs.filters import HsvRange
+from drvs.geometry import homography_from_pose
+from drvs.launch import ManagedProcess, start_server
 from drvs.model import CameraError, Snapshot, WorldObject
 from drvs.request_stream import StreamContext, refusal
 from drvs.robot import DrvsClient, snapshot_json
+from drvs.sim.scene import FloorPatch, RecordedCamera, record_camera
 from drvs.v1 import detection_pb2, detection_pb2_grpc
 
-from .helpers import YELLOW
+from .fakes import start_recorded_camera
+from .helpers import IMAGE_SIZE, YELLOW, metrics_port, scrape
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "validation.md"
 #: Filters the in-test server treats specially.
@@ -319,7 +323,7 @@ API_CASES: list[tuple[Callable[[DrvsClient], Any], str]] = [
         "max_queued: 0 must be a whole number of snapshots >= 1",
     ),
     (
-        lambda r: r.detect(YELLOW, BOX, fuse=True, rate_hz=1, duration_s=1),  # type: ignore[call-overload]
+        lambda r: r.detect(YELLOW, BOX, fuse=True, rate_hz=1, duration_s=1),
         "fuse: detect(fuse=True) is a single shot (rate_hz and duration_s 0); use track() for snapshots over time",
     ),
     (
@@ -488,3 +492,112 @@ def test_snapshot_json_has_exactly_the_documented_keys() -> None:
     assert out["objects"][0]["centroid"] == [0.1235, 1.0] and out["objects"][0]["marker_id"] == 7
     assert out["objects"][0]["heading_deg"] is None and out["objects"][0]["cameras"] == []
     assert json.loads(json.dumps(out)) == out
+
+
+# --- end to end: the real drvs-server and two drvs-camera processes that overlap -----------------
+
+#: Two cameras 1 m apart looking the same way (+y): both see the two yellow discs.
+OVERLAP_POSES = {"camA": (0.0, 0.0, 3.0), "camB": (1.0, 0.0, 3.0)}
+DISCS = [((-1.0, 4.0), 0.25), ((1.5, 3.0), 0.20)]
+REGION = (-3.0, 1.0, 4.0, 8.0)
+
+
+@pytest.fixture(scope="module")
+def overlapping(tmp_path_factory: pytest.TempPathFactory) -> dict[str, RecordedCamera]:
+    directory = tmp_path_factory.mktemp("overlap")
+    patches = [FloorPatch.disc(c, r, HsvRange.parse(YELLOW).centre_bgr()) for c, r in DISCS]
+    return {
+        camera_id: record_camera(
+            directory, camera_id, homography_from_pose(pose, 90.0, 40.0, 60.0, IMAGE_SIZE), IMAGE_SIZE, patches, seed=i
+        )
+        for i, (camera_id, pose) in enumerate(OVERLAP_POSES.items())
+    }
+
+
+@dataclass
+class Scene:
+    server: ManagedProcess
+    address: str
+    cameras: dict[str, ManagedProcess]
+
+
+@pytest_asyncio.fixture
+async def fused_office(overlapping: dict[str, RecordedCamera]) -> AsyncIterator[Scene]:
+    """drvs-server (metrics on) and both cameras (DEBUG: they log the requests they stop) as processes."""
+    server, address = await start_server("--lease-ttl", "5", "--metrics-port", "0")
+    scene = Scene(server, address, {})
+    try:
+        for camera_id, rec in overlapping.items():
+            scene.cameras[camera_id] = await start_recorded_camera(camera_id, rec, address, "--log-level", "DEBUG")
+        yield scene
+    finally:
+        for proc in scene.cameras.values():
+            await proc.stop()
+        await server.stop()
+
+
+def near_disc(xy: tuple[float, float] | list[float]) -> float:
+    return min(math.dist(c, xy) for c, _ in DISCS)
+
+
+@pytest.mark.slow
+async def test_end_to_end_fused_detect_merges_two_cameras_into_one_object_each(fused_office: Scene) -> None:
+    async with DrvsClient.connect(fused_office.address, robot_id="r1") as robot:
+        snapshot = await robot.detect(YELLOW, REGION, fuse=True)
+        assert snapshot.final and snapshot.missing_cameras == () and set(snapshot.camera_ids) == {"camA", "camB"}
+        assert len(snapshot.objects) == len(DISCS)  # each disc once, not once per camera
+        for o in snapshot.objects:
+            assert o.camera_ids == ("camA", "camB") and near_disc(o.centroid_xy) < 0.03
+            assert 0 < o.uncertainty_m < 0.05
+        assert not robot.listening
+
+
+@pytest.mark.slow
+async def test_end_to_end_track_keeps_ids_and_ends_with_a_final_snapshot(fused_office: Scene) -> None:
+    async with DrvsClient.connect(fused_office.address, robot_id="r1") as robot:
+        seen = [s async for s in robot.track(YELLOW, REGION, rate_hz=5, duration_s=1.2)]
+        assert [s.final for s in seen][-1] is True and not any(s.final for s in seen[:-1])
+        assert [s.sequence for s in seen] == list(range(len(seen))) and len(seen) >= 5
+        ids = {tuple(sorted(o.track_id for o in s.objects)) for s in seen if s.objects}
+        assert len(ids) == 1 and len(next(iter(ids))) == len(DISCS)  # the same two ids throughout
+        for s in seen:
+            for o in s.objects:
+                assert near_disc(o.centroid_xy) < 0.05 and o.speed_mps < 0.1  # the discs do not move
+        assert not robot.listening
+
+
+@pytest.mark.slow
+async def test_end_to_end_drvs_robot_track_json_and_no_listening_port(fused_office: Scene) -> None:
+    args = ("--server", fused_office.address, "--filter", YELLOW, "--roi", ",".join(str(v) for v in REGION))
+    async with robot_cli("track", *args, "--rate", "5", "--duration", "1", "--json") as proc:
+        await proc.wait_for_line(r'^\{"time"')
+        assert listening_ports(proc.pid) == set()
+        code = await proc.wait(timeout=20)
+    assert code == 0, proc.output()
+    snapshots = [json.loads(line) for line in proc.lines]
+    assert snapshots[-1]["final"] is True and [s["sequence"] for s in snapshots] == list(range(len(snapshots)))
+    for s in snapshots:
+        assert set(s) == SNAPSHOT_KEYS and sorted(s["cameras"]) == ["camA", "camB"]
+        for o in s["objects"]:
+            assert set(o) == OBJECT_KEYS and near_disc(o["centroid"]) < 0.05
+    assert len(snapshots[-1]["objects"]) == len(DISCS)
+
+
+@pytest.mark.slow
+async def test_end_to_end_leaving_a_track_early_stops_the_cameras(fused_office: Scene) -> None:
+    async with DrvsClient.connect(fused_office.address, robot_id="r1") as robot:
+        async with robot.track(YELLOW, REGION, rate_hz=5, duration_s=60) as track:
+            async for snapshot in track:
+                if snapshot.sequence == 1:
+                    break
+        # Each camera stops the request (the server told it on its report stream) ...
+        cancelled = rf"request {re.escape(track.request_id)} cancelled"
+        for proc in fused_office.cameras.values():
+            await proc.wait_for_line(cancelled, timeout=10)
+        # ... and the server has no fused session left.
+        port = metrics_port(fused_office.server)
+        loop = asyncio.get_running_loop()
+        end = loop.time() + 10
+        while (await scrape(port)).get("drvs_fusion_sessions") != 0.0:
+            assert loop.time() < end, "the server still holds the fused session"
+            await asyncio.sleep(0.05)

@@ -1100,6 +1100,21 @@ class DrvsClient:
         request_id: str | None = ...,
     ) -> Snapshot: ...
 
+    @overload
+    async def detect(
+        self,
+        filter_def: str,
+        region: RegionLike,
+        *,
+        rate_hz: float = ...,
+        duration_s: float = ...,
+        timeout_s: float = ...,
+        outlines: bool = ...,
+        fuse: bool,
+        deadline_s: float | None = ...,
+        request_id: str | None = ...,
+    ) -> DetectionResult | Snapshot: ...
+
     async def detect(
         self,
         filter_def: str,
