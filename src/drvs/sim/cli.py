@@ -35,6 +35,8 @@ def robot_main(args: argparse.Namespace) -> int:
                 max_time_s=args.max_time,
                 security=security_from(vars(args)),
                 detector=args.detector,
+                delivery=args.delivery,
+                predict=not args.no_predict,
             )
         )
     except DrvsError as exc:
@@ -61,6 +63,18 @@ def main(argv: list[str] | None = None) -> int:
         choices=["hsv", "foreground"],
         default="hsv",
         help="find obstacles by the scenario's colours (hsv, the paper's) or as anything not empty floor",
+    )
+    r.add_argument(
+        "--delivery",
+        choices=["fused", "per-camera"],
+        default="fused",
+        help="fused (default): plan from the server's fused, tracked world objects; per-camera: every "
+        "camera's reports, unioned (the paper's)",
+    )
+    r.add_argument(
+        "--no-predict",
+        action="store_true",
+        help="take moving tracks to stand where they were last seen (to compare: the robot then ignores velocity)",
     )
     r.add_argument("--log-level", default=None)
     add_security_arguments(r, "file holding the robot's client token")

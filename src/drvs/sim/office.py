@@ -98,7 +98,9 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
         await wait_serving(world_address, world)
         say(f"world      {scenario.name!r} on {world_address}")
         robot_args = ["robot", "--world", world_address, "--out", str(out), "--max-time", str(args.max_time)]
-        robot_args += ["--detector", args.detector]
+        robot_args += ["--detector", args.detector, "--delivery", args.delivery]
+        if args.no_predict:
+            robot_args.append("--no-predict")
         if args.no_drvs:
             robot_args.append("--no-drvs")
             say("DRVS       off: the paper's baseline, the robot learns obstacles by touching them")
@@ -192,6 +194,12 @@ def summarise(result: dict[str, Any], out: Path, quiet: bool) -> None:
     for event in result.get("coverage_events", []):
         what = "stopped looking" if event["event"] == "lost" else "looks again"
         print(f"coverage         t={event['t']:.1f}s {event['camera_id']} {what} {event['why']}".rstrip())
+    moving = [t for t in result.get("tracks", []) if str(t.get("used_as", "")).startswith("moving")]
+    if result.get("tracks") is not None and result.get("delivery") == "fused":
+        print(
+            f"tracks           {len(result['tracks'])} followed, {len(moving)} moving; "
+            f"{result.get('wait_steps', 0)} step(s) waited for one to pass"
+        )
     if result.get("blind_steps"):
         print(f"blind steps      {result['blind_steps']} (slowed where no camera looks)")
     print(
@@ -231,6 +239,18 @@ def main(argv: list[str] | None = None) -> int:
         default="hsv",
         help="how obstacles are found: hsv, the scenario's obstacle colours (the paper's, default); "
         "foreground, anything that is not the empty floor (each camera gets a picture of it)",
+    )
+    parser.add_argument(
+        "--delivery",
+        choices=["fused", "per-camera"],
+        default="fused",
+        help="how the robot gets what cameras see: fused, tracked world objects from the server (default), or "
+        "every camera's own reports (the paper's)",
+    )
+    parser.add_argument(
+        "--no-predict",
+        action="store_true",
+        help="the robot ignores the velocity of moving obstacles (to compare with its prediction)",
     )
     parser.add_argument(
         "--kill-camera",

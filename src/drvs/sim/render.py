@@ -33,8 +33,9 @@ _MARKER_CELL_PX = 24
 class CameraRenderer:
     """Everything static is warped once; each frame adds the robot, lighting and noise.
 
-    A frame is a pure function of (seed, camera, robot pose version): the same seed gives the
-    same pixels for the same world state, whatever the timing of the processes.
+    A frame is a pure function of (seed, camera, robot pose version, world time): the same seed
+    gives the same pixels for the same world state, whatever the timing of the processes. Moving
+    obstacles are painted per frame where their path puts them at the world time.
     """
 
     def __init__(self, scenario: Scenario, camera: CameraDef, seed: int = 0) -> None:
@@ -90,13 +91,20 @@ class CameraRenderer:
             return
         draw_marker_image(image, marker, self._to_image.apply(paper))
 
-    def render(self, robot_xy: tuple[float, float] | None, version: int, robot_theta: float = 0.0) -> NDArray[np.uint8]:
+    def render(
+        self, robot_xy: tuple[float, float] | None, version: int, robot_theta: float = 0.0, world_time: float = 0.0
+    ) -> NDArray[np.uint8]:
         """A BGR frame of world state `version` with the robot at robot_xy (None: no robot), heading
-        robot_theta (radians CCW from x; it turns the marker on its top plate).
+        robot_theta (radians CCW from x; it turns the marker on its top plate), and the moving
+        obstacles where they are at `world_time` (seconds since the world's clock started).
 
         Lighting drifts and the sensor noise changes as the world state advances.
         """
         image = self._static.copy()
+        for obstacle in self.scenario.moving_obstacles:
+            if obstacle.paint is not None:
+                shape = obstacle.shape_at(world_time)
+                fill_floor_shape(image, shape, self._to_image, self._fov_floor, obstacle.paint)
         if robot_xy is not None:
             plate = Point(robot_xy).buffer(self.scenario.robot.radius, quad_segs=16)
             fill_floor_shape(image, plate, self._to_image, self._fov_floor, self.scenario.robot.color.bgr)
@@ -139,7 +147,7 @@ def _floor_texture(scenario: Scenario, seed: int = 0) -> tuple[NDArray[np.uint8]
     for wall in scenario.walls:
         fill(wall, WALL_BGR)
     for obj in scenario.objects:
-        if obj.paint is not None:
+        if obj.paint is not None and not obj.moving:  # moving ones are painted per frame
             fill(obj.shape, obj.paint)
     return texture, world_to_texture
 

@@ -56,9 +56,20 @@ def draw_map(scenario: Scenario, result: dict[str, Any], path: Path, seed: int =
             ax.add_patch(_patch(obj.shape, fill=False, edgecolor="tab:purple", ls=":", lw=1.5))
             continue
         b, g, r = obj.paint
+        if obj.moving:  # its path, where it started (outlined) and where it was at the end (filled)
+            line = np.asarray(obj.path)
+            ax.plot(line[:, 0], line[:, 1], ":", color=(r / 255, g / 255, b / 255), lw=1.5)
+            ax.add_patch(_patch(obj.shape, fill=False, edgecolor=(r / 255, g / 255, b / 255), ls="--", lw=1))
+            end = obj.shape_at(float(result.get("world_time_s", 0.0)))
+            ax.add_patch(_patch(end, facecolor=(r / 255, g / 255, b / 255), alpha=0.45, edgecolor="none"))
+            continue
         ax.add_patch(_patch(obj.shape, facecolor=(r / 255, g / 255, b / 255), alpha=0.45, edgecolor="none"))
     for d in result.get("detections", []):
         ax.add_patch(MplPolygon(d["outline"], closed=True, fill=False, edgecolor="red", lw=1.4))
+    for t in result.get("tracks", []):  # moving tracks the robot followed: where first and last seen
+        if str(t.get("used_as", "")).startswith("moving"):
+            ax.annotate("", xy=tuple(t["last"]), xytext=tuple(t["first"]),
+                        arrowprops={"arrowstyle": "->", "color": "tab:red", "lw": 1.2, "ls": "--"})  # fmt: skip
     for c in result.get("contacts", []):
         centre = np.mean(np.asarray(c), axis=0)
         ax.plot([centre[0]], [centre[1]], "rx", ms=12, mew=3)
@@ -80,6 +91,8 @@ def draw_map(scenario: Scenario, result: dict[str, Any], path: Path, seed: int =
     ax.plot([], [], "--", color="tab:orange", label="planned (last bold)")
     ax.plot([], [], "-", color="red", label="DRVS detections")
     ax.plot([], [], "rx", label="collision")
+    if any(str(t.get("used_as", "")).startswith("moving") for t in result.get("tracks", [])):
+        ax.plot([], [], "--", color="tab:red", lw=1.2, label="moving track (first to last seen)")
     ax.legend(loc="upper left", fontsize=8, ncol=3, framealpha=0.9)
     mode = "with DRVS" if result.get("drvs") else "without DRVS (baseline)"
     outcome = "reached goal" if result.get("reached_goal") else "did not reach goal"
@@ -96,7 +109,9 @@ def draw_map(scenario: Scenario, result: dict[str, Any], path: Path, seed: int =
     heading = math.atan2(moves[-1][1], moves[-1][0]) if moves else 0.0  # as the robot drove its last step
     for i, cam in enumerate(cams):
         sub = fig.add_subplot(grid[1 + i // 3, i % 3])
-        frame = CameraRenderer(scenario, cam, seed=seed).render(final, len(result.get("path", [])), heading)
+        frame = CameraRenderer(scenario, cam, seed=seed).render(
+            final, len(result.get("path", [])), heading, float(result.get("world_time_s", 0.0))
+        )
         to_image = cam.homography.inverse()
         for d in result.get("detections", []):
             if d["camera_id"] == cam.id:

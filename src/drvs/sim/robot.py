@@ -4,12 +4,19 @@ The robot knows the floor plan, its own pose (odometry) and which colours obstac
 station markers have (or, with the `foreground` detector, nothing of the obstacles: anything on
 the floor that is not the empty floor is one; and the ArUco ids of its own marker and its dock).
 Everything else it learns from DRVS, or, in the baseline, by touching it.
+
+By default it plans from fused delivery (`delivery="fused"`): single shots with
+`detect(fuse=True)`, and while it drives `track()` snapshots of world objects along its way. A
+track that stands still is an obstacle on its map; one that moves is predicted from its velocity
+(drvs.sim.predict): the robot waits for it where it would cross its way, and ignores it once it
+has gone. `delivery="per-camera"` is the paper's: every camera's reports, unioned.
 """
 
 from __future__ import annotations
 
 import asyncio
 import contextlib
+import dataclasses
 import json
 import logging
 import math
@@ -24,11 +31,13 @@ from shapely.geometry import LineString, Point, Polygon, box
 
 from drvs import _grpc
 from drvs.convert import polygon_from_pb
+from drvs.errors import DrvsError
 from drvs.meter import MeteredClient
-from drvs.model import Detection
-from drvs.robot import DetectionResult, DrvsClient, Subscription
+from drvs.model import Detection, PixelBox, Snapshot, WorldObject
+from drvs.robot import DetectionResult, DrvsClient, Subscription, Track
 from drvs.security import Security
 from drvs.sim.planner import NoPath, OccupancyGrid, plan_path
+from drvs.sim.predict import MovingObstacle, TrackRecord, decide
 from drvs.sim.scenario import Scenario
 from drvs.v1 import sim_pb2, sim_pb2_grpc
 
@@ -63,6 +72,11 @@ DETECTORS = ("hsv", "foreground")
 #: the edge of the robot's own blob, not an obstacle.
 SELF_MARGIN_M = 0.1
 SELF_SLIVER_M2 = 0.01
+#: How the robot gets what cameras see: fused world objects (single shots and tracks) from the
+#: server, or every camera's own reports (the paper's).
+DELIVERIES = ("fused", "per-camera")
+#: Snapshots a second of the obstacle tracks the robot follows while it drives.
+TRACK_RATE_HZ = 2.0
 
 
 class MissionFailed(Exception):
@@ -79,11 +93,25 @@ class SimRobot:
         progress: Callable[[dict[str, Any]], None] = lambda p: None,
         max_time_s: float = 120.0,
         detector: str = "hsv",
+        delivery: str = "fused",
+        predict: bool = True,
     ) -> None:
         if detector not in DETECTORS:
             raise ValueError(f"detector {detector!r} is not one of {', '.join(DETECTORS)}")
+        if delivery not in DELIVERIES:
+            raise ValueError(f"delivery {delivery!r} is not one of {', '.join(DELIVERIES)}")
         self.scenario = scenario
         self.detector = detector
+        self.delivery = delivery
+        #: False: moving tracks are taken to stand where they were last seen (for comparison only).
+        self.predict = predict
+        #: Fused tracks: every track followed (key "request_id/track_id"), and those moving now.
+        self.tracks: dict[str, TrackRecord] = {}
+        self.moving: dict[str, MovingObstacle] = {}
+        self.wait_steps = 0
+        self.world_time_s = 0.0
+        self._epoch = time.time()  # the world's clock start, once the robot sets off
+        self._clock_started = False
         self.world = world
         self.drvs = drvs
         self.progress = progress
@@ -142,6 +170,88 @@ class SimRobot:
             self._map_changed = True
         return changed
 
+    def forget(self, where: tuple[float, float]) -> None:
+        """A track that started where a known obstacle lies turned out to move: that obstacle is not
+        there any more. The map is rebuilt without it (no re-plan: the plan only gets freer)."""
+        stay = [k for k in self.known_obstacles if not k.buffer(SAME_OBSTACLE_M).contains(Point(where))]
+        if len(stay) == len(self.known_obstacles):
+            return
+        self.known_obstacles = stay
+        self.grid = OccupancyGrid(self.scenario.bounds, GRID_RESOLUTION_M)
+        for shape in [*self.scenario.walls, *stay, *self.contacts]:
+            self.grid.add_polygon(shape, self.inflate)
+        log.info("the obstacle seen at (%.2f, %.2f) moves: off the map", *where)
+
+    # --- fused tracks -----------------------------------------------------------------------
+
+    def use_snapshot(self, filter_def: str, request_id: str, snapshot: Snapshot) -> None:
+        """One period of a fused track: standing tracks go on the map, moving ones are predicted."""
+        for missing in snapshot.missing_cameras:
+            self.lose(missing.camera_id, f"{missing.code} {missing.message}")
+        for camera_id in snapshot.camera_ids:
+            self.regain(camera_id)
+        alive: set[str] = set()
+        for obj in snapshot.objects:
+            if any(math.dist(obj.centroid_xy, p) < MARKER_MATCH_M for p in self.ignore_near):
+                continue
+            outline = obj.outline if not obj.outline.is_empty else box(*obj.bounds)
+            if filter_def == "foreground":
+                me = Point(self.pose).buffer(self.scenario.robot.radius + SELF_MARGIN_M)
+                pieces = self.not_myself(outline)
+                if outline.intersects(me) or not pieces:
+                    continue  # the robot itself, or where it has been
+                outline = max(pieces, key=lambda q: q.area)
+            key = f"{request_id}/{obj.track_id}"
+            alive.add(key)
+            record = self.tracks.get(key)
+            if record is None:
+                record = self.tracks[key] = TrackRecord(key, filter_def, obj, snapshot.time)
+            else:
+                was_moving = record.moving
+                record.update(obj, snapshot.time)
+                if record.moving and not was_moving:
+                    self.forget(record.first_xy)
+            if record.stands_still():
+                record.static = True
+                self.moving.pop(key, None)
+                if self.mark(outline, ragged=filter_def == "foreground"):
+                    self.detections_used.append(object_detection(filter_def, obj, outline))
+            elif record.moving or not any(k.buffer(SAME_OBSTACLE_M).contains(outline) for k in self.known_obstacles):
+                # Moving, or not yet known to stand still: predicted (velocity 0 until the tracker has one).
+                self.moving[key] = MovingObstacle.from_track(
+                    key, dataclasses.replace(obj, outline=outline), predict=self.predict
+                )
+        for key in [k for k in self.moving if k.startswith(request_id + "/") and k not in alive]:
+            del self.moving[key]
+
+    async def watch_tracks(self, region: Polygon) -> None:
+        """Fused Algorithm 1: the server tracks the obstacles along the way while the robot drives."""
+        assert self.drvs is not None
+        async with contextlib.AsyncExitStack() as stack:
+            tracks = [
+                await stack.enter_async_context(
+                    self.drvs.track(f, region, rate_hz=TRACK_RATE_HZ, duration_s=self.max_time_s)
+                )
+                for f in self.obstacle_filters
+            ]
+            try:
+                for track in tracks:
+                    for missing in track.missing_cameras:  # whom the server could not ask
+                        self.lose(missing.camera_id, f"{missing.code} {missing.message}")
+                await asyncio.gather(*(self._follow(f, t) for f, t in zip(self.obstacle_filters, tracks, strict=True)))
+            finally:
+                for track in tracks:
+                    for key in [k for k in self.moving if k.startswith(track.request_id + "/")]:
+                        del self.moving[key]
+
+    async def _follow(self, filter_def: str, track: Track) -> None:
+        try:
+            async for snapshot in track:
+                self.use_snapshot(filter_def, track.request_id, snapshot)
+        except DrvsError as exc:  # the stream broke (server gone ...): nobody looks for us any more
+            for camera_id in track.camera_ids:
+                self.lose(camera_id, f"track {track.request_id} ended: {exc}")
+
     def use_detections(self, detections: Sequence[Detection]) -> None:
         for d in detections:
             if any(d.centroid.distance(Point(p)) < MARKER_MATCH_M for p in self.ignore_near):
@@ -179,11 +289,26 @@ class SimRobot:
 
     async def look(self, filters: Sequence[str], region: Polygon) -> list[Detection]:
         assert self.drvs is not None
+        if self.delivery == "fused":
+            return await self.look_fused(filters, region)
         results = await asyncio.gather(*(self.drvs.detect(f, region, timeout_s=5.0) for f in filters))
         found: list[Detection] = []
         for result in results:
             self.check_coverage(result)
             found.extend(result.detections)
+        return found
+
+    async def look_fused(self, filters: Sequence[str], region: Polygon) -> list[Detection]:
+        """One fused single shot per filter: each physical object once, whatever camera saw it."""
+        assert self.drvs is not None
+        snapshots = await asyncio.gather(*(self.drvs.detect(f, region, fuse=True, timeout_s=5.0) for f in filters))
+        found: list[Detection] = []
+        for f, snapshot in zip(filters, snapshots, strict=True):
+            for missing in snapshot.missing_cameras:
+                self.lose(missing.camera_id, f"{missing.code} {missing.message}")
+            for camera_id in snapshot.camera_ids:
+                self.regain(camera_id)
+            found.extend(object_detection(f, o) for o in snapshot.objects)
         return found
 
     # --- coverage: where nobody looks, the way is not known to be clear ---------------------
@@ -347,10 +472,18 @@ class SimRobot:
                 path = self.plan(goal)
                 self.replans += 1
             self._map_changed = False
+        if not self._clock_started:  # the robot sets off: the world's clock starts, obstacles move
+            self._epoch = (await self.world.Start(sim_pb2.StartRequest(), timeout=10)).clock_start_unix
+            self._clock_started = True
         try:
             while True:
+                if watcher is not None and watcher.done() and not watcher.cancelled():
+                    if watcher.exception() is not None:
+                        log.warning("watching obstacles failed: %s", watcher.exception())
+                    watcher = None  # look again (a track ended early, e.g. a server restart)
                 if look and self.drvs is not None and watcher is None:
-                    watcher = asyncio.get_running_loop().create_task(self.watch_obstacles(self.corridor(path)))
+                    watch = self.watch_tracks if self.delivery == "fused" else self.watch_obstacles
+                    watcher = asyncio.get_running_loop().create_task(watch(self.corridor(path)))
                 if self._map_changed:
                     self._map_changed = False
                     try:
@@ -385,6 +518,9 @@ class SimRobot:
             speed *= BLIND_SPEED_FRACTION  # about to drive where nobody looks
             self.blind_steps += 1
         step = min(speed * TICK_S, distance)
+        if self.moving and not decide(path, step, speed, list(self.moving.values()), time.time(), self.inflate):
+            step = 0.0  # let the moving obstacle pass: wait here (the world's clock and cameras go on)
+            self.wait_steps += 1
         x = self.pose[0] + (target[0] - self.pose[0]) * step / distance if distance else target[0]
         y = self.pose[1] + (target[1] - self.pose[1]) * step / distance if distance else target[1]
         heading = math.atan2(target[1] - self.pose[1], target[0] - self.pose[0])
@@ -392,6 +528,7 @@ class SimRobot:
         sent = time.time()
         reply = await self.world.Move(sim_pb2.MoveRequest(pose=sim_pb2.RobotPose(x=x, y=y, theta=heading)))
         self.pose = (reply.pose.x, reply.pose.y)
+        self.world_time_s = reply.world_time_s
         self.history.append((sent, reply.pose.x, reply.pose.y, reply.pose.theta))
         self.path_driven.append(self.pose)
         if reply.collided:
@@ -400,7 +537,7 @@ class SimRobot:
             self.contacts.append(contact)
             log.info("collision at (%.2f, %.2f)", *self.pose)
             self.mark(contact)
-        elif math.dist(self.pose, target) < 1e-6:
+        elif math.dist(self.pose, target) < 1e-6 and step > 0:
             path.pop(0)
         path[0] = self.pose
         self.report_progress()
@@ -498,6 +635,28 @@ class SimRobot:
         }
 
 
+def object_detection(filter_def: str, obj: WorldObject, outline: Polygon | None = None) -> Detection:
+    """A fused world object as the detection the robot's map and result.json take: its cameras
+    joined by "," as camera_id, its newest capture time."""
+    shape = outline if outline is not None else obj.outline
+    return Detection(
+        outline=shape,
+        bounds=shape.bounds if not shape.is_empty else obj.bounds,
+        centroid_xy=obj.centroid_xy,
+        ground_contact_xy=obj.centroid_xy,
+        pixel_box=PixelBox(0, 0, 0, 0),
+        area_m2=obj.area_m2,
+        area_px=0.0,
+        score=obj.score,
+        filter_def=filter_def,
+        camera_id=",".join(obj.camera_ids),
+        capture_time=obj.last_seen,
+        marker_id=obj.marker_id,
+        heading_deg=obj.marker_heading_deg,
+        label=obj.label,
+    )
+
+
 def detection_record(d: Detection) -> dict[str, Any]:
     record: dict[str, Any] = {
         "filter_def": d.filter_def,
@@ -522,6 +681,8 @@ async def run_robot(
     max_time_s: float = 120.0,
     security: Security | None = None,
     detector: str = "hsv",
+    delivery: str = "fused",
+    predict: bool = True,
 ) -> dict[str, Any]:
     from drvs.sim.scenario import parse_scenario
 
@@ -537,7 +698,16 @@ async def run_robot(
         try:
             if metered is not None:
                 client = await metered.start()
-            robot = SimRobot(scenario, world, client, progress=progress, max_time_s=max_time_s, detector=detector)
+            robot = SimRobot(
+                scenario,
+                world,
+                client,
+                progress=progress,
+                max_time_s=max_time_s,
+                detector=detector,
+                delivery=delivery,
+                predict=predict,
+            )
             mission = getattr(robot, scenario.mission)
             try:
                 outcome = await mission()
@@ -558,6 +728,8 @@ async def run_robot(
         "mission": scenario.mission,
         "drvs": client is not None,
         "detector": detector,
+        "delivery": delivery if client is not None else None,
+        "predict": predict,
         **outcome,
         "collisions": robot.collisions,
         "replans": robot.replans,
@@ -575,6 +747,9 @@ async def run_robot(
             "mean_heading_error_deg": round(sum(headings) / len(headings), 3) if headings else None,
             "max_heading_error_deg": round(max(headings), 3) if headings else None,
         },
+        "tracks": [r.summary(robot._epoch) for r in robot.tracks.values() if r.snapshots > 1 or r.moving],
+        "wait_steps": robot.wait_steps,
+        "world_time_s": round(robot.world_time_s, 3),
         "coverage_events": robot.coverage_events,
         "blind_steps": robot.blind_steps,
         "reports_rejected": client.reports_rejected if client is not None else 0,

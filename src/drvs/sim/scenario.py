@@ -5,6 +5,7 @@ Unknown keys and impossible values are errors that name the key (``cameras[1].pi
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -15,6 +16,7 @@ import cv2
 import numpy as np
 import yaml
 from numpy.typing import NDArray
+from shapely import affinity
 from shapely.geometry import Point, Polygon, box
 
 from drvs.detectors.aruco import DICTIONARIES, DICTIONARY_SIZES
@@ -127,11 +129,50 @@ class ObjectDef:
     bgr: tuple[int, int, int] | None = None
     #: A printed ArUco marker (kind marker), or the marker that marks a charging station's dock.
     aruco: ArucoDef | None = None
+    #: A moving obstacle: the points its centre passes through, its start (`shape`'s centroid)
+    #: first; empty for one that stands still. It moves at `speed_mps` from world time 0 and stops
+    #: at the last point, or with `loop` goes back and forth along the path for ever.
+    path: tuple[tuple[float, float], ...] = ()
+    speed_mps: float = 0.0
+    loop: bool = False
 
     @property
     def paint(self) -> tuple[int, int, int] | None:
         """The BGR it is painted in; None when it is not a plain patch (markers, stations)."""
         return self.color.bgr if self.color is not None else self.bgr
+
+    @property
+    def moving(self) -> bool:
+        return len(self.path) > 1
+
+    def offset_at(self, t: float) -> tuple[float, float]:
+        """How far it has moved from its start at world time `t` (seconds since the clock started)."""
+        if not self.moving:
+            return 0.0, 0.0
+        legs = [math.dist(a, b) for a, b in zip(self.path, self.path[1:], strict=False)]
+        total = sum(legs)
+        s = self.speed_mps * max(t, 0.0)
+        if self.loop:
+            s %= 2 * total
+            if s > total:
+                s = 2 * total - s
+        else:
+            s = min(s, total)
+        for (a, b), leg in zip(zip(self.path, self.path[1:], strict=False), legs, strict=True):
+            if s <= leg and leg > 0:
+                f = s / leg
+                x, y = a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1])
+                return x - self.path[0][0], y - self.path[0][1]
+            s -= leg
+        return self.path[-1][0] - self.path[0][0], self.path[-1][1] - self.path[0][1]
+
+    def shape_at(self, t: float) -> Polygon:
+        """Its outline at world time `t`: `shape` itself for one that stands still."""
+        if not self.moving:
+            return self.shape
+        dx, dy = self.offset_at(t)
+        moved: Polygon = affinity.translate(self.shape, dx, dy)
+        return moved
 
 
 @dataclass(frozen=True)
@@ -172,6 +213,10 @@ class Scenario:
     @property
     def obstacles(self) -> list[ObjectDef]:
         return [o for o in self.objects if o.kind == "obstacle"]
+
+    @property
+    def moving_obstacles(self) -> list[ObjectDef]:
+        return [o for o in self.objects if o.moving]
 
     @property
     def charging_stations(self) -> list[ObjectDef]:
@@ -301,7 +346,7 @@ def _build(root: _Obj, text: str) -> Scenario:
     objs_raw = root.take("objects", [])
     if not isinstance(objs_raw, list):
         raise ScenarioError("objects: expected a list")
-    objects = tuple(_object(_Obj(o, f"objects[{i}]"), colors) for i, o in enumerate(objs_raw))
+    objects = tuple(_object(_Obj(o, f"objects[{i}]"), colors, box(*bounds)) for i, o in enumerate(objs_raw))
 
     mission = root.take("mission")
     if mission not in MISSIONS:
@@ -396,12 +441,53 @@ def _camera(obj: _Obj, floor: Polygon) -> CameraDef:
     return cam
 
 
-def _object(obj: _Obj, colors: Mapping[str, ColorDef]) -> ObjectDef:
+def _object(obj: _Obj, colors: Mapping[str, ColorDef], floor: Polygon) -> ObjectDef:
     p = obj.path
-    obj.check_keys(["kind", "color", "bgr", "polygon", "center", "radius", "aruco", "dictionary", "size", "heading"])
+    obj.check_keys(
+        ["kind", "color", "bgr", "polygon", "center", "radius", "aruco", "dictionary", "size", "heading", "path",
+         "speed_mps", "loop"]
+    )  # fmt: skip
     kind = obj.take("kind")
     if kind not in OBJECT_KINDS:
         raise ScenarioError(f"{p}.kind: {kind!r} is not one of {', '.join(OBJECT_KINDS)}")
+    for key in ("path", "speed_mps", "loop"):
+        if key in obj.value and kind != "obstacle":
+            raise ScenarioError(f"{p}.{key}: only an obstacle moves")
+        if key != "path" and key in obj.value and "path" not in obj.value:
+            raise ScenarioError(f"{p}.{key}: only with path")
+    static = _static_object(obj, colors)
+    if "path" not in obj.value:
+        return static
+    return _moving(obj, static, floor)
+
+
+def _moving(obj: _Obj, static: ObjectDef, floor: Polygon) -> ObjectDef:
+    """An obstacle with a path: its centre starts where its polygon or center puts it, then passes
+    through the path's points in order at speed_mps."""
+    p = obj.path
+    raw = obj.take("path")
+    if not isinstance(raw, list) or not raw:
+        raise ScenarioError(f"{p}.path: expected a non-empty list of [x, y] points its centre passes through")
+    start = (static.shape.centroid.x, static.shape.centroid.y)
+    points = (start, *(_point(v, f"{p}.path[{i}]") for i, v in enumerate(raw)))
+    if all(math.dist(start, q) < 1e-6 for q in points):
+        raise ScenarioError(
+            f"{p}.path: every point is where the obstacle starts ({start[0]:g}, {start[1]:g}); it would not move"
+        )
+    for i, (x, y) in enumerate(points[1:]):
+        placed = affinity.translate(static.shape, x - start[0], y - start[1])
+        if not floor.contains(placed):
+            raise ScenarioError(f"{p}.path[{i}]: at [{x:g}, {y:g}] the obstacle is not inside floor_plan.bounds")
+    speed = _number(obj.take("speed_mps"), f"{p}.speed_mps", 0.01, 10)
+    loop = obj.take("loop", False)
+    if not isinstance(loop, bool):
+        raise ScenarioError(f"{p}.loop: expected true (back and forth along the path) or false (stop at its end)")
+    return dataclasses.replace(static, path=points, speed_mps=speed, loop=loop)
+
+
+def _static_object(obj: _Obj, colors: Mapping[str, ColorDef]) -> ObjectDef:
+    p = obj.path
+    kind = obj.take("kind")
     for key in ("size", "heading"):
         if key in obj.value and not (kind == "marker" and "aruco" in obj.value):
             raise ScenarioError(f"{p}.{key}: only for a marker given by aruco")

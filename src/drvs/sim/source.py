@@ -24,7 +24,8 @@ SCHEME = "sim://"
 class SimSource:
     """Renders this camera's view of the world at its frame rate, and at once whenever the robot moves.
 
-    Frames carry real capture times; their pixels depend only on the world's state.
+    Frames carry real capture times; their pixels depend only on the world's state: the robot's
+    pose and, when obstacles move, the world time of the capture (Unix time minus the clock's start).
     """
 
     def __init__(self, spec: str, camera_id: str) -> None:
@@ -38,6 +39,7 @@ class SimSource:
         self._robot: tuple[float, float] | None = None
         self._robot_theta = 0.0
         self._robot_version = -1
+        self._clock_start = 0.0
         self._threads: list[threading.Thread] = []
         self._channel: grpc.Channel | None = None
         self._watch: Any = None
@@ -90,6 +92,7 @@ class SimSource:
                     self._robot = (pose.x, pose.y)
                     self._robot_theta = pose.theta
                     self._robot_version = pose.version
+                    self._clock_start = pose.clock_start_unix
                     self._lock.notify_all()
         except grpc.RpcError as exc:
             if not self._stop.is_set():
@@ -101,17 +104,23 @@ class SimSource:
         sequence = 0
         rendered_version = -2
         image = None
+        moving = bool(self.renderer.scenario.moving_obstacles)
         while not self._stop.is_set():
             with self._lock:
                 if self._robot_version == rendered_version:
                     self._lock.wait(period)  # a new frame at the frame rate, or at once when the robot moves
-                robot, theta, version = self._robot, self._robot_theta, self._robot_version
+                robot, theta, version, clock_start = (
+                    self._robot, self._robot_theta, self._robot_version, self._clock_start
+                )  # fmt: skip
             if self._stop.is_set():
                 return
-            if image is None or version != rendered_version:  # pixels depend only on the world state
+            now = time.time()
+            if moving and clock_start:  # obstacles move with world time: every frame differs
+                image = self.renderer.render(robot, max(version, 0), theta, max(0.0, now - clock_start))
+            elif image is None or version != rendered_version:  # pixels depend only on the world state
                 image = self.renderer.render(robot, max(version, 0), theta)
             sequence += 1
-            frame = Frame(image=image, capture_time=time.time(), sequence=sequence, captured_at=time.monotonic())
+            frame = Frame(image=image, capture_time=now, sequence=sequence, captured_at=time.monotonic())
             with self._lock:
                 self._latest = frame
             rendered_version = version

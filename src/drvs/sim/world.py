@@ -6,6 +6,7 @@ import argparse
 import asyncio
 import logging
 import math
+import time
 from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Any
@@ -40,10 +41,15 @@ class Pose:
     y: float
     theta: float = 0.0
     version: int = 0
+    #: When the world's clock started, seconds since the Unix epoch; 0.0 while it has not.
+    clock_start: float = 0.0
 
 
 class WorldState:
-    """The truth: where the robot is and what it would touch. Pure logic."""
+    """The truth: where the robot is and what it would touch. Pure logic.
+
+    World time starts at the mission's start (`start_clock`, or the first move): a moving obstacle
+    is where its path puts it at world time, for the cameras and for the bumper alike."""
 
     def __init__(self, scenario: Scenario) -> None:
         self.scenario = scenario
@@ -51,20 +57,49 @@ class WorldState:
         self.pose = Pose(sx, sy, 0.0, 0)
         self.radius = scenario.robot.radius
         outside = box(*scenario.bounds).buffer(50.0, join_style="mitre").difference(box(*scenario.bounds))
-        self.solids: list[Polygon] = [*scenario.walls, *(o.shape for o in scenario.obstacles), outside]
+        still = [o.shape for o in scenario.obstacles if not o.moving]
+        self.solids: list[Polygon] = [*scenario.walls, *still, outside]
         self._tree = STRtree(self.solids)
+        self.moving = scenario.moving_obstacles
         self.collisions = 0
         self.distance_m = 0.0
 
-    def touching(self, x: float, y: float) -> Polygon | None:
+    @property
+    def clock_start(self) -> float:
+        return self.pose.clock_start
+
+    def start_clock(self, now: float | None = None) -> float:
+        """Start the world's clock (once: a later call keeps the first start). Returns the start."""
+        if not self.pose.clock_start:
+            p = self.pose
+            self.pose = Pose(p.x, p.y, p.theta, p.version + 1, time.time() if now is None else now)
+        return self.pose.clock_start
+
+    def world_time(self, now: float | None = None) -> float:
+        """Seconds since the clock started (0 before), at Unix time `now` (default: now)."""
+        if not self.pose.clock_start:
+            return 0.0
+        return max(0.0, (time.time() if now is None else now) - self.pose.clock_start)
+
+    def touching(self, x: float, y: float, t: float = 0.0) -> Polygon | None:
+        """What a robot at (x, y) would touch at world time `t`."""
         disc = Point(x, y).buffer(self.radius, quad_segs=16)
         hits = self._tree.query(disc, predicate="intersects")
-        return self.solids[int(min(hits))] if len(hits) else None
+        if len(hits):
+            return self.solids[int(min(hits))]
+        for obstacle in self.moving:
+            shape = obstacle.shape_at(t)
+            if shape.intersects(disc):
+                return shape
+        return None
 
-    def move(self, x: float, y: float, theta: float) -> tuple[Pose, Polygon | None]:
-        """Drive in a straight line towards (x, y); stop just before the first contact."""
+    def move(self, x: float, y: float, theta: float, now: float | None = None) -> tuple[Pose, Polygon | None]:
+        """Drive in a straight line towards (x, y); stop just before the first contact, with the
+        moving obstacles where they are at the world time of `now` (default: now)."""
         if not all(math.isfinite(v) for v in (x, y, theta)):
             raise InvalidArgument("pose: x, y and theta must be finite")
+        self.start_clock(now)
+        world_time = self.world_time(now)
         start = self.pose
         length = math.hypot(x - start.x, y - start.y)
         if length > 5.0:
@@ -75,14 +110,14 @@ class WorldState:
         for i in range(1, steps + 1):
             t = i / steps
             px, py = start.x + t * (x - start.x), start.y + t * (y - start.y)
-            contact = self.touching(px, py)
+            contact = self.touching(px, py, world_time)
             if contact is not None:
                 break
             reached = (px, py)
         self.distance_m += math.hypot(reached[0] - start.x, reached[1] - start.y)
         if contact is not None:
             self.collisions += 1
-        self.pose = Pose(reached[0], reached[1], theta, start.version + 1)
+        self.pose = Pose(reached[0], reached[1], theta, start.version + 1, start.clock_start)
         return self.pose, contact
 
     def dock(self) -> bool:
@@ -141,7 +176,7 @@ class WorldServer(Lifecycle):
 
 
 def pose_to_pb(p: Pose) -> sim_pb2.RobotPose:
-    return sim_pb2.RobotPose(x=p.x, y=p.y, theta=p.theta, version=p.version)
+    return sim_pb2.RobotPose(x=p.x, y=p.y, theta=p.theta, version=p.version, clock_start_unix=p.clock_start)
 
 
 class _Servicer(sim_pb2_grpc.SimulatedWorldServicer):
@@ -154,9 +189,12 @@ class _Servicer(sim_pb2_grpc.SimulatedWorldServicer):
 
     @_grpc.servicer_method
     async def Move(self, request: sim_pb2.MoveRequest, context: aio.ServicerContext[Any, Any]) -> sim_pb2.MoveReply:
-        pose, contact = self._w.state.move(request.pose.x, request.pose.y, request.pose.theta)
+        now = time.time()
+        pose, contact = self._w.state.move(request.pose.x, request.pose.y, request.pose.theta, now)
         await self._w.moved()
-        reply = sim_pb2.MoveReply(pose=pose_to_pb(pose), collided=contact is not None)
+        reply = sim_pb2.MoveReply(
+            pose=pose_to_pb(pose), collided=contact is not None, world_time_s=self._w.state.world_time(now)
+        )
         if contact is not None:
             clipped = contact.intersection(box(*self._w.state.scenario.bounds))
             shape = clipped if isinstance(clipped, Polygon) and not clipped.is_empty else contact
@@ -171,6 +209,15 @@ class _Servicer(sim_pb2_grpc.SimulatedWorldServicer):
     ) -> AsyncIterator[sim_pb2.RobotPose]:
         async for pose in self._w.watch():
             yield pose_to_pb(pose)
+
+    @_grpc.servicer_method
+    async def Start(self, request: sim_pb2.StartRequest, context: aio.ServicerContext[Any, Any]) -> sim_pb2.StartReply:
+        started = self._w.state.clock_start
+        clock_start = self._w.state.start_clock()
+        if not started:
+            log.info("world clock started: moving obstacles move")
+            await self._w.moved()  # the cameras learn the clock's start from the pose stream
+        return sim_pb2.StartReply(clock_start_unix=clock_start)
 
     @_grpc.servicer_method
     async def Dock(self, request: sim_pb2.DockRequest, context: aio.ServicerContext[Any, Any]) -> sim_pb2.DockReply:

@@ -19,16 +19,18 @@ class Scene(_message.Message):
     def __init__(self, scenario_yaml: _Optional[str] = ..., seed: _Optional[int] = ...) -> None: ...
 
 class RobotPose(_message.Message):
-    __slots__ = ("x", "y", "theta", "version")
+    __slots__ = ("x", "y", "theta", "version", "clock_start_unix")
     X_FIELD_NUMBER: _ClassVar[int]
     Y_FIELD_NUMBER: _ClassVar[int]
     THETA_FIELD_NUMBER: _ClassVar[int]
     VERSION_FIELD_NUMBER: _ClassVar[int]
+    CLOCK_START_UNIX_FIELD_NUMBER: _ClassVar[int]
     x: float
     y: float
     theta: float
     version: int
-    def __init__(self, x: _Optional[float] = ..., y: _Optional[float] = ..., theta: _Optional[float] = ..., version: _Optional[int] = ...) -> None: ...
+    clock_start_unix: float
+    def __init__(self, x: _Optional[float] = ..., y: _Optional[float] = ..., theta: _Optional[float] = ..., version: _Optional[int] = ..., clock_start_unix: _Optional[float] = ...) -> None: ...
 
 class MoveRequest(_message.Message):
     __slots__ = ("pose",)
@@ -37,18 +39,30 @@ class MoveRequest(_message.Message):
     def __init__(self, pose: _Optional[_Union[RobotPose, _Mapping]] = ...) -> None: ...
 
 class MoveReply(_message.Message):
-    __slots__ = ("pose", "collided", "contact")
+    __slots__ = ("pose", "collided", "contact", "world_time_s")
     POSE_FIELD_NUMBER: _ClassVar[int]
     COLLIDED_FIELD_NUMBER: _ClassVar[int]
     CONTACT_FIELD_NUMBER: _ClassVar[int]
+    WORLD_TIME_S_FIELD_NUMBER: _ClassVar[int]
     pose: RobotPose
     collided: bool
     contact: _geometry_pb2.Polygon
-    def __init__(self, pose: _Optional[_Union[RobotPose, _Mapping]] = ..., collided: bool = ..., contact: _Optional[_Union[_geometry_pb2.Polygon, _Mapping]] = ...) -> None: ...
+    world_time_s: float
+    def __init__(self, pose: _Optional[_Union[RobotPose, _Mapping]] = ..., collided: bool = ..., contact: _Optional[_Union[_geometry_pb2.Polygon, _Mapping]] = ..., world_time_s: _Optional[float] = ...) -> None: ...
 
 class WatchRobotRequest(_message.Message):
     __slots__ = ()
     def __init__(self) -> None: ...
+
+class StartRequest(_message.Message):
+    __slots__ = ()
+    def __init__(self) -> None: ...
+
+class StartReply(_message.Message):
+    __slots__ = ("clock_start_unix",)
+    CLOCK_START_UNIX_FIELD_NUMBER: _ClassVar[int]
+    clock_start_unix: float
+    def __init__(self, clock_start_unix: _Optional[float] = ...) -> None: ...
 
 class DockRequest(_message.Message):
     __slots__ = ()

@@ -54,6 +54,11 @@ class SimulatedWorldStub(object):
                 request_serializer=drvs_dot_v1_dot_sim__pb2.DockRequest.SerializeToString,
                 response_deserializer=drvs_dot_v1_dot_sim__pb2.DockReply.FromString,
                 _registered_method=True)
+        self.Start = channel.unary_unary(
+                '/drvs.v1.SimulatedWorld/Start',
+                request_serializer=drvs_dot_v1_dot_sim__pb2.StartRequest.SerializeToString,
+                response_deserializer=drvs_dot_v1_dot_sim__pb2.StartReply.FromString,
+                _registered_method=True)
 
 
 class SimulatedWorldServicer(object):
@@ -86,6 +91,13 @@ class SimulatedWorldServicer(object):
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def Start(self, request, context):
+        """The mission starts: the world's clock (world time 0) starts now, and moving obstacles move.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_SimulatedWorldServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -108,6 +120,11 @@ def add_SimulatedWorldServicer_to_server(servicer, server):
                     servicer.Dock,
                     request_deserializer=drvs_dot_v1_dot_sim__pb2.DockRequest.FromString,
                     response_serializer=drvs_dot_v1_dot_sim__pb2.DockReply.SerializeToString,
+            ),
+            'Start': grpc.unary_unary_rpc_method_handler(
+                    servicer.Start,
+                    request_deserializer=drvs_dot_v1_dot_sim__pb2.StartRequest.FromString,
+                    response_serializer=drvs_dot_v1_dot_sim__pb2.StartReply.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -218,6 +235,33 @@ class SimulatedWorld(object):
             '/drvs.v1.SimulatedWorld/Dock',
             drvs_dot_v1_dot_sim__pb2.DockRequest.SerializeToString,
             drvs_dot_v1_dot_sim__pb2.DockReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def Start(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/drvs.v1.SimulatedWorld/Start',
+            drvs_dot_v1_dot_sim__pb2.StartRequest.SerializeToString,
+            drvs_dot_v1_dot_sim__pb2.StartReply.FromString,
             options,
             channel_credentials,
             insecure,
