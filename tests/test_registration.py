@@ -120,7 +120,20 @@ async def batch(
     """Send one request to a camera as its server does (DetectBatches); the camera's replies."""
     call = stub.DetectBatches(metadata=metadata)
     try:
-        await call.write(detection_pb2.DetectionRequests(requests=[request]))
+        try:
+            await call.write(detection_pb2.DetectionRequests(requests=[request]))
+        except aio.AioRpcError as exc:
+            if exc.code() != grpc.StatusCode.INTERNAL:
+                raise
+            # The camera refused the call's credentials before the request went out, and gRPC turns
+            # the failed write into INTERNAL, losing the camera's status (CI saw this race once). A
+            # refusal comes with the call's headers, so a call that sends nothing shows it.
+            again = stub.DetectBatches(metadata=metadata)
+            try:
+                refusal: detection_pb2.DetectionReplies = await asyncio.wait_for(again.read(), 10)
+                return refusal
+            finally:
+                again.cancel()
         replies: detection_pb2.DetectionReplies = await call.read()
         return replies
     finally:

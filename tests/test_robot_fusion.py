@@ -591,7 +591,8 @@ async def test_end_to_end_leaving_a_track_early_stops_the_cameras(fused_office: 
                 if snapshot.sequence == 1:
                     break
         # Each camera stops the request (the server told it on its report stream) ...
-        cancelled = rf"request {re.escape(track.request_id)} cancelled"
+        # (Cameras know a fused request by the server's forward id: the robot's id, ':' and a counter.)
+        cancelled = rf"request {re.escape(track.request_id)}:[0-9a-f]+ cancelled"
         for proc in fused_office.cameras.values():
             await proc.wait_for_line(cancelled, timeout=10)
         # ... and the server has no fused session left.
