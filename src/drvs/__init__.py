@@ -35,6 +35,7 @@ if TYPE_CHECKING:
     from drvs.model import Detection as Detection
     from drvs.model import DetectionReport as DetectionReport
     from drvs.model import FusionOptions as FusionOptions
+    from drvs.model import Pose2 as Pose2
     from drvs.model import Snapshot as Snapshot
     from drvs.model import WorldObject as WorldObject
     from drvs.robot.client import CameraInfo as CameraInfo
@@ -58,6 +59,7 @@ _EXPORTS = {
     "Snapshot": "drvs.model",
     "WorldObject": "drvs.model",
     "FusionOptions": "drvs.model",
+    "Pose2": "drvs.model",
     "Detection": "drvs.model",
     "DetectionReport": "drvs.model",
     "CameraError": "drvs.model",

@@ -19,6 +19,7 @@ from drvs.model import (
     DetectionRequest,
     FusionOptions,
     PixelBox,
+    Pose2,
     Snapshot,
     WorldObject,
 )
@@ -231,7 +232,18 @@ def report_to_pb(r: DetectionReport, outlines: bool = True) -> detection_pb2.Det
     )
     if r.capture_time:
         msg.capture_time.FromNanoseconds(round(r.capture_time * 1e9))
+    if r.camera_pose is not None:
+        msg.camera_pose.CopyFrom(pose_to_pb(r.camera_pose))
     return msg
+
+
+def pose_to_pb(p: Pose2) -> geometry_pb2.Pose2:
+    return geometry_pb2.Pose2(x=p.x, y=p.y, yaw=p.yaw)
+
+
+def pose_from_pb(msg: geometry_pb2.Pose2, name: str = "pose") -> Pose2:
+    """InvalidArgument naming `name` when a value is not finite."""
+    return Pose2(msg.x, msg.y, msg.yaw).check(name)
 
 
 def report_from_pb(msg: detection_pb2.DetectionReport, filter_def: str) -> DetectionReport:
@@ -246,6 +258,7 @@ def report_from_pb(msg: detection_pb2.DetectionReport, filter_def: str) -> Detec
         detections=tuple(detection_from_pb(d, msg.camera_id, capture_time, filter_def) for d in msg.detections),
         error=msg.error,
         error_code=msg.error_code,
+        camera_pose=pose_from_pb(msg.camera_pose, "camera_pose") if msg.HasField("camera_pose") else None,
     )
 
 

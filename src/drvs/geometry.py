@@ -240,25 +240,36 @@ def homography_from_pose(
     pitch_deg: float,
     hfov_deg: float,
     resolution: tuple[int, int],
+    camera_matrix: tuple[float, float, float, float] | None = None,
 ) -> Homography:
-    """Image -> floor homography of an ideal pinhole camera (no distortion, square pixels).
+    """Image -> floor homography of an ideal pinhole camera (no distortion).
 
     position: (x, y, z) with z the mounting height; yaw: the optical axis on the floor,
-    counter-clockwise from +x; pitch: tilt below horizontal.
+    counter-clockwise from +x; pitch: tilt below horizontal. Intrinsics: square pixels and the
+    principal point at the image centre from `hfov_deg`, or `camera_matrix` (fx, fy, cx, cy in
+    pixels, OpenCV's K) when given (then hfov_deg is not used).
     """
     width, height = resolution
     cx, cy, cz = (float(v) for v in position)
     if cz <= 0:
         raise InvalidArgument(f"position: camera height {cz} must be above the floor (z > 0)")
-    if not 0 < hfov_deg < 180:
+    if camera_matrix is None and not 0 < hfov_deg < 180:
         raise InvalidArgument(f"hfov_deg: {hfov_deg} must be in (0, 180)")
     yaw, pitch = math.radians(yaw_deg), math.radians(pitch_deg)
     forward = np.array([math.cos(pitch) * math.cos(yaw), math.cos(pitch) * math.sin(yaw), -math.sin(pitch)])
     right = np.array([math.sin(yaw), -math.cos(yaw), 0.0])
     down = np.cross(forward, right)
     rot = np.vstack([right, down, forward])  # world -> camera (OpenCV axes: x right, y down, z forward)
-    f = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
-    k = np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+    if camera_matrix is None:
+        f = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+        k = np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
+    else:
+        fx, fy, px, py = (float(v) for v in camera_matrix)
+        if not (fx > 0 and fy > 0 and math.isfinite(fx) and math.isfinite(fy)):
+            raise InvalidArgument(f"camera_matrix: focal lengths fx={fx:g}, fy={fy:g} must be > 0 pixels")
+        if not (math.isfinite(px) and math.isfinite(py)):
+            raise InvalidArgument("camera_matrix: the principal point must be finite")
+        k = np.array([[fx, 0.0, px], [0.0, fy, py], [0.0, 0.0, 1.0]])
     t = -rot @ np.array([cx, cy, cz])
     world_to_image = k @ np.column_stack([rot[:, 0], rot[:, 1], t])
     return Homography.from_values(np.linalg.inv(world_to_image))

@@ -83,6 +83,23 @@ class Detection:
         return Point(self.ground_contact_xy)
 
 
+@dataclass(frozen=True, slots=True)
+class Pose2:
+    """A pose on the floor: position (x, y), metres, and heading `yaw`, radians counter-clockwise
+    from the x axis (map frame unless said otherwise). A mobile camera's pose is its robot's base."""
+
+    x: float
+    y: float
+    yaw: float
+
+    def check(self, name: str = "pose") -> Pose2:
+        """InvalidArgument naming `name` when a value is not finite; returns self."""
+        for part in ("x", "y", "yaw"):
+            if not math.isfinite(getattr(self, part)):
+                raise InvalidArgument(f"{name}.{part}: {getattr(self, part)} is not a finite number")
+        return self
+
+
 @dataclass(frozen=True)
 class CameraError:
     """Why one camera's answer is missing from a result, as a value.
@@ -123,6 +140,9 @@ class DetectionReport:
     error: str = ""
     #: With error: the gRPC status name that types it (UNAVAILABLE, DEADLINE_EXCEEDED ...).
     error_code: str = ""
+    #: A mobile camera's robot base pose (map frame) at capture_time, through which its detections
+    #: were mapped to the floor; None for a fixed camera.
+    camera_pose: Pose2 | None = None
 
     @property
     def camera_error(self) -> CameraError | None:

@@ -29,7 +29,7 @@ from drvs.errors import (
     Unauthenticated,
     Unavailable,
 )
-from drvs.model import CameraError, Detection, DetectionReport, FusionOptions, Snapshot, WorldObject
+from drvs.model import CameraError, Detection, DetectionReport, FusionOptions, Pose2, Snapshot, WorldObject
 from drvs.robot.client import (
     CameraInfo,
     Connecting,
@@ -59,6 +59,7 @@ __all__ = [
     "InvalidArgument",
     "NotFound",
     "PermissionDenied",
+    "Pose2",
     "RegionLike",
     "ResourceExhausted",
     "RetryPolicy",

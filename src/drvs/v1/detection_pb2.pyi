@@ -177,7 +177,7 @@ class Detection(_message.Message):
     def __init__(self, outline_xy: _Optional[_Iterable[float]] = ..., bounds: _Optional[_Union[_geometry_pb2.FloorBox, _Mapping]] = ..., centroid: _Optional[_Union[_geometry_pb2.FloorPoint, _Mapping]] = ..., ground_contact: _Optional[_Union[_geometry_pb2.FloorPoint, _Mapping]] = ..., pixel_box: _Optional[_Union[_geometry_pb2.PixelBox, _Mapping]] = ..., area_m2: _Optional[float] = ..., area_px: _Optional[float] = ..., score: _Optional[float] = ..., marker_id: _Optional[int] = ..., heading_deg: _Optional[float] = ..., label: _Optional[str] = ...) -> None: ...
 
 class DetectionReport(_message.Message):
-    __slots__ = ("request_id", "camera_id", "capture_time", "sequence", "final", "detections", "error", "report_key", "error_code")
+    __slots__ = ("request_id", "camera_id", "capture_time", "sequence", "final", "detections", "error", "report_key", "error_code", "camera_pose")
     REQUEST_ID_FIELD_NUMBER: _ClassVar[int]
     CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
     CAPTURE_TIME_FIELD_NUMBER: _ClassVar[int]
@@ -187,6 +187,7 @@ class DetectionReport(_message.Message):
     ERROR_FIELD_NUMBER: _ClassVar[int]
     REPORT_KEY_FIELD_NUMBER: _ClassVar[int]
     ERROR_CODE_FIELD_NUMBER: _ClassVar[int]
+    CAMERA_POSE_FIELD_NUMBER: _ClassVar[int]
     request_id: str
     camera_id: str
     capture_time: _timestamp_pb2.Timestamp
@@ -196,7 +197,8 @@ class DetectionReport(_message.Message):
     error: str
     report_key: bytes
     error_code: str
-    def __init__(self, request_id: _Optional[str] = ..., camera_id: _Optional[str] = ..., capture_time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., sequence: _Optional[int] = ..., final: bool = ..., detections: _Optional[_Iterable[_Union[Detection, _Mapping]]] = ..., error: _Optional[str] = ..., report_key: _Optional[bytes] = ..., error_code: _Optional[str] = ...) -> None: ...
+    camera_pose: _geometry_pb2.Pose2
+    def __init__(self, request_id: _Optional[str] = ..., camera_id: _Optional[str] = ..., capture_time: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., sequence: _Optional[int] = ..., final: bool = ..., detections: _Optional[_Iterable[_Union[Detection, _Mapping]]] = ..., error: _Optional[str] = ..., report_key: _Optional[bytes] = ..., error_code: _Optional[str] = ..., camera_pose: _Optional[_Union[_geometry_pb2.Pose2, _Mapping]] = ...) -> None: ...
 
 class ReportControl(_message.Message):
     __slots__ = ("cancelled_request_ids",)

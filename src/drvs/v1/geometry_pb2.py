@@ -24,7 +24,7 @@ _sym_db = _symbol_database.Default()
 
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16\x64rvs/v1/geometry.proto\x12\x07\x64rvs.v1\"\x1e\n\x06Point2\x12\t\n\x01x\x18\x01 \x01(\x01\x12\t\n\x01y\x18\x02 \x01(\x01\"*\n\x07Polygon\x12\x1f\n\x06points\x18\x01 \x03(\x0b\x32\x0f.drvs.v1.Point2\"I\n\x03\x42ox\x12\x0f\n\x07x_lower\x18\x01 \x01(\x01\x12\x0f\n\x07y_lower\x18\x02 \x01(\x01\x12\x0f\n\x07x_upper\x18\x03 \x01(\x01\x12\x0f\n\x07y_upper\x18\x04 \x01(\x01\"S\n\x06Region\x12\x1b\n\x03\x62ox\x18\x01 \x01(\x0b\x32\x0c.drvs.v1.BoxH\x00\x12#\n\x07polygon\x18\x02 \x01(\x0b\x32\x10.drvs.v1.PolygonH\x00\x42\x07\n\x05shape\"\"\n\nFloorPoint\x12\t\n\x01x\x18\x01 \x01(\x02\x12\t\n\x01y\x18\x02 \x01(\x02\"N\n\x08\x46loorBox\x12\x0f\n\x07x_lower\x18\x01 \x01(\x02\x12\x0f\n\x07y_lower\x18\x02 \x01(\x02\x12\x0f\n\x07x_upper\x18\x03 \x01(\x02\x12\x0f\n\x07y_upper\x18\x04 \x01(\x02\"?\n\x08PixelBox\x12\t\n\x01x\x18\x01 \x01(\x05\x12\t\n\x01y\x18\x02 \x01(\x05\x12\r\n\x05width\x18\x03 \x01(\x05\x12\x0e\n\x06height\x18\x04 \x01(\x05\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16\x64rvs/v1/geometry.proto\x12\x07\x64rvs.v1\"\x1e\n\x06Point2\x12\t\n\x01x\x18\x01 \x01(\x01\x12\t\n\x01y\x18\x02 \x01(\x01\"*\n\x05Pose2\x12\t\n\x01x\x18\x01 \x01(\x01\x12\t\n\x01y\x18\x02 \x01(\x01\x12\x0b\n\x03yaw\x18\x03 \x01(\x01\"*\n\x07Polygon\x12\x1f\n\x06points\x18\x01 \x03(\x0b\x32\x0f.drvs.v1.Point2\"I\n\x03\x42ox\x12\x0f\n\x07x_lower\x18\x01 \x01(\x01\x12\x0f\n\x07y_lower\x18\x02 \x01(\x01\x12\x0f\n\x07x_upper\x18\x03 \x01(\x01\x12\x0f\n\x07y_upper\x18\x04 \x01(\x01\"S\n\x06Region\x12\x1b\n\x03\x62ox\x18\x01 \x01(\x0b\x32\x0c.drvs.v1.BoxH\x00\x12#\n\x07polygon\x18\x02 \x01(\x0b\x32\x10.drvs.v1.PolygonH\x00\x42\x07\n\x05shape\"\"\n\nFloorPoint\x12\t\n\x01x\x18\x01 \x01(\x02\x12\t\n\x01y\x18\x02 \x01(\x02\"N\n\x08\x46loorBox\x12\x0f\n\x07x_lower\x18\x01 \x01(\x02\x12\x0f\n\x07y_lower\x18\x02 \x01(\x02\x12\x0f\n\x07x_upper\x18\x03 \x01(\x02\x12\x0f\n\x07y_upper\x18\x04 \x01(\x02\"?\n\x08PixelBox\x12\t\n\x01x\x18\x01 \x01(\x05\x12\t\n\x01y\x18\x02 \x01(\x05\x12\r\n\x05width\x18\x03 \x01(\x05\x12\x0e\n\x06height\x18\x04 \x01(\x05\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -33,16 +33,18 @@ if not _descriptor._USE_C_DESCRIPTORS:
   DESCRIPTOR._loaded_options = None
   _globals['_POINT2']._serialized_start=35
   _globals['_POINT2']._serialized_end=65
-  _globals['_POLYGON']._serialized_start=67
-  _globals['_POLYGON']._serialized_end=109
-  _globals['_BOX']._serialized_start=111
-  _globals['_BOX']._serialized_end=184
-  _globals['_REGION']._serialized_start=186
-  _globals['_REGION']._serialized_end=269
-  _globals['_FLOORPOINT']._serialized_start=271
-  _globals['_FLOORPOINT']._serialized_end=305
-  _globals['_FLOORBOX']._serialized_start=307
-  _globals['_FLOORBOX']._serialized_end=385
-  _globals['_PIXELBOX']._serialized_start=387
-  _globals['_PIXELBOX']._serialized_end=450
+  _globals['_POSE2']._serialized_start=67
+  _globals['_POSE2']._serialized_end=109
+  _globals['_POLYGON']._serialized_start=111
+  _globals['_POLYGON']._serialized_end=153
+  _globals['_BOX']._serialized_start=155
+  _globals['_BOX']._serialized_end=228
+  _globals['_REGION']._serialized_start=230
+  _globals['_REGION']._serialized_end=313
+  _globals['_FLOORPOINT']._serialized_start=315
+  _globals['_FLOORPOINT']._serialized_end=349
+  _globals['_FLOORBOX']._serialized_start=351
+  _globals['_FLOORBOX']._serialized_end=429
+  _globals['_PIXELBOX']._serialized_start=431
+  _globals['_PIXELBOX']._serialized_end=494
 # @@protoc_insertion_point(module_scope)

@@ -14,7 +14,7 @@ class Homography(_message.Message):
     def __init__(self, m: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class RegisterRequest(_message.Message):
-    __slots__ = ("camera_id", "address", "homography", "image_width", "image_height", "max_range_m", "detector_kinds", "registration_secret", "forward_secret")
+    __slots__ = ("camera_id", "address", "homography", "image_width", "image_height", "max_range_m", "detector_kinds", "registration_secret", "forward_secret", "mobile", "pose_lease_s")
     CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
     ADDRESS_FIELD_NUMBER: _ClassVar[int]
     HOMOGRAPHY_FIELD_NUMBER: _ClassVar[int]
@@ -24,6 +24,8 @@ class RegisterRequest(_message.Message):
     DETECTOR_KINDS_FIELD_NUMBER: _ClassVar[int]
     REGISTRATION_SECRET_FIELD_NUMBER: _ClassVar[int]
     FORWARD_SECRET_FIELD_NUMBER: _ClassVar[int]
+    MOBILE_FIELD_NUMBER: _ClassVar[int]
+    POSE_LEASE_S_FIELD_NUMBER: _ClassVar[int]
     camera_id: str
     address: str
     homography: Homography
@@ -33,17 +35,45 @@ class RegisterRequest(_message.Message):
     detector_kinds: _containers.RepeatedScalarFieldContainer[str]
     registration_secret: str
     forward_secret: str
-    def __init__(self, camera_id: _Optional[str] = ..., address: _Optional[str] = ..., homography: _Optional[_Union[Homography, _Mapping]] = ..., image_width: _Optional[int] = ..., image_height: _Optional[int] = ..., max_range_m: _Optional[float] = ..., detector_kinds: _Optional[_Iterable[str]] = ..., registration_secret: _Optional[str] = ..., forward_secret: _Optional[str] = ...) -> None: ...
+    mobile: bool
+    pose_lease_s: float
+    def __init__(self, camera_id: _Optional[str] = ..., address: _Optional[str] = ..., homography: _Optional[_Union[Homography, _Mapping]] = ..., image_width: _Optional[int] = ..., image_height: _Optional[int] = ..., max_range_m: _Optional[float] = ..., detector_kinds: _Optional[_Iterable[str]] = ..., registration_secret: _Optional[str] = ..., forward_secret: _Optional[str] = ..., mobile: bool = ..., pose_lease_s: _Optional[float] = ...) -> None: ...
 
 class RegisterReply(_message.Message):
-    __slots__ = ("lease_ttl_s", "field_of_view", "registration_secret")
+    __slots__ = ("lease_ttl_s", "field_of_view", "registration_secret", "unroutable", "pose_lease_s", "min_pose_interval_s")
     LEASE_TTL_S_FIELD_NUMBER: _ClassVar[int]
     FIELD_OF_VIEW_FIELD_NUMBER: _ClassVar[int]
     REGISTRATION_SECRET_FIELD_NUMBER: _ClassVar[int]
+    UNROUTABLE_FIELD_NUMBER: _ClassVar[int]
+    POSE_LEASE_S_FIELD_NUMBER: _ClassVar[int]
+    MIN_POSE_INTERVAL_S_FIELD_NUMBER: _ClassVar[int]
     lease_ttl_s: float
     field_of_view: _geometry_pb2.Polygon
     registration_secret: str
-    def __init__(self, lease_ttl_s: _Optional[float] = ..., field_of_view: _Optional[_Union[_geometry_pb2.Polygon, _Mapping]] = ..., registration_secret: _Optional[str] = ...) -> None: ...
+    unroutable: str
+    pose_lease_s: float
+    min_pose_interval_s: float
+    def __init__(self, lease_ttl_s: _Optional[float] = ..., field_of_view: _Optional[_Union[_geometry_pb2.Polygon, _Mapping]] = ..., registration_secret: _Optional[str] = ..., unroutable: _Optional[str] = ..., pose_lease_s: _Optional[float] = ..., min_pose_interval_s: _Optional[float] = ...) -> None: ...
+
+class UpdatePoseRequest(_message.Message):
+    __slots__ = ("camera_id", "registration_secret", "pose", "pose_time_unix")
+    CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
+    REGISTRATION_SECRET_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    POSE_TIME_UNIX_FIELD_NUMBER: _ClassVar[int]
+    camera_id: str
+    registration_secret: str
+    pose: _geometry_pb2.Pose2
+    pose_time_unix: float
+    def __init__(self, camera_id: _Optional[str] = ..., registration_secret: _Optional[str] = ..., pose: _Optional[_Union[_geometry_pb2.Pose2, _Mapping]] = ..., pose_time_unix: _Optional[float] = ...) -> None: ...
+
+class UpdatePoseReply(_message.Message):
+    __slots__ = ("field_of_view", "pose_lease_s")
+    FIELD_OF_VIEW_FIELD_NUMBER: _ClassVar[int]
+    POSE_LEASE_S_FIELD_NUMBER: _ClassVar[int]
+    field_of_view: _geometry_pb2.Polygon
+    pose_lease_s: float
+    def __init__(self, field_of_view: _Optional[_Union[_geometry_pb2.Polygon, _Mapping]] = ..., pose_lease_s: _Optional[float] = ...) -> None: ...
 
 class HeartbeatRequest(_message.Message):
     __slots__ = ("camera_id", "registration_secret")
@@ -82,18 +112,26 @@ class ListCamerasRequest(_message.Message):
     def __init__(self, region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., page_size: _Optional[int] = ..., page_token: _Optional[str] = ...) -> None: ...
 
 class CameraInfo(_message.Message):
-    __slots__ = ("camera_id", "address", "field_of_view", "detector_kinds", "lease_remaining_s")
+    __slots__ = ("camera_id", "address", "field_of_view", "detector_kinds", "lease_remaining_s", "mobile", "pose", "pose_age_s", "unroutable")
     CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
     ADDRESS_FIELD_NUMBER: _ClassVar[int]
     FIELD_OF_VIEW_FIELD_NUMBER: _ClassVar[int]
     DETECTOR_KINDS_FIELD_NUMBER: _ClassVar[int]
     LEASE_REMAINING_S_FIELD_NUMBER: _ClassVar[int]
+    MOBILE_FIELD_NUMBER: _ClassVar[int]
+    POSE_FIELD_NUMBER: _ClassVar[int]
+    POSE_AGE_S_FIELD_NUMBER: _ClassVar[int]
+    UNROUTABLE_FIELD_NUMBER: _ClassVar[int]
     camera_id: str
     address: str
     field_of_view: _geometry_pb2.Polygon
     detector_kinds: _containers.RepeatedScalarFieldContainer[str]
     lease_remaining_s: float
-    def __init__(self, camera_id: _Optional[str] = ..., address: _Optional[str] = ..., field_of_view: _Optional[_Union[_geometry_pb2.Polygon, _Mapping]] = ..., detector_kinds: _Optional[_Iterable[str]] = ..., lease_remaining_s: _Optional[float] = ...) -> None: ...
+    mobile: bool
+    pose: _geometry_pb2.Pose2
+    pose_age_s: float
+    unroutable: str
+    def __init__(self, camera_id: _Optional[str] = ..., address: _Optional[str] = ..., field_of_view: _Optional[_Union[_geometry_pb2.Polygon, _Mapping]] = ..., detector_kinds: _Optional[_Iterable[str]] = ..., lease_remaining_s: _Optional[float] = ..., mobile: bool = ..., pose: _Optional[_Union[_geometry_pb2.Pose2, _Mapping]] = ..., pose_age_s: _Optional[float] = ..., unroutable: _Optional[str] = ...) -> None: ...
 
 class ListCamerasReply(_message.Message):
     __slots__ = ("cameras", "next_page_token")

@@ -50,6 +50,11 @@ class RegisterVisionServiceStub(object):
                 request_serializer=drvs_dot_v1_dot_registry__pb2.DeregisterRequest.SerializeToString,
                 response_deserializer=drvs_dot_v1_dot_registry__pb2.DeregisterReply.FromString,
                 _registered_method=True)
+        self.UpdatePose = channel.unary_unary(
+                '/drvs.v1.RegisterVisionService/UpdatePose',
+                request_serializer=drvs_dot_v1_dot_registry__pb2.UpdatePoseRequest.SerializeToString,
+                response_deserializer=drvs_dot_v1_dot_registry__pb2.UpdatePoseReply.FromString,
+                _registered_method=True)
         self.ListCameras = channel.unary_unary(
                 '/drvs.v1.RegisterVisionService/ListCameras',
                 request_serializer=drvs_dot_v1_dot_registry__pb2.ListCamerasRequest.SerializeToString,
@@ -83,6 +88,17 @@ class RegisterVisionServiceServicer(object):
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def UpdatePose(self, request, context):
+        """A mobile camera's pose: its field of view moves there and is routable for pose_lease_s.
+        NOT_FOUND: unknown camera (register again); FAILED_PRECONDITION: not the current
+        registration's secret, or the camera did not register as mobile; RESOURCE_EXHAUSTED: sooner
+        than min_pose_interval_s after the previous update; INVALID_ARGUMENT: a pose that is not
+        finite or lies off any floor this server accepts.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
     def ListCameras(self, request, context):
         """Missing associated documentation comment in .proto file."""
         context.set_code(grpc.StatusCode.UNIMPLEMENTED)
@@ -106,6 +122,11 @@ def add_RegisterVisionServiceServicer_to_server(servicer, server):
                     servicer.Deregister,
                     request_deserializer=drvs_dot_v1_dot_registry__pb2.DeregisterRequest.FromString,
                     response_serializer=drvs_dot_v1_dot_registry__pb2.DeregisterReply.SerializeToString,
+            ),
+            'UpdatePose': grpc.unary_unary_rpc_method_handler(
+                    servicer.UpdatePose,
+                    request_deserializer=drvs_dot_v1_dot_registry__pb2.UpdatePoseRequest.FromString,
+                    response_serializer=drvs_dot_v1_dot_registry__pb2.UpdatePoseReply.SerializeToString,
             ),
             'ListCameras': grpc.unary_unary_rpc_method_handler(
                     servicer.ListCameras,
@@ -195,6 +216,33 @@ class RegisterVisionService(object):
             '/drvs.v1.RegisterVisionService/Deregister',
             drvs_dot_v1_dot_registry__pb2.DeregisterRequest.SerializeToString,
             drvs_dot_v1_dot_registry__pb2.DeregisterReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def UpdatePose(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_unary(
+            request,
+            target,
+            '/drvs.v1.RegisterVisionService/UpdatePose',
+            drvs_dot_v1_dot_registry__pb2.UpdatePoseRequest.SerializeToString,
+            drvs_dot_v1_dot_registry__pb2.UpdatePoseReply.FromString,
             options,
             channel_credentials,
             insecure,

@@ -25,7 +25,7 @@ _sym_db = _symbol_database.Default()
 from drvs.v1 import geometry_pb2 as drvs_dot_v1_dot_geometry__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x11\x64rvs/v1/sim.proto\x12\x07\x64rvs.v1\x1a\x16\x64rvs/v1/geometry.proto\"\x11\n\x0fGetSceneRequest\",\n\x05Scene\x12\x15\n\rscenario_yaml\x18\x01 \x01(\t\x12\x0c\n\x04seed\x18\x02 \x01(\x04\"[\n\tRobotPose\x12\t\n\x01x\x18\x01 \x01(\x01\x12\t\n\x01y\x18\x02 \x01(\x01\x12\r\n\x05theta\x18\x03 \x01(\x01\x12\x0f\n\x07version\x18\x04 \x01(\x04\x12\x18\n\x10\x63lock_start_unix\x18\x05 \x01(\x01\"/\n\x0bMoveRequest\x12 \n\x04pose\x18\x01 \x01(\x0b\x32\x12.drvs.v1.RobotPose\"x\n\tMoveReply\x12 \n\x04pose\x18\x01 \x01(\x0b\x32\x12.drvs.v1.RobotPose\x12\x10\n\x08\x63ollided\x18\x02 \x01(\x08\x12!\n\x07\x63ontact\x18\x03 \x01(\x0b\x32\x10.drvs.v1.Polygon\x12\x14\n\x0cworld_time_s\x18\x04 \x01(\x01\"\x13\n\x11WatchRobotRequest\"\x0e\n\x0cStartRequest\"&\n\nStartReply\x12\x18\n\x10\x63lock_start_unix\x18\x01 \x01(\x01\"\r\n\x0b\x44ockRequest\"\x1b\n\tDockReply\x12\x0e\n\x06\x64ocked\x18\x01 \x01(\x08\x32\x9f\x02\n\x0eSimulatedWorld\x12\x34\n\x08GetScene\x12\x18.drvs.v1.GetSceneRequest\x1a\x0e.drvs.v1.Scene\x12\x30\n\x04Move\x12\x14.drvs.v1.MoveRequest\x1a\x12.drvs.v1.MoveReply\x12>\n\nWatchRobot\x12\x1a.drvs.v1.WatchRobotRequest\x1a\x12.drvs.v1.RobotPose0\x01\x12\x30\n\x04\x44ock\x12\x14.drvs.v1.DockRequest\x1a\x12.drvs.v1.DockReply\x12\x33\n\x05Start\x12\x15.drvs.v1.StartRequest\x1a\x13.drvs.v1.StartReplyb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x11\x64rvs/v1/sim.proto\x12\x07\x64rvs.v1\x1a\x16\x64rvs/v1/geometry.proto\"\x11\n\x0fGetSceneRequest\",\n\x05Scene\x12\x15\n\rscenario_yaml\x18\x01 \x01(\t\x12\x0c\n\x04seed\x18\x02 \x01(\x04\"[\n\tRobotPose\x12\t\n\x01x\x18\x01 \x01(\x01\x12\t\n\x01y\x18\x02 \x01(\x01\x12\r\n\x05theta\x18\x03 \x01(\x01\x12\x0f\n\x07version\x18\x04 \x01(\x04\x12\x18\n\x10\x63lock_start_unix\x18\x05 \x01(\x01\"/\n\x0bMoveRequest\x12 \n\x04pose\x18\x01 \x01(\x0b\x32\x12.drvs.v1.RobotPose\"x\n\tMoveReply\x12 \n\x04pose\x18\x01 \x01(\x0b\x32\x12.drvs.v1.RobotPose\x12\x10\n\x08\x63ollided\x18\x02 \x01(\x08\x12!\n\x07\x63ontact\x18\x03 \x01(\x0b\x32\x10.drvs.v1.Polygon\x12\x14\n\x0cworld_time_s\x18\x04 \x01(\x01\"\x13\n\x11WatchRobotRequest\"\x0e\n\x0cStartRequest\"&\n\nStartReply\x12\x18\n\x10\x63lock_start_unix\x18\x01 \x01(\x01\"6\n\x11WatchScoutRequest\x12\x10\n\x08scout_id\x18\x01 \x01(\t\x12\x0f\n\x07rate_hz\x18\x02 \x01(\x01\"Y\n\tScoutPose\x12\t\n\x01x\x18\x01 \x01(\x01\x12\t\n\x01y\x18\x02 \x01(\x01\x12\r\n\x05theta\x18\x03 \x01(\x01\x12\x11\n\ttime_unix\x18\x04 \x01(\x01\x12\x14\n\x0cworld_time_s\x18\x05 \x01(\x01\"\r\n\x0b\x44ockRequest\"\x1b\n\tDockReply\x12\x0e\n\x06\x64ocked\x18\x01 \x01(\x08\x32\xdf\x02\n\x0eSimulatedWorld\x12\x34\n\x08GetScene\x12\x18.drvs.v1.GetSceneRequest\x1a\x0e.drvs.v1.Scene\x12\x30\n\x04Move\x12\x14.drvs.v1.MoveRequest\x1a\x12.drvs.v1.MoveReply\x12>\n\nWatchRobot\x12\x1a.drvs.v1.WatchRobotRequest\x1a\x12.drvs.v1.RobotPose0\x01\x12\x30\n\x04\x44ock\x12\x14.drvs.v1.DockRequest\x1a\x12.drvs.v1.DockReply\x12\x33\n\x05Start\x12\x15.drvs.v1.StartRequest\x1a\x13.drvs.v1.StartReply\x12>\n\nWatchScout\x12\x1a.drvs.v1.WatchScoutRequest\x1a\x12.drvs.v1.ScoutPose0\x01\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -48,10 +48,14 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_STARTREQUEST']._serialized_end=418
   _globals['_STARTREPLY']._serialized_start=420
   _globals['_STARTREPLY']._serialized_end=458
-  _globals['_DOCKREQUEST']._serialized_start=460
-  _globals['_DOCKREQUEST']._serialized_end=473
-  _globals['_DOCKREPLY']._serialized_start=475
-  _globals['_DOCKREPLY']._serialized_end=502
-  _globals['_SIMULATEDWORLD']._serialized_start=505
-  _globals['_SIMULATEDWORLD']._serialized_end=792
+  _globals['_WATCHSCOUTREQUEST']._serialized_start=460
+  _globals['_WATCHSCOUTREQUEST']._serialized_end=514
+  _globals['_SCOUTPOSE']._serialized_start=516
+  _globals['_SCOUTPOSE']._serialized_end=605
+  _globals['_DOCKREQUEST']._serialized_start=607
+  _globals['_DOCKREQUEST']._serialized_end=620
+  _globals['_DOCKREPLY']._serialized_start=622
+  _globals['_DOCKREPLY']._serialized_end=649
+  _globals['_SIMULATEDWORLD']._serialized_start=652
+  _globals['_SIMULATEDWORLD']._serialized_end=1003
 # @@protoc_insertion_point(module_scope)

@@ -64,6 +64,28 @@ class StartReply(_message.Message):
     clock_start_unix: float
     def __init__(self, clock_start_unix: _Optional[float] = ...) -> None: ...
 
+class WatchScoutRequest(_message.Message):
+    __slots__ = ("scout_id", "rate_hz")
+    SCOUT_ID_FIELD_NUMBER: _ClassVar[int]
+    RATE_HZ_FIELD_NUMBER: _ClassVar[int]
+    scout_id: str
+    rate_hz: float
+    def __init__(self, scout_id: _Optional[str] = ..., rate_hz: _Optional[float] = ...) -> None: ...
+
+class ScoutPose(_message.Message):
+    __slots__ = ("x", "y", "theta", "time_unix", "world_time_s")
+    X_FIELD_NUMBER: _ClassVar[int]
+    Y_FIELD_NUMBER: _ClassVar[int]
+    THETA_FIELD_NUMBER: _ClassVar[int]
+    TIME_UNIX_FIELD_NUMBER: _ClassVar[int]
+    WORLD_TIME_S_FIELD_NUMBER: _ClassVar[int]
+    x: float
+    y: float
+    theta: float
+    time_unix: float
+    world_time_s: float
+    def __init__(self, x: _Optional[float] = ..., y: _Optional[float] = ..., theta: _Optional[float] = ..., time_unix: _Optional[float] = ..., world_time_s: _Optional[float] = ...) -> None: ...
+
 class DockRequest(_message.Message):
     __slots__ = ()
     def __init__(self) -> None: ...

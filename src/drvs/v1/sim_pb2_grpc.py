@@ -59,6 +59,11 @@ class SimulatedWorldStub(object):
                 request_serializer=drvs_dot_v1_dot_sim__pb2.StartRequest.SerializeToString,
                 response_deserializer=drvs_dot_v1_dot_sim__pb2.StartReply.FromString,
                 _registered_method=True)
+        self.WatchScout = channel.unary_stream(
+                '/drvs.v1.SimulatedWorld/WatchScout',
+                request_serializer=drvs_dot_v1_dot_sim__pb2.WatchScoutRequest.SerializeToString,
+                response_deserializer=drvs_dot_v1_dot_sim__pb2.ScoutPose.FromString,
+                _registered_method=True)
 
 
 class SimulatedWorldServicer(object):
@@ -98,6 +103,14 @@ class SimulatedWorldServicer(object):
         context.set_details('Method not implemented!')
         raise NotImplementedError('Method not implemented!')
 
+    def WatchScout(self, request, context):
+        """A scout's pose now and then at rate_hz, for ever (NOT_FOUND: no such scout). Scouts drive
+        their path at their speed by world time, from when the clock starts.
+        """
+        context.set_code(grpc.StatusCode.UNIMPLEMENTED)
+        context.set_details('Method not implemented!')
+        raise NotImplementedError('Method not implemented!')
+
 
 def add_SimulatedWorldServicer_to_server(servicer, server):
     rpc_method_handlers = {
@@ -125,6 +138,11 @@ def add_SimulatedWorldServicer_to_server(servicer, server):
                     servicer.Start,
                     request_deserializer=drvs_dot_v1_dot_sim__pb2.StartRequest.FromString,
                     response_serializer=drvs_dot_v1_dot_sim__pb2.StartReply.SerializeToString,
+            ),
+            'WatchScout': grpc.unary_stream_rpc_method_handler(
+                    servicer.WatchScout,
+                    request_deserializer=drvs_dot_v1_dot_sim__pb2.WatchScoutRequest.FromString,
+                    response_serializer=drvs_dot_v1_dot_sim__pb2.ScoutPose.SerializeToString,
             ),
     }
     generic_handler = grpc.method_handlers_generic_handler(
@@ -262,6 +280,33 @@ class SimulatedWorld(object):
             '/drvs.v1.SimulatedWorld/Start',
             drvs_dot_v1_dot_sim__pb2.StartRequest.SerializeToString,
             drvs_dot_v1_dot_sim__pb2.StartReply.FromString,
+            options,
+            channel_credentials,
+            insecure,
+            call_credentials,
+            compression,
+            wait_for_ready,
+            timeout,
+            metadata,
+            _registered_method=True)
+
+    @staticmethod
+    def WatchScout(request,
+            target,
+            options=(),
+            channel_credentials=None,
+            call_credentials=None,
+            insecure=False,
+            compression=None,
+            wait_for_ready=None,
+            timeout=None,
+            metadata=None):
+        return grpc.experimental.unary_stream(
+            request,
+            target,
+            '/drvs.v1.SimulatedWorld/WatchScout',
+            drvs_dot_v1_dot_sim__pb2.WatchScoutRequest.SerializeToString,
+            drvs_dot_v1_dot_sim__pb2.ScoutPose.FromString,
             options,
             channel_credentials,
             insecure,
