@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import bisect
 import math
+import threading
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
 
@@ -155,7 +156,8 @@ def interpolate(a: tuple[float, Pose2], b: tuple[float, Pose2], t: float) -> Pos
 
 
 class PoseBuffer:
-    """Timed poses of one robot (seconds since the Unix epoch), newest last; not thread-safe.
+    """Timed poses of one robot (seconds since the Unix epoch), newest last; thread-safe (a robot's
+    own code may push from its thread while the camera node reads on its event loop).
 
     `at(t)` is the pose at time t: interpolated between the poses on either side when both are
     within `max_gap_s` of t, the nearest one when only it is (a frame captured just after the
@@ -169,6 +171,7 @@ class PoseBuffer:
         self._history = history
         self._times: list[float] = []
         self._poses: list[Pose2] = []
+        self._lock = threading.Lock()
 
     def __len__(self) -> int:
         return len(self._times)
@@ -179,20 +182,26 @@ class PoseBuffer:
         check_pose_on_floor(pose)
         if not math.isfinite(t):
             raise InvalidArgument(f"pose time: {t} is not a finite number")
-        i = bisect.bisect_left(self._times, t)
-        if i < len(self._times) and self._times[i] == t:
-            self._poses[i] = pose
-        else:
-            self._times.insert(i, t)
-            self._poses.insert(i, pose)
-        if len(self._times) > self._history:
-            del self._times[0], self._poses[0]
+        with self._lock:
+            i = bisect.bisect_left(self._times, t)
+            if i < len(self._times) and self._times[i] == t:
+                self._poses[i] = pose
+            else:
+                self._times.insert(i, t)
+                self._poses.insert(i, pose)
+            if len(self._times) > self._history:
+                del self._times[0], self._poses[0]
 
     def latest(self) -> tuple[float, Pose2] | None:
         """The newest pose and its time, or None before the first."""
-        return (self._times[-1], self._poses[-1]) if self._times else None
+        with self._lock:
+            return (self._times[-1], self._poses[-1]) if self._times else None
 
     def at(self, t: float) -> Pose2 | None:
+        with self._lock:
+            return self._at(t)
+
+    def _at(self, t: float) -> Pose2 | None:
         if not self._times:
             return None
         i = bisect.bisect_left(self._times, t)
