@@ -275,6 +275,16 @@ def expected_detections(
     return counts
 
 
+def check_work_saying_failures(mode: str, expected: dict[str, float], run: dict[str, Any]) -> None:
+    """check_work, with the run's first failures (as the workload recorded them) in the mismatch."""
+    try:
+        check_work(mode, expected, run)
+    except WorkMismatch as exc:
+        if run.get("failures"):
+            raise WorkMismatch(f"{exc}; first failures: {'; '.join(run['failures'])}") from None
+        raise
+
+
 def check_drvs(mode: str, run: dict[str, Any], requests: int, cameras: int, detections: int | None) -> None:
     """Every request delivered: a final report from each camera, none an error (busy included), none
     refused; with a fixed scene, the detections the scene holds in every request."""
@@ -289,12 +299,7 @@ def check_drvs(mode: str, run: dict[str, Any], requests: int, cameras: int, dete
     }
     if detections is not None:
         expected["detections"] = detections * requests
-    try:
-        check_work(mode, expected, run)
-    except WorkMismatch as exc:
-        if run.get("failures"):
-            raise WorkMismatch(f"{exc}; first failures: {'; '.join(run['failures'])}") from None
-        raise
+    check_work_saying_failures(mode, expected, run)
 
 
 def check_fused(mode: str, run: dict[str, Any], requests: int, objects: int | None) -> None:
@@ -309,12 +314,7 @@ def check_fused(mode: str, run: dict[str, Any], requests: int, objects: int | No
     }
     if objects is not None:
         expected["objects"] = objects * requests
-    try:
-        check_work(mode, expected, run)
-    except WorkMismatch as exc:
-        if run.get("failures"):
-            raise WorkMismatch(f"{exc}; first failures: {'; '.join(run['failures'])}") from None
-        raise
+    check_work_saying_failures(mode, expected, run)
 
 
 def check_stream(mode: str, run: dict[str, Any], per_frame: list[int] | None) -> None:

@@ -19,8 +19,9 @@ import json
 import math
 import statistics
 import time
+from collections.abc import Callable, Coroutine
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import cv2
 import numpy as np
@@ -34,7 +35,8 @@ from drvs.errors import DrvsError
 from drvs.filters import object_type
 from drvs.geometry import FieldOfView
 from drvs.homography_file import load_homography
-from drvs.robot import DrvsClient
+from drvs.model import Snapshot
+from drvs.robot import DetectionResult, DrvsClient
 from drvs.v1 import stream_pb2, stream_pb2_grpc
 
 from .common import BOTH_REGION, FPS, IMAGE_SIZE, YELLOW
@@ -48,6 +50,8 @@ MOVING_RANGE_M = 4.0
 #: ... and each pass is this much further along x, so no region repeats within a run.
 MOVING_PASS_SHIFT_M = 0.01
 
+_R = TypeVar("_R")
+
 
 def moving_request(i: int) -> tuple[str, tuple[float, float, float, float]]:
     """The i-th request of the moving variant: a robot looking along its path. The region, a 4 m
@@ -57,6 +61,19 @@ def moving_request(i: int) -> tuple[str, tuple[float, float, float, float]]:
     dx = passes * MOVING_PASS_SHIFT_M
     x0, _, x1, _ = BOTH_REGION
     return (YELLOW if i % 2 == 0 else BLUE), (x0 + dx, y0, x1 + dx, y0 + MOVING_RANGE_M)
+
+
+async def paced(t0: float, count: int, rate_hz: float, one: Callable[[int], Coroutine[Any, Any, None]]) -> None:
+    """Start one(0) ... one(count - 1) on schedule, request i at loop time t0 + i / rate_hz (never
+    waiting for earlier ones to finish), and wait for them all."""
+    loop = asyncio.get_running_loop()
+    tasks: list[asyncio.Task[None]] = []
+    for i in range(count):
+        delay = t0 + i / rate_hz - loop.time()
+        if delay > 0:
+            await asyncio.sleep(delay)
+        tasks.append(loop.create_task(one(i)))
+    await asyncio.gather(*tasks)
 
 
 def _bump(histogram: dict[str, int], value: int) -> None:
@@ -74,41 +91,73 @@ def _latency_figures(latencies: list[float]) -> dict[str, float]:
     }
 
 
+async def measured(
+    args: argparse.Namespace,
+    ask: Callable[[int], Coroutine[Any, Any, _R]],
+    tally: Callable[[int, _R], None],
+    failures: list[str],
+) -> dict[str, Any]:
+    """The single-shot workload's schedule, whatever the delivery: `args.warmup` requests back to
+    back (connections, caches; a refusal is printed), START, then `args.requests` requests paced at
+    `args.rate`, each `ask(i)`'s answer handed to `tally(i, answer)`. A request refused (DrvsError:
+    rate limit, invalid, unavailable) is a failure, never delivered. Returns the figures common to
+    every delivery: CPU and wall time, requests, refusals, latency."""
+    for i in range(-args.warmup, 0):
+        try:
+            await ask(i)
+        except DrvsError as exc:
+            print(f"warm-up request {i} refused: {exc}", flush=True)
+    print("START", flush=True)
+    start_cpu = time.process_time()
+    loop = asyncio.get_running_loop()
+    t0 = loop.time()
+    latencies: list[float] = []
+    refused = 0
+
+    async def one(i: int) -> None:
+        nonlocal refused
+        try:
+            asked = time.perf_counter()
+            answer = await ask(i)
+            latencies.append((time.perf_counter() - asked) * 1000)
+        except DrvsError as exc:
+            refused += 1
+            print(f"request {i} refused: {exc}", flush=True)
+            if len(failures) < 10:
+                failures.append(f"request {i} refused: {type(exc).__name__}: {exc}")
+            return
+        tally(i, answer)
+
+    await paced(t0, args.requests, args.rate, one)
+    return {
+        "cpu_s": time.process_time() - start_cpu,
+        "wall_s": loop.time() - t0,
+        "requests": args.requests,
+        "refused_requests": refused,
+        **_latency_figures(latencies),
+    }
+
+
+def _request(args: argparse.Namespace, i: int) -> tuple[str, Any]:
+    return moving_request(i) if args.moving else (args.filter, args.region)
+
+
 async def drvs_mode(args: argparse.Namespace) -> dict[str, object]:
     if args.fuse:
         return await fused_mode(args)
     async with DrvsClient(args.server, robot_id="bench", listen="127.0.0.1:0", advertise=args.advertise) as client:
         print(f"READY {client.port}", flush=True)
-        # The floors' warm-up: requests back to back (connections, caches), before anything is measured.
-        for i in range(-args.warmup, 0):
-            filter_def, region = moving_request(i) if args.moving else (args.filter, args.region)
-            try:
-                await client.detect(filter_def, region, timeout_s=5.0, outlines=not args.no_outlines)
-            except DrvsError as exc:
-                print(f"warm-up request {i} refused: {exc}", flush=True)
-        print("START", flush=True)
-        start_cpu = time.process_time()
-        loop = asyncio.get_running_loop()
-        t0 = loop.time()
-        reports = detections = missing = refused = error_reports = busy_reports = delivered = 0
+        reports = detections = missing = error_reports = busy_reports = delivered = 0
         reports_per_request: dict[str, int] = {}
         detections_per_request: dict[str, int] = {}
         failures: list[str] = []  # the first few, to name in a failed work check
-        latencies: list[float] = []
 
-        async def one(i: int) -> None:
-            nonlocal reports, detections, missing, refused, error_reports, busy_reports, delivered
-            filter_def, region = moving_request(i) if args.moving else (args.filter, args.region)
-            try:
-                asked = time.perf_counter()
-                result = await client.detect(filter_def, region, timeout_s=5.0, outlines=not args.no_outlines)
-                latencies.append((time.perf_counter() - asked) * 1000)
-            except DrvsError as exc:  # refused (rate limit, invalid, unavailable): a failure, never delivered
-                refused += 1
-                print(f"request {i} refused: {exc}", flush=True)
-                if len(failures) < 10:
-                    failures.append(f"request {i} refused: {type(exc).__name__}: {exc}")
-                return
+        async def ask(i: int) -> DetectionResult:
+            filter_def, region = _request(args, i)
+            return await client.detect(filter_def, region, timeout_s=5.0, outlines=not args.no_outlines)
+
+        def tally(i: int, result: DetectionResult) -> None:
+            nonlocal reports, detections, missing, error_reports, busy_reports, delivered
             errors = result.errors
             good = [r for r in result.reports if not r.error]
             reports += len(good)
@@ -127,29 +176,19 @@ async def drvs_mode(args: argparse.Namespace) -> dict[str, object]:
                     f"missing {sorted(result.missing_cameras)}"
                 )
 
-        tasks = []
-        for i in range(args.requests):
-            delay = t0 + i / args.rate - loop.time()
-            if delay > 0:
-                await asyncio.sleep(delay)
-            tasks.append(loop.create_task(one(i)))
-        await asyncio.gather(*tasks)
+        common = await measured(args, ask, tally, failures)
         return {
-            "cpu_s": time.process_time() - start_cpu,
-            "wall_s": loop.time() - t0,
-            "requests": args.requests,
+            **common,
             "requests_delivered": delivered,
             "reports": reports,
             "error_reports": error_reports,
             "busy_reports": busy_reports,
             "detections": detections,
             "missing_finals": missing,
-            "refused_requests": refused,
             "failed_requests": args.requests - delivered,
             "reports_per_request": reports_per_request,
             "detections_per_request": detections_per_request,
             "failures": failures,
-            **_latency_figures(latencies),
         }
 
 
@@ -159,34 +198,16 @@ async def fused_mode(args: argparse.Namespace) -> dict[str, object]:
     async with DrvsClient(args.server, robot_id="bench") as client:
         print("READY 0", flush=True)
         outlines = not args.no_outlines
-        for i in range(-args.warmup, 0):
-            filter_def, region = moving_request(i) if args.moving else (args.filter, args.region)
-            try:
-                await client.detect(filter_def, region, fuse=True, timeout_s=5.0, outlines=outlines)
-            except DrvsError as exc:
-                print(f"warm-up request {i} refused: {exc}", flush=True)
-        print("START", flush=True)
-        start_cpu = time.process_time()
-        loop = asyncio.get_running_loop()
-        t0 = loop.time()
-        snapshots = objects = missing = refused = delivered = 0
+        snapshots = objects = missing = delivered = 0
         objects_per_request: dict[str, int] = {}
         failures: list[str] = []
-        latencies: list[float] = []
 
-        async def one(i: int) -> None:
-            nonlocal snapshots, objects, missing, refused, delivered
-            filter_def, region = moving_request(i) if args.moving else (args.filter, args.region)
-            try:
-                asked = time.perf_counter()
-                snapshot = await client.detect(filter_def, region, fuse=True, timeout_s=5.0, outlines=outlines)
-                latencies.append((time.perf_counter() - asked) * 1000)
-            except DrvsError as exc:
-                refused += 1
-                print(f"request {i} refused: {exc}", flush=True)
-                if len(failures) < 10:
-                    failures.append(f"request {i} refused: {type(exc).__name__}: {exc}")
-                return
+        async def ask(i: int) -> Snapshot:
+            filter_def, region = _request(args, i)
+            return await client.detect(filter_def, region, fuse=True, timeout_s=5.0, outlines=outlines)
+
+        def tally(i: int, snapshot: Snapshot) -> None:
+            nonlocal snapshots, objects, missing, delivered
             snapshots += 1
             objects += len(snapshot.objects)
             missing += len(snapshot.missing_cameras)
@@ -200,26 +221,16 @@ async def fused_mode(args: argparse.Namespace) -> dict[str, object]:
                     f"missing {[(e.camera_id, e.code) for e in snapshot.missing_cameras]}"
                 )
 
-        tasks = []
-        for i in range(args.requests):
-            delay = t0 + i / args.rate - loop.time()
-            if delay > 0:
-                await asyncio.sleep(delay)
-            tasks.append(loop.create_task(one(i)))
-        await asyncio.gather(*tasks)
+        common = await measured(args, ask, tally, failures)
         return {
-            "cpu_s": time.process_time() - start_cpu,
-            "wall_s": loop.time() - t0,
-            "requests": args.requests,
+            **common,
             "requests_delivered": delivered,
             "snapshots": snapshots,
             "objects": objects,
             "missing_cameras": missing,
-            "refused_requests": refused,
             "failed_requests": args.requests - delivered,
             "objects_per_request": objects_per_request,
             "failures": failures,
-            **_latency_figures(latencies),
         }
 
 
