@@ -21,7 +21,14 @@ from drvs.model import (
     DetectionReport,
     Snapshot,
 )
-from drvs.robot.client import DEFAULT_TIMEOUT_S, DEFAULT_TRACK_RATE_HZ, DrvsClient, RegionLike, RetryPolicy
+from drvs.robot.client import (
+    DEFAULT_TIMEOUT_S,
+    DEFAULT_TRACK_RATE_HZ,
+    Connecting,
+    DrvsClient,
+    RegionLike,
+    RetryPolicy,
+)
 from drvs.robot.snapshots import snapshot_json, snapshot_table
 
 ENV_SERVER = "DRVS_SERVER"
@@ -146,15 +153,33 @@ def print_snapshot(snapshot: Snapshot, as_json: bool) -> None:
         print("\n".join(snapshot_table(snapshot)), flush=True)
 
 
-async def detect_fused(args: argparse.Namespace) -> int:
-    region = parse_roi(args)
-    check_fused_flags(args, "detect")
-    async with DrvsClient.connect(
+def connecting(args: argparse.Namespace, *, listener: bool = False) -> Connecting:
+    """The client the flags describe (server, robot id, security, retries; with `listener`, the
+    report listener's --listen and --advertise), connecting."""
+    places = {"listen": args.listen, "advertise": args.advertise} if listener else {}
+    return DrvsClient.connect(
         args.server,
         robot_id=args.robot_id,
         security=security_from(vars(args)),
         retry=RetryPolicy.retries(args.retries),
-    ) as client:
+        **places,
+    )
+
+
+def continuous_flags(args: argparse.Namespace) -> dict[str, Any]:
+    """What --rate, --duration, --timeout and --no-outlines ask of a subscription or a track."""
+    return {
+        "rate_hz": args.rate,
+        "duration_s": args.duration,
+        "timeout_s": args.timeout,
+        "outlines": not args.no_outlines,
+    }
+
+
+async def detect_fused(args: argparse.Namespace) -> int:
+    region = parse_roi(args)
+    check_fused_flags(args, "detect")
+    async with connecting(args) as client:
         snapshot = await client.detect(
             args.filter,
             region,
@@ -172,21 +197,9 @@ async def track(args: argparse.Namespace) -> int:
     check_fused_flags(args, "track")
     seen: list[Snapshot] = []
     async with (
-        DrvsClient.connect(
-            args.server,
-            robot_id=args.robot_id,
-            security=security_from(vars(args)),
-            retry=RetryPolicy.retries(args.retries),
-        ) as client,
+        connecting(args) as client,
         client.track(
-            args.filter,
-            region,
-            rate_hz=args.rate,
-            duration_s=args.duration,
-            drop_after_s=args.drop_after,
-            deadline_s=args.deadline,
-            timeout_s=args.timeout,
-            outlines=not args.no_outlines,
+            args.filter, region, drop_after_s=args.drop_after, deadline_s=args.deadline, **continuous_flags(args)
         ) as tracking,
     ):
         if not args.json:
@@ -206,22 +219,8 @@ async def detect(args: argparse.Namespace) -> int:
         raise InvalidArgument("--deadline: only with --fuse (or drvs-robot track)")
     region = parse_roi(args)
     async with (
-        DrvsClient.connect(
-            args.server,
-            robot_id=args.robot_id,
-            listen=args.listen,
-            advertise=args.advertise,
-            security=security_from(vars(args)),
-            retry=RetryPolicy.retries(args.retries),
-        ) as client,
-        client.subscribe(
-            args.filter,
-            region,
-            rate_hz=args.rate,
-            duration_s=args.duration,
-            timeout_s=args.timeout,
-            outlines=not args.no_outlines,
-        ) as sub,
+        connecting(args, listener=True) as client,
+        client.subscribe(args.filter, region, **continuous_flags(args)) as sub,
     ):
         if not args.json:
             print(f"request {sub.request_id}: dispatched to {', '.join(sub.camera_ids) or 'no camera'}")
