@@ -302,7 +302,32 @@ class DetectionResult:
         return self
 
 
-class Subscription:
+class _Delivery:
+    """What Subscription and Track share: a waiter woken when something arrives or the delivery
+    ends, and `async with` closing it on leaving the block."""
+
+    _wakeup: asyncio.Future[None] | None
+
+    def close(self) -> None:
+        raise NotImplementedError
+
+    def _wake(self) -> None:
+        if self._wakeup is not None and not self._wakeup.done():
+            self._wakeup.set_result(None)
+
+    async def __aenter__(self: _D) -> _D:
+        return self
+
+    async def __aexit__(
+        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+
+_D = TypeVar("_D", bound=_Delivery)
+
+
+class Subscription(_Delivery):
     """The reports of one request, as an async iterator that ends when every dispatched camera has
     sent its final report, or `timeout_s` seconds after the request's duration has passed.
 
@@ -358,10 +383,6 @@ class Subscription:
     def _expire(self) -> None:
         self._expired = True
         self._wake()
-
-    def _wake(self) -> None:
-        if self._wakeup is not None and not self._wakeup.done():
-            self._wakeup.set_result(None)
 
     def _stream_ended(self, cameras: set[str]) -> None:
         """The report stream of `cameras` ended: those this request went to that have not sent
@@ -452,14 +473,6 @@ class Subscription:
             self._wake()
             self._client._subscriptions.pop(self.request_id, None)
 
-    async def __aenter__(self) -> Subscription:
-        return self
-
-    async def __aexit__(
-        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
-
 
 class _Opening(Generic[T]):
     """Something opened by awaiting it (`x = await opening`) or by entering it as an async context
@@ -491,20 +504,27 @@ class _Opening(Generic[T]):
             await self._close(self._opened)
 
 
-class Subscribing(_Opening[Subscription]):
-    """What DrvsClient.subscribe returns: `await` it for the Subscription, or use it as an async
-    context manager (`async with drvs.subscribe(...) as sub:`), which closes the subscription on
-    leaving the block. The request is sent when it is awaited or entered, not before."""
+_Sent = TypeVar("_Sent", bound=_Delivery)
 
-    def __init__(self, send: Callable[[], Awaitable[Subscription]]) -> None:
+
+class _Sending(_Opening[_Sent]):
+    """A request opened by sending it (`send`), closed by closing what it opened."""
+
+    def __init__(self, send: Callable[[], Awaitable[_Sent]]) -> None:
         super().__init__()
         self._send = send
 
-    async def _open(self) -> Subscription:
+    async def _open(self) -> _Sent:
         return await self._send()
 
-    async def _close(self, opened: Subscription) -> None:
+    async def _close(self, opened: _Sent) -> None:
         opened.close()
+
+
+class Subscribing(_Sending[Subscription]):
+    """What DrvsClient.subscribe returns: `await` it for the Subscription, or use it as an async
+    context manager (`async with drvs.subscribe(...) as sub:`), which closes the subscription on
+    leaving the block. The request is sent when it is awaited or entered, not before."""
 
 
 class Connecting(_Opening["DrvsClient"]):
@@ -530,7 +550,7 @@ class Connecting(_Opening["DrvsClient"]):
         await opened.close()
 
 
-class Track:
+class Track(_Delivery):
     """The snapshots of one fused continuous request (DrvsClient.track), as an async iterator that
     ends after the final snapshot (`snapshot.final`).
 
@@ -596,10 +616,6 @@ class Track:
             )
             self._wake()
 
-    def _wake(self) -> None:
-        if self._wakeup is not None and not self._wakeup.done():
-            self._wakeup.set_result(None)
-
     def _take(self, item: detection_pb2.DetectionReply | DrvsError) -> None:
         """The request stream's reader hands over a reply with a snapshot, or the error that ended
         the stream. Never waits."""
@@ -662,16 +678,8 @@ class Track:
         self._wake()
         self._client._tracks.pop(self.request_id, None)
 
-    async def __aenter__(self) -> Track:
-        return self
 
-    async def __aexit__(
-        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
-
-
-class Tracking(_Opening[Track]):
+class Tracking(_Sending[Track]):
     """What DrvsClient.track returns. Three ways to use it:
 
         async for snapshot in drvs.track(YELLOW, region, rate_hz=10, duration_s=5):
@@ -684,16 +692,6 @@ class Tracking(_Opening[Track]):
     it raises the DrvsError it stands for then (InvalidArgument, ResourceExhausted ...), and one
     that cannot be reached Unavailable, after the attempts `retry` allows.
     """
-
-    def __init__(self, send: Callable[[], Awaitable[Track]]) -> None:
-        super().__init__()
-        self._send = send
-
-    async def _open(self) -> Track:
-        return await self._send()
-
-    async def _close(self, opened: Track) -> None:
-        opened.close()
 
     def __aiter__(self) -> AsyncIterator[Snapshot]:
         return self._iterate()
