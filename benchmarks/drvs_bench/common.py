@@ -7,6 +7,7 @@ import os
 import platform
 from dataclasses import dataclass
 from pathlib import Path
+from types import ModuleType
 from typing import Any
 
 from drvs.homography_file import save_homography
@@ -154,3 +155,14 @@ NO_RATE_LIMIT = ("--rate-limit", "1000000")
 def bench_process(name: str, *args: str) -> ManagedProcess:
     """One of drvs-bench's own processes (a robot workload, a helper)."""
     return ManagedProcess.entry_point(name, "drvs-bench", *args)
+
+
+def pyplot() -> ModuleType:
+    """matplotlib's pyplot on the Agg backend (it draws to files only), imported when a benchmark
+    plots: drvs-bench runs without a display, and only plotting needs matplotlib."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    return plt

@@ -54,7 +54,7 @@ from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import CameraDef, ColorDef, ObjectDef, Scenario, load_scenario
 from drvs.sim.scene import write_video
 
-from .common import IMAGE_SIZE, cpu_seconds, machine, peak_rss_bytes
+from .common import IMAGE_SIZE, cpu_seconds, machine, peak_rss_bytes, pyplot
 from .service import CAPACITY_NOT_POLICY
 from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, check_work, interleaved, publish
 
@@ -944,10 +944,7 @@ def accuracy_lines(per: Mapping[str, Any]) -> list[str]:
 
 
 def write_outputs(result: dict[str, Any], out: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out.mkdir(parents=True, exist_ok=True)
     per: dict[str, Any] = result.get("detectors", {})

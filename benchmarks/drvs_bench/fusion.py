@@ -37,7 +37,6 @@ from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 from shapely.geometry import Point, Polygon, box
@@ -51,7 +50,7 @@ from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import CameraDef, Scenario, parse_scenario
 from drvs.sim.scene import fill_floor_shape
 
-from .common import YELLOW, machine
+from .common import YELLOW, machine, pyplot
 from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, publish, verdict
 
 #: Two cameras facing each other across a 9 m room, 8.5 m apart: a disc near one is far from the
@@ -131,12 +130,7 @@ class ObjectsRenderer(CameraRenderer):
         image = self._static.copy()
         for shape, bgr in shapes:
             fill_floor_shape(image, shape, self._to_image, self._fov_floor, bgr)
-        gain = 1.0 + self.scenario.render.lighting * math.sin(2 * math.pi * version / 70.0 + self._phase)
-        image = cv2.convertScaleAbs(image, alpha=gain)
-        if self._noise_up:
-            i = (version * 5) % len(self._noise_up)
-            image = cv2.subtract(cv2.add(image, self._noise_up[i]), self._noise_down[i])
-        return np.asarray(image, dtype=np.uint8)
+        return self.finish(image, version)
 
 
 @dataclasses.dataclass
@@ -650,10 +644,7 @@ def write_outputs(result: dict[str, Any], out: Path) -> None:
 
 
 def plot(result: dict[str, Any], out: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     panels = [p for p in ("accuracy", "tracking", "cost") if p in result]
     widths = [7.0 if p == "accuracy" else 5.0 for p in panels] or [5.0]

@@ -38,7 +38,7 @@ from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.robot import DrvsClient
 
 from .abuse import add_abuse_parser
-from .common import ALL_REGION, YELLOW, bench_process, cpu_seconds, machine, record_scene
+from .common import ALL_REGION, YELLOW, bench_process, cpu_seconds, machine, pyplot, record_scene
 from .helpers import percentile
 from .stats import check_work
 
@@ -437,10 +437,7 @@ def summarise(
 
 
 def write_outputs(result: dict[str, Any], out: Path, name: str = "load") -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out.mkdir(parents=True, exist_ok=True)
     timeline = result["timeline"]

@@ -47,6 +47,7 @@ from .common import (
     bench_process,
     cpu_seconds,
     machine,
+    pyplot,
     record_people,
     record_scene,
 )
@@ -651,10 +652,7 @@ def write_outputs(result: dict[str, Any], out: Path) -> None:
 
 
 def plot(result: dict[str, Any], out: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     labels = {
         "drvs": "DRVS, outlines",

@@ -32,7 +32,17 @@ from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.registry import Registry
 from drvs.robot import DrvsClient
 
-from .common import ALL_REGION, NO_RATE_LIMIT, YELLOW, bench_process, cpu_seconds, machine, peak_rss_bytes, record_scene
+from .common import (
+    ALL_REGION,
+    NO_RATE_LIMIT,
+    YELLOW,
+    bench_process,
+    cpu_seconds,
+    machine,
+    peak_rss_bytes,
+    pyplot,
+    record_scene,
+)
 from .helpers import BLUE, WARMUP_REQUESTS, grid_position, moving_all_region, moving_filter, percentile
 from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, check_work, interleaved, publish, verdict
 
@@ -571,10 +581,7 @@ async def run_service(out_dir: Path, quick: bool) -> dict[str, Any]:
 
 
 def write_outputs(result: dict[str, Any], out: Path) -> None:
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    plt = pyplot()
 
     out.mkdir(parents=True, exist_ok=True)
     fig, ax = plt.subplots(figsize=(9, 4.5), dpi=100)

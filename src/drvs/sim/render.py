@@ -110,8 +110,12 @@ class CameraRenderer:
             fill_floor_shape(image, plate, self._to_image, self._fov_floor, self.scenario.robot.color.bgr)
             if self.scenario.robot.marker is not None:
                 self.draw_marker(image, self.scenario.robot.marker, robot_xy, math.degrees(robot_theta))
+        return self.finish(image, version)
+
+    def finish(self, painted: NDArray[np.uint8], version: int) -> NDArray[np.uint8]:
+        """The lighting's drift and the sensor's noise of world state `version` over a painted frame."""
         gain = 1.0 + self.scenario.render.lighting * math.sin(2 * math.pi * version / 70.0 + self._phase)
-        image = cv2.convertScaleAbs(image, alpha=gain)
+        image = cv2.convertScaleAbs(painted, alpha=gain)
         if self._noise_up:
             i = (version * 5) % len(self._noise_up)
             image = cv2.subtract(cv2.add(image, self._noise_up[i]), self._noise_down[i])
