@@ -4,11 +4,13 @@ what it needs from here, never from another test module."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import os
 import re
 import shutil
 import urllib.request
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -17,12 +19,13 @@ import pytest
 from drvs_bench.fakes import register_message as register_message  # re-exported for the tests
 from numpy.typing import NDArray
 
+from drvs import _grpc
 from drvs.detection import DEFAULT_MIN_AREA_PX, CameraView, HsvDetector
 from drvs.filters import HsvRange
 from drvs.geometry import FieldOfView, Homography, homography_from_pose
 from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.sim.scene import FloorPatch, RecordedCamera, record_camera, render_view
-from drvs.v1 import detection_pb2, geometry_pb2
+from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
 
 # --- the recorded two-camera floor (the `recorded` and `office` fixtures) -----------------------
 
@@ -228,3 +231,30 @@ def render(discs: list[Disc], noise_sigma: float = 0.0) -> NDArray[np.uint8]:
     return render_view(
         camera(), IMAGE_SIZE, [d.patch() for d in discs], noise_sigma=noise_sigma, rng=np.random.default_rng(3)
     )
+
+
+@contextlib.asynccontextmanager
+async def serving_detection(servicer: detection_pb2_grpc.DetectObjectBoundaryServicer) -> AsyncIterator[str]:
+    """A real gRPC server in this process serving `servicer` as DetectObjectBoundary (a camera or
+    a server stand-in) on a free loopback port; yields its address, stops it on leaving."""
+    server = _grpc.new_server()
+    detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(servicer, server)
+    port = server.add_insecure_port("127.0.0.1:0")
+    await server.start()
+    try:
+        yield f"127.0.0.1:{port}"
+    finally:
+        await server.stop(0)
+
+
+def record_facing(
+    directory: Path, poses: dict[str, tuple[float, float, float]], patches: list[FloorPatch]
+) -> dict[str, RecordedCamera]:
+    """One recorded camera per id at its (x, y, height) position, all looking along +y (yaw 90°,
+    pitch 40°, 60° wide, IMAGE_SIZE) at the same floor patches; each with its own noise seed."""
+    return {
+        camera_id: record_camera(
+            directory, camera_id, homography_from_pose(pose, 90.0, 40.0, 60.0, IMAGE_SIZE), IMAGE_SIZE, patches, seed=i
+        )
+        for i, (camera_id, pose) in enumerate(poses.items())
+    }

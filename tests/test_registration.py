@@ -38,7 +38,7 @@ from drvs.v1 import (
 )
 
 from .fakes import server_process, start_recorded_camera
-from .helpers import CAM1_REGION, MAX_RANGE, YELLOW, register_message
+from .helpers import CAM1_REGION, MAX_RANGE, YELLOW, register_message, serving_detection
 
 LOBBY_TOKEN = "lobby-token-0123456789abcdef"
 YARD_TOKEN = "yard-token-fedcba9876543210"
@@ -102,14 +102,8 @@ class Recorder(detection_pb2_grpc.DetectObjectBoundaryServicer):
 @asynccontextmanager
 async def recorder() -> AsyncIterator[tuple[Recorder, str]]:
     servicer = Recorder()
-    server = aio.server()
-    detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(servicer, server)
-    port = server.add_insecure_port("127.0.0.1:0")
-    await server.start()
-    try:
-        yield servicer, f"127.0.0.1:{port}"
-    finally:
-        await server.stop(0)
+    async with serving_detection(servicer) as address:
+        yield servicer, address
 
 
 async def batch(

@@ -30,16 +30,15 @@ from drvs import _grpc
 from drvs.convert import snapshot_to_pb
 from drvs.errors import DeadlineExceeded, InvalidArgument, ResourceExhausted, Unavailable
 from drvs.filters import HsvRange
-from drvs.geometry import homography_from_pose
 from drvs.launch import ManagedProcess, start_server
 from drvs.model import CameraError, Snapshot, WorldObject
 from drvs.request_stream import StreamContext, refusal
 from drvs.robot import DrvsClient, snapshot_json
-from drvs.sim.scene import FloorPatch, RecordedCamera, record_camera
+from drvs.sim.scene import FloorPatch, RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc
 
 from .fakes import start_recorded_camera
-from .helpers import IMAGE_SIZE, YELLOW, metrics_port, scrape
+from .helpers import YELLOW, metrics_port, record_facing, scrape, serving_detection
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "validation.md"
 #: Filters the in-test server treats specially.
@@ -163,17 +162,22 @@ class FusingServer(detection_pb2_grpc.DetectObjectBoundaryServicer):
             self.sent[rid] = n + 1
 
 
+async def track_json(*args: str) -> list[dict[str, Any]]:
+    """Run `drvs-robot track ARGS --json` to its end: it opens no listening socket (fused delivery
+    needs none) and exits 0; returns the snapshots it printed, parsed."""
+    async with robot_cli("track", *args, "--json") as proc:
+        await proc.wait_for_line(r'^\{"time"')
+        assert listening_ports(proc.pid) == set()
+        code = await proc.wait(timeout=20)
+    assert code == 0, proc.output()
+    return [json.loads(line) for line in proc.lines]
+
+
 @pytest_asyncio.fixture
 async def fusing() -> AsyncIterator[tuple[FusingServer, str]]:
     servicer = FusingServer()
-    server = _grpc.new_server()
-    detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(servicer, server)
-    port = server.add_insecure_port("127.0.0.1:0")
-    await server.start()
-    try:
-        yield servicer, f"127.0.0.1:{port}"
-    finally:
-        await server.stop(0)
+    async with serving_detection(servicer) as address:
+        yield servicer, address
 
 
 async def test_fused_detect_returns_one_snapshot_and_opens_no_listener(fusing: tuple[FusingServer, str]) -> None:
@@ -424,12 +428,7 @@ def robot_cli(*args: str) -> ManagedProcess:
 async def test_drvs_robot_track_json_listens_on_no_port(fusing: tuple[FusingServer, str]) -> None:
     servicer, address = fusing
     args = ("--server", address, "--filter", YELLOW, "--roi", "0,0,5,5")
-    async with robot_cli("track", *args, "--rate", "10", "--duration", "1.5", "--json") as proc:
-        await proc.wait_for_line(r'^\{"time"')
-        assert listening_ports(proc.pid) == set()
-        code = await proc.wait(timeout=20)
-    assert code == 0, proc.output()
-    snapshots = [json.loads(line) for line in proc.lines]
+    snapshots = await track_json(*args, "--rate", "10", "--duration", "1.5")
     assert [s["sequence"] for s in snapshots] == list(range(16)) and snapshots[-1]["final"] is True
     for s in snapshots:
         assert set(s) == SNAPSHOT_KEYS and s["cameras"] == ["camA", "camB"] and s["missing_cameras"] == []
@@ -506,12 +505,7 @@ REGION = (-3.0, 1.0, 4.0, 8.0)
 def overlapping(tmp_path_factory: pytest.TempPathFactory) -> dict[str, RecordedCamera]:
     directory = tmp_path_factory.mktemp("overlap")
     patches = [FloorPatch.disc(c, r, HsvRange.parse(YELLOW).centre_bgr()) for c, r in DISCS]
-    return {
-        camera_id: record_camera(
-            directory, camera_id, homography_from_pose(pose, 90.0, 40.0, 60.0, IMAGE_SIZE), IMAGE_SIZE, patches, seed=i
-        )
-        for i, (camera_id, pose) in enumerate(OVERLAP_POSES.items())
-    }
+    return record_facing(directory, OVERLAP_POSES, patches)
 
 
 @dataclass
@@ -569,12 +563,7 @@ async def test_end_to_end_track_keeps_ids_and_ends_with_a_final_snapshot(fused_o
 @pytest.mark.slow
 async def test_end_to_end_drvs_robot_track_json_and_no_listening_port(fused_office: Scene) -> None:
     args = ("--server", fused_office.address, "--filter", YELLOW, "--roi", ",".join(str(v) for v in REGION))
-    async with robot_cli("track", *args, "--rate", "5", "--duration", "1", "--json") as proc:
-        await proc.wait_for_line(r'^\{"time"')
-        assert listening_ports(proc.pid) == set()
-        code = await proc.wait(timeout=20)
-    assert code == 0, proc.output()
-    snapshots = [json.loads(line) for line in proc.lines]
+    snapshots = await track_json(*args, "--rate", "5", "--duration", "1")
     assert snapshots[-1]["final"] is True and [s["sequence"] for s in snapshots] == list(range(len(snapshots)))
     for s in snapshots:
         assert set(s) == SNAPSHOT_KEYS and sorted(s["cameras"]) == ["camA", "camB"]

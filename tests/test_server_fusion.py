@@ -29,17 +29,17 @@ from drvs.camera.source import VideoSource
 from drvs.certs import make_all
 from drvs.errors import FailedPrecondition
 from drvs.filters import HsvRange
-from drvs.geometry import box_region, homography_from_pose
+from drvs.geometry import box_region
 from drvs.launch import ManagedProcess, start_server
 from drvs.model import DetectionRequest
 from drvs.report_auth import KEY_BYTES
 from drvs.server import DrvsServer
 from drvs.server import server as server_module
-from drvs.sim.scene import FloorPatch, RecordedCamera, record_camera
+from drvs.sim.scene import FloorPatch, RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2_grpc
 
 from .fakes import start_recorded_camera
-from .helpers import IMAGE_SIZE, YELLOW, metrics_port, register_message, scrape
+from .helpers import YELLOW, metrics_port, record_facing, register_message, scrape
 
 #: Two cameras 3 m apart, both 3 m up looking along +y: at y = 4.5 "left" sees x -4.6..1.6 and
 #: "right" x -1.6..4.6. SHARED lies where both see it, LONE where only left does.
@@ -58,12 +58,7 @@ def overlap(tmp_path_factory: pytest.TempPathFactory) -> dict[str, RecordedCamer
     yellow = HsvRange.parse(YELLOW).centre_bgr()
     patches = [FloorPatch.disc(SHARED, 0.3, yellow), FloorPatch.disc(LONE, 0.25, yellow)]
     directory = tmp_path_factory.mktemp("overlap")
-    return {
-        camera_id: record_camera(
-            directory, camera_id, homography_from_pose(pose, 90.0, 40.0, 60.0, IMAGE_SIZE), IMAGE_SIZE, patches, seed=i
-        )
-        for i, (camera_id, pose) in enumerate(POSES.items())
-    }
+    return record_facing(directory, POSES, patches)
 
 
 @dataclass
@@ -587,12 +582,10 @@ async def test_a_camera_without_its_server_refuses_to_report_to_it(overlap: dict
     )
 
 
-async def test_fused_requests_are_bounded_and_end_with_their_stream(monkeypatch: pytest.MonkeyPatch) -> None:
-    """A camera that never reports keeps fused single shots waiting: a second fused request with the
-    same id on the stream is refused, so is one past the stream's waiting single shots and one past
-    the server's sessions; the refusals hold nothing. When the robot's stream ends, its session
-    ends: nothing is left in flight."""
-    monkeypatch.setattr(server_module, "MAX_FUSED_WAITING_PER_STREAM", 2)
+@contextlib.asynccontextmanager
+async def server_with_quiet_camera() -> AsyncIterator[tuple[DrvsServer, aio.Channel, _CapturingCamera]]:
+    """A DrvsServer in this process with one registered camera, "quiet", that records the requests
+    forwarded to it and never reports; yields the server, a channel to it and the camera."""
     quiet = _CapturingCamera()
     quiet_server, quiet_address = await serve_camera(quiet)
     try:
@@ -600,33 +593,43 @@ async def test_fused_requests_are_bounded_and_end_with_their_stream(monkeypatch:
             await registry_pb2_grpc.RegisterVisionServiceStub(channel).Register(
                 register_message("quiet", address=quiet_address)
             )
-            region = (-1.0, 2.0, 1.0, 5.0)
-            call = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
-            await call.write(fused("a", region, deadline_s=30))
-            await call.write(fused("a", region, deadline_s=30))
-            assert (await asyncio.wait_for(call.read(), 10)).error.message == (
-                "request_id: 'a' is already a fused request in flight on this stream"
-            )
-            await call.write(fused("b", region, deadline_s=30))
-            await call.write(fused("c", region, deadline_s=30))
-            refused = await asyncio.wait_for(call.read(), 10)
-            assert refused.request_id == "c" and refused.error.code == "RESOURCE_EXHAUSTED"
-            assert refused.error.message.startswith("fusion: 2 fused single shots already waiting")
-            server.fusion.max_sessions = 2
-            other = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
-            await other.write(fused("d", region, deadline_s=30))
-            refused = await asyncio.wait_for(other.read(), 10)
-            assert refused.error.code == "RESOURCE_EXHAUSTED"
-            assert refused.error.message.startswith("fusion: 2 fused requests already in flight on this server")
-            assert server.fusion.count == 2 and len(server.limits._active) == 0
-            call.cancel()
-            other.cancel()
-            deadline = time.monotonic() + 10
-            while server.fusion.count:
-                assert time.monotonic() < deadline, server.fusion.count
-                await asyncio.sleep(0.05)  # polling the server's state
+            yield server, channel, quiet
     finally:
         await quiet_server.stop(0)
+
+
+async def test_fused_requests_are_bounded_and_end_with_their_stream(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A camera that never reports keeps fused single shots waiting: a second fused request with the
+    same id on the stream is refused, so is one past the stream's waiting single shots and one past
+    the server's sessions; the refusals hold nothing. When the robot's stream ends, its session
+    ends: nothing is left in flight."""
+    monkeypatch.setattr(server_module, "MAX_FUSED_WAITING_PER_STREAM", 2)
+    async with server_with_quiet_camera() as (server, channel, _quiet):
+        region = (-1.0, 2.0, 1.0, 5.0)
+        call = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
+        await call.write(fused("a", region, deadline_s=30))
+        await call.write(fused("a", region, deadline_s=30))
+        assert (await asyncio.wait_for(call.read(), 10)).error.message == (
+            "request_id: 'a' is already a fused request in flight on this stream"
+        )
+        await call.write(fused("b", region, deadline_s=30))
+        await call.write(fused("c", region, deadline_s=30))
+        refused = await asyncio.wait_for(call.read(), 10)
+        assert refused.request_id == "c" and refused.error.code == "RESOURCE_EXHAUSTED"
+        assert refused.error.message.startswith("fusion: 2 fused single shots already waiting")
+        server.fusion.max_sessions = 2
+        other = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
+        await other.write(fused("d", region, deadline_s=30))
+        refused = await asyncio.wait_for(other.read(), 10)
+        assert refused.error.code == "RESOURCE_EXHAUSTED"
+        assert refused.error.message.startswith("fusion: 2 fused requests already in flight on this server")
+        assert server.fusion.count == 2 and len(server.limits._active) == 0
+        call.cancel()
+        other.cancel()
+        deadline = time.monotonic() + 10
+        while server.fusion.count:
+            assert time.monotonic() < deadline, server.fusion.count
+            await asyncio.sleep(0.05)  # polling the server's state
 
 
 def crowd(request_id: str, camera_id: str, key: bytes, count: int) -> detection_pb2.DetectionReport:
@@ -646,25 +649,15 @@ def crowd(request_id: str, camera_id: str, key: bytes, count: int) -> detection_
 async def test_a_crowded_report_is_fused_aside_and_capped() -> None:
     """A camera reporting 20 objects (more than are fused on the event loop) gets them fused in a
     worker thread: 20 objects in the answer. One reporting 200 has the first 128 fused."""
-    quiet = _CapturingCamera()
-    quiet_server, quiet_address = await serve_camera(quiet)
-    try:
-        async with DrvsServer("127.0.0.1:0") as server, aio.insecure_channel(server.address) as channel:
-            await registry_pb2_grpc.RegisterVisionServiceStub(channel).Register(
-                register_message("quiet", address=quiet_address)
-            )
-            stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
-            counts = []
-            for count in (20, 200):
-                answer = asyncio.ensure_future(
-                    stub.DetectObjects(fused(f"n{count}", (-1.0, 2.0, 1.0, 5.0)), timeout=20)
-                )
-                forwarded = await asyncio.wait_for(quiet.requests.get(), 10)
-                reports = detection_pb2_grpc.CallbackCoordinatesStub(channel).ReportDetections()
-                await reports.write(crowd(forwarded.request_id, "quiet", forwarded.report_key, count))
-                reply = await answer
-                await reports.done_writing()
-                counts.append(len(reply.snapshot.objects))
-    finally:
-        await quiet_server.stop(0)
+    async with server_with_quiet_camera() as (_server, channel, quiet):
+        stub = detection_pb2_grpc.DetectObjectBoundaryStub(channel)
+        counts = []
+        for count in (20, 200):
+            answer = asyncio.ensure_future(stub.DetectObjects(fused(f"n{count}", (-1.0, 2.0, 1.0, 5.0)), timeout=20))
+            forwarded = await asyncio.wait_for(quiet.requests.get(), 10)
+            reports = detection_pb2_grpc.CallbackCoordinatesStub(channel).ReportDetections()
+            await reports.write(crowd(forwarded.request_id, "quiet", forwarded.report_key, count))
+            reply = await answer
+            await reports.done_writing()
+            counts.append(len(reply.snapshot.objects))
     assert counts == [20, 128]
