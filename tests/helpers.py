@@ -258,3 +258,12 @@ def record_facing(
         )
         for i, (camera_id, pose) in enumerate(poses.items())
     }
+
+
+@dataclass
+class Scene:
+    """A drvs-server process, its address, and its camera processes by id."""
+
+    server: ManagedProcess
+    address: str
+    cameras: dict[str, ManagedProcess]

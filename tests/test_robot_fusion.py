@@ -38,7 +38,7 @@ from drvs.sim.scene import FloorPatch, RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc
 
 from .fakes import start_recorded_camera
-from .helpers import YELLOW, metrics_port, record_facing, scrape, serving_detection
+from .helpers import YELLOW, Scene, metrics_port, record_facing, scrape, serving_detection
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "validation.md"
 #: Filters the in-test server treats specially.
@@ -506,13 +506,6 @@ def overlapping(tmp_path_factory: pytest.TempPathFactory) -> dict[str, RecordedC
     directory = tmp_path_factory.mktemp("overlap")
     patches = [FloorPatch.disc(c, r, HsvRange.parse(YELLOW).centre_bgr()) for c, r in DISCS]
     return record_facing(directory, OVERLAP_POSES, patches)
-
-
-@dataclass
-class Scene:
-    server: ManagedProcess
-    address: str
-    cameras: dict[str, ManagedProcess]
 
 
 @pytest_asyncio.fixture

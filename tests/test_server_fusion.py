@@ -14,7 +14,6 @@ import secrets
 import signal
 import time
 from collections.abc import AsyncIterator, Iterator
-from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -39,7 +38,7 @@ from drvs.sim.scene import FloorPatch, RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2_grpc
 
 from .fakes import start_recorded_camera
-from .helpers import YELLOW, metrics_port, record_facing, register_message, scrape
+from .helpers import YELLOW, Scene, metrics_port, record_facing, register_message, scrape
 
 #: Two cameras 3 m apart, both 3 m up looking along +y: at y = 4.5 "left" sees x -4.6..1.6 and
 #: "right" x -1.6..4.6. SHARED lies where both see it, LONE where only left does.
@@ -59,13 +58,6 @@ def overlap(tmp_path_factory: pytest.TempPathFactory) -> dict[str, RecordedCamer
     patches = [FloorPatch.disc(SHARED, 0.3, yellow), FloorPatch.disc(LONE, 0.25, yellow)]
     directory = tmp_path_factory.mktemp("overlap")
     return record_facing(directory, POSES, patches)
-
-
-@dataclass
-class Scene:
-    server: ManagedProcess
-    address: str
-    cameras: dict[str, ManagedProcess]
 
 
 @contextlib.asynccontextmanager

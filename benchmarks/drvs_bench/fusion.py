@@ -50,7 +50,7 @@ from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import CameraDef, Scenario, parse_scenario
 from drvs.sim.scene import fill_floor_shape
 
-from .common import YELLOW, machine, pyplot
+from .common import YELLOW, machine, pyplot, write_result
 from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, publish, verdict
 
 #: Two cameras facing each other across a 9 m room, 8.5 m apart: a disc near one is far from the
@@ -638,9 +638,7 @@ async def run_fusion(
 
 
 def write_outputs(result: dict[str, Any], out: Path) -> None:
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "fusion.json").write_text(json.dumps(result, indent=1) + "\n")
-    plot(result, out)
+    write_result(result, out, "fusion", plot)
 
 
 def plot(result: dict[str, Any], out: Path) -> None:

@@ -50,6 +50,7 @@ from .common import (
     pyplot,
     record_people,
     record_scene,
+    write_result,
 )
 from .service import ack_server, run_helper
 from .stats import FULL_ROUNDS, WorkMismatch, check_work, interleaved, publish, verdict
@@ -646,9 +647,7 @@ async def start_bare_path(procs: list[ManagedProcess], cameras: int) -> str:
 
 
 def write_outputs(result: dict[str, Any], out: Path) -> None:
-    out.mkdir(parents=True, exist_ok=True)
-    (out / "paper.json").write_text(json.dumps(result, indent=1) + "\n")
-    plot(result, out)
+    write_result(result, out, "paper", plot)
 
 
 def plot(result: dict[str, Any], out: Path) -> None:
