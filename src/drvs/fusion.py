@@ -50,6 +50,7 @@ from shapely.geometry import Polygon
 
 from drvs.errors import InvalidArgument
 from drvs.geometry import Homography
+from drvs.mobile import map_homography
 from drvs.model import Detection, DetectionReport, WorldObject
 
 #: The detector's 1-sigma error of an object's centroid, in image pixels. The HSV detector's contour
@@ -345,8 +346,9 @@ def fuse(
     reports: the camera reports of one request (or one period); reports with an error contribute
     nothing, and of a camera's several reports only the newest counts. homography_of: camera_id ->
     that camera's image->floor homography, or None when unknown (its precision then comes from the
-    detection's own floor area per pixel, or FALLBACK_SIGMA_M). pixel_sigma: the detector's 1-sigma
-    centroid error in pixels.
+    detection's own floor area per pixel, or FALLBACK_SIGMA_M); for a mobile camera (a report with
+    camera_pose) the homography to its robot's base frame, moved by the report's pose.
+    pixel_sigma: the detector's 1-sigma centroid error in pixels.
 
     Same type only (marker_id for markers: same id merges; else label); match by outline overlap
     or centroid distance gated by the cameras' precision there; two detections of one camera never
@@ -363,9 +365,14 @@ def fuse(
         cam = report.camera_id
         if cam not in homographies:
             homographies[cam] = homography_of(cam)
+        h = homographies[cam]
+        if h is not None and report.camera_pose is not None:
+            # A mobile camera: its registered homography is to its robot's base frame; the report
+            # says where the robot was at capture.
+            h = map_homography(h, report.camera_pose)
         detections = [d for d in report.detections if _finite(d)][: max(0, MAX_DETECTIONS - count)]
         count += len(detections)
-        for d, sigma in zip(detections, _sigmas(detections, homographies[cam], pixel_sigma), strict=True):
+        for d, sigma in zip(detections, _sigmas(detections, h, pixel_sigma), strict=True):
             member = _Member(d, cam, d.capture_time or report.capture_time, sigma, _extent(d))
             by_type.setdefault(_type_key(d), {}).setdefault(cam, []).append(member)
     groups: list[_Group] = []

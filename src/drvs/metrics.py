@@ -50,6 +50,11 @@ FUSION_SNAPSHOTS = Counter(
     "Fused snapshots the server made, by outcome: sent, or dropped (the robot was not reading its stream)",
     ["outcome"],
 )
+POSE_UPDATES = Counter(
+    "drvs_pose_updates_total",
+    "Mobile cameras' pose updates the server received, by outcome (ok, or the refusal's status)",
+    ["outcome"],
+)
 FUSION_SESSIONS = Gauge("drvs_fusion_sessions", "Fused requests in flight in the server")
 STAGE = Histogram(
     "drvs_stage_seconds",

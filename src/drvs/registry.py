@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import dataclasses
 import hmac
+import math
 import secrets
 import time
 from collections.abc import Callable
@@ -15,7 +17,8 @@ from shapely.geometry import Polygon
 
 from drvs.errors import FailedPrecondition, InvalidArgument, NotFound, PermissionDenied, ResourceExhausted
 from drvs.geometry import FieldOfView, Homography
-from drvs.model import check_id
+from drvs.mobile import check_pose_on_floor, move_polygon
+from drvs.model import Pose2, check_id
 from drvs.net import parse_address
 
 DEFAULT_LEASE_TTL_S = 10.0
@@ -34,6 +37,12 @@ MAX_DETECTOR_KINDS = 16
 #: by the regions' points (the cache holds the regions alive: a byte budget, not only a count).
 ROUTE_CACHE_SIZE = 1024
 ROUTE_CACHE_POINTS = 64 * 1024
+#: A mobile camera's field of view is routed this long after a pose update, seconds (default and
+#: cap), and pose updates closer together than MIN_POSE_INTERVAL_S are refused.
+DEFAULT_POSE_LEASE_S = 1.0
+MAX_POSE_LEASE_S = 10.0
+DEFAULT_MIN_POSE_INTERVAL_S = 0.1
+_EMPTY = Polygon()
 
 
 @dataclass(frozen=True)
@@ -44,6 +53,25 @@ class CameraEntry:
     detector_kinds: frozenset[str]
     homography: Homography
     image_size: tuple[int, int]
+    #: A camera on a robot: `homography` maps to the robot's base frame and `field_of_view` is
+    #: where its last pose puts it (empty before the first pose, or when it sees no floor).
+    mobile: bool = False
+
+
+@dataclass
+class MobileState:
+    """A mobile camera's moving part, kept apart from the static index."""
+
+    #: The field of view in the robot's base frame; None when the mount sees no floor.
+    base_fov: Polygon | None
+    #: Why it is never routed ("" when it can be): its mount sees no floor.
+    no_floor: str
+    pose_lease_s: float
+    pose: Pose2 | None = None
+    pose_time_unix: float = 0.0
+    #: Registry clock: when the last pose arrived (-inf: never), and until when it routes.
+    received: float = -math.inf
+    routed_until: float = -math.inf
 
 
 class Registry:
@@ -63,7 +91,17 @@ class Registry:
         *,
         max_fov_range_m: float = DEFAULT_MAX_FOV_RANGE_M,
         max_fov_area_m2: float = DEFAULT_MAX_FOV_AREA_M2,
+        pose_lease_s: float = DEFAULT_POSE_LEASE_S,
+        max_pose_lease_s: float = MAX_POSE_LEASE_S,
+        min_pose_interval_s: float = DEFAULT_MIN_POSE_INTERVAL_S,
     ) -> None:
+        if not (0 < pose_lease_s <= max_pose_lease_s and min_pose_interval_s >= 0):
+            raise ValueError("pose_lease_s must be in (0, max_pose_lease_s] and min_pose_interval_s >= 0")
+        self.pose_lease_s = pose_lease_s
+        self.max_pose_lease_s = max_pose_lease_s
+        self.min_pose_interval_s = min_pose_interval_s
+        #: Mobile cameras by id: never in the STRtree, checked one by one at each lookup.
+        self._mobile: dict[str, MobileState] = {}
         if not lease_ttl_s > 0:
             raise ValueError(f"lease_ttl_s must be > 0, got {lease_ttl_s}")
         if not (max_fov_range_m > 0 and max_fov_area_m2 > 0):
@@ -102,8 +140,15 @@ class Registry:
         image_size: tuple[int, int],
         detector_kinds: frozenset[str] | set[str],
         max_range_m: float,
+        *,
+        mobile: bool = False,
+        pose_lease_s: float = 0.0,
     ) -> CameraEntry:
-        """Validate everything first, then add or replace the entry (replacing renews the lease)."""
+        """Validate everything first, then add or replace the entry (replacing renews the lease).
+
+        A mobile camera's `homography` maps to its robot's base frame: its field of view there is
+        computed once, with the same limits; one that sees no floor stays registered but is never
+        routed (`unroutable` says why). It is routed only while a pose update is fresh."""
         check_id(camera_id, "camera_id")
         parse_address(address, "address")
         if not detector_kinds:
@@ -116,19 +161,100 @@ class Registry:
             raise InvalidArgument(
                 f"max_range_m: {max_range_m:g} m is beyond this server's limit of {self.max_fov_range_m:g} m"
             )
-        fov = self.field_of_view(homography, image_size, max_range_m)
+        state: MobileState | None = None
+        if mobile:
+            if not (math.isfinite(pose_lease_s) and pose_lease_s >= 0):
+                raise InvalidArgument(f"pose_lease_s: {pose_lease_s} must be >= 0 seconds (0: the server's default)")
+            lease = min(pose_lease_s or self.pose_lease_s, self.max_pose_lease_s)
+            try:
+                base: Polygon | None = self.field_of_view(homography, image_size, max_range_m).floor
+                no_floor = ""
+            except InvalidArgument as exc:
+                if "sees no floor" not in str(exc):
+                    raise
+                base, no_floor = None, str(exc)
+            state = MobileState(base_fov=base, no_floor=no_floor, pose_lease_s=lease)
+            fov_floor = _EMPTY
+        else:
+            fov_floor = self.field_of_view(homography, image_size, max_range_m).floor
         entry = CameraEntry(
             camera_id=camera_id,
             address=address,
-            field_of_view=fov.floor,
+            field_of_view=fov_floor,
             detector_kinds=frozenset(detector_kinds),
             homography=homography,
             image_size=image_size,
+            mobile=mobile,
         )
+        was_static = camera_id in self._entries and camera_id not in self._mobile
         self._entries[camera_id] = entry
         self._expires[camera_id] = self._clock() + self.lease_ttl_s
-        self._tree = None
+        if state is not None:
+            self._mobile[camera_id] = state
+        else:
+            self._mobile.pop(camera_id, None)
+        if was_static or state is None:  # a mobile camera alone never touches the static index
+            self._tree = None
         return entry
+
+    def mobile_state(self, camera_id: str) -> MobileState | None:
+        """A mobile camera's pose and routing state; None for a fixed (or unknown) camera."""
+        return self._mobile.get(camera_id)
+
+    def unroutable(self, camera_id: str) -> str:
+        """Why the registry does not route to this camera now ("" when it does, or it is fixed)."""
+        state = self._mobile.get(camera_id)
+        if state is None:
+            return ""
+        if state.no_floor:
+            return state.no_floor
+        if state.pose is None:
+            return "no pose yet"
+        if state.routed_until <= self._clock():
+            return (
+                f"pose stale: the last came {self._clock() - state.received:.1f} s ago (lease {state.pose_lease_s:g} s)"
+            )
+        return ""
+
+    def pose_age_s(self, camera_id: str) -> float:
+        """Seconds since a mobile camera's last pose update arrived (inf before the first)."""
+        state = self._mobile.get(camera_id)
+        return math.inf if state is None or state.pose is None else self._clock() - state.received
+
+    def update_pose(self, camera_id: str, pose: Pose2, pose_time_unix: float = 0.0) -> CameraEntry:
+        """A mobile camera's robot is at `pose` (map frame): its field of view moves there and is
+        routed for its pose lease. Checks (all before any change): NOT_FOUND unknown or expired,
+        FAILED_PRECONDITION a fixed camera, INVALID_ARGUMENT a pose that is not finite or off any
+        floor, RESOURCE_EXHAUSTED sooner than min_pose_interval_s after the previous update.
+        Never touches the static index."""
+        entry = self.get(camera_id)
+        if not self.is_live(camera_id):
+            raise NotFound(f"camera_id: {camera_id!r}'s lease expired; register again")
+        state = self._mobile.get(camera_id)
+        if state is None:
+            raise FailedPrecondition(f"camera_id: {camera_id!r} registered as a fixed camera; it has no pose")
+        check_pose_on_floor(pose, "pose")
+        if not math.isfinite(pose_time_unix):
+            raise InvalidArgument(f"pose_time_unix: {pose_time_unix} is not a finite number")
+        now = self._clock()
+        if now - state.received < self.min_pose_interval_s:
+            raise ResourceExhausted(
+                f"pose: camera {camera_id!r} updated {now - state.received:.3f} s ago; at most one update "
+                f"every {self.min_pose_interval_s:g} s"
+            )
+        state.pose, state.pose_time_unix, state.received = pose, pose_time_unix, now
+        state.routed_until = now + state.pose_lease_s
+        fov = move_polygon(state.base_fov, pose) if state.base_fov is not None else _EMPTY
+        entry = dataclasses.replace(entry, field_of_view=fov)
+        self._entries[camera_id] = entry
+        return entry
+
+    def _routable_mobile(self, now: float) -> list[CameraEntry]:
+        return [
+            self._entries[cid]
+            for cid, state in self._mobile.items()
+            if state.routed_until > now and state.base_fov is not None and self._expires.get(cid, 0.0) > now
+        ]
 
     def field_of_view(self, homography: Homography, image_size: tuple[int, int], max_range_m: float) -> FieldOfView:
         """The field of view a registration would get; INVALID_ARGUMENT when larger than allowed."""
@@ -157,17 +283,20 @@ class Registry:
         if entry is None:
             raise NotFound(f"camera_id: {camera_id!r} is not registered")
         del self._expires[camera_id]
-        self._tree = None
+        if self._mobile.pop(camera_id, None) is None:
+            self._tree = None
         return entry
 
     def expire(self) -> list[CameraEntry]:
         """Drop every entry whose lease has run out; returns them."""
         now = self._clock()
         gone = [self._entries[cid] for cid, t in self._expires.items() if t <= now]
+        static_gone = False
         for entry in gone:
             del self._entries[entry.camera_id]
             del self._expires[entry.camera_id]
-        if gone:
+            static_gone |= self._mobile.pop(entry.camera_id, None) is None
+        if static_gone:
             self._tree = None
         return gone
 
@@ -186,15 +315,23 @@ class Registry:
     def cameras_seeing(self, region: Polygon, kind: str | None = None) -> list[CameraEntry]:
         """Live cameras whose field of view meets `region` with positive area (and run `kind`)."""
         now = self._clock()
-        return [
+        found = [
             e
             for e in self._overlapping(region)
             if self._expires.get(e.camera_id, 0.0) > now and (kind is None or kind in e.detector_kinds)
         ]
+        if self._mobile:
+            moving = [e for e in self._routable_mobile(now) if kind is None or kind in e.detector_kinds]
+            if moving:
+                fovs = np.array([e.field_of_view for e in moving], dtype=object)
+                hits = shapely.relate_pattern(fovs, region, "T********")
+                found += [e for e, hit in zip(moving, hits, strict=True) if hit]
+                found.sort(key=lambda e: e.camera_id)
+        return found
 
     def _overlapping(self, region: Polygon) -> list[CameraEntry]:
         if self._tree is None:
-            self._tree_entries = list(self._entries.values())
+            self._tree_entries = [e for e in self._entries.values() if e.camera_id not in self._mobile]
             self._fovs = np.array([e.field_of_view for e in self._tree_entries], dtype=object)
             self._tree = STRtree(self._fovs)
             self._routes.clear()

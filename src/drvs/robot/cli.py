@@ -252,23 +252,40 @@ async def cameras(args: argparse.Namespace) -> int:
     for c in found:
         if args.json:
             coords = [[round(x, 4), round(y, 4)] for x, y in list(c.field_of_view.exterior.coords)[:-1]]
-            print(
-                json.dumps(
-                    {
-                        "camera_id": c.camera_id,
-                        "address": c.address,
-                        "field_of_view": coords,
-                        "detector_kinds": list(c.detector_kinds),
-                        "lease_remaining_s": round(c.lease_remaining_s, 2),
-                    }
+            line: dict[str, Any] = {
+                "camera_id": c.camera_id,
+                "address": c.address,
+                "field_of_view": coords,
+                "detector_kinds": list(c.detector_kinds),
+                "lease_remaining_s": round(c.lease_remaining_s, 2),
+                "mobile": c.mobile,
+            }
+            if c.mobile:
+                line["pose"] = (
+                    None if c.pose is None else [round(c.pose.x, 4), round(c.pose.y, 4), round(c.pose.yaw, 4)]
                 )
-            )
+                line["pose_age_s"] = None if c.pose is None else round(c.pose_age_s, 3)
+                line["unroutable"] = c.unroutable
+            print(json.dumps(line))
         else:
-            x0, y0, x1, y1 = c.field_of_view.bounds
+            if c.field_of_view.is_empty:
+                seen = "no field of view"
+            else:
+                x0, y0, x1, y1 = c.field_of_view.bounds
+                seen = f"field of view {c.field_of_view.area:6.1f} m² within [{x0:.1f}, {y0:.1f}, {x1:.1f}, {y1:.1f}]"
+            moving = ""
+            if c.mobile:
+                where = (
+                    "no pose yet"
+                    if c.pose is None
+                    else (
+                        f"at ({c.pose.x:.2f}, {c.pose.y:.2f}, {math.degrees(c.pose.yaw):.0f}°) {c.pose_age_s:.1f} s ago"
+                    )
+                )
+                moving = f"  mobile, {where}" + (f", not routed: {c.unroutable}" if c.unroutable else "")
             print(
-                f"{c.camera_id:12s} {c.address:22s} field of view {c.field_of_view.area:6.1f} m² "
-                f"within [{x0:.1f}, {y0:.1f}, {x1:.1f}, {y1:.1f}]  lease {c.lease_remaining_s:.1f} s  "
-                f"serves {','.join(c.detector_kinds)}"
+                f"{c.camera_id:12s} {c.address:22s} {seen}  lease {c.lease_remaining_s:.1f} s  "
+                f"serves {','.join(c.detector_kinds)}{moving}"
             )
     return 0
 

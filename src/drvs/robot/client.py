@@ -38,7 +38,7 @@ from grpc import aio
 from shapely.geometry import Polygon
 
 from drvs import _grpc
-from drvs.convert import polygon_from_pb, region_to_pb, report_from_pb, request_to_pb, snapshot_from_pb
+from drvs.convert import polygon_from_pb, pose_from_pb, region_to_pb, report_from_pb, request_to_pb, snapshot_from_pb
 from drvs.errors import DeadlineExceeded, DrvsError, FailedPrecondition, InvalidArgument, Unavailable
 from drvs.geometry import box_region, polygon_region
 from drvs.model import (
@@ -48,6 +48,7 @@ from drvs.model import (
     DetectionReport,
     DetectionRequest,
     FusionOptions,
+    Pose2,
     Snapshot,
 )
 from drvs.net import dialable_address, format_address, local_ip_towards, parse_address
@@ -209,13 +210,23 @@ class _Regions:
 class CameraInfo:
     """A camera the server routes to: its id, the address it serves on, its field of view on the
     floor (a shapely Polygon, metres), the detector kinds it serves (hsv, aruco ...), and the
-    seconds left on its registration lease."""
+    seconds left on its registration lease.
+
+    A camera on a robot (`mobile`): `field_of_view` is where its robot's last pose puts it (empty
+    before the first pose, or when it sees no floor), `pose` that pose (map frame; None before the
+    first), `pose_age_s` the seconds since the server received it, and `unroutable` why the server
+    does not route to it now ("" when it does: a stale pose, no pose yet, a mount that sees no floor).
+    """
 
     camera_id: str
     address: str
     field_of_view: Polygon
     detector_kinds: tuple[str, ...]
     lease_remaining_s: float
+    mobile: bool = False
+    pose: Pose2 | None = None
+    pose_age_s: float = 0.0
+    unroutable: str = ""
 
 
 @dataclass
@@ -1304,9 +1315,15 @@ class DrvsClient:
                 CameraInfo(
                     camera_id=c.camera_id,
                     address=c.address,
-                    field_of_view=polygon_from_pb(c.field_of_view, "field_of_view"),
+                    field_of_view=polygon_from_pb(c.field_of_view, "field_of_view")
+                    if c.HasField("field_of_view")
+                    else Polygon(),
                     detector_kinds=tuple(c.detector_kinds),
                     lease_remaining_s=c.lease_remaining_s,
+                    mobile=c.mobile,
+                    pose=pose_from_pb(c.pose) if c.HasField("pose") else None,
+                    pose_age_s=c.pose_age_s,
+                    unroutable=c.unroutable,
                 )
                 for c in reply.cameras
             )

@@ -25,6 +25,9 @@ from drvs.registry import (
     DEFAULT_MAX_CAMERAS_PER_IDENTITY,
     DEFAULT_MAX_FOV_AREA_M2,
     DEFAULT_MAX_FOV_RANGE_M,
+    DEFAULT_MIN_POSE_INTERVAL_S,
+    DEFAULT_POSE_LEASE_S,
+    MAX_POSE_LEASE_S,
 )
 from drvs.security import load_tokens
 from drvs.server.config import (
@@ -188,6 +191,29 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="M2",
         help="largest field of view one camera may register, square metres (default %(default)s)",
     )
+    m = p.add_argument_group("mobile cameras (cameras on robots, whose field of view moves)")
+    m.add_argument(
+        "--pose-lease",
+        type=float,
+        default=DEFAULT_POSE_LEASE_S,
+        metavar="SECONDS",
+        help="route a mobile camera this long after its last pose update, unless it asks for another "
+        "lease (default %(default)g)",
+    )
+    m.add_argument(
+        "--max-pose-lease",
+        type=float,
+        default=MAX_POSE_LEASE_S,
+        metavar="SECONDS",
+        help="longest pose lease a mobile camera may ask for (default %(default)g)",
+    )
+    m.add_argument(
+        "--min-pose-interval",
+        type=float,
+        default=DEFAULT_MIN_POSE_INTERVAL_S,
+        metavar="SECONDS",
+        help="refuse a mobile camera's pose update sooner than this after its previous one (default %(default)g)",
+    )
     add_security_arguments(p, "unused by the server (it checks tokens, it presents none)")
     add_observability_arguments(p)
     return p
@@ -234,6 +260,9 @@ def config_from(args: argparse.Namespace) -> ServerConfig:
             "max_cameras_per_identity": args.max_cameras_per_identity,
             "max_fov_range_m": args.max_fov_range,
             "max_fov_area_m2": args.max_fov_area,
+            "pose_lease_s": args.pose_lease,
+            "max_pose_lease_s": args.max_pose_lease,
+            "min_pose_interval_s": args.min_pose_interval,
         },
         os.environ,
     )

@@ -27,6 +27,9 @@ from drvs.registry import (
     DEFAULT_MAX_CAMERAS_PER_IDENTITY,
     DEFAULT_MAX_FOV_AREA_M2,
     DEFAULT_MAX_FOV_RANGE_M,
+    DEFAULT_MIN_POSE_INTERVAL_S,
+    DEFAULT_POSE_LEASE_S,
+    MAX_POSE_LEASE_S,
 )
 from drvs.server.policy import (
     DEFAULT_FORWARD_BYTES_PER_S,
@@ -71,6 +74,9 @@ FLAGS = {
     "max_cameras_per_identity": "--max-cameras-per-identity",
     "max_fov_range_m": "--max-fov-range",
     "max_fov_area_m2": "--max-fov-area",
+    "pose_lease_s": "--pose-lease",
+    "max_pose_lease_s": "--max-pose-lease",
+    "min_pose_interval_s": "--min-pose-interval",
 }
 
 #: Inclusive numeric ranges: setting -> (lowest, highest, whether the lowest is allowed, unit text).
@@ -90,6 +96,9 @@ _RANGES: dict[str, tuple[float, float, bool, str]] = {
     "max_cameras_per_identity": (1, 1_000_000, True, ""),
     "max_fov_range_m": (15, 10_000, True, " metres"),
     "max_fov_area_m2": (1, 1e8, True, " square metres"),
+    "pose_lease_s": (0, 3600, False, " seconds"),
+    "max_pose_lease_s": (0, 3600, False, " seconds"),
+    "min_pose_interval_s": (0, 3600, True, " seconds"),
 }
 _INTEGERS = ("max_queued_forwards", "max_continuous", "max_streams_per_connection", "max_cameras_per_identity")
 
@@ -145,6 +154,12 @@ class ServerConfig:
     max_fov_range_m: float = DEFAULT_MAX_FOV_RANGE_M
     #: Largest field of view one camera may register, square metres.
     max_fov_area_m2: float = DEFAULT_MAX_FOV_AREA_M2
+    #: Seconds a mobile camera is routed after a pose update (unless it asks for another lease).
+    pose_lease_s: float = DEFAULT_POSE_LEASE_S
+    #: Longest pose lease a mobile camera may ask for, seconds; at least pose_lease_s.
+    max_pose_lease_s: float = MAX_POSE_LEASE_S
+    #: A mobile camera's pose updates closer together than this are refused, seconds.
+    min_pose_interval_s: float = DEFAULT_MIN_POSE_INTERVAL_S
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "allow_callback", tuple(self.allow_callback))
@@ -170,6 +185,11 @@ class ServerConfig:
             raise InvalidArgument(
                 f"{setting('default_max_range_m')}: {self.default_max_range_m:g} m must be in "
                 f"(0, max_fov_range_m {self.max_fov_range_m:g} m]"
+            )
+        if self.pose_lease_s > self.max_pose_lease_s:
+            raise InvalidArgument(
+                f"{setting('pose_lease_s')}: {self.pose_lease_s:g} s is more than "
+                f"max_pose_lease_s {self.max_pose_lease_s:g} s"
             )
         CallbackPolicy(self.allow_callback)  # refuses a malformed network
 

@@ -26,6 +26,7 @@ from drvs._service import Endpoint, Lifecycle
 from drvs.callback import CallbackSender
 from drvs.convert import (
     polygon_to_pb,
+    pose_to_pb,
     region_from_pb,
     request_from_pb,
 )
@@ -39,7 +40,7 @@ from drvs.errors import (
     Unavailable,
 )
 from drvs.geometry import DEFAULT_MAX_RANGE_M, Homography
-from drvs.model import CameraError, DetectionReport, DetectionRequest, check_id
+from drvs.model import CameraError, DetectionReport, DetectionRequest, Pose2, check_id
 from drvs.net import host_of, is_loopback_host
 from drvs.registry import (
     DEFAULT_GRACE_S,
@@ -174,6 +175,10 @@ class CameraRegistration:
     registration_secret: str = ""
     #: What the server is to present back on every forward to this camera.
     forward_secret: str = ""
+    #: A camera on a robot: `homography` maps to the robot's base frame; its poses move it.
+    mobile: bool = False
+    #: Mobile: seconds a pose update keeps it routed (0: the server's default; capped).
+    pose_lease_s: float = 0.0
 
 
 class _CameraLink:
@@ -257,7 +262,12 @@ class DrvsServer(Lifecycle):
         # presented back when forwarding to it; replaced, never inherited, at every registration.
         self._camera_tokens: dict[str, str] = {}
         self.registry = Registry(
-            config.lease_ttl_s, max_fov_range_m=config.max_fov_range_m, max_fov_area_m2=config.max_fov_area_m2
+            config.lease_ttl_s,
+            max_fov_range_m=config.max_fov_range_m,
+            max_fov_area_m2=config.max_fov_area_m2,
+            pose_lease_s=config.pose_lease_s,
+            max_pose_lease_s=config.max_pose_lease_s,
+            min_pose_interval_s=config.min_pose_interval_s,
         )
         # camera id -> who holds it (token name, certificate name, or an anonymous registration's
         # secret): another identity may not re-register, renew or deregister it.
@@ -433,6 +443,8 @@ class DrvsServer(Lifecycle):
             image_size=registration.image_size,
             detector_kinds=set(registration.detector_kinds),
             max_range_m=registration.max_range_m or self.default_max_range_m,
+            mobile=registration.mobile,
+            pose_lease_s=registration.pose_lease_s,
         )
         expires = self.registry.expires_at(entry.camera_id)
         secret = self.claims.grant(entry.camera_id, owner, quota, expires, registration.forward_secret)
@@ -442,15 +454,35 @@ class DrvsServer(Lifecycle):
         self._camera_tokens[entry.camera_id] = registration.forward_secret or presented_token
         self._unreachable.discard(entry.camera_id)
         self._link(entry)
+        state = self.registry.mobile_state(entry.camera_id)
         log.info(
-            "camera %s registered at %s by %s: field of view %.1f m², detectors %s",
+            "camera %s registered at %s by %s: %s, detectors %s",
             entry.camera_id,
             entry.address,
             owner or "an anonymous caller",
-            entry.field_of_view.area,
+            f"field of view {entry.field_of_view.area:.1f} m²"
+            if state is None
+            else f"mobile, {state.base_fov.area if state.base_fov is not None else 0.0:.1f} m² in its base frame"
+            + (f" (unroutable: {state.no_floor})" if state.no_floor else ""),
             ",".join(sorted(entry.detector_kinds)),
         )
         return entry, secret
+
+    def update_pose(
+        self, camera_id: str, who: str, registration_secret: str, pose: Pose2, pose_time_unix: float = 0.0
+    ) -> CameraEntry:
+        """A mobile camera's new pose, from the id's holder with its registration's secret: its field
+        of view moves there and is routed for its pose lease (see Registry.update_pose)."""
+        check_id(camera_id, "camera_id")
+        owner = self._camera_owner(who, "UpdatePose")
+        self.claims.check(camera_id, owner, registration_secret)
+        try:
+            entry = self.registry.update_pose(camera_id, pose, pose_time_unix)
+        except DrvsError as exc:
+            metrics.POSE_UPDATES.labels(outcome=exc.code.lower()).inc()
+            raise
+        metrics.POSE_UPDATES.labels(outcome="ok").inc()
+        return entry
 
     def renew_camera(self, camera_id: str, who: str, registration_secret: str) -> None:
         """A heartbeat: the id's holder, with its registration's secret, renews the lease; a camera
@@ -1122,6 +1154,8 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
             max_range_m=message.max_range_m,
             registration_secret=message.registration_secret,
             forward_secret=message.forward_secret,
+            mobile=message.mobile,
+            pose_lease_s=message.pose_lease_s,
         )
         entry, secret = self._s.register_camera(
             registration,
@@ -1129,10 +1163,15 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
             str(peer_ip(context.peer()) or context.peer()),
             bearer_token(list(context.invocation_metadata() or ())),
         )
+        state = self._s.registry.mobile_state(entry.camera_id)
+        fov: Polygon | None = entry.field_of_view if state is None else state.base_fov
         return registry_pb2.RegisterReply(
             lease_ttl_s=self._s.registry.lease_ttl_s,
-            field_of_view=polygon_to_pb(entry.field_of_view),
+            field_of_view=polygon_to_pb(fov) if fov is not None and not fov.is_empty else None,
             registration_secret=secret,
+            unroutable=state.no_floor if state is not None else "",
+            pose_lease_s=state.pose_lease_s if state is not None else 0.0,
+            min_pose_interval_s=self._s.registry.min_pose_interval_s if state is not None else 0.0,
         )
 
     @_grpc.servicer_method
@@ -1143,11 +1182,48 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
         return registry_pb2.HeartbeatReply(lease_ttl_s=self._s.registry.lease_ttl_s)
 
     @_grpc.servicer_method
+    async def UpdatePose(
+        self, message: registry_pb2.UpdatePoseRequest, context: aio.ServicerContext[Any, Any]
+    ) -> registry_pb2.UpdatePoseReply:
+        if not message.HasField("pose"):
+            raise InvalidArgument("pose: missing")
+        entry = self._s.update_pose(
+            message.camera_id,
+            self._caller(context, "UpdatePose"),
+            message.registration_secret,
+            Pose2(message.pose.x, message.pose.y, message.pose.yaw),
+            message.pose_time_unix,
+        )
+        state = self._s.registry.mobile_state(entry.camera_id)
+        return registry_pb2.UpdatePoseReply(
+            field_of_view=polygon_to_pb(entry.field_of_view) if not entry.field_of_view.is_empty else None,
+            pose_lease_s=state.pose_lease_s if state is not None else 0.0,
+        )
+
+    @_grpc.servicer_method
     async def Deregister(
         self, message: registry_pb2.DeregisterRequest, context: aio.ServicerContext[Any, Any]
     ) -> registry_pb2.DeregisterReply:
         self._s.deregister_camera(message.camera_id, self._caller(context, "Deregister"), message.registration_secret)
         return registry_pb2.DeregisterReply()
+
+    def _camera_info(self, e: CameraEntry) -> registry_pb2.CameraInfo:
+        registry = self._s.registry
+        info = registry_pb2.CameraInfo(
+            camera_id=e.camera_id,
+            address=e.address,
+            field_of_view=polygon_to_pb(e.field_of_view) if not e.field_of_view.is_empty else None,
+            detector_kinds=sorted(e.detector_kinds),
+            lease_remaining_s=registry.remaining_s(e.camera_id),
+        )
+        state = registry.mobile_state(e.camera_id)
+        if state is not None:
+            info.mobile = True
+            info.unroutable = registry.unroutable(e.camera_id)
+            if state.pose is not None:
+                info.pose.CopyFrom(pose_to_pb(state.pose))
+                info.pose_age_s = registry.pose_age_s(e.camera_id)
+        return info
 
     @_grpc.servicer_method
     async def ListCameras(
@@ -1157,16 +1233,7 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
         entries, next_token = self._s.list_cameras(region, message.page_token, message.page_size)
         return registry_pb2.ListCamerasReply(
             next_page_token=next_token,
-            cameras=[
-                registry_pb2.CameraInfo(
-                    camera_id=e.camera_id,
-                    address=e.address,
-                    field_of_view=polygon_to_pb(e.field_of_view),
-                    detector_kinds=sorted(e.detector_kinds),
-                    lease_remaining_s=self._s.registry.remaining_s(e.camera_id),
-                )
-                for e in entries
-            ],
+            cameras=[self._camera_info(e) for e in entries],
         )
 
 
