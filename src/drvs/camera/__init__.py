@@ -1,6 +1,6 @@
 """A DRVS camera node: grabs frames, detects objects on request, reports them to robots."""
 
 from drvs.camera.node import CameraNode
-from drvs.camera.source import FrameSource, VideoSource
+from drvs.camera.source import FrameSource, PushSource, VideoSource
 
-__all__ = ["CameraNode", "FrameSource", "VideoSource"]
+__all__ = ["CameraNode", "FrameSource", "PushSource", "VideoSource"]

@@ -37,7 +37,8 @@ from drvs.detectors import (
 from drvs.errors import DrvsError, FailedPrecondition, InvalidArgument, ResourceExhausted
 from drvs.filters import object_type
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
-from drvs.model import Detection, DetectionReport, DetectionRequest, check_id
+from drvs.mobile import DEFAULT_MAX_POSE_GAP_S, Mount, PoseBuffer, move_detection
+from drvs.model import Detection, DetectionReport, DetectionRequest, Pose2, check_id
 from drvs.net import dialable_address, parse_address
 from drvs.request_stream import serve_request_batches
 from drvs.security import Security, bearer_token
@@ -50,7 +51,7 @@ from .config import (
     check_settings,
 )
 from .prefetch import Analyses
-from .registration import Registration
+from .registration import PoseUpdates, Registration
 from .source import FrameSource
 
 log = logging.getLogger("drvs.camera")
@@ -79,7 +80,7 @@ class CameraNode(Lifecycle):
         self,
         camera_id: str,
         source: FrameSource,
-        homography: Homography,
+        homography: Homography | None,
         server: str,
         *,
         listen: str = "127.0.0.1:0",
@@ -96,6 +97,12 @@ class CameraNode(Lifecycle):
         heartbeat_s: float | None = None,
         security: Security | None = None,
         max_continuous: int = DEFAULT_MAX_CONTINUOUS_PER_ROBOT,
+        mount: Mount | None = None,
+        max_pose_gap_s: float = DEFAULT_MAX_POSE_GAP_S,
+        pose_lease_s: float = 0.0,
+        pose_update_distance_m: float = 0.1,
+        pose_update_angle_deg: float = 5.0,
+        max_pose_rate_hz: float = 5.0,
     ) -> None:
         check_settings(
             {
@@ -130,7 +137,11 @@ class CameraNode(Lifecycle):
         self.heartbeat_s = heartbeat_s
         self.camera_id = check_id(camera_id, "camera_id")
         self.source = source
-        self.homography = homography
+        if (homography is None) == (mount is None):
+            raise InvalidArgument(
+                "homography: give a fixed camera's homography, or a mobile camera's mount (not both, not neither)"
+            )
+        self.homography: Homography = homography if homography is not None else Homography.from_values(np.eye(3))
         self.server_address = server
         parse_address(server, "server")
         self.listen = listen
@@ -145,6 +156,32 @@ class CameraNode(Lifecycle):
         self.view: CameraView | None = None
         self.field_of_view: FieldOfView | None = None
         self.registration = Registration(self.camera_id, server, self.security, heartbeat_s)
+        #: A camera on a robot: where it sits on the robot (its homography is then the mount's, to
+        #: the robot's base frame), the robot's poses over time (robot code, or a pose source,
+        #: pushes them: `push_pose`), and the loop that keeps the server's field of view on it.
+        self.mount = mount
+        self.poses = PoseBuffer(max_pose_gap_s)
+        for name, value in (
+            ("pose_lease_s", pose_lease_s),
+            ("pose_update_distance_m", pose_update_distance_m),
+            ("pose_update_angle_deg", pose_update_angle_deg),
+        ):
+            if not (math.isfinite(value) and value >= 0):
+                raise InvalidArgument(f"{name}: {value} must be a number >= 0")
+        if not (math.isfinite(max_pose_rate_hz) and max_pose_rate_hz > 0):
+            raise InvalidArgument(f"max_pose_rate_hz: {max_pose_rate_hz} must be > 0")
+        self.pose_lease_s = pose_lease_s
+        self.pose_updates = (
+            PoseUpdates(
+                self.registration,
+                self.poses,
+                distance_m=pose_update_distance_m,
+                angle_deg=pose_update_angle_deg,
+                max_rate_hz=max_pose_rate_hz,
+            )
+            if mount is not None
+            else None
+        )
         self.serve_frames = serve_frames
         names = (*SERVICE_NAMES, FRAME_STREAM_SERVICE) if serve_frames else SERVICE_NAMES
         self._endpoint = Endpoint(listen, names, self._add_servicers, security=self.security)
@@ -191,6 +228,9 @@ class CameraNode(Lifecycle):
                 f"resolution: the source gives {image_size[0]}x{image_size[1]}, not the configured "
                 f"{self.resolution[0]}x{self.resolution[1]}; the homography belongs to one image size"
             )
+        if self.mount is not None:
+            # Detectors map to the robot's base frame; each report moves them by the pose at capture.
+            self.homography = self.mount.base_homography(image_size)
         self.field_of_view = FieldOfView.compute(self.homography, image_size, self.max_range_m)
         self.view = CameraView(
             self.homography, self.field_of_view, image_size, camera_id=self.camera_id, min_area_px=self.min_area_px
@@ -225,9 +265,13 @@ class CameraNode(Lifecycle):
                 max_range_m=self.max_range_m,
                 detector_kinds=list(self.kinds),
                 forward_secret=self.forward_secret,
+                mobile=self.mount is not None,
+                pose_lease_s=self.pose_lease_s,
             ),
             self.field_of_view.floor.area,
         )
+        if self.pose_updates is not None:
+            self.pose_updates.start()
         self._watchdog = asyncio.get_running_loop().create_task(self._watch_frames())
 
     async def stop(self, grace: float = 2.0) -> None:
@@ -237,6 +281,8 @@ class CameraNode(Lifecycle):
         if self._watchdog is not None:
             self._watchdog.cancel()
             await asyncio.gather(self._watchdog, return_exceptions=True)
+        if self.pose_updates is not None:
+            await self.pose_updates.stop()
         await self.registration.stop()
         await self._endpoint.stop(grace)
         for job in list(self._jobs):
@@ -255,6 +301,13 @@ class CameraNode(Lifecycle):
 
     async def wait_for_termination(self) -> None:
         await self._endpoint.wait_for_termination()
+
+    def push_pose(self, pose: Pose2, t: float | None = None) -> None:
+        """A mobile camera's robot was at `pose` (map frame) at time t (seconds since the Unix
+        epoch; None: now). Thread-safe. InvalidArgument for a pose or time that is not finite."""
+        if self.mount is None:
+            raise FailedPrecondition(f"camera {self.camera_id} is fixed (no mount): it takes no poses")
+        self.poses.push(time.time() if t is None else t, pose)
 
     def frame_is_fresh(self) -> bool:
         frame = self.source.latest()
@@ -463,9 +516,27 @@ class CameraNode(Lifecycle):
         found = analysis.cached_blobs(wanted.key)
         if found is None:
             found = await self._find(runner, analysis, wanted)
+        narrowed = runner.narrow(found, wanted)
+        pose = None
+        if self.mount is not None:
+            pose = self.poses.at(frame.capture_time)
+            if pose is None:
+                latest = self.poses.latest()
+                gap = "no pose yet" if latest is None else f"newest pose {frame.capture_time - latest[0]:+.2f} s away"
+                return DetectionReport(
+                    request_id=request.request_id,
+                    camera_id=self.camera_id,
+                    capture_time=frame.capture_time,
+                    sequence=sequence,
+                    final=final,
+                    error=f"camera {self.camera_id}: no pose within {self.poses.max_gap_s:g} s of the frame's "
+                    f"capture ({gap})",
+                    error_code="UNAVAILABLE",
+                )
+            narrowed = tuple(move_detection(d, pose) for d in narrowed)
         # Selecting what the frame holds is microseconds: done here, on the event loop, rather than
         # paying a hop to a thread and back.
-        detections = select(runner.narrow(found, wanted), request.region)
+        detections = select(narrowed, request.region)
         metrics.STAGE_DETECT.observe(time.perf_counter() - started)
         return DetectionReport(
             request_id=request.request_id,
@@ -474,6 +545,7 @@ class CameraNode(Lifecycle):
             sequence=sequence,
             final=final,
             detections=tuple(detections),
+            camera_pose=pose,
         )
 
 

@@ -9,10 +9,15 @@ from __future__ import annotations
 
 import asyncio
 import logging
+import math
+import time
 
 import grpc
 from grpc import aio
 
+from drvs.convert import pose_to_pb
+from drvs.mobile import PoseBuffer
+from drvs.model import Pose2
 from drvs.security import Security
 from drvs.v1 import registry_pb2, registry_pb2_grpc
 
@@ -58,6 +63,9 @@ class Registration:
         self._task: asyncio.Task[None] | None = None
         #: The current registration's secret, from the server: heartbeats and deregistration carry it.
         self.secret = ""
+        #: The server's answer to the latest registration (a mobile camera's pose lease, its
+        #: minimum pose interval, and why it will not be routed, if so).
+        self.reply = registry_pb2.RegisterReply()
 
     def heartbeat_interval(self, lease_ttl_s: float) -> float:
         """Seconds between heartbeats: the configured interval, but never so long that the lease
@@ -89,6 +97,9 @@ class Registration:
         request.registration_secret = self.secret
         reply = await self._stub.Register(request, timeout=REGISTER_TIMEOUT_S, metadata=self.security.metadata())
         self.secret = reply.registration_secret
+        self.reply = reply
+        if reply.unroutable:
+            log.warning("camera %s: the server will not route to it: %s", self.camera_id, reply.unroutable)
         log.info(
             "camera %s %s with %s: lease %.1f s, field of view %.1f m²",
             self.camera_id,
@@ -162,6 +173,21 @@ class Registration:
                 conflict = code == grpc.StatusCode.PERMISSION_DENIED
                 backoff = min(backoff * 2, max(interval, CONFLICT_BACKOFF_S) if conflict else interval)
 
+    async def update_pose(self, pose: Pose2, pose_time_unix: float, timeout_s: float) -> registry_pb2.UpdatePoseReply:
+        """A mobile camera's pose, to the server (grpc.RpcError when it refuses or cannot be reached)."""
+        assert self._stub is not None
+        reply: registry_pb2.UpdatePoseReply = await self._stub.UpdatePose(
+            registry_pb2.UpdatePoseRequest(
+                camera_id=self.camera_id,
+                registration_secret=self.secret,
+                pose=pose_to_pb(pose),
+                pose_time_unix=pose_time_unix,
+            ),
+            timeout=timeout_s,
+            metadata=self.security.metadata(),
+        )
+        return reply
+
     async def deregister(self) -> None:
         """Leave routing at once (rather than when the lease runs out); only after a registration.
         A failure is logged: the lease then runs out by itself."""
@@ -177,3 +203,83 @@ class Registration:
             log.info("camera %s deregistered", self.camera_id)
         except grpc.RpcError as exc:
             log.warning("camera %s: deregistration failed: %s", self.camera_id, details(exc))
+
+
+class PoseUpdates:
+    """Keeps a mobile camera's field of view where its robot is: sends the newest pose from `poses`
+    to the server when the robot moved `distance_m` or turned `angle_deg` since the last pose sent,
+    or when that one is older than half the pose lease (a standing robot stays routed); only while
+    the newest pose is itself fresh (within the lease of now), and at most `max_rate_hz` a second (and
+    never sooner than the server's minimum interval). Without fresh poses it sends nothing, and the
+    server stops routing to the camera when the lease runs out."""
+
+    def __init__(
+        self,
+        registration: Registration,
+        poses: PoseBuffer,
+        *,
+        distance_m: float = 0.1,
+        angle_deg: float = 5.0,
+        max_rate_hz: float = 5.0,
+    ) -> None:
+        self.registration = registration
+        self.poses = poses
+        self.distance_m = distance_m
+        self.angle_rad = math.radians(angle_deg)
+        self.max_rate_hz = max_rate_hz
+        #: What was sent last: the pose, its time, when (time.monotonic()), and to which registration.
+        self.sent: tuple[Pose2, float, float, str] | None = None
+        self.updates = 0
+        self._task: asyncio.Task[None] | None = None
+        self._unimplemented_logged = False
+
+    def start(self) -> None:
+        self._task = asyncio.get_running_loop().create_task(self.run())
+
+    async def stop(self) -> None:
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+
+    def due(self, now_unix: float, now_mono: float) -> tuple[Pose2, float] | None:
+        """The pose to send now, with its time, or None."""
+        latest = self.poses.latest()
+        reply = self.registration.reply
+        lease = reply.pose_lease_s or 1.0
+        if latest is None or not self.registration.registered.is_set() or now_unix - latest[0] > lease:
+            return None
+        t, pose = latest
+        if self.sent is None or self.sent[3] != self.registration.secret:
+            return pose, t
+        last, _, sent_at, _ = self.sent
+        moved = math.hypot(pose.x - last.x, pose.y - last.y) >= self.distance_m
+        turned = abs(math.remainder(pose.yaw - last.yaw, 2 * math.pi)) >= self.angle_rad
+        stale = now_mono - sent_at >= lease / 2
+        return (pose, t) if moved or turned or stale else None
+
+    async def run(self) -> None:
+        while True:
+            interval = max(1.0 / self.max_rate_hz, self.registration.reply.min_pose_interval_s)
+            due = self.due(time.time(), time.monotonic())
+            if due is not None:
+                pose, t = due
+                try:
+                    await self.registration.update_pose(pose, t, timeout_s=max(1.0, interval))
+                    self.sent = (pose, t, time.monotonic(), self.registration.secret)
+                    self.updates += 1
+                except grpc.RpcError as exc:
+                    code = exc.code() if isinstance(exc, aio.AioRpcError) else grpc.StatusCode.UNKNOWN
+                    if code == grpc.StatusCode.UNIMPLEMENTED:
+                        if not self._unimplemented_logged:
+                            log.error("camera %s: the server does not take poses (too old?)", self.camera_id)
+                            self._unimplemented_logged = True
+                        interval = max(interval, 5.0)
+                    elif code != grpc.StatusCode.RESOURCE_EXHAUSTED:
+                        # NOT_FOUND / FAILED_PRECONDITION: the registration loop registers again.
+                        log.warning("camera %s: pose update refused: %s", self.camera_id, details(exc))
+            await asyncio.sleep(interval)
+
+    @property
+    def camera_id(self) -> str:
+        return self.registration.camera_id

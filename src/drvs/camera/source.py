@@ -5,6 +5,7 @@ from __future__ import annotations
 import asyncio
 import importlib.metadata
 import logging
+import math
 import os
 import threading
 import time
@@ -15,7 +16,7 @@ import cv2
 import numpy as np
 
 from drvs.detection import Frame
-from drvs.errors import FailedPrecondition
+from drvs.errors import FailedPrecondition, InvalidArgument
 
 log = logging.getLogger("drvs.camera.source")
 
@@ -188,3 +189,52 @@ class VideoSource:
                     self._stop.wait(delay)
                 else:
                     next_at = time.monotonic()
+
+
+class PushSource:
+    """Frames that the program itself hands over: a robot's own code, which already has its camera's
+    images, pushes each one (`push(image_bgr, capture_time)`) and a camera node serves from the
+    newest. Thread-safe: push from any thread."""
+
+    def __init__(self, description: str = "pushed frames") -> None:
+        self.description = description
+        self._lock = threading.Lock()
+        self._latest: Frame | None = None
+        self._first = threading.Event()
+        self._sequence = 0
+
+    def start(self) -> None:
+        """Nothing to open: frames arrive by push."""
+
+    def stop(self) -> None:
+        """Nothing to close."""
+
+    def push(self, image: np.ndarray, capture_time: float | None = None) -> Frame:
+        """Hand over a BGR image (H x W x 3, uint8) captured at `capture_time` (seconds since the
+        Unix epoch; None: now). InvalidArgument for anything that is not such an image."""
+        if not (isinstance(image, np.ndarray) and image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3):
+            shape = getattr(image, "shape", None)
+            raise InvalidArgument(f"image: a BGR image is H x W x 3 uint8, not {type(image).__name__} {shape}")
+        if capture_time is not None and not math.isfinite(capture_time):
+            raise InvalidArgument(f"capture_time: {capture_time} is not a finite number")
+        now = time.time()
+        # The frame's age runs on the monotonic clock, from when it was captured.
+        captured_at = time.monotonic() - (max(0.0, now - capture_time) if capture_time is not None else 0.0)
+        with self._lock:
+            self._sequence += 1
+            frame = Frame(image=image, capture_time=now if capture_time is None else capture_time,
+                          sequence=self._sequence, captured_at=captured_at)  # fmt: skip
+            self._latest = frame
+        self._first.set()
+        return frame
+
+    def latest(self) -> Frame | None:
+        with self._lock:
+            return self._latest
+
+    async def wait_first_frame(self, timeout_s: float) -> Frame:
+        if not await asyncio.to_thread(self._first.wait, timeout_s):
+            raise FailedPrecondition(f"source {self.description}: no frame pushed within {timeout_s:g} s")
+        frame = self.latest()
+        assert frame is not None
+        return frame

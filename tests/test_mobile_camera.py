@@ -1,0 +1,171 @@
+"""A mobile camera node (drvs.camera with a mount) on real pixels, with a real drvs-server process
+and a real robot client: as its robot drives, a fixed object is reported at the same floor position
+from every pose, the field of view the server routes by follows the robot, and a frame with no pose
+near its capture is not used."""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import time
+from collections.abc import AsyncIterator
+
+import numpy as np
+import pytest
+import pytest_asyncio
+from numpy.typing import NDArray
+from shapely.geometry import box
+
+from drvs import DrvsClient
+from drvs.camera import CameraNode, PushSource
+from drvs.errors import FailedPrecondition, InvalidArgument
+from drvs.launch import ManagedProcess, start_server
+from drvs.mobile import Mount, PoseBuffer
+from drvs.model import Pose2
+from drvs.sim.render import CameraRenderer
+from drvs.sim.scenario import CameraDef, Scenario, parse_scenario
+
+YELLOW = "hsv_014110130035225200"
+SIZE = (640, 480)
+#: 0.8 m up, 0.1 m ahead of the robot's centre, looking forward 30° down, 70° wide.
+MOUNT = Mount(0.1, 0.0, 0.8, 0.0, 30.0, hfov_deg=70.0)
+TARGET = (3.0, 2.0)
+REGION = (2.5, 1.5, 3.5, 2.5)
+SCENE = f"""
+name: mobile-test
+floor_plan:
+  bounds: [0, 0, 8, 4]
+  walls: []
+colors:
+  yellow: {{filter_def: {YELLOW}, bgr: [57, 143, 165]}}
+  blue:   {{filter_def: hsv_100120080130255255, bgr: [167, 100, 42]}}
+cameras:
+  - {{id: unused, position: [4.0, -2.0, 4.5], yaw_deg: 90, pitch_deg: 50, hfov_deg: 90,
+     resolution: [640, 480], fps: 20}}
+objects:
+  - {{kind: marker, color: yellow, center: [{TARGET[0]}, {TARGET[1]}], radius: 0.15}}
+robot: {{start: [0.5, 0.5], goal: [7.0, 0.5], radius: 0.2, color: blue, speed_mps: 1.0}}
+mission: navigate
+"""
+#: Where the robot is for each frame: driving towards the disc, weaving a little.
+PATH = [
+    Pose2(0.6, 2.0, 0.0),
+    Pose2(0.9, 1.85, math.radians(8)),
+    Pose2(1.2, 2.15, math.radians(-10)),
+    Pose2(1.5, 2.05, math.radians(4)),
+]
+
+
+def camera_at(pose: Pose2) -> CameraDef:
+    """The simulator's camera where the mount on a robot at `pose` puts it."""
+    c, s = math.cos(pose.yaw), math.sin(pose.yaw)
+    position = (pose.x + c * MOUNT.x - s * MOUNT.y, pose.y + s * MOUNT.x + c * MOUNT.y, MOUNT.z)
+    yaw = math.degrees(pose.yaw) + MOUNT.yaw_deg
+    return CameraDef("scout-cam", position, yaw, MOUNT.pitch_deg, MOUNT.hfov_deg, SIZE, 20.0, 6.0)
+
+
+def frame(scenario: Scenario, pose: Pose2, version: int) -> NDArray[np.uint8]:
+    return CameraRenderer(scenario, camera_at(pose), seed=3).render(None, version)
+
+
+@pytest_asyncio.fixture
+async def server() -> AsyncIterator[str]:
+    proc: ManagedProcess
+    proc, address = await start_server("--pose-lease", "5", "--min-pose-interval", "0.02")
+    try:
+        yield address
+    finally:
+        await proc.stop()
+
+
+async def test_a_fixed_object_lands_in_one_place_from_every_pose_of_a_moving_camera(server: str) -> None:
+    scenario = parse_scenario(SCENE, "test")
+    source = PushSource("the scout's camera")
+    first = frame(scenario, PATH[0], 0)
+    source.push(first, time.time())
+    node = CameraNode("scout-cam", source, None, server, mount=MOUNT, max_pose_gap_s=0.5, max_pose_rate_hz=50)
+    async with node, DrvsClient.connect(server, robot_id="turtle") as drvs:
+        await asyncio.wait_for(node.registered.wait(), 10)
+        for k, pose in enumerate(PATH):
+            t = time.time()
+            node.push_pose(pose, t)
+            source.push(frame(scenario, pose, k), t)
+            # The server routes the floor ahead of this pose to the camera once its update arrives.
+            deadline = time.monotonic() + 10
+            while not (cams := await drvs.cameras(box(*REGION))) or cams[0].pose != pose:
+                assert time.monotonic() < deadline, cams
+                await asyncio.sleep(0.02)
+            result = await drvs.detect(YELLOW, REGION, timeout_s=5)
+            assert result.camera_ids == ("scout-cam",) and not result.errors, result
+            (report,) = result.reports
+            assert report.camera_pose == pose
+            (d,) = result.detections
+            error = math.dist(d.centroid_xy, TARGET)
+            assert error < 0.03, (k, pose, d.centroid_xy, error)
+        # Behind the robot is not its field of view any more.
+        assert await drvs.cameras(box(-1.0, 1.5, 0.0, 2.5)) == []
+
+
+async def test_a_frame_with_no_pose_near_its_capture_is_not_used(server: str) -> None:
+    scenario = parse_scenario(SCENE, "test")
+    source = PushSource()
+    pose = PATH[0]
+    node = CameraNode("scout-cam", source, None, server, mount=MOUNT, max_pose_gap_s=0.2, pose_lease_s=5)
+    t = time.time()
+    source.push(frame(scenario, pose, 0), t)
+    async with node, DrvsClient.connect(server, robot_id="turtle") as drvs:
+        node.push_pose(pose, t)
+        deadline = time.monotonic() + 10
+        while not await drvs.cameras(box(*REGION)):
+            assert time.monotonic() < deadline
+            await asyncio.sleep(0.02)
+        assert not (await drvs.detect(YELLOW, REGION, timeout_s=5)).errors
+        # A newer frame whose capture no pose is near: reported as UNAVAILABLE, not mapped.
+        source.push(frame(scenario, pose, 1), t + 1.0)
+        result = await drvs.detect(YELLOW, REGION, timeout_s=5)
+        assert result.detections == []
+        error = result.camera_errors["scout-cam"]
+        assert error.code == "UNAVAILABLE" and "no pose within 0.2 s of the frame's capture" in error.message
+
+
+def test_push_pose_and_push_frame_refuse_bad_input() -> None:
+    source = PushSource()
+    with pytest.raises(InvalidArgument, match=r"^image: "):
+        source.push("not an image")  # type: ignore[arg-type]
+    fixed = CameraNode("fixed", source, MOUNT.base_homography(SIZE), "127.0.0.1:9")
+    with pytest.raises(FailedPrecondition, match="no mount"):
+        fixed.push_pose(Pose2(0, 0, 0))
+    mobile = CameraNode("scout", source, None, "127.0.0.1:9", mount=MOUNT)
+    with pytest.raises(InvalidArgument, match=r"^pose.y: "):
+        mobile.push_pose(Pose2(0, math.nan, 0))
+    assert len(mobile.poses) == 0
+    with pytest.raises(InvalidArgument, match=r"^max_pose_rate_hz: "):
+        CameraNode("scout", source, None, "127.0.0.1:9", mount=MOUNT, max_pose_rate_hz=0)
+
+
+def test_pose_buffer_interpolates_between_poses_and_refuses_gaps() -> None:
+    poses = PoseBuffer(max_gap_s=0.25)
+    poses.push(10.0, Pose2(0.0, 0.0, math.radians(170)))
+    poses.push(10.2, Pose2(2.0, 1.0, math.radians(-170)))
+    mid = poses.at(10.1)
+    assert mid is not None and mid.x == pytest.approx(1.0) and mid.y == pytest.approx(0.5)
+    assert abs(math.remainder(mid.yaw - math.pi, 2 * math.pi)) < 1e-9  # the short way, through 180°
+    assert poses.at(10.3) == Pose2(2.0, 1.0, math.radians(-170))  # just after the newest: held
+    assert poses.at(10.5) is None and poses.at(9.5) is None  # too far from any pose
+    poses.push(10.1, Pose2(5.0, 5.0, 0.0))  # late, out of order: put in its place
+    assert poses.at(10.1) == Pose2(5.0, 5.0, 0.0) and poses.latest() == (10.2, Pose2(2.0, 1.0, math.radians(-170)))
+
+
+def test_a_mounts_homography_is_the_composed_pinhole_camera() -> None:
+    """Base homography moved by a pose == the pinhole camera placed where the mount puts it."""
+    from drvs.geometry import homography_from_pose
+    from drvs.mobile import map_homography
+
+    pose = Pose2(3.0, -1.0, math.radians(35))
+    composed = map_homography(MOUNT.base_homography(SIZE), pose)
+    cam = camera_at(pose)
+    direct = homography_from_pose(cam.position, cam.yaw_deg, cam.pitch_deg, cam.hfov_deg, SIZE)
+    pixels = [[0.0, 479.0], [320.0, 240.0], [639.0, 300.0]]
+    assert composed.apply(pixels) == pytest.approx(direct.apply(pixels), abs=1e-9)
+    with pytest.raises(InvalidArgument, match=r"^mount.z: "):
+        Mount(0, 0, 0, 0, 30, hfov_deg=60)
