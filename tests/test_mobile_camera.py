@@ -6,9 +6,11 @@ near its capture is not used."""
 from __future__ import annotations
 
 import asyncio
+import json
 import math
 import time
 from collections.abc import AsyncIterator
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -24,6 +26,7 @@ from drvs.mobile import Mount, PoseBuffer
 from drvs.model import Pose2
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import CameraDef, Scenario, parse_scenario
+from drvs.sim.scene import record_camera
 
 YELLOW = "hsv_014110130035225200"
 SIZE = (640, 480)
@@ -169,3 +172,67 @@ def test_a_mounts_homography_is_the_composed_pinhole_camera() -> None:
     assert composed.apply(pixels) == pytest.approx(direct.apply(pixels), abs=1e-9)
     with pytest.raises(InvalidArgument, match=r"^mount.z: "):
         Mount(0, 0, 0, 0, 30, hfov_deg=60)
+
+
+@pytest.mark.slow
+async def test_drvs_camera_with_a_mount_follows_a_tcp_pose_feed(server: str, tmp_path: Path) -> None:
+    """The CLI: a drvs-camera process with --mount and --pose-source tcp://… reads a real socket's
+    newline-delimited JSON poses (a bad line is skipped) and the server routes it where they say."""
+    recorded = record_camera(tmp_path, "video", MOUNT.base_homography(SIZE), SIZE, [], seed=1)
+    pose = Pose2(2.0, 1.0, math.radians(90))
+    feeding = asyncio.Event()
+
+    async def feed(reader: asyncio.StreamReader, writer: asyncio.StreamWriter) -> None:
+        writer.write(b"not json\n")
+        while not writer.is_closing():
+            line = {"t": time.time(), "x": pose.x, "y": pose.y, "yaw": pose.yaw}
+            writer.write((json.dumps(line) + "\n").encode())
+            await writer.drain()
+            feeding.set()
+            await asyncio.sleep(0.05)  # a localisation stack's pose rate (20 Hz), not a synchronisation
+
+    feed_server = await asyncio.start_server(feed, "127.0.0.1", 0)
+    port = feed_server.sockets[0].getsockname()[1]
+    proc = await ManagedProcess.entry_point(
+        "scout-cam",
+        "drvs-camera",
+        *("--id", "scout-cam", "--source", str(recorded.video), "--server", server, "--listen", "127.0.0.1:0"),
+        *("--mount", "0.1,0,0.8,0,30", "--hfov", "70", "--pose-source", f"tcp://127.0.0.1:{port}"),
+    ).start()
+    try:
+        async with DrvsClient.connect(server, robot_id="turtle") as drvs:
+            ahead = box(pose.x - 0.3, pose.y + 2.2, pose.x + 0.3, pose.y + 2.8)  # 2.5 m ahead: north
+            deadline = time.monotonic() + 30
+            while not (cams := await drvs.cameras(ahead)):
+                assert time.monotonic() < deadline and proc.returncode is None, proc.output()
+                await asyncio.sleep(0.1)
+            (cam,) = cams
+            assert cam.mobile and cam.pose == pose and cam.unroutable == ""
+            assert await drvs.cameras(box(pose.x - 0.3, pose.y - 2.8, pose.x + 0.3, pose.y - 2.2)) == []
+    finally:
+        await proc.stop()
+        feed_server.close()
+        await feed_server.wait_closed()
+
+
+@pytest.mark.parametrize(
+    ("args", "message"),
+    [
+        (("--mount", "0,0,0.8,0", "--hfov", "70"), "mount (--mount): '0,0,0.8,0' is not X,Y,Z,YAW,PITCH"),
+        (("--mount", "0,0,0.8,0,30"), "mount (--mount): give the camera's --hfov or its --camera-matrix"),
+        (("--mount", "0,0,0.8,0,30", "--hfov", "70", "--homography", "h.yaml"), "mount (--mount): a mobile camera"),
+        (("--mount", "0,0,0.8,0,30", "--camera-matrix", "1,2,3"), "camera_matrix (--camera-matrix): '1,2,3'"),
+        (("--homography", "h.yaml", "--hfov", "70"), "hfov_deg (--hfov): only with --mount"),
+        (
+            ("--mount", "0,0,0.8,0,30", "--hfov", "70", "--max-pose-rate", "0"),
+            "max_pose_rate_hz (from --max-pose-rate)",
+        ),
+        (("--mount", "0,0,0.8,0,30", "--hfov", "70", "--pose-source", "udp://x:1"), "--pose-source: no pose source"),
+    ],
+)
+async def test_drvs_camera_refuses_a_bad_mount_or_pose_flag(args: tuple[str, ...], message: str) -> None:
+    proc = await ManagedProcess.entry_point(
+        "bad", "drvs-camera", "--id", "cam", "--source", "0", "--server", "127.0.0.1:9", *args
+    ).start()
+    code = await proc.wait(timeout=30)
+    assert code == 2 and message in proc.output() and "Traceback" not in proc.output(), proc.output()

@@ -103,6 +103,24 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"continuous requests one robot may have running on this camera at once (default 32; "
         f"{e['max_continuous']})",
     )
+    m = p.add_argument_group("a camera on a robot (mobile: its field of view moves with the robot's poses)")
+    m.add_argument("--mount", metavar="X,Y,Z,YAW,PITCH", help="where the camera sits on the robot: metres in the "
+                   "robot's base frame (x forward, y left, z up), yaw from forward and pitch below horizontal in "
+                   "degrees; instead of --homography")  # fmt: skip
+    m.add_argument("--hfov", dest="hfov_deg", type=float, metavar="DEG", help="the camera's horizontal field of view")
+    m.add_argument("--camera-matrix", metavar="FX,FY,CX,CY", help="the camera's intrinsics, pixels (instead of --hfov)")
+    m.add_argument("--pose-source", metavar="SOURCE", help="the robot's poses: tcp://HOST:PORT (newline-delimited "
+                   'JSON {"t", "x", "y", "yaw"}) or sim://HOST:PORT/SCOUT (the simulator)')  # fmt: skip
+    m.add_argument("--max-pose-gap", dest="max_pose_gap_s", type=float, metavar="S",
+                   help="a frame with no pose this close to its capture is not used (default 0.25)")  # fmt: skip
+    m.add_argument("--pose-lease", dest="pose_lease_s", type=float, metavar="S",
+                   help="seconds one pose keeps the camera routed (default 0: the server's)")  # fmt: skip
+    m.add_argument("--pose-update-distance", dest="pose_update_distance_m", type=float, metavar="M",
+                   help="send a pose when the robot moved this far (default 0.1)")  # fmt: skip
+    m.add_argument("--pose-update-angle", dest="pose_update_angle_deg", type=float, metavar="DEG",
+                   help="... or turned this much (default 5)")  # fmt: skip
+    m.add_argument("--max-pose-rate", dest="max_pose_rate_hz", type=float, metavar="HZ",
+                   help="at most this many pose updates a second (default 5)")  # fmt: skip
     add_security_arguments(p, "file holding this camera's registration token")
     p.add_argument("--log-level", help=f"DEBUG, INFO, WARNING ({e['log_level']})")
     p.add_argument("--log-format", help=f"text, or json: one object per line with the request id ({e['log_format']})")
@@ -381,7 +399,7 @@ def main(argv: list[str] | None = None) -> int:
         node = CameraNode(
             config.id,
             make_source(config.source, config.id, loop_file=config.loop, resolution=config.resolution, fps=config.fps),
-            load_homography(config.homography),
+            load_homography(config.homography) if config.homography is not None else None,
             config.server,
             listen=config.listen,
             advertise=config.advertise,
@@ -396,6 +414,13 @@ def main(argv: list[str] | None = None) -> int:
             heartbeat_s=config.heartbeat_s,
             max_continuous=config.max_continuous,
             security=config.security(),
+            mount=config.mount_spec(),
+            pose_source=config.pose_source,
+            max_pose_gap_s=config.max_pose_gap_s,
+            pose_lease_s=config.pose_lease_s,
+            pose_update_distance_m=config.pose_update_distance_m,
+            pose_update_angle_deg=config.pose_update_angle_deg,
+            max_pose_rate_hz=config.max_pose_rate_hz,
         )
     except DrvsError as exc:
         parser.error(str(exc))

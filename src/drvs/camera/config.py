@@ -22,6 +22,7 @@ from drvs.filters import DETECTOR_KINDS
 from drvs.geometry import DEFAULT_MAX_RANGE_M
 from drvs.logs import FORMATS
 from drvs.metrics import DEFAULT_METRICS_HOST
+from drvs.mobile import DEFAULT_MAX_POSE_GAP_S, Mount
 from drvs.model import check_id
 from drvs.net import format_address, parse_address
 from drvs.security import Security
@@ -72,7 +73,8 @@ ENVIRONMENT = {
 class CameraConfig:
     id: str
     source: str
-    homography: Path
+    #: A fixed camera's image -> floor homography file; a mobile camera gives `mount` instead.
+    homography: Path | None
     server: str = DEFAULT_SERVER
     listen: str = DEFAULT_LISTEN
     advertise: str | None = None
@@ -113,9 +115,44 @@ class CameraConfig:
     #: The operator's object-detection models (config file only): {name: {path, classes, ...}}, see
     #: drvs.detectors.model; paths are relative to the config file.
     models: dict[str, ModelSpec] = field(default_factory=dict)
+    #: A mobile camera (on a robot): "X,Y,Z,YAW,PITCH", where it sits on the robot (metres,
+    #: degrees; see drvs.mobile.Mount), with `hfov_deg` or `camera_matrix` ("FX,FY,CX,CY", pixels),
+    #: and where its robot's poses come from (`pose_source`, see drvs.camera.poses).
+    mount: str | None = None
+    hfov_deg: float | None = None
+    camera_matrix: str | None = None
+    pose_source: str | None = None
+    #: A frame with no pose within this many seconds of its capture is not used.
+    max_pose_gap_s: float = DEFAULT_MAX_POSE_GAP_S
+    #: Seconds a pose update keeps the camera routed (0: the server's default).
+    pose_lease_s: float = 0.0
+    #: Send the server a pose when the robot moved this far (metres) or turned this much (degrees),
+    #: at most max_pose_rate_hz times a second.
+    pose_update_distance_m: float = 0.1
+    pose_update_angle_deg: float = 5.0
+    max_pose_rate_hz: float = 5.0
 
     def __post_init__(self) -> None:
         check_settings({f.name: getattr(self, f.name) for f in fields(self)})
+        self.mount_spec()  # refuses a malformed mount now, not at start
+
+    def mount_spec(self) -> Mount | None:
+        """The mount, parsed (None for a fixed camera); InvalidArgument naming the flag."""
+        if self.mount is None:
+            for name in ("hfov_deg", "camera_matrix", "pose_source"):
+                if getattr(self, name) is not None:
+                    raise InvalidArgument(f"{name} ({_FLAGS[name]}): only with --mount (a mobile camera)")
+            return None
+        if self.homography is not None:
+            raise InvalidArgument("mount (--mount): a mobile camera has no --homography; give one or the other")
+        if (self.hfov_deg is None) == (self.camera_matrix is None):
+            raise InvalidArgument("mount (--mount): give the camera's --hfov or its --camera-matrix (one of them)")
+        try:
+            return Mount.parse(self.mount, self.hfov_deg or 0.0, self.camera_matrix)
+        except InvalidArgument as exc:
+            text = str(exc)
+            flag = "--camera-matrix" if text.startswith("camera_matrix") else "--mount"
+            raise InvalidArgument(f"{text.split(':', 1)[0]} ({flag}):{text.split(':', 1)[1]}") from None
 
     def security(self) -> Security:
         return Security(
@@ -147,7 +184,10 @@ _FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max
           "token_file": "--token-file", "log_format": "--log-format", "metrics_port": "--metrics-port",
           "metrics_host": "--metrics-host", "max_continuous": "--max-continuous",
           "detect_workers": "--detect-workers", "background": "--background",
-          "people_min_height_px": "--people-min-height"}  # fmt: skip
+          "people_min_height_px": "--people-min-height", "mount": "--mount", "hfov_deg": "--hfov",
+          "camera_matrix": "--camera-matrix", "pose_source": "--pose-source", "max_pose_gap_s": "--max-pose-gap",
+          "pose_lease_s": "--pose-lease", "pose_update_distance_m": "--pose-update-distance",
+          "pose_update_angle_deg": "--pose-update-angle", "max_pose_rate_hz": "--max-pose-rate"}  # fmt: skip
 
 
 #: Numeric settings, checked wherever they come from (CameraConfig, CameraNode's constructor, the
@@ -161,6 +201,12 @@ LIMITS: dict[str, tuple[float, float, bool]] = {
     "people_min_height_px": (32.0, 1024.0, False),
     "max_continuous": (1, 1_000_000, True),
     "detect_workers": (1, 64, True),
+    "hfov_deg": (1.0, 179.0, False),
+    "max_pose_gap_s": (0.001, 60.0, False),
+    "pose_lease_s": (0.0, 3600.0, False),
+    "pose_update_distance_m": (0.0, 1000.0, False),
+    "pose_update_angle_deg": (0.0, 180.0, False),
+    "max_pose_rate_hz": (0.01, 100.0, False),
 }
 
 
@@ -221,6 +267,8 @@ def load_config(
         except InvalidArgument as exc:
             # The same message as CameraNode(...) gives, and where the value came from.
             raise InvalidArgument(f"{name} (from {origin}){str(exc)[len(name) :]}") from None
+    if "mount" in values:
+        values.setdefault("homography", None)
     for required in ("id", "source", "homography"):
         if required not in values:
             raise InvalidArgument(

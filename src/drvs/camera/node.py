@@ -50,6 +50,7 @@ from .config import (
     DEFAULT_MAX_FRAME_AGE_S,
     check_settings,
 )
+from .poses import open_pose_source
 from .prefetch import Analyses
 from .registration import PoseUpdates, Registration
 from .source import FrameSource
@@ -103,6 +104,7 @@ class CameraNode(Lifecycle):
         pose_update_distance_m: float = 0.1,
         pose_update_angle_deg: float = 5.0,
         max_pose_rate_hz: float = 5.0,
+        pose_source: str | None = None,
     ) -> None:
         check_settings(
             {
@@ -171,6 +173,10 @@ class CameraNode(Lifecycle):
         if not (math.isfinite(max_pose_rate_hz) and max_pose_rate_hz > 0):
             raise InvalidArgument(f"max_pose_rate_hz: {max_pose_rate_hz} must be > 0")
         self.pose_lease_s = pose_lease_s
+        if pose_source is not None and mount is None:
+            raise InvalidArgument("pose_source: only a mobile camera (one with a mount) reads poses")
+        self.pose_source = open_pose_source(pose_source) if pose_source is not None else None
+        self._pose_reader: asyncio.Task[None] | None = None
         self.pose_updates = (
             PoseUpdates(
                 self.registration,
@@ -270,6 +276,8 @@ class CameraNode(Lifecycle):
             ),
             self.field_of_view.floor.area,
         )
+        if self.pose_source is not None:
+            self._pose_reader = asyncio.get_running_loop().create_task(self.pose_source.run(self.poses.push))
         if self.pose_updates is not None:
             self.pose_updates.start()
         self._watchdog = asyncio.get_running_loop().create_task(self._watch_frames())
@@ -281,6 +289,9 @@ class CameraNode(Lifecycle):
         if self._watchdog is not None:
             self._watchdog.cancel()
             await asyncio.gather(self._watchdog, return_exceptions=True)
+        if self._pose_reader is not None:
+            self._pose_reader.cancel()
+            await asyncio.gather(self._pose_reader, return_exceptions=True)
         if self.pose_updates is not None:
             await self.pose_updates.stop()
         await self.registration.stop()
