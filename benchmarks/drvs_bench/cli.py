@@ -1,6 +1,7 @@
 """drvs-bench: `paper` (the paper's comparison), `service` (DRVS's own costs), `load` (many robots at
 once), `detectors` (each detector's costs and accuracy), `fusion` (fused delivery: accuracy, tracking,
-the server's cost); the rest are the benchmarks' internal processes."""
+the server's cost), `mobile` (what mobile cameras cost routing); the rest are the benchmarks'
+internal processes."""
 
 from __future__ import annotations
 
@@ -15,6 +16,7 @@ from .bare import add_bare_parsers
 from .fusion import add_fusion_parser
 from .helpers import add_helper_parsers
 from .load import add_load_parser
+from .mobile import add_mobile_parser
 from .workload import add_workload_arguments, workload_main
 
 
@@ -142,6 +144,7 @@ def main(argv: list[str] | None = None) -> int:
     d.set_defaults(func=detectors_main)
     add_fusion_parser(sub)
     add_load_parser(sub)
+    add_mobile_parser(sub)
     add_helper_parsers(sub)
     add_bare_parsers(sub)
     r = sub.add_parser("robot", help="(internal) the paper benchmark's robot process")

@@ -72,6 +72,8 @@ class MobileState:
     #: Registry clock: when the last pose arrived (-inf: never), and until when it routes.
     received: float = -math.inf
     routed_until: float = -math.inf
+    #: The routed field of view's bounds (map frame), for the lookup's vectorised prefilter.
+    bounds: tuple[float, float, float, float] = (math.nan, math.nan, math.nan, math.nan)
 
 
 class Registry:
@@ -102,6 +104,13 @@ class Registry:
         self.min_pose_interval_s = min_pose_interval_s
         #: Mobile cameras by id: never in the STRtree, checked one by one at each lookup.
         self._mobile: dict[str, MobileState] = {}
+        # The mobile cameras' bounds and pose leases as arrays, in the order of `_mobile_ids`:
+        # a lookup compares the region's bounds with all of them at once, and tests the shapes of
+        # the few that overlap. Rebuilt when the set of mobile cameras changes, not per pose.
+        self._mobile_ids: list[str] | None = None
+        self._mobile_row: dict[str, int] = {}
+        self._mobile_bounds = np.empty((0, 4))
+        self._mobile_until = np.empty(0)
         if not lease_ttl_s > 0:
             raise ValueError(f"lease_ttl_s must be > 0, got {lease_ttl_s}")
         if not (max_fov_range_m > 0 and max_fov_area_m2 > 0):
@@ -191,8 +200,9 @@ class Registry:
         self._expires[camera_id] = self._clock() + self.lease_ttl_s
         if state is not None:
             self._mobile[camera_id] = state
-        else:
-            self._mobile.pop(camera_id, None)
+            self._mobile_ids = None
+        elif self._mobile.pop(camera_id, None) is not None:
+            self._mobile_ids = None
         if was_static or state is None:  # a mobile camera alone never touches the static index
             self._tree = None
         return entry
@@ -245,16 +255,32 @@ class Registry:
         state.pose, state.pose_time_unix, state.received = pose, pose_time_unix, now
         state.routed_until = now + state.pose_lease_s
         fov = move_polygon(state.base_fov, pose) if state.base_fov is not None else _EMPTY
+        if not fov.is_empty:
+            x0, y0, x1, y1 = fov.bounds
+            state.bounds = (float(x0), float(y0), float(x1), float(y1))
         entry = dataclasses.replace(entry, field_of_view=fov)
         self._entries[camera_id] = entry
+        row = self._mobile_row.get(camera_id) if self._mobile_ids is not None else None
+        if row is not None:
+            self._mobile_bounds[row] = state.bounds
+            self._mobile_until[row] = state.routed_until if state.base_fov is not None else -math.inf
         return entry
 
-    def _routable_mobile(self, now: float) -> list[CameraEntry]:
-        return [
-            self._entries[cid]
-            for cid, state in self._mobile.items()
-            if state.routed_until > now and state.base_fov is not None and self._expires.get(cid, 0.0) > now
-        ]
+    def _mobile_near(self, region: Polygon, now: float) -> list[CameraEntry]:
+        """Live mobile cameras with a fresh pose whose field of view's bounds meet the region's."""
+        if self._mobile_ids is None:
+            self._mobile_ids = list(self._mobile)
+            self._mobile_row = {cid: i for i, cid in enumerate(self._mobile_ids)}
+            states = [self._mobile[cid] for cid in self._mobile_ids]
+            self._mobile_bounds = np.array([st.bounds for st in states], dtype=float).reshape(-1, 4)
+            self._mobile_until = np.array(
+                [st.routed_until if st.base_fov is not None else -math.inf for st in states], dtype=float
+            )
+        x0, y0, x1, y1 = region.bounds
+        b = self._mobile_bounds
+        near = (self._mobile_until > now) & (b[:, 0] <= x1) & (b[:, 2] >= x0) & (b[:, 1] <= y1) & (b[:, 3] >= y0)
+        ids = self._mobile_ids
+        return [self._entries[ids[i]] for i in np.flatnonzero(near) if self._expires.get(ids[i], 0.0) > now]
 
     def field_of_view(self, homography: Homography, image_size: tuple[int, int], max_range_m: float) -> FieldOfView:
         """The field of view a registration would get; INVALID_ARGUMENT when larger than allowed."""
@@ -285,6 +311,8 @@ class Registry:
         del self._expires[camera_id]
         if self._mobile.pop(camera_id, None) is None:
             self._tree = None
+        else:
+            self._mobile_ids = None
         return entry
 
     def expire(self) -> list[CameraEntry]:
@@ -295,7 +323,10 @@ class Registry:
         for entry in gone:
             del self._entries[entry.camera_id]
             del self._expires[entry.camera_id]
-            static_gone |= self._mobile.pop(entry.camera_id, None) is None
+            was_mobile = self._mobile.pop(entry.camera_id, None) is not None
+            static_gone |= not was_mobile
+            if was_mobile:
+                self._mobile_ids = None
         if static_gone:
             self._tree = None
         return gone
@@ -321,7 +352,7 @@ class Registry:
             if self._expires.get(e.camera_id, 0.0) > now and (kind is None or kind in e.detector_kinds)
         ]
         if self._mobile:
-            moving = [e for e in self._routable_mobile(now) if kind is None or kind in e.detector_kinds]
+            moving = [e for e in self._mobile_near(region, now) if kind is None or kind in e.detector_kinds]
             if moving:
                 fovs = np.array([e.field_of_view for e in moving], dtype=object)
                 hits = shapely.relate_pattern(fovs, region, "T********")
