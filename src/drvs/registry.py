@@ -37,6 +37,8 @@ MAX_DETECTOR_KINDS = 16
 #: by the regions' points (the cache holds the regions alive: a byte budget, not only a count).
 ROUTE_CACHE_SIZE = 1024
 ROUTE_CACHE_POINTS = 64 * 1024
+#: Side of the grid cells that index mobile cameras' fields of view, metres (about a camera's range).
+MOBILE_CELL_M = 8.0
 #: A mobile camera's field of view is routed this long after a pose update, seconds (default and
 #: cap), and pose updates closer together than MIN_POSE_INTERVAL_S are refused.
 DEFAULT_POSE_LEASE_S = 1.0
@@ -104,13 +106,10 @@ class Registry:
         self.min_pose_interval_s = min_pose_interval_s
         #: Mobile cameras by id: never in the STRtree, checked one by one at each lookup.
         self._mobile: dict[str, MobileState] = {}
-        # The mobile cameras' bounds and pose leases as arrays, in the order of `_mobile_ids`:
-        # a lookup compares the region's bounds with all of them at once, and tests the shapes of
-        # the few that overlap. Rebuilt when the set of mobile cameras changes, not per pose.
-        self._mobile_ids: list[str] | None = None
-        self._mobile_row: dict[str, int] = {}
-        self._mobile_bounds = np.empty((0, 4))
-        self._mobile_until = np.empty(0)
+        # Mobile cameras by the MOBILE_CELL_M grid cells their routed field of view's bounds cover:
+        # a pose update moves one camera between a few cells, and a lookup reads the cells under
+        # the region, so neither costs more with more cameras elsewhere.
+        self._mobile_cells: dict[tuple[int, int], set[str]] = {}
         if not lease_ttl_s > 0:
             raise ValueError(f"lease_ttl_s must be > 0, got {lease_ttl_s}")
         if not (max_fov_range_m > 0 and max_fov_area_m2 > 0):
@@ -198,11 +197,11 @@ class Registry:
         was_static = camera_id in self._entries and camera_id not in self._mobile
         self._entries[camera_id] = entry
         self._expires[camera_id] = self._clock() + self.lease_ttl_s
+        old = self._mobile.pop(camera_id, None)
+        if old is not None:
+            self._uncell(camera_id, old)
         if state is not None:
             self._mobile[camera_id] = state
-            self._mobile_ids = None
-        elif self._mobile.pop(camera_id, None) is not None:
-            self._mobile_ids = None
         if was_static or state is None:  # a mobile camera alone never touches the static index
             self._tree = None
         return entry
@@ -255,32 +254,48 @@ class Registry:
         state.pose, state.pose_time_unix, state.received = pose, pose_time_unix, now
         state.routed_until = now + state.pose_lease_s
         fov = move_polygon(state.base_fov, pose) if state.base_fov is not None else _EMPTY
+        self._uncell(camera_id, state)
         if not fov.is_empty:
             x0, y0, x1, y1 = fov.bounds
             state.bounds = (float(x0), float(y0), float(x1), float(y1))
+            for cell in _cells(state.bounds):
+                self._mobile_cells.setdefault(cell, set()).add(camera_id)
         entry = dataclasses.replace(entry, field_of_view=fov)
         self._entries[camera_id] = entry
-        row = self._mobile_row.get(camera_id) if self._mobile_ids is not None else None
-        if row is not None:
-            self._mobile_bounds[row] = state.bounds
-            self._mobile_until[row] = state.routed_until if state.base_fov is not None else -math.inf
         return entry
+
+    def _uncell(self, camera_id: str, state: MobileState) -> None:
+        if math.isnan(state.bounds[0]):
+            return
+        for cell in _cells(state.bounds):
+            held = self._mobile_cells.get(cell)
+            if held is not None:
+                held.discard(camera_id)
+                if not held:
+                    del self._mobile_cells[cell]
 
     def _mobile_near(self, region: Polygon, now: float) -> list[CameraEntry]:
         """Live mobile cameras with a fresh pose whose field of view's bounds meet the region's."""
-        if self._mobile_ids is None:
-            self._mobile_ids = list(self._mobile)
-            self._mobile_row = {cid: i for i, cid in enumerate(self._mobile_ids)}
-            states = [self._mobile[cid] for cid in self._mobile_ids]
-            self._mobile_bounds = np.array([st.bounds for st in states], dtype=float).reshape(-1, 4)
-            self._mobile_until = np.array(
-                [st.routed_until if st.base_fov is not None else -math.inf for st in states], dtype=float
-            )
+        near: set[str] = set()
+        cells = self._mobile_cells
+        cx0, cy0, cx1, cy1 = _cell_span(region.bounds)
+        if (cx1 - cx0 + 1) * (cy1 - cy0 + 1) > len(cells):  # a large region: read the cells that hold cameras
+            for (i, j), ids in cells.items():
+                if cx0 <= i <= cx1 and cy0 <= j <= cy1:
+                    near |= ids
+        else:
+            for cell in _cells(region.bounds):
+                ids = cells.get(cell, set())
+                near |= ids
         x0, y0, x1, y1 = region.bounds
-        b = self._mobile_bounds
-        near = (self._mobile_until > now) & (b[:, 0] <= x1) & (b[:, 2] >= x0) & (b[:, 1] <= y1) & (b[:, 3] >= y0)
-        ids = self._mobile_ids
-        return [self._entries[ids[i]] for i in np.flatnonzero(near) if self._expires.get(ids[i], 0.0) > now]
+        found = []
+        for cid in near:
+            state = self._mobile[cid]
+            b = state.bounds
+            fresh = state.routed_until > now and self._expires.get(cid, 0.0) > now
+            if fresh and b[0] <= x1 and b[2] >= x0 and b[1] <= y1 and b[3] >= y0:
+                found.append(self._entries[cid])
+        return found
 
     def field_of_view(self, homography: Homography, image_size: tuple[int, int], max_range_m: float) -> FieldOfView:
         """The field of view a registration would get; INVALID_ARGUMENT when larger than allowed."""
@@ -309,10 +324,11 @@ class Registry:
         if entry is None:
             raise NotFound(f"camera_id: {camera_id!r} is not registered")
         del self._expires[camera_id]
-        if self._mobile.pop(camera_id, None) is None:
+        state = self._mobile.pop(camera_id, None)
+        if state is None:
             self._tree = None
         else:
-            self._mobile_ids = None
+            self._uncell(camera_id, state)
         return entry
 
     def expire(self) -> list[CameraEntry]:
@@ -323,10 +339,10 @@ class Registry:
         for entry in gone:
             del self._entries[entry.camera_id]
             del self._expires[entry.camera_id]
-            was_mobile = self._mobile.pop(entry.camera_id, None) is not None
-            static_gone |= not was_mobile
-            if was_mobile:
-                self._mobile_ids = None
+            state = self._mobile.pop(entry.camera_id, None)
+            static_gone |= state is None
+            if state is not None:
+                self._uncell(entry.camera_id, state)
         if static_gone:
             self._tree = None
         return gone
@@ -514,3 +530,14 @@ class Claims:
         for cid in gone:
             self.release(cid)
         return gone
+
+
+def _cell_span(bounds: tuple[float, float, float, float]) -> tuple[int, int, int, int]:
+    x0, y0, x1, y1 = (math.floor(v / MOBILE_CELL_M) for v in bounds)
+    return x0, y0, x1, y1
+
+
+def _cells(bounds: tuple[float, float, float, float]) -> list[tuple[int, int]]:
+    """The MOBILE_CELL_M grid cells a box covers."""
+    x0, y0, x1, y1 = _cell_span(bounds)
+    return [(i, j) for i in range(x0, x1 + 1) for j in range(y0, y1 + 1)]
