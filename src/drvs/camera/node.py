@@ -498,17 +498,18 @@ class CameraNode(Lifecycle):
     async def _look(self, request: DetectionRequest, sequence: int, final: bool) -> DetectionReport:
         frame = self.source.latest()
         frame_age = frame.age_s() if frame is not None else math.inf
+        # Every report of this look names the request, this camera, its place and the frame's time.
+        report = functools.partial(
+            DetectionReport,
+            request_id=request.request_id,
+            camera_id=self.camera_id,
+            capture_time=frame.capture_time if frame is not None else 0.0,
+            sequence=sequence,
+            final=final,
+        )
         if frame is None or frame_age > self.max_frame_age_s:
             age = "no frame" if frame is None else f"newest frame is {frame_age:.1f} s old"
-            return DetectionReport(
-                request_id=request.request_id,
-                camera_id=self.camera_id,
-                capture_time=frame.capture_time if frame else 0.0,
-                sequence=sequence,
-                final=final,
-                error=f"camera {self.camera_id}: no fresh frame ({age})",
-                error_code="UNAVAILABLE",
-            )
+            return report(error=f"camera {self.camera_id}: no fresh frame ({age})", error_code="UNAVAILABLE")
         assert self._analyses is not None
         wanted = object_type(request.filter_def)
         runner = self.kinds[wanted.kind]
@@ -534,12 +535,8 @@ class CameraNode(Lifecycle):
             if pose is None:
                 latest = self.poses.latest()
                 gap = "no pose yet" if latest is None else f"newest pose {frame.capture_time - latest[0]:+.2f} s away"
-                return DetectionReport(
-                    request_id=request.request_id,
-                    camera_id=self.camera_id,
+                return report(
                     capture_time=frame.capture_time,
-                    sequence=sequence,
-                    final=final,
                     error=f"camera {self.camera_id}: no pose within {self.poses.max_gap_s:g} s of the frame's "
                     f"capture ({gap})",
                     error_code="UNAVAILABLE",
@@ -549,15 +546,7 @@ class CameraNode(Lifecycle):
         # paying a hop to a thread and back.
         detections = select(narrowed, request.region)
         metrics.STAGE_DETECT.observe(time.perf_counter() - started)
-        return DetectionReport(
-            request_id=request.request_id,
-            camera_id=self.camera_id,
-            capture_time=frame.capture_time,
-            sequence=sequence,
-            final=final,
-            detections=tuple(detections),
-            camera_pose=pose,
-        )
+        return report(capture_time=frame.capture_time, detections=tuple(detections), camera_pose=pose)
 
 
 def _robot_name(robot: str | tuple[str, str]) -> str:
