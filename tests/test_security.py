@@ -4,6 +4,7 @@ ownership, and per-robot limits."""
 from __future__ import annotations
 
 import asyncio
+import contextlib
 from collections.abc import AsyncIterator
 from pathlib import Path
 
@@ -158,10 +159,12 @@ async def test_tokens_robots_and_cameras_need_their_own(token_office: tuple[str,
         request = detect_message(request_id="direct", callback_address="10.9.9.9:9")
         # (on DetectBatches, the one method a camera serves; the server's forwards use it)
         call = stub.DetectBatches(metadata=bearer(ROBOT_TOKEN))
-        with pytest.raises(aio.AioRpcError) as err:
+        # The camera may refuse the call before our write goes out, and then the write itself
+        # fails (grpc reports INTERNAL for a write on a finished call): the call's status is the
+        # answer, whichever of the two came first.
+        with contextlib.suppress(aio.AioRpcError):
             await call.write(detection_pb2.DetectionRequests(requests=[request]))
-            await call.read()
-        assert err.value.code() == grpc.StatusCode.UNAUTHENTICATED
+        assert await call.code() == grpc.StatusCode.UNAUTHENTICATED
 
 
 async def test_server_logs_that_it_serves_loopback_only_without_credentials() -> None:
