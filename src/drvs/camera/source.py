@@ -67,7 +67,51 @@ def parse_source(spec: str) -> int | str:
     return int(spec) if spec.isdigit() else spec
 
 
-class VideoSource:
+class NewestFrame:
+    """The newest frame a source produced, kept for the node to read: the part every source shares.
+
+    A source's producer (a grabber thread, a renderer, a program's own `push`) calls `_keep`; the
+    node reads `latest()` and, at start, awaits `wait_first_frame`. `lock` is a Lock, or a Condition
+    when the source also waits on it for its own state.
+    """
+
+    description: str
+    error: str | None = None
+
+    def __init__(self, lock: threading.Lock | threading.Condition | None = None) -> None:
+        self._lock = lock if lock is not None else threading.Lock()
+        self._latest: Frame | None = None
+        self._first = threading.Event()
+        self._sequence = 0
+
+    def _keep(self, image: np.ndarray, capture_time: float, captured_at: float) -> Frame:
+        """Keep `image` as the newest frame, numbered after the last one; return it."""
+        with self._lock:
+            self._sequence += 1
+            frame = Frame(image=image, capture_time=capture_time, sequence=self._sequence, captured_at=captured_at)
+            self._latest = frame
+        self._first.set()
+        return frame
+
+    def latest(self) -> Frame | None:
+        """The newest frame, or None before the first."""
+        with self._lock:
+            return self._latest
+
+    async def wait_first_frame(self, timeout_s: float) -> Frame:
+        """The first frame, waiting up to `timeout_s` seconds; FailedPrecondition naming the source
+        (and its last error) when none came."""
+        if not await asyncio.to_thread(self._first.wait, timeout_s):
+            raise FailedPrecondition(
+                f"source {self.description!r}: no frame within {timeout_s:g} s"
+                + (f" ({self.error})" if self.error else "")
+            )
+        frame = self.latest()
+        assert frame is not None
+        return frame
+
+
+class VideoSource(NewestFrame):
     """Any OpenCV VideoCapture source, read by a background thread that keeps the newest frame.
 
     A video file plays at its own frame rate and loops; a device or stream is read as fast as it
@@ -90,12 +134,9 @@ class VideoSource:
         self.is_file = isinstance(self.source, str) and os.path.isfile(self.source)
         self.loop_file = loop_file
         self.reconnect_max_s = reconnect_max_s
-        self._lock = threading.Lock()
-        self._latest: Frame | None = None
-        self._first = threading.Event()
+        super().__init__()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
-        self._sequence = 0
         self.error: str | None = None
         self._opened_once = False
 
@@ -111,20 +152,6 @@ class VideoSource:
         self._stop.set()
         if self._thread is not None:
             self._thread.join(timeout=5)
-
-    def latest(self) -> Frame | None:
-        with self._lock:
-            return self._latest
-
-    async def wait_first_frame(self, timeout_s: float) -> Frame:
-        if not await asyncio.to_thread(self._first.wait, timeout_s):
-            raise FailedPrecondition(
-                f"source {self.description!r}: no frame within {timeout_s:g} s"
-                + (f" ({self.error})" if self.error else "")
-            )
-        frame = self.latest()
-        assert frame is not None
-        return frame
 
     def _open(self) -> cv2.VideoCapture | None:
         cap = cv2.VideoCapture(self.source)
@@ -173,15 +200,7 @@ class VideoSource:
                 log.warning("source %s stopped delivering frames; reconnecting", self.description)
                 return
             captured_at, now = time.monotonic(), time.time()
-            with self._lock:
-                self._sequence += 1
-                self._latest = Frame(
-                    image=np.asarray(image, dtype=np.uint8),
-                    capture_time=now,
-                    sequence=self._sequence,
-                    captured_at=captured_at,
-                )
-            self._first.set()
+            self._keep(np.asarray(image, dtype=np.uint8), now, captured_at)
             if period:
                 next_at += period
                 delay = next_at - time.monotonic()
@@ -191,17 +210,14 @@ class VideoSource:
                     next_at = time.monotonic()
 
 
-class PushSource:
+class PushSource(NewestFrame):
     """Frames that the program itself hands over: a robot's own code, which already has its camera's
     images, pushes each one (`push(image_bgr, capture_time)`) and a camera node serves from the
     newest. Thread-safe: push from any thread."""
 
     def __init__(self, description: str = "pushed frames") -> None:
         self.description = description
-        self._lock = threading.Lock()
-        self._latest: Frame | None = None
-        self._first = threading.Event()
-        self._sequence = 0
+        super().__init__()
 
     def start(self) -> None:
         """Nothing to open: frames arrive by push."""
@@ -220,21 +236,4 @@ class PushSource:
         now = time.time()
         # The frame's age runs on the monotonic clock, from when it was captured.
         captured_at = time.monotonic() - (max(0.0, now - capture_time) if capture_time is not None else 0.0)
-        with self._lock:
-            self._sequence += 1
-            frame = Frame(image=image, capture_time=now if capture_time is None else capture_time,
-                          sequence=self._sequence, captured_at=captured_at)  # fmt: skip
-            self._latest = frame
-        self._first.set()
-        return frame
-
-    def latest(self) -> Frame | None:
-        with self._lock:
-            return self._latest
-
-    async def wait_first_frame(self, timeout_s: float) -> Frame:
-        if not await asyncio.to_thread(self._first.wait, timeout_s):
-            raise FailedPrecondition(f"source {self.description}: no frame pushed within {timeout_s:g} s")
-        frame = self.latest()
-        assert frame is not None
-        return frame
+        return self._keep(image, now if capture_time is None else capture_time, captured_at)

@@ -29,7 +29,7 @@ import logging
 import time
 from collections import OrderedDict
 from collections.abc import Callable, Sequence
-from typing import Protocol
+from typing import Any, Protocol
 
 import grpc
 
@@ -304,8 +304,7 @@ class SingleShot(FusionSession):
         if self._timer is not None:
             self._timer.cancel()
         fusing, self._fusing = self._fusing, None
-        if fusing is not None and fusing is not asyncio.current_task():
-            fusing.cancel()
+        _cancel_unless_current(fusing)
         super()._close()
 
     def _forget(self) -> None:
@@ -429,8 +428,7 @@ class Continuous(FusionSession):
 
     def _close(self) -> None:
         task, self._task = self._task, None
-        if task is not None and task is not asyncio.current_task():
-            task.cancel()
+        _cancel_unless_current(task)
         super()._close()
 
     def _forget(self) -> None:
@@ -581,3 +579,9 @@ class ReportIntake:
         for session in set(self._verified.values()):
             session.stream_ended(self)
         self._verified.clear()
+
+
+def _cancel_unless_current(task: asyncio.Task[Any] | None) -> None:
+    """Cancel a session's task when it closes, unless the task is the one closing it (it is ending)."""
+    if task is not None and task is not asyncio.current_task():
+        task.cancel()

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import logging
 import threading
 import time
@@ -11,8 +10,8 @@ from typing import Any
 import grpc
 
 from drvs import _grpc
-from drvs.detection import Frame
-from drvs.errors import FailedPrecondition, Unavailable
+from drvs.camera.source import NewestFrame
+from drvs.errors import Unavailable
 from drvs.sim.render import CameraRenderer
 from drvs.sim.world import fetch_scene
 from drvs.v1 import sim_pb2, sim_pb2_grpc
@@ -21,7 +20,7 @@ log = logging.getLogger("drvs.sim.source")
 SCHEME = "sim://"
 
 
-class SimSource:
+class SimSource(NewestFrame):
     """Renders this camera's view of the world at its frame rate, and at once whenever the robot moves.
 
     Frames carry real capture times; their pixels depend only on the world's state: the robot's
@@ -32,9 +31,8 @@ class SimSource:
         self.world = spec[len(SCHEME) :] if spec.startswith(SCHEME) else spec
         self.camera_id = camera_id
         self.description = f"{SCHEME}{self.world} ({camera_id})"
-        self._lock = threading.Condition()
-        self._latest: Frame | None = None
-        self._first = threading.Event()
+        self._lock: threading.Condition
+        super().__init__(threading.Condition())
         self._stop = threading.Event()
         self._robot: tuple[float, float] | None = None
         self._robot_theta = 0.0
@@ -74,17 +72,6 @@ class SimSource:
         if self._channel is not None:
             self._channel.close()
 
-    def latest(self) -> Frame | None:
-        with self._lock:
-            return self._latest
-
-    async def wait_first_frame(self, timeout_s: float) -> Frame:
-        if not await asyncio.to_thread(self._first.wait, timeout_s):
-            raise FailedPrecondition(f"source {self.description}: no frame within {timeout_s:g} s")
-        frame = self.latest()
-        assert frame is not None
-        return frame
-
     def _follow_robot(self) -> None:
         try:
             for pose in self._watch:
@@ -101,7 +88,6 @@ class SimSource:
 
     def _render_loop(self) -> None:
         period = 1.0 / self.fps
-        sequence = 0
         rendered_version = -2
         image = None
         moving = bool(self.renderer.scenario.moving_obstacles)
@@ -119,9 +105,5 @@ class SimSource:
                 image = self.renderer.render(robot, max(version, 0), theta, max(0.0, now - clock_start))
             elif image is None or version != rendered_version:  # pixels depend only on the world state
                 image = self.renderer.render(robot, max(version, 0), theta)
-            sequence += 1
-            frame = Frame(image=image, capture_time=now, sequence=sequence, captured_at=time.monotonic())
-            with self._lock:
-                self._latest = frame
+            self._keep(image, now, time.monotonic())
             rendered_version = version
-            self._first.set()
