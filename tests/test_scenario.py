@@ -10,7 +10,8 @@ import numpy as np
 import pytest
 import yaml
 
-from drvs.sim.scenario import DEFAULT_SCENARIO, ScenarioError, load_scenario, parse_scenario
+from drvs.geometry import FieldOfView
+from drvs.sim.scenario import DEFAULT_SCENARIO, ScenarioError, along_path, load_scenario, parse_scenario
 
 OFFICE = yaml.safe_load(DEFAULT_SCENARIO.read_text())
 
@@ -22,11 +23,15 @@ def test_default_office_matches_the_paper() -> None:
     for i, a in enumerate(fovs):
         for b in fovs[i + 1 :]:
             assert a.intersection(b).area == 0, "the paper's cameras have non-overlapping views"
-    # Every object lies inside exactly one camera's view, so DRVS can see all of them (the trolley
-    # where it crosses the hallway: it starts beyond the cameras, at the hallway's far end).
-    for obj in s.objects:
-        assert sum(f.contains(obj.shape_at(30.0)) for f in fovs) == 1, obj
-    assert len(s.obstacles) == 3 and len(s.moving_obstacles) == 1 and len(s.charging_stations) == 1
+    # Every object but one lies inside exactly one fixed camera's view (the trolley where it crosses
+    # the hallway: it starts beyond the cameras, at the hallway's far end). The one in the main
+    # room's north-east corner no fixed camera sees: the scout's camera does, as it sets off.
+    (scout,) = s.scouts
+    hidden = [obj for obj in s.objects if sum(f.contains(obj.shape_at(30.0)) for f in fovs) != 1]
+    assert [(o.kind, sum(f.intersects(o.shape) for f in fovs)) for o in hidden] == [("obstacle", 0)]
+    scout_view = FieldOfView.compute(scout.homography_at(0.0), scout.resolution, scout.max_range_m).floor
+    assert scout_view.contains(hidden[0].shape)
+    assert len(s.obstacles) == 4 and len(s.moving_obstacles) == 1 and len(s.charging_stations) == 1
 
 
 def with_change(path: str, value: object, scenario: Path = DEFAULT_SCENARIO) -> str:
@@ -72,6 +77,17 @@ def with_change(path: str, value: object, scenario: Path = DEFAULT_SCENARIO) -> 
         ("cameras[0].hfov_deg", float("nan"), r"cameras\[0\]\.hfov_deg: nan is not a finite number"),
         ("mission", "dance", r"mission: 'dance' is not one of"),
         ("render.noise", 1, r"render\.noise: unknown key"),
+        ("scouts[0].camera.pitch_deg", -40, r"scouts\[0\]\.camera: sees no floor"),
+        ("scouts[0].camera.height", KeyError, r"scouts\[0\]\.camera\.height: missing"),
+        ("scouts[0].camera.zoom", 2, r"scouts\[0\]\.camera\.zoom: unknown key"),
+        ("scouts[0].path", [[11.6, 9.5], [30, 3]], r"scouts\[0\]\.path\[1\]: \[30\.0, 3\.0\] .* not inside floor"),
+        ("scouts[0].path", [[2.5, 4.0]], r"scouts\[0\]\.path\[0\]: \[2\.5, 4\.0\] is inside a wall"),
+        ("scouts[0].path", [], r"scouts\[0\]\.path: expected a non-empty list"),
+        ("scouts[0].loop", "yes", r"scouts\[0\]\.loop: expected true"),
+        ("scouts[0].speed_mps", 0, r"scouts\[0\]\.speed_mps"),
+        ("scouts[0].id", "cam-west", r"scouts\[0\]\.id: 'cam-west' is already a camera's or a scout's id"),
+        ("scouts[0].camera.id", "cam-hall", r"scouts\[0\]\.camera\.id: 'cam-hall' is already"),
+        ("scouts", {"id": "x"}, r"scouts: expected a list"),
     ],
 )
 def test_bad_scenarios_name_the_key(path: str, value: object, message: str) -> None:
@@ -162,3 +178,20 @@ def any_colour_with(path: str, value: object) -> str:
 def test_bad_markers_and_paint_name_the_key(path: str, value: object, message: str) -> None:
     with pytest.raises(ScenarioError, match=message):
         parse_scenario(any_colour_with(path, value), "any_colour.yaml")
+
+
+def test_a_scout_drives_its_path_heading_the_way_it_goes() -> None:
+    path = [(0.0, 0.0), (2.0, 0.0), (2.0, 2.0)]
+    assert along_path(path, 1.0, loop=False) == (1.0, 0.0, 0.0)
+    assert along_path(path, 3.0, loop=False) == (2.0, 1.0, math.pi / 2)
+    assert along_path(path, 9.0, loop=False) == (2.0, 2.0, math.pi / 2)  # stops at the end
+    # Back and forth: 5 m along a 4 m path is 1 m back from its end, heading back (south).
+    x, y, heading = along_path(path, 5.0, loop=True)
+    assert (x, y) == (2.0, 1.0) and heading == pytest.approx(-math.pi / 2)
+    assert along_path(path, 8.0 + 1.0, loop=True)[:2] == (1.0, 0.0)  # one round trip later
+    (scout,) = load_scenario().scouts
+    assert scout.camera_id == "scout-1-cam" and scout.mount.z == 1.0 and scout.mount.pitch_deg == 35
+    start = scout.pose_at(-5.0)  # before the clock starts: where it starts, facing its first leg
+    assert (start.x, start.y, start.yaw) == (11.6, 9.5, pytest.approx(-math.pi / 2))
+    later = scout.pose_at(2.0)
+    assert (later.x, later.y) == (11.6, pytest.approx(9.5 - 2.0 * scout.speed_mps))

@@ -351,7 +351,7 @@ async def running_server(
 async def start_camera(
     camera_id: str,
     source: str | Path,
-    homography: str | Path,
+    homography: str | Path | None,
     server: str,
     *args: str,
     echo: TextIO | None = None,
@@ -360,7 +360,7 @@ async def start_camera(
 ) -> ManagedProcess:
     """drvs-camera listening on 127.0.0.1 port 0, returned once its health service answers SERVING
     and it has registered with `server`, all within `timeout` s. On failure or timeout it is
-    stopped and reaped."""
+    stopped and reaped. `homography` None: a mobile camera, its --mount and --pose-source in `args`."""
     proc = ManagedProcess.entry_point(
         camera_id,
         "drvs-camera",
@@ -368,8 +368,7 @@ async def start_camera(
         camera_id,
         "--source",
         str(source),
-        "--homography",
-        str(homography),
+        *(("--homography", str(homography)) if homography is not None else ()),
         "--server",
         server,
         "--listen",

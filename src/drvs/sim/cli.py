@@ -1,4 +1,4 @@
-"""drvs-sim: the simulation's own roles, each a process: `world` and `robot`."""
+"""drvs-sim: the simulation's own roles, each a process: `world`, `scout` and `robot`."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from pathlib import Path
 
 from drvs._cli import add_security_arguments, security_from, setup_logging
 from drvs.errors import DrvsError
+from drvs.sim.poses import add_scout_arguments, scout_main
 from drvs.sim.world import add_world_arguments, world_main
 
 log = logging.getLogger("drvs.sim")
@@ -52,6 +53,9 @@ def main(argv: list[str] | None = None) -> int:
     w = sub.add_parser("world", help="serve the simulated world")
     add_world_arguments(w)
     w.set_defaults(func=world_main)
+    sc = sub.add_parser("scout", help="serve a scout's poses from the world as a tcp:// pose feed (its localisation)")
+    add_scout_arguments(sc)
+    sc.set_defaults(func=scout_main)
     r = sub.add_parser("robot", help="run the simulated robot's mission")
     r.add_argument("--world", required=True, help="HOST:PORT of the simulated world")
     r.add_argument("--server", default="127.0.0.1:50051", help="HOST:PORT of the DRVS server")

@@ -22,9 +22,10 @@ from drvs.errors import DrvsError
 from drvs.homography_file import save_homography
 from drvs.launch import ManagedProcess, start_camera, start_server, wait_serving
 from drvs.sim.cli import PROGRESS_PREFIX
-from drvs.sim.scenario import DEFAULT_SCENARIO, CameraDef, Scenario, load_scenario
+from drvs.sim.scenario import DEFAULT_SCENARIO, CameraDef, Scenario, ScoutDef, load_scenario
 
 WORLD_READY = re.compile(r"sim world .* listening on (\S+)")
+SCOUT_READY = re.compile(r"pose feed listening on (tcp://\S+)")
 
 
 def sim_process(name: str, *args: str, echo: TextIO | None = None) -> ManagedProcess:
@@ -52,6 +53,28 @@ def camera_config(cams_dir: Path, scenario: Scenario, camera: CameraDef, detecto
     config = cams_dir / f"{camera.id}.camera.yaml"
     config.write_text(yaml.safe_dump({"background": str(picture.resolve())}))
     return ["--config", str(config), "--detectors", "hsv,aruco,foreground"]
+
+
+async def start_scout(
+    scout: ScoutDef, world: str, server: str, *args: str, echo: TextIO | None = None
+) -> tuple[ManagedProcess, ManagedProcess]:
+    """A scout's two processes: its mover (`drvs-sim scout`, its localisation: the world's poses of
+    it as a tcp:// feed) and its camera (a mobile `drvs-camera` rendering the world from where the
+    scout is, reading the mover's feed), returned once the camera has registered. `args`: more
+    drvs-camera arguments (TLS, detectors)."""
+    mover = await sim_process(f"{scout.id}-mover", "scout", "--world", world, "--id", scout.id, echo=echo).start()
+    try:
+        feed = (await mover.wait_for_line(SCOUT_READY)).group(1)
+        m = scout.mount
+        camera = await start_camera(
+            scout.camera_id, f"sim://{world}", None, server,
+            "--mount", f"{m.x:g},{m.y:g},{m.z:g},{m.yaw_deg:g},{m.pitch_deg:g}", "--hfov", f"{m.hfov_deg:g}",
+            "--pose-source", feed, "--max-range", f"{scout.max_range_m:g}", *args, echo=echo,
+        )  # fmt: skip
+    except BaseException:
+        await mover.stop()
+        raise
+    return mover, camera
 
 
 class Progress:
@@ -105,11 +128,12 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
             robot_args.append("--no-drvs")
             say("DRVS       off: the paper's baseline, the robot learns obstacles by touching them")
         else:
-            tls: dict[str, list[str]] = {"server": [], "robot": [], **{f"camera-{c.id}": [] for c in scenario.cameras}}
+            camera_ids = [c.id for c in scenario.cameras] + [s.camera_id for s in scenario.scouts]
+            tls: dict[str, list[str]] = {"server": [], "robot": [], **{f"camera-{c}": [] for c in camera_ids}}
             if args.tls:
                 certs = out / "certs"
                 # One certificate per camera: each camera its own identity, so none can take over another's id.
-                made = make_all(certs, ["server", "robot"], [], cameras=[c.id for c in scenario.cameras])
+                made = make_all(certs, ["server", "robot"], [], cameras=camera_ids)
                 for role, (cert, key) in made.items():
                     tls[role] = ["--tls-cert", str(cert), "--tls-key", str(key), "--tls-ca", str(certs / "ca.pem"),
                                  "--tls-client-auth"]  # fmt: skip
@@ -132,6 +156,16 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
                 procs.append(proc)
                 cameras[cam.id] = proc
                 say(f"camera     {cam.id} registered ({cam.field_of_view.floor.area:.1f} m² of floor)")
+            for scout in scenario.scouts:
+                # A moving camera has no picture of the empty floor to compare with: colours and markers.
+                mover, camera = await start_scout(
+                    scout, world_address, server_address, *tls[f"camera-{scout.camera_id}"],
+                    "--detectors", "hsv,aruco", echo=echo,
+                )  # fmt: skip
+                procs += [mover, camera]
+                cameras[scout.camera_id] = camera
+                say(f"scout      {scout.id} drives {len(scout.path)} points at {scout.speed_mps:g} m/s; "
+                    f"its camera {scout.camera_id} registered as mobile")  # fmt: skip
             robot_args += ["--server", server_address, *tls["robot"]]
         robot = await sim_process("robot", *robot_args, echo=echo).start()
         procs.append(robot)
@@ -267,7 +301,9 @@ def main(argv: list[str] | None = None) -> int:
         if args.kill_camera:
             args.kill_camera = parse_kill(args.kill_camera)
         scenario = load_scenario(scenario_path)
-        if args.kill_camera and args.kill_camera[0] not in {c.id for c in scenario.cameras}:
+        if args.kill_camera and args.kill_camera[0] not in {c.id for c in scenario.cameras} | {
+            s.camera_id for s in scenario.scouts
+        }:
             raise DrvsError(f"--kill-camera: the scenario has no camera {args.kill_camera[0]!r}")
         if args.mission and args.mission != scenario.mission:
             # The world, cameras and robot all read the scenario: give them the overridden one.

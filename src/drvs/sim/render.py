@@ -12,9 +12,9 @@ import numpy as np
 from numpy.typing import NDArray
 from shapely.geometry import Point, Polygon
 
-from drvs.geometry import FieldOfView
+from drvs.geometry import FieldOfView, Homography
 from drvs.imaging import fill_polygon
-from drvs.sim.scenario import QUIET_ZONE_CELLS, ArucoDef, CameraDef, Scenario
+from drvs.sim.scenario import QUIET_ZONE_CELLS, ArucoDef, CameraDef, Scenario, ScoutDef
 from drvs.sim.scene import fill_floor_shape
 
 FLOOR_BGR = (128, 132, 136)
@@ -38,20 +38,41 @@ class CameraRenderer:
     obstacles are painted per frame where their path puts them at the world time.
     """
 
-    def __init__(self, scenario: Scenario, camera: CameraDef, seed: int = 0) -> None:
+    def __init__(self, scenario: Scenario, camera: CameraDef | ScoutDef, seed: int = 0) -> None:
         self.scenario = scenario
         self.camera = camera
+        #: The scout that carries this camera (its view moves with it), or None for a fixed camera.
+        self.scout = camera if isinstance(camera, ScoutDef) else None
+        camera_id = camera.camera_id if isinstance(camera, ScoutDef) else camera.id
         self.size = camera.resolution
-        self.homography = camera.homography
-        self._to_image = self.homography.inverse()
         width, height = self.size
-        fov = FieldOfView.compute(self.homography, self.size, max_range_m=1000.0)
+        self._texture, self._world_to_texture = _floor_texture(scenario, seed)
+        # Uneven lighting across the image (a window on one side), fixed per camera.
+        rng = np.random.default_rng([seed, _stable_hash(camera_id)])
+        swing = scenario.render.lighting
+        self._ramp = 1.0 + swing * np.linspace(-0.5, 0.5, width, dtype=np.float32) * rng.choice([-1.0, 1.0])
+        self._phase = float(rng.uniform(0, 2 * math.pi))
+        sigma = scenario.render.noise_sigma
+        self._noise_up: list[NDArray[np.uint8]] = []
+        self._noise_down: list[NDArray[np.uint8]] = []
+        for _ in range(_NOISE_BANK if sigma > 0 else 0):
+            n = rng.normal(0.0, sigma, (height, width, 3))
+            self._noise_up.append(np.clip(n, 0, 255).astype(np.uint8))
+            self._noise_down.append(np.clip(-n, 0, 255).astype(np.uint8))
+        self._others = [s for s in scenario.scouts if s is not self.scout]
+        self._look_through(camera.homography_at(0.0) if isinstance(camera, ScoutDef) else camera.homography)
+
+    def _look_through(self, homography: Homography) -> None:
+        """Warp the static world (floor, walls, still objects, markers) through `homography`."""
+        self.homography = homography
+        self._to_image = homography.inverse()
+        width, height = self.size
+        fov = FieldOfView.compute(homography, self.size, max_range_m=1000.0)
         self._fov_floor = fov.floor
-        texture, world_to_texture = _floor_texture(scenario, seed)
-        image_to_texture = world_to_texture @ self.homography.matrix
+        image_to_texture = self._world_to_texture @ homography.matrix
         static = np.asarray(
             cv2.warpPerspective(
-                texture,
+                self._texture,
                 image_to_texture,
                 (width, height),
                 flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
@@ -65,21 +86,14 @@ class CameraRenderer:
         fill_polygon(mask, np.asarray(fov.image.exterior.coords)[:-1], 255)
         static[mask == 0] = BEYOND_BGR
         self._ahead = float(np.sign(self._to_image.projective_scale(np.asarray(fov.floor.centroid.coords))[0]))
-        for marker in scenario.aruco_markers:
+        for marker in self.scenario.aruco_markers:
             self.draw_marker(static, marker)
-        # Uneven lighting across the image (a window on one side), fixed per camera.
-        rng = np.random.default_rng([seed, _stable_hash(camera.id)])
-        swing = scenario.render.lighting
-        ramp = 1.0 + swing * np.linspace(-0.5, 0.5, width, dtype=np.float32) * rng.choice([-1.0, 1.0])
-        self._static = np.clip(static.astype(np.float32) * ramp[None, :, None], 0, 255).astype(np.uint8)
-        self._phase = float(rng.uniform(0, 2 * math.pi))
-        sigma = scenario.render.noise_sigma
-        self._noise_up: list[NDArray[np.uint8]] = []
-        self._noise_down: list[NDArray[np.uint8]] = []
-        for _ in range(_NOISE_BANK if sigma > 0 else 0):
-            n = rng.normal(0.0, sigma, (height, width, 3))
-            self._noise_up.append(np.clip(n, 0, 255).astype(np.uint8))
-            self._noise_down.append(np.clip(-n, 0, 255).astype(np.uint8))
+        self._static = np.clip(static.astype(np.float32) * self._ramp[None, :, None], 0, 255).astype(np.uint8)
+
+    @property
+    def moving(self) -> bool:
+        """Does each frame depend on world time (moving obstacles, scouts), not only on the robot?"""
+        return bool(self.scenario.moving_obstacles or self.scenario.scouts)
 
     def draw_marker(
         self, image: NDArray[np.uint8], marker: ArucoDef, at: tuple[float, float] = (0.0, 0.0), turn_deg: float = 0.0
@@ -96,11 +110,16 @@ class CameraRenderer:
     ) -> NDArray[np.uint8]:
         """A BGR frame of world state `version` with the robot at robot_xy (None: no robot), heading
         robot_theta (radians CCW from x; it turns the marker on its top plate), and the moving
-        obstacles where they are at `world_time` (seconds since the world's clock started).
+        obstacles and scouts where they are at `world_time` (seconds since the world's clock
+        started); a scout's camera looks from where its scout is then.
 
         Lighting drifts and the sensor noise changes as the world state advances.
         """
+        if self.scout is not None:
+            self._look_through(self.scout.homography_at(world_time))
         image = self._static.copy()
+        for other in self._others:
+            fill_floor_shape(image, other.body_at(world_time), self._to_image, self._fov_floor, other.bgr)
         for obstacle in self.scenario.moving_obstacles:
             if obstacle.paint is not None:
                 shape = obstacle.shape_at(world_time)

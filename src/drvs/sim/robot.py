@@ -661,6 +661,8 @@ def detection_record(d: Detection) -> dict[str, Any]:
     record: dict[str, Any] = {
         "filter_def": d.filter_def,
         "camera_id": d.camera_id,
+        # Which cameras saw it (a fused object: every camera whose reports it merges).
+        "camera_ids": d.camera_id.split(",") if d.camera_id else [],
         "bounds": [round(v, 4) for v in d.bounds],
         "centroid": [round(d.centroid.x, 4), round(d.centroid.y, 4)],
         "outline": [[round(x, 4), round(y, 4)] for x, y in list(d.outline.exterior.coords)[:-1]],

@@ -6,6 +6,7 @@ Unknown keys and impossible values are errors that name the key (``cameras[1].pi
 from __future__ import annotations
 
 import dataclasses
+import itertools
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -23,7 +24,8 @@ from drvs.detectors.aruco import DICTIONARIES, DICTIONARY_SIZES
 from drvs.errors import InvalidArgument
 from drvs.filters import HsvRange
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography, homography_from_pose, polygon_region
-from drvs.model import check_id
+from drvs.mobile import Mount, map_homography
+from drvs.model import Pose2, check_id
 
 DEFAULT_SCENARIO = Path(__file__).parent / "scenarios" / "office.yaml"
 MISSIONS = ("navigate", "find_charging_station")
@@ -44,6 +46,31 @@ class ColorDef:
     name: str
     filter_def: str
     bgr: tuple[int, int, int]
+
+
+def along_path(path: Sequence[tuple[float, float]], s: float, loop: bool) -> tuple[float, float, float]:
+    """Where one is after travelling `s` metres along `path` from its first point, and its heading
+    (radians counter-clockwise from +x, the way it is going): it stops at the last point, or with
+    `loop` goes back and forth along the path for ever."""
+    legs = [math.dist(a, b) for a, b in itertools.pairwise(path)]
+    total = sum(legs)
+    back = False
+    if loop and total > 0:
+        s %= 2 * total
+        if s > total:
+            s, back = 2 * total - s, True
+    else:
+        s = min(s, total)
+    heading = 0.0
+    for (a, b), leg in zip(itertools.pairwise(path), legs, strict=True):
+        if leg <= 0:
+            continue
+        heading = math.atan2(b[1] - a[1], b[0] - a[0]) + (math.pi if back else 0.0)
+        if s <= leg:
+            f = s / leg
+            return a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1]), math.remainder(heading, 2 * math.pi)
+        s -= leg
+    return path[-1][0], path[-1][1], math.remainder(heading, 2 * math.pi)
 
 
 @dataclass(frozen=True)
@@ -149,22 +176,8 @@ class ObjectDef:
         """How far it has moved from its start at world time `t` (seconds since the clock started)."""
         if not self.moving:
             return 0.0, 0.0
-        legs = [math.dist(a, b) for a, b in zip(self.path, self.path[1:], strict=False)]
-        total = sum(legs)
-        s = self.speed_mps * max(t, 0.0)
-        if self.loop:
-            s %= 2 * total
-            if s > total:
-                s = 2 * total - s
-        else:
-            s = min(s, total)
-        for (a, b), leg in zip(zip(self.path, self.path[1:], strict=False), legs, strict=True):
-            if s <= leg and leg > 0:
-                f = s / leg
-                x, y = a[0] + f * (b[0] - a[0]), a[1] + f * (b[1] - a[1])
-                return x - self.path[0][0], y - self.path[0][1]
-            s -= leg
-        return self.path[-1][0] - self.path[0][0], self.path[-1][1] - self.path[0][1]
+        x, y, _ = along_path(self.path, self.speed_mps * max(t, 0.0), self.loop)
+        return x - self.path[0][0], y - self.path[0][1]
 
     def shape_at(self, t: float) -> Polygon:
         """Its outline at world time `t`: `shape` itself for one that stands still."""
@@ -173,6 +186,52 @@ class ObjectDef:
         dx, dy = self.offset_at(t)
         moved: Polygon = affinity.translate(self.shape, dx, dy)
         return moved
+
+
+@dataclass(frozen=True)
+class ScoutDef:
+    """A robot that drives a path and carries a camera: a mobile camera node in the simulation.
+
+    It drives `path` at `speed_mps` from world time 0 (stopping at the last point, or with `loop`
+    going back and forth), heading the way it goes. Its camera sits on its centre at `height`,
+    turned `yaw_deg` from its heading and pitched `pitch_deg` below horizontal. Its body (a disc of
+    `radius`, painted `bgr`) is drawn in the other cameras' frames; its own camera does not see it.
+    Scouts do not touch anything: the world's bumper ignores them.
+    """
+
+    id: str
+    camera_id: str
+    height: float
+    pitch_deg: float
+    hfov_deg: float
+    resolution: tuple[int, int]
+    fps: float
+    path: tuple[tuple[float, float], ...]
+    speed_mps: float
+    loop: bool
+    yaw_deg: float = 0.0
+    max_range_m: float = DEFAULT_MAX_RANGE_M
+    radius: float = 0.2
+    bgr: tuple[int, int, int] = (70, 62, 58)
+
+    @property
+    def mount(self) -> Mount:
+        """Where its camera sits on it: what `drvs-camera --mount` and `--hfov` are given."""
+        return Mount(0.0, 0.0, self.height, self.yaw_deg, self.pitch_deg, hfov_deg=self.hfov_deg)
+
+    def pose_at(self, t: float) -> Pose2:
+        """Its pose at world time `t` (seconds since the clock started; before: its start)."""
+        x, y, heading = along_path(self.path, self.speed_mps * max(t, 0.0), self.loop)
+        return Pose2(x, y, heading)
+
+    def homography_at(self, t: float) -> Homography:
+        """Its camera's image -> floor mapping at world time `t`."""
+        return map_homography(self.mount.base_homography(self.resolution), self.pose_at(t))
+
+    def body_at(self, t: float) -> Polygon:
+        p = self.pose_at(t)
+        body: Polygon = Point(p.x, p.y).buffer(self.radius, quad_segs=16)
+        return body
 
 
 @dataclass(frozen=True)
@@ -205,6 +264,7 @@ class Scenario:
     mission: str
     render: RenderDef = field(default_factory=RenderDef)
     source_text: str = ""
+    scouts: tuple[ScoutDef, ...] = ()
 
     @property
     def floor(self) -> Polygon:
@@ -232,6 +292,16 @@ class Scenario:
             if cam.id == camera_id:
                 return cam
         raise ScenarioError(f"cameras: no camera with id {camera_id!r}")
+
+    def scout(self, scout_id: str) -> ScoutDef:
+        for scout in self.scouts:
+            if scout.id == scout_id:
+                return scout
+        raise ScenarioError(f"scouts: no scout with id {scout_id!r}")
+
+    def scout_camera(self, camera_id: str) -> ScoutDef | None:
+        """The scout that carries camera `camera_id`, or None (a fixed camera, or none)."""
+        return next((s for s in self.scouts if s.camera_id == camera_id), None)
 
 
 # --- loading ----------------------------------------------------------------------------------
@@ -313,7 +383,7 @@ def _polygon(value: Any, path: str) -> Polygon:
 
 
 def _build(root: _Obj, text: str) -> Scenario:
-    root.check_keys(["name", "floor_plan", "colors", "cameras", "objects", "robot", "mission", "render"])
+    root.check_keys(["name", "floor_plan", "colors", "cameras", "objects", "robot", "mission", "render", "scouts"])
     name = root.take("name")
     if not isinstance(name, str) or not name.strip():
         raise ScenarioError("name: expected a non-empty string")
@@ -348,6 +418,17 @@ def _build(root: _Obj, text: str) -> Scenario:
         raise ScenarioError("objects: expected a list")
     objects = tuple(_object(_Obj(o, f"objects[{i}]"), colors, box(*bounds)) for i, o in enumerate(objs_raw))
 
+    scouts_raw = root.take("scouts", [])
+    if not isinstance(scouts_raw, list):
+        raise ScenarioError("scouts: expected a list")
+    scouts = tuple(_scout(_Obj(c, f"scouts[{i}]"), bounds, walls) for i, c in enumerate(scouts_raw))
+    taken = set(ids)
+    for i, scout in enumerate(scouts):
+        for what, value in (("id", scout.id), ("camera.id", scout.camera_id)):
+            if value in taken:
+                raise ScenarioError(f"scouts[{i}].{what}: {value!r} is already a camera's or a scout's id")
+            taken.add(value)
+
     mission = root.take("mission")
     if mission not in MISSIONS:
         raise ScenarioError(f"mission: {mission!r} is not one of {', '.join(MISSIONS)}")
@@ -376,6 +457,7 @@ def _build(root: _Obj, text: str) -> Scenario:
         mission=mission,
         render=render,
         source_text=text,
+        scouts=scouts,
     )
 
 
@@ -643,3 +725,63 @@ def _robot(
         speed_mps=_number(obj.take("speed_mps", 1.0), "robot.speed_mps", 0.05, 10),
         marker=marker,
     )
+
+
+def _scout(obj: _Obj, bounds: tuple[float, float, float, float], walls: Sequence[Polygon]) -> ScoutDef:
+    obj.check_keys(["id", "camera", "path", "speed_mps", "loop", "radius", "bgr"])
+    p = obj.path
+    sid = obj.take("id")
+    if not isinstance(sid, str):
+        raise ScenarioError(f"{p}.id: expected a string")
+    try:
+        check_id(sid, f"{p}.id")
+    except InvalidArgument as exc:
+        raise ScenarioError(str(exc)) from None
+    radius = _number(obj.take("radius", 0.2), f"{p}.radius", 0.05, 2.0)
+    raw = obj.take("path")
+    if not isinstance(raw, list) or not raw:
+        raise ScenarioError(f"{p}.path: expected a non-empty list of [x, y] points it drives through")
+    path = tuple(_point(v, f"{p}.path[{i}]") for i, v in enumerate(raw))
+    floor = box(*bounds)
+    for i, pt in enumerate(path):
+        if not floor.contains(Point(pt).buffer(radius)):
+            raise ScenarioError(f"{p}.path[{i}]: {list(pt)} with radius {radius:g} is not inside floor_plan.bounds")
+        for j, wall in enumerate(walls):
+            if wall.contains(Point(pt)):
+                raise ScenarioError(f"{p}.path[{i}]: {list(pt)} is inside a wall (floor_plan.walls[{j}])")
+    loop = obj.take("loop", False)
+    if not isinstance(loop, bool):
+        raise ScenarioError(f"{p}.loop: expected true (back and forth along the path) or false (stop at its end)")
+    cam = _Obj(obj.take("camera"), f"{p}.camera")
+    cam.check_keys(["id", "height", "pitch_deg", "yaw_deg", "hfov_deg", "resolution", "fps", "max_range_m"])
+    c = cam.path
+    camera_id = cam.take("id", f"{sid}-cam")
+    if not isinstance(camera_id, str):
+        raise ScenarioError(f"{c}.id: expected a string")
+    try:
+        check_id(camera_id, f"{c}.id")
+    except InvalidArgument as exc:
+        raise ScenarioError(str(exc)) from None
+    res = _numbers(cam.take("resolution", [640, 480]), f"{c}.resolution", 2)
+    w, h = (int(_number(v, f"{c}.resolution[{i}]", 16, 8192)) for i, v in enumerate(res))
+    scout = ScoutDef(
+        id=sid,
+        camera_id=camera_id,
+        height=_number(cam.take("height"), f"{c}.height", 0.05, 10),
+        pitch_deg=_number(cam.take("pitch_deg"), f"{c}.pitch_deg", -90, 90),
+        yaw_deg=_number(cam.take("yaw_deg", 0.0), f"{c}.yaw_deg", -360, 360),
+        hfov_deg=_number(cam.take("hfov_deg", 60), f"{c}.hfov_deg", 1, 170),
+        resolution=(w, h),
+        fps=_number(cam.take("fps", 10), f"{c}.fps", 0.1, 240),
+        max_range_m=_number(cam.take("max_range_m", DEFAULT_MAX_RANGE_M), f"{c}.max_range_m", 0.1, 1000),
+        path=path,
+        speed_mps=_number(obj.take("speed_mps", 0.5), f"{p}.speed_mps", 0.01, 10),
+        loop=loop,
+        radius=radius,
+        bgr=_bgr(obj.take("bgr", [70, 62, 58]), f"{p}.bgr"),
+    )
+    try:
+        FieldOfView.compute(scout.mount.base_homography(scout.resolution), scout.resolution, scout.max_range_m)
+    except InvalidArgument as exc:
+        raise ScenarioError(f"{c}: sees no floor ({exc})") from None
+    return scout

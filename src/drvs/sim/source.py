@@ -50,8 +50,9 @@ class SimSource(NewestFrame):
             scenario, seed = fetch_scene(self._channel, self.world, 10)
         except Unavailable as exc:
             raise OSError(f"source {self.description}: {exc}") from None
-        self.renderer = CameraRenderer(scenario, scenario.camera(self.camera_id), seed=seed)
-        self.fps = scenario.camera(self.camera_id).fps
+        camera = scenario.scout_camera(self.camera_id) or scenario.camera(self.camera_id)
+        self.renderer = CameraRenderer(scenario, camera, seed=seed)
+        self.fps = camera.fps
         self._watch = stub.WatchRobot(sim_pb2.WatchRobotRequest())
         self._threads = [
             threading.Thread(target=self._follow_robot, name="sim-watch", daemon=True),
@@ -90,7 +91,7 @@ class SimSource(NewestFrame):
         period = 1.0 / self.fps
         rendered_version = -2
         image = None
-        moving = bool(self.renderer.scenario.moving_obstacles)
+        moving = self.renderer.moving
         while not self._stop.is_set():
             with self._lock:
                 if self._robot_version == rendered_version:
@@ -101,7 +102,7 @@ class SimSource(NewestFrame):
             if self._stop.is_set():
                 return
             now = time.time()
-            if moving and clock_start:  # obstacles move with world time: every frame differs
+            if moving and clock_start:  # obstacles and scouts move with world time: every frame differs
                 image = self.renderer.render(robot, max(version, 0), theta, max(0.0, now - clock_start))
             elif image is None or version != rendered_version:  # pixels depend only on the world state
                 image = self.renderer.render(robot, max(version, 0), theta)

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import logging
 import math
 import time
@@ -23,7 +24,7 @@ from drvs._service import Endpoint, Lifecycle
 from drvs.convert import polygon_to_pb
 from drvs.errors import DrvsError, InvalidArgument, Unavailable
 from drvs.net import parse_address
-from drvs.sim.scenario import Scenario, load_scenario, parse_scenario
+from drvs.sim.scenario import Scenario, ScenarioError, load_scenario, parse_scenario
 from drvs.v1 import sim_pb2, sim_pb2_grpc
 
 log = logging.getLogger("drvs.sim.world")
@@ -33,6 +34,9 @@ SERVICE_NAMES = (sim_pb2.DESCRIPTOR.services_by_name["SimulatedWorld"].full_name
 CONTACT_STEP_M = 0.01
 #: The robot docks when its centre is this close to a charging station's centre.
 DOCK_REACH_M = 0.3
+#: A scout's poses a second when WatchScout asks for none, and the most it may ask for.
+DEFAULT_SCOUT_RATE_HZ = 20.0
+MAX_SCOUT_RATE_HZ = 200.0
 
 
 @dataclass(frozen=True)
@@ -159,6 +163,18 @@ class WorldServer(Lifecycle):
         async with self._changed:
             self._changed.notify_all()
 
+    async def ticks(self, period_s: float) -> AsyncIterator[float]:
+        """Unix time now, then every `period_s` seconds (on the loop's clock, without drift) until
+        the world stops."""
+        loop = asyncio.get_running_loop()
+        next_at = loop.time()
+        while not self._stopping:
+            yield time.time()
+            next_at += period_s
+            async with self._changed:  # woken early only by the world stopping
+                with contextlib.suppress(TimeoutError):
+                    await asyncio.wait_for(self._changed.wait_for(lambda: self._stopping), next_at - loop.time())
+
     async def watch(self) -> AsyncIterator[Pose]:
         last = -1
 
@@ -209,6 +225,23 @@ class _Servicer(sim_pb2_grpc.SimulatedWorldServicer):
     ) -> AsyncIterator[sim_pb2.RobotPose]:
         async for pose in self._w.watch():
             yield pose_to_pb(pose)
+
+    async def WatchScout(
+        self, request: sim_pb2.WatchScoutRequest, context: aio.ServicerContext[Any, Any]
+    ) -> AsyncIterator[sim_pb2.ScoutPose]:
+        try:
+            scout = self._w.state.scenario.scout(request.scout_id)
+        except ScenarioError as exc:
+            await context.abort(grpc.StatusCode.NOT_FOUND, str(exc))
+        rate = request.rate_hz or DEFAULT_SCOUT_RATE_HZ
+        if not (math.isfinite(rate) and 0 < rate <= MAX_SCOUT_RATE_HZ):
+            await context.abort(
+                grpc.StatusCode.INVALID_ARGUMENT, f"rate_hz: {rate:g} is not in (0, {MAX_SCOUT_RATE_HZ:g}]"
+            )
+        async for now in self._w.ticks(1.0 / rate):
+            world_time = self._w.state.world_time(now)
+            pose = scout.pose_at(world_time)
+            yield sim_pb2.ScoutPose(x=pose.x, y=pose.y, theta=pose.yaw, time_unix=now, world_time_s=world_time)
 
     @_grpc.servicer_method
     async def Start(self, request: sim_pb2.StartRequest, context: aio.ServicerContext[Any, Any]) -> sim_pb2.StartReply:
