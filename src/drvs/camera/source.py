@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import asyncio
 import importlib.metadata
 import logging
 import math
@@ -17,6 +16,7 @@ import numpy as np
 
 from drvs.detection import Frame
 from drvs.errors import FailedPrecondition, InvalidArgument
+from drvs.frames import NewestFrame
 
 log = logging.getLogger("drvs.camera.source")
 
@@ -65,50 +65,6 @@ def parse_source(spec: str) -> int | str:
     if not spec:
         raise ValueError("source: empty")
     return int(spec) if spec.isdigit() else spec
-
-
-class NewestFrame:
-    """The newest frame a source produced, kept for the node to read: the part every source shares.
-
-    A source's producer (a grabber thread, a renderer, a program's own `push`) calls `_keep`; the
-    node reads `latest()` and, at start, awaits `wait_first_frame`. `lock` is a Lock, or a Condition
-    when the source also waits on it for its own state.
-    """
-
-    description: str
-    error: str | None = None
-
-    def __init__(self, lock: threading.Lock | threading.Condition | None = None) -> None:
-        self._lock = lock if lock is not None else threading.Lock()
-        self._latest: Frame | None = None
-        self._first = threading.Event()
-        self._sequence = 0
-
-    def _keep(self, image: np.ndarray, capture_time: float, captured_at: float) -> Frame:
-        """Keep `image` as the newest frame, numbered after the last one; return it."""
-        with self._lock:
-            self._sequence += 1
-            frame = Frame(image=image, capture_time=capture_time, sequence=self._sequence, captured_at=captured_at)
-            self._latest = frame
-        self._first.set()
-        return frame
-
-    def latest(self) -> Frame | None:
-        """The newest frame, or None before the first."""
-        with self._lock:
-            return self._latest
-
-    async def wait_first_frame(self, timeout_s: float) -> Frame:
-        """The first frame, waiting up to `timeout_s` seconds; FailedPrecondition naming the source
-        (and its last error) when none came."""
-        if not await asyncio.to_thread(self._first.wait, timeout_s):
-            raise FailedPrecondition(
-                f"source {self.description!r}: no frame within {timeout_s:g} s"
-                + (f" ({self.error})" if self.error else "")
-            )
-        frame = self.latest()
-        assert frame is not None
-        return frame
 
 
 class VideoSource(NewestFrame):

@@ -10,8 +10,8 @@ from typing import Any
 import grpc
 
 from drvs import _grpc
-from drvs.camera.source import NewestFrame
 from drvs.errors import Unavailable
+from drvs.frames import NewestFrame
 from drvs.sim.render import CameraRenderer
 from drvs.sim.world import fetch_scene
 from drvs.v1 import sim_pb2, sim_pb2_grpc
