@@ -55,6 +55,11 @@ POSE_UPDATES = Counter(
     "Mobile cameras' pose updates the server received, by outcome (ok, or the refusal's status)",
     ["outcome"],
 )
+MOBILE_PICKUPS = Counter(
+    "drvs_mobile_pickups_total",
+    "Continuous fused requests a mobile camera joined after their dispatch, its field of view having entered "
+    "their region (it was asked for the rest of the request)",
+)
 FUSION_SESSIONS = Gauge("drvs_fusion_sessions", "Fused requests in flight in the server")
 STAGE = Histogram(
     "drvs_stage_seconds",

@@ -9,7 +9,9 @@ would to a robot), presenting the key the server made for that camera and reques
   failed, or until the request's deadline, then merges the reports (`drvs.fusion.fuse`) into one
   snapshot, delivered in the request's one reply;
 - a continuous request (`Continuous`) makes a snapshot every period from the reports received since
-  the last one, through a `drvs.tracking.Tracker` (stable track ids), the last one final.
+  the last one, through a `drvs.tracking.Tracker` (stable track ids), the last one final. A mobile
+  camera whose field of view enters its region while it runs is asked for the rest of it, and joins
+  it (`Continuous.add_camera`; the server decides when, on the camera's pose update).
 
 Cameras that failed, refused, or did not report in time are named in each snapshot's
 missing_cameras; no camera holds up the others beyond the deadline. `ReportIntake` is one camera's
@@ -92,12 +94,18 @@ class FusionSession:
         on_end: Callable[[FusionSession], None],
         missing: Sequence[CameraError] = (),
         forward_id: str = "",
+        secret: bytes = b"",
+        forwarded: detection_pb2.DetectionRequest | None = None,
     ) -> None:
         assert request.fusion is not None
         self.request = request
         self.request_id = request.request_id
         #: The id the cameras know the request by (unique in the server: robots choose theirs).
         self.forward_id = forward_id or request.request_id
+        #: The secret the cameras' keys are made from, and the message forwarded to them (without a
+        #: key): a camera asked later (`Continuous.add_camera`) gets a copy, with its own key.
+        self.secret = secret
+        self.forwarded = forwarded
         self.options = request.fusion
         self.cameras = tuple(cameras)
         self.keys = keys
@@ -335,6 +343,25 @@ class Continuous(FusionSession):
         self._task = asyncio.get_running_loop().create_task(self._run())
         self._changed()
 
+    def remaining_s(self) -> float:
+        """Seconds from now until the cameras' last report is due (0 before the start or once it ended)."""
+        if not self._started or self.ended:
+            return 0.0
+        due = self._t0 + (self.count - 1) * self.period
+        return max(0.0, due - asyncio.get_running_loop().time())
+
+    def add_camera(self, camera_id: str, key: bytes) -> None:
+        """A camera asked after the dispatch (a mobile camera whose field of view entered the region),
+        with the key made for it: its reports are taken from now on and merged into the snapshots;
+        it counts as heard now, so it is not named missing before a period and the grace pass, and
+        the session waits for its final report (or the grace) as for the others'."""
+        if self.ended or camera_id in self.keys:
+            return
+        self.cameras = (*self.cameras, camera_id)
+        self.keys[camera_id] = key
+        self._heard[camera_id] = asyncio.get_running_loop().time()
+        self._done.clear()
+
     def report(self, report: DetectionReport, stream: ReportIntake) -> None:
         camera_id = report.camera_id
         if self.ended or camera_id in self._finished:
@@ -443,6 +470,8 @@ class FusionSessions:
         self.max_sessions = max_sessions
         self._by_id: dict[str, list[FusionSession]] = {}
         self._ended: OrderedDict[FusionSession, None] = OrderedDict()
+        #: The continuous ones in flight, in the order they came (a mobile camera may join them).
+        self._continuous: dict[Continuous, None] = {}
         self.count = 0
 
     def check_room(self) -> None:
@@ -454,6 +483,8 @@ class FusionSessions:
 
     def add(self, session: FusionSession) -> None:
         self._by_id.setdefault(session.forward_id, []).append(session)
+        if isinstance(session, Continuous):
+            self._continuous[session] = None
         self.count += 1
         metrics.FUSION_SESSIONS.set(self.count)
 
@@ -464,11 +495,17 @@ class FusionSessions:
         sessions.remove(session)
         if not sessions:
             del self._by_id[session.forward_id]
+        if isinstance(session, Continuous):
+            self._continuous.pop(session, None)
         self._ended[session] = None
         while len(self._ended) > MAX_ENDED:
             self._ended.popitem(last=False)
         self.count -= 1
         metrics.FUSION_SESSIONS.set(self.count)
+
+    def continuous(self) -> list[Continuous]:
+        """The continuous fused requests in flight (a list: the caller may start or end some)."""
+        return list(self._continuous)
 
     def find(self, request_id: str, camera_id: str, key: bytes) -> FusionSession | None:
         """The session in flight forwarded as `request_id` whose key for `camera_id` is `key`."""

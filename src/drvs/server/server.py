@@ -472,7 +472,14 @@ class DrvsServer(Lifecycle):
         self, camera_id: str, who: str, registration_secret: str, pose: Pose2, pose_time_unix: float = 0.0
     ) -> CameraEntry:
         """A mobile camera's new pose, from the id's holder with its registration's secret: its field
-        of view moves there and is routed for its pose lease (see Registry.update_pose)."""
+        of view moves there and is routed for its pose lease (see Registry.update_pose).
+
+        A camera routable now (a fresh pose that puts its field of view on the floor, and not
+        skipped after a failed forward) joins every continuous fused request in flight whose region
+        its new field of view meets and whose object type it serves, for what remains of the
+        request (`_pick_up`). Fused single shots are not extended (they answer once, soon), nor are
+        continuous requests without fusion: their cameras report straight to the robot's callback,
+        and the robot asked the cameras the dispatch named."""
         check_id(camera_id, "camera_id")
         owner = self._camera_owner(who, "UpdatePose")
         self.claims.check(camera_id, owner, registration_secret)
@@ -482,7 +489,54 @@ class DrvsServer(Lifecycle):
             metrics.POSE_UPDATES.labels(outcome=exc.code.lower()).inc()
             raise
         metrics.POSE_UPDATES.labels(outcome="ok").inc()
+        self._pick_up(entry)
         return entry
+
+    def _pick_up(self, camera: CameraEntry) -> None:
+        """Ask a mobile camera that just moved to join the continuous fused requests in flight that
+        it was not asked for and now can serve: routable as `plan` would route it, serving the
+        request's object type, its field of view meeting the region with positive area (as
+        Registry.cameras_seeing tests), and at least one period of the request left."""
+        fov = camera.field_of_view
+        if fov.is_empty or camera.camera_id in self._unreachable or self.registry.unroutable(camera.camera_id):
+            return
+        fx0, fy0, fx1, fy1 = fov.bounds
+        for session in self.fusion.continuous():
+            if session.ended or camera.camera_id in session.keys:
+                continue
+            region = session.request.region
+            x0, y0, x1, y1 = region.bounds  # cheap test first: most requests are elsewhere
+            if fx0 >= x1 or fx1 <= x0 or fy0 >= y1 or fy1 <= y0:
+                continue
+            if session.request.kind not in camera.detector_kinds:
+                continue
+            if shapely.relate_pattern(fov, region, "T********"):
+                self._join(session, camera)
+
+    def _join(self, session: Continuous, camera: CameraEntry) -> None:
+        """Forward `session`'s request to `camera` for the rest of its duration, the same way as at
+        its dispatch (its own key, the camera's link, load shedding, failures named in the
+        snapshots), and add the camera to the session; nothing when less than a period is left."""
+        remaining = session.remaining_s()
+        if session.forwarded is None or remaining < session.period:
+            return
+        message = detection_pb2.DetectionRequest()
+        message.CopyFrom(session.forwarded)
+        message.continuous.duration_s = remaining
+        session.add_camera(camera.camera_id, report_key(session.secret, camera.camera_id))
+        token = logs.request_id.set(session.request_id)
+        try:
+            log.info(
+                "fused request %s: mobile camera %s entered its region; asked for the remaining %.1f s",
+                session.request_id,
+                camera.camera_id,
+                remaining,
+            )
+            metrics.MOBILE_PICKUPS.inc()
+            metrics.FORWARDED_BYTES.inc(message.ByteSize())
+            self._forward(camera, session.request, message, session.secret, session=session)
+        finally:
+            logs.request_id.reset(token)
 
     def renew_camera(self, camera_id: str, who: str, registration_secret: str) -> None:
         """A heartbeat: the id's holder, with its registration's secret, renews the lease; a camera
@@ -720,7 +774,8 @@ class DrvsServer(Lifecycle):
             if on_end is not None:
                 on_end(session)
 
-        kind: type[FusionSession] = SingleShot if request.continuous.single_shot else Continuous
+        single_shot = request.continuous.single_shot
+        kind: type[FusionSession] = SingleShot if single_shot else Continuous
         session = kind(
             request,
             [c.camera_id for c in cameras],
@@ -730,6 +785,9 @@ class DrvsServer(Lifecycle):
             ended,
             [CameraError(m.code, m.message, m.camera_id) for m in missing],
             forward_id,
+            secret,
+            # A continuous one keeps what it forwards: a mobile camera may join it later (_pick_up).
+            None if single_shot else message,
         )
         self.fusion.add(session)
         reply = self.dispatch(request, message, secret, plan, session=session)
