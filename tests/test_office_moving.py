@@ -9,6 +9,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from shapely.geometry import LineString, Point, Polygon
 
 from drvs.sim.scenario import load_scenario
 
@@ -65,3 +66,10 @@ async def test_the_default_office_with_its_trolley(tmp_path: Path) -> None:
     trolley = [t for t in moving_tracks(result) if float(t["max_speed_mps"]) > 0.2]
     assert trolley, result["tracks"]  # (a re-plan's new request follows it as a new track)
     assert any(t["used_as"] == "moving, then standing" and math.dist(t["last"], (16.8, 5.85)) < 0.05 for t in trolley)
+    # The obstacle in the main room's north-east corner, which no fixed camera sees: the robot
+    # learned of it from the scout's camera alone (a mobile camera picked up by its track requests,
+    # or asked at once), placed it within 3 cm, and drove around it.
+    hidden = next(o.shape for o in load_scenario().obstacles if o.shape.centroid.distance(Point(11.0, 6.65)) < 0.01)
+    used = [d for d in result["detections"] if Polygon(d["outline"]).centroid.distance(hidden.centroid) < 0.03]
+    assert used and all(d["camera_ids"] == ["scout-1-cam"] for d in used), result["detections"]
+    assert LineString(result["path"]).distance(hidden) >= load_scenario().robot.radius - 1e-6
