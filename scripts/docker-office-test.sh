@@ -181,7 +181,7 @@ for id in $(docker compose ps --all --quiet); do
 done
 [ -z "$bad" ] || fail "not stopped cleanly:$bad (137 = killed after the grace period)"
 [ "$stop_ms" -le $((STOP_LIMIT_S * 1000)) ] || fail "docker compose stop took ${stop_ms} ms (limit ${STOP_LIMIT_S} s)"
-for n in 1 2 3; do
-  grep -q 'deregistered' <<<"$(logs_of "camera-$n")" || fail "camera-$n did not deregister on SIGTERM"
+for camera in camera-1 camera-2 camera-3 scout-1-cam; do
+  grep -q 'deregistered' <<<"$(logs_of "$camera")" || fail "$camera did not deregister on SIGTERM"
 done
 grep -q 'drvs-server stopped' <<<"$(logs_of server)" || fail "the server did not stop gracefully"

@@ -2,7 +2,8 @@
 
 A simulated camera (`--source sim://WORLD`) given no homography gets the one drvs-office gives it:
 derived from the camera's pose in the scenario the world serves (what calibration would measure),
-written to /tmp, with the scenario's max range unless one is set. Then this process becomes
+written to /tmp, with the scenario's max range unless one is set. A scout's camera gets its mount
+and field of view instead (give it `--pose-source`, e.g. the scout's mover: tcp://scout-1:50080). Then this process becomes
 drvs-camera (exec), which handles SIGTERM itself: it deregisters and stops gracefully.
 """
 
@@ -26,7 +27,10 @@ def option(argv: list[str], flag: str, env: str) -> str | None:
     return os.environ.get(env) or None
 
 
-def sim_homography(world: str, camera_id: str) -> tuple[Path, float]:
+def sim_settings(world: str, camera_id: str, argv: list[str]) -> list[str]:
+    """What drvs-office gives a scenario's camera: a fixed camera's homography (from its pose in the
+    scenario, written to /tmp), or a scout's camera's mount and field of view (its poses come from
+    its --pose-source); the scenario's max range unless one is set."""
     import grpc
 
     from drvs.errors import Unavailable
@@ -38,10 +42,23 @@ def sim_homography(world: str, camera_id: str) -> tuple[Path, float]:
             scenario, _seed = fetch_scene(channel, world, 60)
         except Unavailable as exc:
             raise SystemExit(f"camera {camera_id}: {exc}") from None
-    cam = scenario.camera(camera_id)
-    path = Path(tempfile.gettempdir()) / f"{camera_id}.homography.yaml"
-    save_homography(path, cam.homography, image_size=list(cam.resolution))
-    return path, cam.max_range_m
+    extra: list[str] = []
+    scout = scenario.scout_camera(camera_id)
+    if scout is not None:
+        m = scout.mount
+        extra += ["--mount", f"{m.x:g},{m.y:g},{m.z:g},{m.yaw_deg:g},{m.pitch_deg:g}", "--hfov", f"{m.hfov_deg:g}"]
+        print(f"camera {camera_id}: mobile, on scout {scout.id}: mount {extra[1]}, {m.hfov_deg:g}° wide", flush=True)
+        max_range_m = scout.max_range_m
+    else:
+        cam = scenario.camera(camera_id)
+        path = Path(tempfile.gettempdir()) / f"{camera_id}.homography.yaml"
+        save_homography(path, cam.homography, image_size=list(cam.resolution))
+        print(f"camera {camera_id}: homography from its pose in the world's scenario: {path}", flush=True)
+        extra += ["--homography", str(path)]
+        max_range_m = cam.max_range_m
+    if not option(argv, "--max-range", "DRVS_CAMERA_MAX_RANGE"):
+        extra += ["--max-range", str(max_range_m)]
+    return extra
 
 
 def main() -> None:
@@ -54,11 +71,7 @@ def main() -> None:
         camera_id = option(argv, "--id", "DRVS_CAMERA_ID")
         if not camera_id:
             raise SystemExit("camera: a sim:// source needs --id (or DRVS_CAMERA_ID): the scenario camera it is")
-        path, max_range_m = sim_homography(source[len("sim://") :], camera_id)
-        print(f"camera {camera_id}: homography from its pose in the world's scenario: {path}", flush=True)
-        argv += ["--homography", str(path)]
-        if not option(argv, "--max-range", "DRVS_CAMERA_MAX_RANGE"):
-            argv += ["--max-range", str(max_range_m)]
+        argv += sim_settings(source[len("sim://") :], camera_id, argv)
     os.execvp(DRVS_CAMERA, [DRVS_CAMERA, *argv])
 
 

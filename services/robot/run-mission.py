@@ -118,7 +118,7 @@ def main() -> int:
     scenario, seed = fetch_scene(args.world)
     say(f"world {args.world}: scenario {scenario.name!r}, mission {scenario.mission}, seed {seed}")
     if not args.no_drvs:
-        wanted = {cam.id for cam in scenario.cameras}
+        wanted = {cam.id for cam in scenario.cameras} | {scout.camera_id for scout in scenario.scouts}
         wait_for_cameras(args.server, wanted, args.wait_cameras)
         say(f"server {args.server}: cameras {', '.join(sorted(wanted))} registered")
     result_file = args.out / "result.json"
