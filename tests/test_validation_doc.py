@@ -20,7 +20,9 @@ from grpc import aio
 
 from drvs.geometry import homography_from_pose
 from drvs.launch import ManagedProcess
+from drvs.mobile import Mount
 from drvs.server import DrvsServer
+from drvs.server.config import ServerConfig
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 from .helpers import detect_message
@@ -250,6 +252,100 @@ GRPC_CASES = [
 ]
 
 
+#: A mobile camera's mount: 0.8 m up, looking ahead 30° down, 70° wide (its base-frame homography).
+MOUNT_H = Mount(0.1, 0.0, 0.8, 0.0, 30.0, hfov_deg=70.0).base_homography((640, 480)).to_list()
+
+
+def update_pose(**overrides: Any) -> Callable[[Any], Any]:
+    """UpdatePose for the registered mobile camera `scout` (its secret filled in unless given)."""
+
+    async def call(ch: Any) -> Any:
+        stub = registry_pb2_grpc.RegisterVisionServiceStub(ch)
+        message = registry_pb2.UpdatePoseRequest(
+            camera_id="scout", registration_secret=SECRETS["scout"], pose=geometry_pb2.Pose2(x=1.0, y=1.0, yaw=0.0)
+        )
+        for key, value in overrides.items():
+            if value is None:
+                message.ClearField(key)
+            elif key == "pose":
+                message.pose.CopyFrom(value)
+            else:
+                setattr(message, key, value)
+        return await stub.UpdatePose(message)
+
+    return call
+
+
+#: The registrations' secrets in `with_scout`, by camera id.
+SECRETS: dict[str, str] = {}
+POSE_CASES = [
+    Case(
+        INVALID,
+        "pose_lease_s: … must be >= 0 seconds (0: the server's default)",
+        register(camera_id="scout2", m=MOUNT_H, mobile=True, pose_lease_s=-1.0),
+    ),
+    Case(NOT_FOUND, "camera_id: '…' is not registered", update_pose(camera_id="nobody")),
+    Case(
+        "FAILED_PRECONDITION",
+        "registration_secret: not the current one for camera_id '…': another registration of this id replaced it, "
+        "or it never was; register again",
+        update_pose(registration_secret="guess"),
+    ),
+    Case(INVALID, "pose: missing", update_pose(pose=None)),
+    Case(INVALID, "pose.x: … is not a finite number", update_pose(pose=geometry_pb2.Pose2(x=math.nan, y=1, yaw=0))),
+    Case(INVALID, "pose: (…, …) is beyond ±1e+06 m", update_pose(pose=geometry_pb2.Pose2(x=2e6, y=1, yaw=0))),
+    Case(INVALID, "pose_time_unix: … is not a finite number", update_pose(pose_time_unix=math.inf)),
+    Case(
+        "RESOURCE_EXHAUSTED",
+        "pose: camera '…' updated … s ago; at most one update every … s",
+        update_pose(pose=geometry_pb2.Pose2(x=1.5, y=1.0, yaw=0.0)),
+    ),
+]
+
+
+@pytest_asyncio.fixture
+async def with_scout() -> AsyncIterator[tuple[DrvsServer, aio.Channel]]:
+    """A server holding a fixed camera `keep` and a mobile camera `scout` that has sent one pose
+    (and may send the next only a minute later)."""
+    config = ServerConfig(listen="127.0.0.1:0", lease_ttl_s=30, min_pose_interval_s=60)
+    async with DrvsServer(config=config) as server, aio.insecure_channel(server.address) as ch:
+        stub = registry_pb2_grpc.RegisterVisionServiceStub(ch)
+        SECRETS["keep"] = (await stub.Register(registration(camera_id="keep"))).registration_secret
+        reply = await stub.Register(registration(camera_id="scout", m=MOUNT_H, mobile=True))
+        SECRETS["scout"] = reply.registration_secret
+        await update_pose()(ch)
+        yield server, ch
+
+
+@pytest.mark.parametrize("case", POSE_CASES, ids=[f"{c.status}:{c.pattern[:40]}" for c in POSE_CASES])
+async def test_mobile_camera_row(with_scout: tuple[DrvsServer, aio.Channel], case: Case) -> None:
+    server, channel = with_scout
+    regex = documented(case.pattern, case.status)
+    before = server.registry.get("scout")
+    with pytest.raises(aio.AioRpcError) as err:
+        await case.call(channel)
+    assert err.value.code().name == case.status, (err.value.code(), err.value.details())
+    assert regex.fullmatch(err.value.details() or ""), err.value.details()
+    # Nothing changed: the same cameras, the scout's field of view where its accepted pose put it.
+    assert sorted(c.camera_id for c in server.registry.cameras()) == ["keep", "scout"]
+    assert server.registry.get("scout").field_of_view.equals(before.field_of_view)
+
+
+async def test_a_fixed_camera_has_no_pose(with_scout: tuple[DrvsServer, aio.Channel]) -> None:
+    server, channel = with_scout
+    pattern = "camera_id: '…' registered as a fixed camera; it has no pose"
+    regex = documented(pattern, "FAILED_PRECONDITION")
+    stub = registry_pb2_grpc.RegisterVisionServiceStub(channel)
+    with pytest.raises(aio.AioRpcError) as err:
+        await stub.UpdatePose(
+            registry_pb2.UpdatePoseRequest(
+                camera_id="keep", registration_secret=SECRETS["keep"], pose=geometry_pb2.Pose2(x=1, y=1)
+            )
+        )
+    assert err.value.code().name == "FAILED_PRECONDITION" and regex.fullmatch(err.value.details() or "")
+    assert server.registry.unroutable("keep") == ""
+
+
 @pytest_asyncio.fixture
 async def served() -> AsyncIterator[tuple[DrvsServer, aio.Channel]]:
     async with DrvsServer("127.0.0.1:0", lease_ttl_s=30) as server, aio.insecure_channel(server.address) as ch:
@@ -295,6 +391,7 @@ def cli_cases(tmp: Path) -> list[CliCase]:
     config = tmp / "camera.yaml"
     config.write_text("id: cam1\nsource: x.avi\nhomography: h.yaml\nzoom: 2\n")
     camera = ("--id", "cam1", "--source", "x.avi", "--homography", "h.yaml")
+    mobile = ("--id", "cam1", "--source", "x.avi", "--mount", "0,0,0.8,0,30", "--hfov", "70")
     return [
         CliCase("drvs-server", ("--listen", "nowhere"), "listen (--listen, DRVS_SERVER_LISTEN): '…' is not host:port"),
         CliCase(
@@ -366,6 +463,27 @@ def cli_cases(tmp: Path) -> list[CliCase]:
             "max_connection_idle_s (--max-connection-idle): … must be in [0, 1e9] (0: no limit)",
         ),
         CliCase("drvs-server", ("--metrics-port", "nowhere"), "--metrics-port: '…' is not host:port"),
+        CliCase("drvs-server", ("--pose-lease", "0"), "pose_lease_s (--pose-lease): … must be in (0, 3600] seconds"),
+        CliCase(
+            "drvs-camera",
+            (*mobile[:4], "--mount", "0,0,0.8,0", "--hfov", "70"),
+            "mount (--mount): '…' is not X,Y,Z,YAW,PITCH (5 finite numbers separated by commas)",
+        ),
+        CliCase(
+            "drvs-camera",
+            (*mobile[:4], "--mount", "0,0,0.8,0,30"),
+            "mount (--mount): give the camera's --hfov or its --camera-matrix (one of them)",
+        ),
+        CliCase(
+            "drvs-camera",
+            (*mobile, "--pose-source", "udp://x:1"),
+            "--pose-source: no pose source for …:// (tcp:// is built in)",
+        ),
+        CliCase(
+            "drvs-camera",
+            (*mobile, "--max-pose-gap", "0"),
+            "max_pose_gap_s (from --max-pose-gap): … must be a number from 0.001 to 60",
+        ),
     ]
 
 
@@ -438,8 +556,12 @@ async def test_server_settings_given_as_text_are_validated_too() -> None:
 
 
 def test_every_row_marked_checked_is_checked(tmp_path: Path) -> None:
-    checked = {c.pattern for c in GRPC_CASES} | {c.pattern for c in cli_cases(tmp_path) + REGISTRATION_CLI_CASES}
-    checked.add("request_id: empty; a streamed request needs its own id")
+    checked = {c.pattern for c in GRPC_CASES + POSE_CASES}
+    checked |= {c.pattern for c in cli_cases(tmp_path) + REGISTRATION_CLI_CASES}
+    checked |= {
+        "request_id: empty; a streamed request needs its own id",
+        "camera_id: '…' registered as a fixed camera; it has no pose",
+    }
     unchecked = [
         r[0] + " " + r[1]
         for r in table_rows()
