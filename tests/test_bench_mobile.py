@@ -14,7 +14,10 @@ pytestmark = pytest.mark.bench
 
 @pytest.mark.slow
 def test_mobile_routing_smoke(tmp_path: Path) -> None:
-    assert main(["mobile", "--quick", "--rounds", "2", "--lookups", "500", "--out", str(tmp_path)]) == 0
+    assert (
+        main(["mobile", "--quick", "--parts", "routing", "--rounds", "2", "--lookups", "500", "--out", str(tmp_path)])
+        == 0
+    )
     result = json.loads((tmp_path / "mobile.json").read_text())
     assert result["static_index_rebuilt_by_pose_updates"] is False
     assert len(result["runs"]) == 2 and (tmp_path / "mobile.png").is_file()
@@ -26,7 +29,37 @@ def test_mobile_routing_smoke(tmp_path: Path) -> None:
     assert result["targets"]["lookup_p99_mobile_over_fixed"]["verdict"] in ("met", "missed", "spread crosses target")
 
 
-@pytest.mark.parametrize("args", [["--parts", "accuracy"], ["--rounds", "-1"], ["--lookups", "-5"]])
+def test_mobile_accuracy_by_pose_error(tmp_path: Path) -> None:
+    """The accuracy part on real rendered frames: with the true pose the still disc lands within
+    3 cm; a pose 100 ms late puts it about speed x 100 ms off (5 cm at 0.5 m/s, 10 cm at 1 m/s),
+    and heading noise of 2° costs more than 1°."""
+    assert main(["mobile", "--quick", "--parts", "accuracy", "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "mobile.json").read_text())
+    assert result["targets"]["accuracy_true_pose_error_cm_p95"]["verdict"] == "met"
+    for speed, data in result["accuracy"]["speeds"].items():
+        settings = data["settings"]
+        assert data["frames_with_the_disc"] >= 20 and settings["true pose"]["error_cm_p95"] < 3.0
+        late = settings["late 100 ms"]["error_cm_median"]
+        assert late == pytest.approx(float(speed) * 10, abs=1.5), (speed, late)
+        assert settings["heading noise 2°"]["error_cm_median"] > settings["heading noise 1°"]["error_cm_median"]
+    assert (tmp_path / "mobile_accuracy.png").is_file() and not (tmp_path / "mobile.png").exists()
+
+
+@pytest.mark.slow
+def test_mobile_staleness_smoke(tmp_path: Path) -> None:
+    """The staleness part with a real server process: the server holds poses the robot pushed, and
+    the one it routes by is younger than the pose lease (1 s), past which it would not route at all.
+    (How young is the benchmark's figure, not this test's.)"""
+    assert main(["mobile", "--quick", "--parts", "staleness", "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "mobile.json").read_text())
+    for data in result["staleness"]["speeds"].values():
+        assert min(data["samples"]) >= 20
+        assert 0 < data["staleness_ms_p50"] <= data["staleness_ms_p95"] < 1000
+
+
+@pytest.mark.parametrize(
+    "args", [["--parts", "accuracy,nonsense"], ["--parts", ""], ["--rounds", "-1"], ["--lookups", "-5"]]
+)
 def test_mobile_benchmark_refuses_bad_flags(args: list[str], capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["mobile", *args]) == 2
     assert "drvs-bench mobile: " in capsys.readouterr().err
