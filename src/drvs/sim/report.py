@@ -17,6 +17,7 @@ import numpy as np
 from matplotlib.patches import Polygon as MplPolygon
 from shapely.geometry import Polygon
 
+from drvs.geometry import FieldOfView
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import Scenario
 
@@ -46,6 +47,14 @@ def draw_map(scenario: Scenario, result: dict[str, Any], path: Path, seed: int =
                     arrowprops={"arrowstyle": "->", "lw": 2})  # fmt: skip
         ax.plot([cx], [cy], "ks", ms=8)
         ax.text(cx, cy - 0.45 if cy > y0 + 1 else cy + 0.3, cam.id, fontsize=8, ha="center")
+    for scout in scenario.scouts:  # its path, and its camera's view where it starts (dashed)
+        line = np.asarray(scout.path)
+        ax.plot(line[:, 0], line[:, 1], "-.", color="tab:green", lw=1.2)
+        view = FieldOfView.compute(scout.homography_at(0.0), scout.resolution, scout.max_range_m).floor
+        ax.add_patch(_patch(view, facecolor="tab:green", alpha=0.08, edgecolor="tab:green", ls="--", lw=1))
+        ax.add_patch(_patch(scout.body_at(0.0), facecolor="0.3", edgecolor="tab:green"))
+        sx, sy = scout.path[0]
+        ax.text(sx, sy + 0.3, f"{scout.id} (mobile camera)", fontsize=8, ha="center", color="tab:green")
     for obj in scenario.objects:
         if obj.aruco is not None and obj.kind == "marker":
             ax.add_patch(_patch(obj.shape, facecolor="black", edgecolor="white", lw=0.8))
