@@ -35,7 +35,8 @@ MOUNT = Mount(0.1, 0.0, 0.8, 0.0, 30.0, hfov_deg=70.0)
 async def one_drive(address: str, speed: float, seconds: float, camera_id: str) -> list[float]:
     """Staleness samples (seconds) of one drive at `speed`."""
     source = PushSource("bench camera")
-    source.push(np.zeros((480, 640, 3), np.uint8))
+    blank = np.zeros((480, 640, 3), np.uint8)
+    source.push(blank)
     node = CameraNode(camera_id, source, None, address, mount=MOUNT, detectors=("hsv",))
     pushed: dict[tuple[float, float, float], float] = {}
     samples: list[float] = []
@@ -49,6 +50,7 @@ async def one_drive(address: str, speed: float, seconds: float, camera_id: str) 
                 pose = Pose2(1.0 + speed * (now - start), 2.0, 0.0)
                 pushed[(pose.x, pose.y, pose.yaw)] = now
                 node.push_pose(pose, now)
+                source.push(blank, now)  # a camera that delivers frames (one that stops is taken out of service)
                 k += 1
                 await asyncio.sleep(max(0.0, start + k / POSE_RATE_HZ - time.time()))
 
