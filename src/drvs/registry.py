@@ -275,19 +275,26 @@ class Registry:
                     del self._mobile_cells[cell]
 
     def _mobile_near(self, region: Polygon, now: float) -> list[CameraEntry]:
-        """Live mobile cameras with a fresh pose whose field of view's bounds meet the region's."""
-        near: set[str] = set()
+        """Live mobile cameras with a fresh pose whose field of view's bounds meet the region's.
+        (Every lookup pays this: the region's bounds are read once, and a region over cells that
+        hold no mobile camera costs a dict probe per cell.)"""
+        x0, y0, x1, y1 = region.bounds
         cells = self._mobile_cells
-        cx0, cy0, cx1, cy1 = _cell_span(region.bounds)
-        if (cx1 - cx0 + 1) * (cy1 - cy0 + 1) > len(cells):  # a large region: read the cells that hold cameras
+        i0, j0 = math.floor(x0 / MOBILE_CELL_M), math.floor(y0 / MOBILE_CELL_M)
+        i1, j1 = math.floor(x1 / MOBILE_CELL_M), math.floor(y1 / MOBILE_CELL_M)
+        near: set[str] = set()
+        if (i1 - i0 + 1) * (j1 - j0 + 1) > len(cells):  # a large region: read the cells that hold cameras
             for (i, j), ids in cells.items():
-                if cx0 <= i <= cx1 and cy0 <= j <= cy1:
+                if i0 <= i <= i1 and j0 <= j <= j1:
                     near |= ids
         else:
-            for cell in _cells(region.bounds):
-                ids = cells.get(cell, set())
-                near |= ids
-        x0, y0, x1, y1 = region.bounds
+            for i in range(i0, i1 + 1):
+                for j in range(j0, j1 + 1):
+                    held = cells.get((i, j))
+                    if held:
+                        near |= held
+        if not near:
+            return []
         found = []
         for cid in near:
             state = self._mobile[cid]
