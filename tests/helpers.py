@@ -10,12 +10,13 @@ import os
 import re
 import shutil
 import urllib.request
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pytest
+from drvs_bench.fakes import AckingCamera
 from drvs_bench.fakes import register_message as register_message  # re-exported for the tests
 from numpy.typing import NDArray
 
@@ -24,6 +25,10 @@ from drvs.detection import DEFAULT_MIN_AREA_PX, CameraView, HsvDetector
 from drvs.filters import HsvRange
 from drvs.geometry import FieldOfView, Homography, homography_from_pose
 from drvs.launch import ManagedProcess, start_camera, start_server
+from drvs.mobile import Mount
+from drvs.model import Pose2
+from drvs.sim.render import CameraRenderer
+from drvs.sim.scenario import CameraDef, Scenario
 from drvs.sim.scene import FloorPatch, RecordedCamera, record_camera, render_view
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
 
@@ -267,3 +272,54 @@ class Scene:
     server: ManagedProcess
     address: str
     cameras: dict[str, ManagedProcess]
+
+
+# --- a mobile camera on a rendered floor (tests/test_mobile_camera.py, test_mobile_pickup.py) ----
+
+#: 0.8 m up, 0.1 m ahead of the robot's centre, looking forward 30° down, 70° wide.
+MOUNT = Mount(0.1, 0.0, 0.8, 0.0, 30.0, hfov_deg=70.0)
+MOBILE_SIZE = (640, 480)
+#: The yellow disc of MOBILE_SCENE.
+MOBILE_TARGET = (3.0, 2.0)
+MOBILE_SCENE = f"""
+name: mobile-test
+floor_plan:
+  bounds: [0, 0, 8, 4]
+  walls: []
+colors:
+  yellow: {{filter_def: {YELLOW}, bgr: [57, 143, 165]}}
+  blue:   {{filter_def: hsv_100120080130255255, bgr: [167, 100, 42]}}
+cameras:
+  - {{id: unused, position: [4.0, -2.0, 4.5], yaw_deg: 90, pitch_deg: 50, hfov_deg: 90,
+     resolution: [640, 480], fps: 20}}
+objects:
+  - {{kind: marker, color: yellow, center: [{MOBILE_TARGET[0]}, {MOBILE_TARGET[1]}], radius: 0.15}}
+robot: {{start: [0.5, 0.5], goal: [7.0, 0.5], radius: 0.2, color: blue, speed_mps: 1.0}}
+mission: navigate
+"""
+
+
+def mounted_camera(pose: Pose2, camera_id: str = "scout-cam") -> CameraDef:
+    """The simulator's camera where MOUNT on a robot at `pose` puts it."""
+    c, s = math.cos(pose.yaw), math.sin(pose.yaw)
+    position = (pose.x + c * MOUNT.x - s * MOUNT.y, pose.y + s * MOUNT.x + c * MOUNT.y, MOUNT.z)
+    yaw = math.degrees(pose.yaw) + MOUNT.yaw_deg
+    return CameraDef(camera_id, position, yaw, MOUNT.pitch_deg, MOUNT.hfov_deg, MOBILE_SIZE, 20.0, 6.0)
+
+
+def mounted_frame(scenario: Scenario, pose: Pose2, version: int = 0) -> NDArray[np.uint8]:
+    """What the camera on MOUNT of a robot at `pose` sees of `scenario` (MOBILE_SCENE, parsed)."""
+    return CameraRenderer(scenario, mounted_camera(pose), seed=3).render(None, version)
+
+
+class CapturingCamera(AckingCamera):
+    """A camera endpoint that accepts every forwarded request and keeps it (in `requests`): it
+    learns what a camera learns, and reports nothing unless the test writes it."""
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.requests: asyncio.Queue[detection_pb2.DetectionRequest] = asyncio.Queue()
+
+    async def batch(self, requests: Sequence[detection_pb2.DetectionRequest]) -> None:
+        for message in requests:
+            self.requests.put_nowait(message)

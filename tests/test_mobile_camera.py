@@ -12,10 +12,8 @@ import time
 from collections.abc import AsyncIterator
 from pathlib import Path
 
-import numpy as np
 import pytest
 import pytest_asyncio
-from numpy.typing import NDArray
 from shapely.geometry import box
 
 from drvs import DrvsClient
@@ -24,32 +22,15 @@ from drvs.errors import FailedPrecondition, InvalidArgument
 from drvs.launch import ManagedProcess, start_server
 from drvs.mobile import Mount, PoseBuffer
 from drvs.model import Pose2
-from drvs.sim.render import CameraRenderer
-from drvs.sim.scenario import CameraDef, Scenario, parse_scenario
+from drvs.sim.scenario import parse_scenario
 from drvs.sim.scene import record_camera
 
-YELLOW = "hsv_014110130035225200"
-SIZE = (640, 480)
-#: 0.8 m up, 0.1 m ahead of the robot's centre, looking forward 30° down, 70° wide.
-MOUNT = Mount(0.1, 0.0, 0.8, 0.0, 30.0, hfov_deg=70.0)
-TARGET = (3.0, 2.0)
+from .helpers import MOBILE_SCENE, MOBILE_SIZE, MOBILE_TARGET, MOUNT, YELLOW, mounted_camera, mounted_frame
+
+SIZE = MOBILE_SIZE
+TARGET = MOBILE_TARGET
 REGION = (2.5, 1.5, 3.5, 2.5)
-SCENE = f"""
-name: mobile-test
-floor_plan:
-  bounds: [0, 0, 8, 4]
-  walls: []
-colors:
-  yellow: {{filter_def: {YELLOW}, bgr: [57, 143, 165]}}
-  blue:   {{filter_def: hsv_100120080130255255, bgr: [167, 100, 42]}}
-cameras:
-  - {{id: unused, position: [4.0, -2.0, 4.5], yaw_deg: 90, pitch_deg: 50, hfov_deg: 90,
-     resolution: [640, 480], fps: 20}}
-objects:
-  - {{kind: marker, color: yellow, center: [{TARGET[0]}, {TARGET[1]}], radius: 0.15}}
-robot: {{start: [0.5, 0.5], goal: [7.0, 0.5], radius: 0.2, color: blue, speed_mps: 1.0}}
-mission: navigate
-"""
+SCENE = MOBILE_SCENE
 #: Where the robot is for each frame: driving towards the disc, weaving a little.
 PATH = [
     Pose2(0.6, 2.0, 0.0),
@@ -59,16 +40,8 @@ PATH = [
 ]
 
 
-def camera_at(pose: Pose2) -> CameraDef:
-    """The simulator's camera where the mount on a robot at `pose` puts it."""
-    c, s = math.cos(pose.yaw), math.sin(pose.yaw)
-    position = (pose.x + c * MOUNT.x - s * MOUNT.y, pose.y + s * MOUNT.x + c * MOUNT.y, MOUNT.z)
-    yaw = math.degrees(pose.yaw) + MOUNT.yaw_deg
-    return CameraDef("scout-cam", position, yaw, MOUNT.pitch_deg, MOUNT.hfov_deg, SIZE, 20.0, 6.0)
-
-
-def frame(scenario: Scenario, pose: Pose2, version: int) -> NDArray[np.uint8]:
-    return CameraRenderer(scenario, camera_at(pose), seed=3).render(None, version)
+camera_at = mounted_camera
+frame = mounted_frame
 
 
 @pytest_asyncio.fixture

@@ -18,34 +18,40 @@ import math
 import re
 import time
 from collections.abc import AsyncIterator
-from typing import Any
 
 import numpy as np
 import pytest
-from drvs_bench.fakes import AckingCamera, serve_camera
+from drvs_bench.fakes import serve_camera
 from grpc import aio
 from numpy.typing import NDArray
 
 from drvs import DrvsClient
 from drvs.camera import CameraNode, PushSource
 from drvs.launch import running_server
-from drvs.mobile import Mount
 from drvs.model import DetectionRequest, Pose2, Snapshot
 from drvs.server import DrvsServer
 from drvs.server.config import ServerConfig
 from drvs.server.fusion_session import Continuous
-from drvs.sim.render import CameraRenderer
-from drvs.sim.scenario import CameraDef, Scenario, parse_scenario
+from drvs.sim.scenario import Scenario, parse_scenario
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
-from .helpers import YELLOW, metrics_port, register_message, scrape
+from .helpers import (
+    MOBILE_SCENE,
+    MOBILE_SIZE,
+    MOBILE_TARGET,
+    MOUNT,
+    YELLOW,
+    CapturingCamera,
+    metrics_port,
+    mounted_frame,
+    register_message,
+    scrape,
+)
 
-SIZE = (640, 480)
-#: 0.8 m up, 0.1 m ahead of the robot's centre, looking forward 30° down, 70° wide: sees the floor
-#: from about 0.6 m to 6.6 m ahead.
-MOUNT = Mount(0.1, 0.0, 0.8, 0.0, 30.0, hfov_deg=70.0)
+SIZE = MOBILE_SIZE
+#: MOUNT sees the floor from about 0.6 m to 6.6 m ahead.
 BASE = MOUNT.base_homography(SIZE)
-TARGET = (3.0, 2.0)
+TARGET = MOBILE_TARGET
 REGION = (2.0, 1.5, 4.0, 3.0)
 #: The fixed camera, 3 m up at (3, 0) looking along +y, sees x -0.8..6.8, y 1.5..7.5: the region.
 FIXED_X = 3.0
@@ -53,48 +59,17 @@ FIXED_X = 3.0
 IN = Pose2(0.6, 2.0, 0.0)
 AWAY = Pose2(0.6, 2.0, math.pi)
 FAR = Pose2(20.0, 20.0, 0.0)
-SCENE = f"""
-name: mobile-pickup
-floor_plan:
-  bounds: [0, 0, 8, 4]
-  walls: []
-colors:
-  yellow: {{filter_def: {YELLOW}, bgr: [57, 143, 165]}}
-  blue:   {{filter_def: hsv_100120080130255255, bgr: [167, 100, 42]}}
-cameras:
-  - {{id: unused, position: [4.0, -2.0, 4.5], yaw_deg: 90, pitch_deg: 50, hfov_deg: 90,
-     resolution: [640, 480], fps: 20}}
-objects:
-  - {{kind: marker, color: yellow, center: [{TARGET[0]}, {TARGET[1]}], radius: 0.15}}
-robot: {{start: [0.5, 0.5], goal: [7.0, 0.5], radius: 0.2, color: blue, speed_mps: 1.0}}
-mission: navigate
-"""
+SCENE = MOBILE_SCENE
 
 
 def frame(scenario: Scenario, pose: Pose2) -> NDArray[np.uint8]:
     """What the mounted camera of a robot at `pose` sees."""
-    c, s = math.cos(pose.yaw), math.sin(pose.yaw)
-    position = (pose.x + c * MOUNT.x - s * MOUNT.y, pose.y + s * MOUNT.x + c * MOUNT.y, MOUNT.z)
-    yaw = math.degrees(pose.yaw) + MOUNT.yaw_deg
-    camera = CameraDef("scout", position, yaw, MOUNT.pitch_deg, MOUNT.hfov_deg, SIZE, 20.0, 6.0)
-    return CameraRenderer(scenario, camera, seed=3).render(None, 0)
-
-
-class _Capturing(AckingCamera):
-    """A camera endpoint that takes every forward and keeps it (and never reports)."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.requests: asyncio.Queue[detection_pb2.DetectionRequest] = asyncio.Queue()
-
-    async def batch(self, requests: Any) -> None:
-        for message in requests:
-            self.requests.put_nowait(message)
+    return mounted_frame(scenario, pose)
 
 
 @contextlib.asynccontextmanager
-async def capturing() -> AsyncIterator[tuple[_Capturing, str]]:
-    camera = _Capturing()
+async def capturing() -> AsyncIterator[tuple[CapturingCamera, str]]:
+    camera = CapturingCamera()
     server, address = await serve_camera(camera)
     try:
         yield camera, address

@@ -13,7 +13,7 @@ from typing import Any
 
 import grpc
 import pytest
-from drvs_bench.fakes import AckingCamera, serve_camera
+from drvs_bench.fakes import serve_camera
 from grpc import aio
 from shapely.geometry import box
 
@@ -27,20 +27,7 @@ from drvs.server.policy import CallbackPolicy, IPAddress
 from drvs.sim.scene import RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
-from .helpers import CAM1_REGION, CAM2_REGION, MAX_RANGE, YELLOW, detect_message, register_message
-
-
-class _CapturingCamera(AckingCamera):
-    """A registered camera that accepts every forwarded request and keeps it: it learns what a
-    camera learns, and nothing is reported unless the test writes it."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.requests: asyncio.Queue[detection_pb2.DetectionRequest] = asyncio.Queue()
-
-    async def batch(self, requests: Sequence[detection_pb2.DetectionRequest]) -> None:
-        for message in requests:
-            self.requests.put_nowait(message)
+from .helpers import CAM1_REGION, CAM2_REGION, MAX_RANGE, YELLOW, CapturingCamera, detect_message, register_message
 
 
 def _report(request_id: str, camera_id: str, sequence: int, final: bool, key: bytes = b"", x: float = 0.5) -> Any:
@@ -84,7 +71,7 @@ async def test_reports_only_from_dispatched_cameras_on_their_own_streams(
     with a guessed key; in its own name, for a request that was not dispatched to it, its report is
     ignored. A forged final in cam1's name ends nothing."""
     procs: list[ManagedProcess] = []
-    evil = _CapturingCamera()
+    evil = CapturingCamera()
     evil_server, evil_address = await serve_camera(evil)
     try:
         server, address = await start_server()
@@ -140,7 +127,7 @@ async def test_reports_only_from_dispatched_cameras_on_their_own_streams(
 async def test_server_rewrites_a_callback_name_to_the_address_it_checked() -> None:
     """A robot names its callback by host name; the camera gets the address the name resolved to and
     was checked, so a later answer for the name (DNS rebinding) changes nothing."""
-    evil = _CapturingCamera()
+    evil = CapturingCamera()
     camera, camera_address = await serve_camera(evil)
     try:
         async with DrvsServer("127.0.0.1:0") as server, aio.insecure_channel(server.address) as channel:
@@ -258,7 +245,7 @@ async def test_a_restarted_server_says_coverage_is_uncertain_for_a_lease() -> No
         await proc.stop()
 
 
-class _LateCamera(_CapturingCamera):
+class _LateCamera(CapturingCamera):
     """Accepts each request after `delay` seconds."""
 
     def __init__(self) -> None:

@@ -20,7 +20,7 @@ from typing import Any
 import grpc
 import pytest
 import pytest_asyncio
-from drvs_bench.fakes import AckingCamera, serve_camera
+from drvs_bench.fakes import serve_camera
 from grpc import aio
 
 from drvs.camera.node import CameraNode
@@ -38,7 +38,7 @@ from drvs.sim.scene import FloorPatch, RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2_grpc
 
 from .fakes import start_recorded_camera
-from .helpers import YELLOW, Scene, metrics_port, record_facing, register_message, scrape
+from .helpers import YELLOW, CapturingCamera, Scene, metrics_port, record_facing, register_message, scrape
 
 #: Two cameras 3 m apart, both 3 m up looking along +y: at y = 4.5 "left" sees x -4.6..1.6 and
 #: "right" x -1.6..4.6. SHARED lies where both see it, LONE where only left does.
@@ -362,18 +362,6 @@ async def test_a_robot_may_not_ask_cameras_to_report_to_the_server(office: Scene
     assert answered.request_id == "fine" and len(answered.snapshot.objects) == 2
 
 
-class _CapturingCamera(AckingCamera):
-    """A registered camera that accepts every forward and keeps it: it learns what a camera learns."""
-
-    def __init__(self) -> None:
-        super().__init__()
-        self.requests: asyncio.Queue[detection_pb2.DetectionRequest] = asyncio.Queue()
-
-    async def batch(self, requests: Any) -> None:
-        for message in requests:
-            self.requests.put_nowait(message)
-
-
 def forged(request_id: str, camera_id: str, xy: tuple[float, float], key: bytes = b"") -> detection_pb2.DetectionReport:
     x, y = xy
     return detection_pb2.DetectionReport(
@@ -400,7 +388,7 @@ async def test_injected_reports_do_not_count(office: Scene) -> None:
     to it), in left's name with a guessed key, and in left's name without a key. None counts: no
     snapshot holds the forged object, the server counts four rejected reports and tells evil's
     stream to stop each. Its report for its own request, with its key, is taken."""
-    evil = _CapturingCamera()
+    evil = CapturingCamera()
     evil_server, evil_address = await serve_camera(evil)
     try:
         async with aio.insecure_channel(office.address) as channel:
@@ -575,10 +563,10 @@ async def test_a_camera_without_its_server_refuses_to_report_to_it(overlap: dict
 
 
 @contextlib.asynccontextmanager
-async def server_with_quiet_camera() -> AsyncIterator[tuple[DrvsServer, aio.Channel, _CapturingCamera]]:
+async def server_with_quiet_camera() -> AsyncIterator[tuple[DrvsServer, aio.Channel, CapturingCamera]]:
     """A DrvsServer in this process with one registered camera, "quiet", that records the requests
     forwarded to it and never reports; yields the server, a channel to it and the camera."""
-    quiet = _CapturingCamera()
+    quiet = CapturingCamera()
     quiet_server, quiet_address = await serve_camera(quiet)
     try:
         async with DrvsServer("127.0.0.1:0") as server, aio.insecure_channel(server.address) as channel:

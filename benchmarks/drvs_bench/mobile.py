@@ -36,6 +36,7 @@ from drvs.model import Pose2
 from drvs.registry import Registry
 
 from .common import machine, pyplot, write_result
+from .helpers import percentile
 from .mobile_accuracy import plot_accuracy, run_accuracy
 from .mobile_staleness import run_staleness
 from .stats import FULL_ROUNDS, QUICK_ROUNDS, interleaved, publish, verdict
@@ -103,12 +104,11 @@ def run_mode(reg: Registry, clock: _Clock, ids: list[str], lookups: int, seed: i
         found = reg.cameras_seeing(region)
         lookup_us.append((time.perf_counter() - t0) * 1e6)
         routed += len(found)
-    ordered = sorted(lookup_us)
     out: dict[str, Any] = {
         "lookups": lookups,
         "cameras_found": routed,
-        "lookup_us_p50": statistics.median(ordered),
-        "lookup_us_p99": ordered[min(len(ordered) - 1, math.ceil(0.99 * len(ordered)) - 1)],
+        "lookup_us_p50": statistics.median(lookup_us),
+        "lookup_us_p99": percentile(lookup_us, 99),
         "pose_updates": len(update_us),
     }
     if update_us:

@@ -35,6 +35,8 @@ from drvs.model import Pose2
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import Scenario, parse_scenario
 
+from .helpers import percentile
+
 YELLOW = "hsv_014110130035225200"
 TARGET = (4.5, 2.6)
 #: The scout's way: a gentle curve to the left, passing the disc on its left (about 0.9 rad in 4 m).
@@ -121,11 +123,6 @@ def errors(scene: Scenario, looks: list[tuple[float, list[Any]]], setting: tuple
     return out
 
 
-def percentile(values: list[float], q: float) -> float:
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, max(0, math.ceil(q * len(ordered)) - 1))]
-
-
 def run_accuracy(quick: bool) -> dict[str, Any]:
     """Per speed and setting: the position error's median and p95 (cm) over the frames, for each
     noise seed (rounds), and its ratio to the floor's."""
@@ -148,7 +145,7 @@ def run_accuracy(quick: bool) -> dict[str, Any]:
             name, delay, noise_m, noise_deg = setting
             rounds = [errors(scene, looks, setting, seed) for seed in seeds]
             medians = [100 * statistics.median(r) for r in rounds]
-            p95s = [100 * percentile(r, 0.95) for r in rounds]
+            p95s = [100 * percentile(r, 95) for r in rounds]
             entry: dict[str, Any] = {
                 "delay_s": delay,
                 "noise_m": noise_m,

@@ -13,7 +13,6 @@ at that pose. That covers the node's thresholds and rate cap, the network, and t
 from __future__ import annotations
 
 import asyncio
-import math
 import statistics
 import time
 from typing import Any
@@ -25,6 +24,8 @@ from drvs.launch import start_server
 from drvs.mobile import Mount
 from drvs.model import Pose2
 from drvs.robot import DrvsClient
+
+from .helpers import percentile
 
 SPEEDS_MPS = (0.5, 1.0)
 POSE_RATE_HZ = 20.0
@@ -72,11 +73,6 @@ async def one_drive(address: str, speed: float, seconds: float, camera_id: str) 
     return samples
 
 
-def percentile(values: list[float], q: float) -> float:
-    ordered = sorted(values)
-    return ordered[min(len(ordered) - 1, max(0, math.ceil(q * len(ordered)) - 1))]
-
-
 async def staleness(quick: bool) -> dict[str, Any]:
     seconds = 4.0 if quick else 10.0
     rounds = 2 if quick else 3
@@ -90,7 +86,7 @@ async def staleness(quick: bool) -> dict[str, Any]:
                 if not s:
                     raise RuntimeError(f"no staleness sample at {speed} m/s: the server never held a pose pushed")
                 p50s.append(1000 * statistics.median(s))
-                p95s.append(1000 * percentile(s, 0.95))
+                p95s.append(1000 * percentile(s, 95))
                 maxes.append(1000 * max(s))
                 counts.append(len(s))
             result["speeds"][f"{speed:g}"] = {

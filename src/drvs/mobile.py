@@ -17,7 +17,7 @@ from __future__ import annotations
 import bisect
 import math
 import threading
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -33,6 +33,12 @@ from drvs.model import Detection, Pose2
 POSE_HISTORY = 500
 #: Default for how far from a frame's capture time the poses around it may be, seconds.
 DEFAULT_MAX_POSE_GAP_S = 0.25
+#: A pose feed that drops is reopened after this long, doubling up to the most, seconds.
+INITIAL_BACKOFF_S = 0.1
+MAX_BACKOFF_S = 5.0
+
+#: Where a pose source hands each pose: push(time the pose held, seconds since the Unix epoch; pose).
+Push = Callable[[float, Pose2], None]
 
 
 @dataclass(frozen=True)

@@ -18,10 +18,10 @@ import json
 import logging
 import math
 import time
-from collections.abc import Callable
 from typing import Protocol
 
 from drvs.errors import DrvsError, InvalidArgument
+from drvs.mobile import INITIAL_BACKOFF_S, MAX_BACKOFF_S, Push
 from drvs.model import Pose2
 from drvs.net import parse_address
 
@@ -30,11 +30,6 @@ log = logging.getLogger("drvs.camera.poses")
 POSE_ENTRY_POINT_GROUP = "drvs.pose_sources"
 #: Longest line the feed may send, bytes.
 MAX_LINE_BYTES = 4096
-#: Reconnect backoff, seconds: first wait and the most.
-INITIAL_BACKOFF_S = 0.1
-MAX_BACKOFF_S = 5.0
-
-Push = Callable[[float, Pose2], None]
 
 
 class PoseSource(Protocol):

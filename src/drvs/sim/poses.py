@@ -13,7 +13,7 @@ import json
 import logging
 import math
 import random
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 
 import grpc
 from grpc import aio
@@ -21,6 +21,7 @@ from grpc import aio
 from drvs import _grpc
 from drvs._cli import setup_logging, shutdown_event
 from drvs.errors import DrvsError, InvalidArgument
+from drvs.mobile import INITIAL_BACKOFF_S, MAX_BACKOFF_S, Push
 from drvs.model import Pose2, check_id
 from drvs.net import parse_address
 from drvs.v1 import sim_pb2, sim_pb2_grpc
@@ -29,11 +30,6 @@ log = logging.getLogger("drvs.sim.poses")
 SCHEME = "sim://"
 #: Poses a second asked of the world.
 DEFAULT_RATE_HZ = 20.0
-#: Reconnect backoff when the world's stream breaks, seconds: first wait and the most.
-INITIAL_BACKOFF_S = 0.1
-MAX_BACKOFF_S = 5.0
-#: Where a pose source hands each (time, pose) (drvs.camera.poses.PoseSource's `push`).
-Push = Callable[[float, Pose2], None]
 
 
 def parse_spec(spec: str) -> tuple[str, str]:

@@ -487,16 +487,21 @@ def _color(name: str, value: Any) -> ColorDef:
     return ColorDef(name, filter_def, bgr)  # type: ignore[arg-type]
 
 
+def _id(obj: _Obj, default: Any = ...) -> str:
+    """`obj.id`: a string that is an id (letters, digits, - _ . :), or ScenarioError naming it."""
+    value = obj.take("id", default)
+    if not isinstance(value, str):
+        raise ScenarioError(f"{obj.path}.id: expected a string")
+    try:
+        return check_id(value, f"{obj.path}.id")
+    except InvalidArgument as exc:
+        raise ScenarioError(str(exc)) from None
+
+
 def _camera(obj: _Obj, floor: Polygon) -> CameraDef:
     obj.check_keys(["id", "position", "yaw_deg", "pitch_deg", "hfov_deg", "resolution", "fps", "max_range_m"])
     p = obj.path
-    cid = obj.take("id")
-    if not isinstance(cid, str):
-        raise ScenarioError(f"{p}.id: expected a string")
-    try:
-        check_id(cid, f"{p}.id")
-    except InvalidArgument as exc:
-        raise ScenarioError(str(exc)) from None
+    cid = _id(obj)
     x, y, z = _numbers(obj.take("position"), f"{p}.position", 3)
     if z <= 0:
         raise ScenarioError(f"{p}.position: mounting height z = {z:g} must be above the floor")
@@ -730,13 +735,7 @@ def _robot(
 def _scout(obj: _Obj, bounds: tuple[float, float, float, float], walls: Sequence[Polygon]) -> ScoutDef:
     obj.check_keys(["id", "camera", "path", "speed_mps", "loop", "radius", "bgr"])
     p = obj.path
-    sid = obj.take("id")
-    if not isinstance(sid, str):
-        raise ScenarioError(f"{p}.id: expected a string")
-    try:
-        check_id(sid, f"{p}.id")
-    except InvalidArgument as exc:
-        raise ScenarioError(str(exc)) from None
+    sid = _id(obj)
     radius = _number(obj.take("radius", 0.2), f"{p}.radius", 0.05, 2.0)
     raw = obj.take("path")
     if not isinstance(raw, list) or not raw:
@@ -755,13 +754,7 @@ def _scout(obj: _Obj, bounds: tuple[float, float, float, float], walls: Sequence
     cam = _Obj(obj.take("camera"), f"{p}.camera")
     cam.check_keys(["id", "height", "pitch_deg", "yaw_deg", "hfov_deg", "resolution", "fps", "max_range_m"])
     c = cam.path
-    camera_id = cam.take("id", f"{sid}-cam")
-    if not isinstance(camera_id, str):
-        raise ScenarioError(f"{c}.id: expected a string")
-    try:
-        check_id(camera_id, f"{c}.id")
-    except InvalidArgument as exc:
-        raise ScenarioError(str(exc)) from None
+    camera_id = _id(cam, f"{sid}-cam")
     res = _numbers(cam.take("resolution", [640, 480]), f"{c}.resolution", 2)
     w, h = (int(_number(v, f"{c}.resolution[{i}]", 16, 8192)) for i, v in enumerate(res))
     scout = ScoutDef(
