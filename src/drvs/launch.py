@@ -13,9 +13,12 @@ import asyncio
 import contextlib
 import os
 import re
+import shutil
 import signal
+import socket
 import sys
 from collections.abc import AsyncIterator, Awaitable, Callable, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
 from typing import Any, TextIO, TypeVar
@@ -405,3 +408,89 @@ async def camera_ready(
         await asyncio.shield(proc.stop())
         raise
     return address
+
+
+# --- etcd ----------------------------------------------------------------------------------------
+
+ETCD = "etcd"  # Debian's etcd-server package (./run installs it)
+
+
+def free_ports(count: int) -> list[int]:
+    """`count` loopback ports free a moment ago (etcd advertises its ports, so it cannot take 0)."""
+    sockets = []
+    try:
+        for _ in range(count):
+            s = socket.socket()
+            s.bind(("127.0.0.1", 0))
+            sockets.append(s)
+        return [s.getsockname()[1] for s in sockets]
+    finally:
+        for s in sockets:
+            s.close()
+
+
+@dataclass
+class EtcdMember:
+    """One member of a real etcd cluster on loopback: its process, name and ports."""
+
+    name: str
+    client_port: int
+    peer_port: int
+    data_dir: Path
+    proc: ManagedProcess | None = None
+
+    @property
+    def client_url(self) -> str:
+        return f"http://127.0.0.1:{self.client_port}"
+
+    @property
+    def peer_url(self) -> str:
+        return f"http://127.0.0.1:{self.peer_port}"
+
+    @property
+    def address(self) -> str:
+        return f"127.0.0.1:{self.client_port}"
+
+    async def start(self, cluster: str, state: str = "new", echo: TextIO | None = None) -> None:
+        """Start (or restart, on its data) this member of `cluster` (NAME=PEER_URL,...)."""
+        if shutil.which(ETCD) is None:
+            raise FileNotFoundError("etcd: not installed (Debian's etcd-server; ./run setup installs it)")
+        self.proc = await ManagedProcess(
+            f"etcd-{self.name}",
+            [
+                ETCD, "--name", self.name, "--data-dir", str(self.data_dir),
+                "--listen-client-urls", self.client_url, "--advertise-client-urls", self.client_url,
+                "--listen-peer-urls", self.peer_url, "--initial-advertise-peer-urls", self.peer_url,
+                "--initial-cluster", cluster, "--initial-cluster-state", state,
+                "--initial-cluster-token", "drvs", "--heartbeat-interval", "50", "--election-timeout", "500",
+                "--log-level", "warn",
+            ],
+            echo=echo,
+        ).start()  # fmt: skip
+
+    async def stop(self) -> None:
+        if self.proc is not None:
+            await self.proc.stop()
+
+    def kill(self) -> None:
+        if self.proc is not None:
+            self.proc.kill()
+
+
+async def start_etcd(data_dir: Path, members: int = 1, *, echo: TextIO | None = None) -> list[EtcdMember]:
+    """A real etcd cluster of `members` on loopback ports, its data under `data_dir`, returned once
+    it answers; on failure every member is stopped and reaped."""
+    from drvs.etcd import Endpoints, wait_ready
+
+    ports = free_ports(2 * members)
+    cluster = [EtcdMember(f"m{i}", ports[2 * i], ports[2 * i + 1], data_dir / f"m{i}") for i in range(members)]
+    initial = ",".join(f"{m.name}={m.peer_url}" for m in cluster)
+    try:
+        for m in cluster:
+            await m.start(initial, echo=echo)
+        await wait_ready(Endpoints(tuple(("127.0.0.1", m.client_port) for m in cluster)), READY_TIMEOUT_S)
+    except BaseException:
+        for m in cluster:
+            await asyncio.shield(m.stop())
+        raise
+    return cluster
