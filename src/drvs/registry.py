@@ -157,6 +157,27 @@ class Registry:
         A mobile camera's `homography` maps to its robot's base frame: its field of view there is
         computed once, with the same limits; one that sees no floor stays registered but is never
         routed (`unroutable` says why). It is routed only while a pose update is fresh."""
+        return self.store(
+            *self.check(
+                camera_id, address, homography, image_size, detector_kinds, max_range_m,
+                mobile=mobile, pose_lease_s=pose_lease_s,
+            )
+        )  # fmt: skip
+
+    def check(
+        self,
+        camera_id: str,
+        address: str,
+        homography: Homography,
+        image_size: tuple[int, int],
+        detector_kinds: frozenset[str] | set[str],
+        max_range_m: float,
+        *,
+        mobile: bool = False,
+        pose_lease_s: float = 0.0,
+    ) -> tuple[CameraEntry, MobileState | None]:
+        """Every check of a registration, and the entry (and a mobile camera's state) it would
+        make, with nothing stored (InvalidArgument naming the field)."""
         check_id(camera_id, "camera_id")
         parse_address(address, "address")
         if not detector_kinds:
@@ -194,6 +215,11 @@ class Registry:
             image_size=image_size,
             mobile=mobile,
         )
+        return entry, state
+
+    def store(self, entry: CameraEntry, state: MobileState | None = None) -> CameraEntry:
+        """Add or replace a checked entry (`check`); its lease starts now."""
+        camera_id = entry.camera_id
         was_static = camera_id in self._entries and camera_id not in self._mobile
         self._entries[camera_id] = entry
         self._expires[camera_id] = self._clock() + self.lease_ttl_s
@@ -325,6 +351,12 @@ class Registry:
             raise NotFound(f"camera_id: {camera_id!r}'s lease expired; register again")
         self._expires[camera_id] = now + self.lease_ttl_s
         return entry
+
+    def hold(self, camera_id: str) -> None:
+        """Keep `camera_id` until it is removed: its lease is kept elsewhere (a registry shared in
+        etcd, whose lease expiry removes it on every server)."""
+        self.get(camera_id)
+        self._expires[camera_id] = math.inf
 
     def remove(self, camera_id: str) -> CameraEntry:
         entry = self._entries.pop(camera_id, None)
@@ -469,6 +501,8 @@ class Claims:
         return len(self._held.get(quota, ()))
 
     def _until(self, claim: Claim) -> str:
+        if math.isinf(claim.until):  # a registry shared in etcd: its lease there decides
+            return "while its registration's lease in the shared registry lasts"
         left = max(0.0, claim.until - self._clock())
         at = time.strftime("%H:%M:%S", time.gmtime(self._wall_clock() + left))
         return f"until {at} UTC ({left:.0f} s from now) unless it renews its lease"
@@ -515,6 +549,13 @@ class Claims:
                 f"registration_secret: {'empty' if not secret else 'not the current one'} for camera_id "
                 f"{camera_id!r}: another registration of this id replaced it, or it never was; register again"
             )
+
+    def adopt(self, camera_id: str, claim: Claim | None) -> None:
+        """Hold `camera_id` as another server recorded it (a shared registry), or free it (None)."""
+        self.release(camera_id)
+        if claim is not None:
+            self._claims[camera_id] = claim
+            self._held.setdefault(claim.quota, set()).add(camera_id)
 
     def renew(self, camera_id: str, lease_until: float) -> None:
         claim = self._claims.get(camera_id)

@@ -214,6 +214,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="SECONDS",
         help="refuse a mobile camera's pose update sooner than this after its previous one (default %(default)g)",
     )
+    p.add_argument(
+        "--registry",
+        default=None,
+        metavar="memory|etcd://HOST:PORT[,HOST:PORT...]",
+        help="where the camera registry lives: in this server's memory (default), or in etcd, shared by "
+        "every server given the same etcd (DRVS_REGISTRY)",
+    )
     add_security_arguments(p, "unused by the server (it checks tokens, it presents none)")
     add_observability_arguments(p)
     return p
@@ -263,6 +270,7 @@ def config_from(args: argparse.Namespace) -> ServerConfig:
             "pose_lease_s": args.pose_lease,
             "max_pose_lease_s": args.max_pose_lease,
             "min_pose_interval_s": args.min_pose_interval,
+            "registry": args.registry,
         },
         os.environ,
     )

@@ -19,6 +19,7 @@ from typing import Any
 from drvs import _grpc
 from drvs._cli import env_number, format_number, parse_bool
 from drvs.errors import InvalidArgument
+from drvs.etcd import Endpoints
 from drvs.geometry import DEFAULT_MAX_RANGE_M
 from drvs.net import parse_address
 from drvs.registry import (
@@ -51,6 +52,7 @@ ENVIRONMENT = {
     "listen": "DRVS_SERVER_LISTEN",
     "lease_ttl_s": "DRVS_LEASE_TTL",
     "trust_network": "DRVS_TRUST_NETWORK",
+    "registry": "DRVS_REGISTRY",
 }
 
 #: Each setting's command-line flag.
@@ -77,6 +79,7 @@ FLAGS = {
     "pose_lease_s": "--pose-lease",
     "max_pose_lease_s": "--max-pose-lease",
     "min_pose_interval_s": "--min-pose-interval",
+    "registry": "--registry",
 }
 
 #: Inclusive numeric ranges: setting -> (lowest, highest, whether the lowest is allowed, unit text).
@@ -160,6 +163,9 @@ class ServerConfig:
     max_pose_lease_s: float = MAX_POSE_LEASE_S
     #: A mobile camera's pose updates closer together than this are refused, seconds.
     min_pose_interval_s: float = DEFAULT_MIN_POSE_INTERVAL_S
+    #: Where the registry lives: "memory" (this server alone) or etcd://HOST:PORT[,HOST:PORT...],
+    #: shared by every server given the same etcd (drvs.server.shared).
+    registry: str = "memory"
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "allow_callback", tuple(self.allow_callback))
@@ -192,6 +198,8 @@ class ServerConfig:
                 f"max_pose_lease_s {self.max_pose_lease_s:g} s"
             )
         CallbackPolicy(self.allow_callback)  # refuses a malformed network
+        if self.registry != "memory":
+            Endpoints.parse(self.registry, setting("registry"))
 
     @property
     def warm_up(self) -> float:

@@ -9,6 +9,7 @@ import dataclasses
 import functools
 import itertools
 import logging
+import secrets
 import time
 import uuid
 from collections import OrderedDict
@@ -35,10 +36,12 @@ from drvs.errors import (
     DrvsError,
     FailedPrecondition,
     InvalidArgument,
+    NotFound,
     ResourceExhausted,
     Unauthenticated,
     Unavailable,
 )
+from drvs.etcd import Endpoints
 from drvs.geometry import DEFAULT_MAX_RANGE_M, Homography
 from drvs.model import CameraError, DetectionReport, DetectionRequest, Pose2, check_id
 from drvs.net import host_of, is_loopback_host
@@ -72,8 +75,11 @@ from drvs.server.config import (
 )
 from drvs.server.fusion_session import Continuous, FusionSession, FusionSessions, ReportIntake, SingleShot
 from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits, peer_ip
+from drvs.server.shared import Record, SharedRegistry
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
+#: How long a server sharing its registry in etcd waits for it at start before serving, seconds.
+SHARED_SYNC_WAIT_S = 5.0
 log = logging.getLogger("drvs.server")
 
 #: ListCameras: cameras per reply unless the caller asks for fewer, and the most it may ask for.
@@ -303,6 +309,15 @@ class DrvsServer(Lifecycle):
         self.fusion = FusionSessions()
         self._fused_ids = itertools.count(1)
         self._stopped = False
+        #: The registry's etcd side when it is shared with other servers (--registry etcd://...).
+        self.shared: SharedRegistry | None = None
+        if config.registry != "memory":
+            self.shared = SharedRegistry(
+                Endpoints.parse(config.registry, "registry"),
+                self._apply_shared,
+                self._drop_shared,
+                lambda: [e.camera_id for e in self.registry.cameras()],
+            )
 
     @classmethod
     def from_config(
@@ -330,6 +345,12 @@ class DrvsServer(Lifecycle):
         detection_pb2_grpc.add_CallbackCoordinatesServicer_to_server(_CameraReports(self), server)
 
     async def start(self) -> None:
+        if self.shared is not None:
+            await self.shared.start()
+            try:  # the registry as etcd holds it before serving; if etcd does not answer, serve anyway
+                await asyncio.wait_for(self.shared.synced.wait(), SHARED_SYNC_WAIT_S)
+            except TimeoutError:
+                log.warning("registry: etcd %s has not answered yet; serving with no camera", self.shared.endpoints)
         await self._endpoint.start()
         self._started_at = time.monotonic()
         self._sweeper = asyncio.get_running_loop().create_task(self._sweep_leases())
@@ -339,7 +360,12 @@ class DrvsServer(Lifecycle):
             "registration: %s",
             self.describe_registration(),
         )
-        log.info("drvs-server listening on %s (lease %.1f s)", self.address, self.registry.lease_ttl_s)
+        log.info(
+            "drvs-server listening on %s (lease %.1f s; registry %s)",
+            self.address,
+            self.registry.lease_ttl_s,
+            f"shared in etcd {self.shared.endpoints}" if self.shared is not None else "in memory",
+        )
 
     def describe_security(self) -> str:
         parts = []
@@ -400,6 +426,8 @@ class DrvsServer(Lifecycle):
         await asyncio.gather(*(link.close() for link in self._links.values()), return_exceptions=True)
         self._links.clear()
         await self._callbacks.close()
+        if self.shared is not None:
+            await self.shared.stop()
         log.info("drvs-server stopped")
 
     async def wait_for_termination(self) -> None:
@@ -418,6 +446,16 @@ class DrvsServer(Lifecycle):
             )
         return who
 
+    def _registrant(self, registration: CameraRegistration, who: str, peer: str) -> tuple[str, str, str]:
+        """A registration's secrets and id checked: (camera id, owner, the quota its ids count against)."""
+        for name in ("registration_secret", "forward_secret"):
+            value = getattr(registration, name)
+            if len(value) > MAX_SECRET_LENGTH or not (value.isascii() and value.isprintable()) or " " in value:
+                raise InvalidArgument(f"{name}: at most {MAX_SECRET_LENGTH} printable ASCII characters, no spaces")
+        camera_id = check_id(registration.camera_id, "camera_id")
+        owner = self._camera_owner(who, "Register")
+        return camera_id, owner, owner or f"the anonymous caller at {peer}"
+
     def register_camera(
         self, registration: CameraRegistration, who: str, peer: str, presented_token: str = ""
     ) -> tuple[CameraEntry, str]:
@@ -426,13 +464,7 @@ class DrvsServer(Lifecycle):
         forward secret (or `presented_token`, the token the registration carried). `peer`: the
         caller's IP, whose quota an anonymous caller's ids count against. Returns the camera's entry
         and the registration's secret, which its heartbeats and deregistration must carry."""
-        for name in ("registration_secret", "forward_secret"):
-            value = getattr(registration, name)
-            if len(value) > MAX_SECRET_LENGTH or not (value.isascii() and value.isprintable()) or " " in value:
-                raise InvalidArgument(f"{name}: at most {MAX_SECRET_LENGTH} printable ASCII characters, no spaces")
-        camera_id = check_id(registration.camera_id, "camera_id")
-        owner = self._camera_owner(who, "Register")
-        quota = owner or f"the anonymous caller at {peer}"
+        camera_id, owner, quota = self._registrant(registration, who, peer)
         self.claims.check_register(
             camera_id, owner, registration.registration_secret, quota, registration.forward_secret
         )
@@ -467,6 +499,115 @@ class DrvsServer(Lifecycle):
             ",".join(sorted(entry.detector_kinds)),
         )
         return entry, secret
+
+    # --- the registry shared in etcd (--registry etcd://...) ---------------------------------------
+
+    def _shared(self) -> SharedRegistry:
+        assert self.shared is not None
+        return self.shared
+
+    async def register_camera_shared(
+        self, registration: CameraRegistration, who: str, peer: str, presented_token: str = ""
+    ) -> tuple[CameraEntry, str]:
+        """`register_camera` on a registry shared in etcd: the id's holder is read from etcd (another
+        server may have registered it), the registration is checked as always, then stored by
+        compare-and-put under a new etcd lease; every server (this one at once) routes to it.
+        UNAVAILABLE while etcd cannot be reached."""
+        shared = self._shared()
+        camera_id, owner, quota = self._registrant(registration, who, peer)
+        if registration.mobile:
+            raise FailedPrecondition(
+                "mobile: this server shares its registry in etcd, which does not carry mobile cameras' poses "
+                "yet; register a mobile camera with a server whose registry is in memory"
+            )
+        previous = await shared.get(camera_id)
+        self.claims.adopt(camera_id, previous.claim() if previous is not None else None)
+        self.claims.check_register(
+            camera_id, owner, registration.registration_secret, quota, registration.forward_secret
+        )
+        max_range_m = registration.max_range_m or self.default_max_range_m
+        self.registry.check(
+            camera_id, registration.address, Homography.from_values(registration.homography, "homography"),
+            registration.image_size, set(registration.detector_kinds), max_range_m,
+        )  # fmt: skip
+        record = Record(
+            camera_id=camera_id,
+            address=registration.address,
+            homography=tuple(float(v) for v in registration.homography),
+            image_size=registration.image_size,
+            detector_kinds=tuple(sorted(set(registration.detector_kinds))),
+            max_range_m=max_range_m,
+            owner=owner,
+            quota=quota,
+            secret=secrets.token_urlsafe(24),
+            forward_secret=registration.forward_secret or presented_token,
+            server=self.address,
+            registered_at=time.time(),
+        )
+        stored = await shared.put(record, previous, self.registry.lease_ttl_s)
+        shared.records[camera_id] = stored
+        entry = self._apply_shared(stored)
+        return entry, stored.secret
+
+    async def renew_camera_shared(self, camera_id: str, who: str, registration_secret: str) -> None:
+        """A heartbeat through any server: the holder (as etcd records it) keeps the etcd lease alive."""
+        check_id(camera_id, "camera_id")
+        owner = self._camera_owner(who, "Heartbeat")
+        record = await self._shared().get(camera_id)
+        if record is None:
+            raise NotFound(f"camera_id: {camera_id!r} is not registered")
+        self.claims.adopt(camera_id, record.claim())
+        self.claims.check(camera_id, owner, registration_secret)
+        if not await self._shared().renew(record):
+            raise NotFound(f"camera_id: {camera_id!r}'s lease expired; register again")
+        self._unreachable.discard(camera_id)
+
+    async def deregister_camera_shared(self, camera_id: str, who: str, registration_secret: str) -> None:
+        """The holder leaves through any server: its key goes from etcd, and every server drops it."""
+        check_id(camera_id, "camera_id")
+        owner = self._camera_owner(who, "Deregister")
+        record = await self._shared().get(camera_id)
+        if record is None:
+            raise NotFound(f"camera_id: {camera_id!r} is not registered")
+        self.claims.adopt(camera_id, record.claim())
+        self.claims.check(camera_id, owner, registration_secret)
+        await self._shared().delete(record)
+        self._shared().records.pop(camera_id, None)
+        self._drop_shared(camera_id, "deregistered")
+
+    def _apply_shared(self, record: Record) -> CameraEntry:
+        """A registration etcd holds (made through this server or another): routed here until its
+        key goes; the id held as recorded; forwards present the camera's forward secret."""
+        entry, state = self.registry.check(
+            record.camera_id, record.address, Homography.from_values(record.homography, "homography"),
+            record.image_size, set(record.detector_kinds), record.max_range_m,
+        )  # fmt: skip
+        self.registry.store(entry, state)
+        self.registry.hold(entry.camera_id)  # etcd's lease decides when it goes
+        self.claims.adopt(entry.camera_id, record.claim())
+        self._camera_tokens[entry.camera_id] = record.forward_secret
+        self._unreachable.discard(entry.camera_id)
+        self._lost.pop(entry.camera_id, None)
+        self._link(entry)
+        metrics.CAMERAS.set(len(self.registry))
+        log.info(
+            "camera %s registered at %s through %s (shared registry): field of view %.1f m², detectors %s",
+            entry.camera_id,
+            entry.address,
+            record.server or "another server",
+            entry.field_of_view.area,
+            ",".join(sorted(entry.detector_kinds)),
+        )
+        return entry
+
+    def _drop_shared(self, camera_id: str, why: str) -> None:
+        """A registration etcd no longer holds: out of routing here, its id free."""
+        self.claims.release(camera_id)
+        if camera_id in self.registry:
+            self.registry.remove(camera_id)
+        self._forget(camera_id)
+        metrics.CAMERAS.set(len(self.registry))
+        log.info("camera %s left routing: %s", camera_id, why)
 
     def update_pose(
         self, camera_id: str, who: str, registration_secret: str, pose: Pose2, pose_time_unix: float = 0.0
@@ -1215,12 +1356,12 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
             mobile=message.mobile,
             pose_lease_s=message.pose_lease_s,
         )
-        entry, secret = self._s.register_camera(
-            registration,
-            who,
-            str(peer_ip(context.peer()) or context.peer()),
-            bearer_token(list(context.invocation_metadata() or ())),
-        )
+        peer = str(peer_ip(context.peer()) or context.peer())
+        token = bearer_token(list(context.invocation_metadata() or ()))
+        if self._s.shared is not None:
+            entry, secret = await self._s.register_camera_shared(registration, who, peer, token)
+        else:
+            entry, secret = self._s.register_camera(registration, who, peer, token)
         state = self._s.registry.mobile_state(entry.camera_id)
         fov: Polygon | None = entry.field_of_view if state is None else state.base_fov
         return registry_pb2.RegisterReply(
@@ -1236,7 +1377,11 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
     async def Heartbeat(
         self, message: registry_pb2.HeartbeatRequest, context: aio.ServicerContext[Any, Any]
     ) -> registry_pb2.HeartbeatReply:
-        self._s.renew_camera(message.camera_id, self._caller(context, "Heartbeat"), message.registration_secret)
+        who = self._caller(context, "Heartbeat")
+        if self._s.shared is not None:
+            await self._s.renew_camera_shared(message.camera_id, who, message.registration_secret)
+        else:
+            self._s.renew_camera(message.camera_id, who, message.registration_secret)
         return registry_pb2.HeartbeatReply(lease_ttl_s=self._s.registry.lease_ttl_s)
 
     @_grpc.servicer_method
@@ -1262,7 +1407,11 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
     async def Deregister(
         self, message: registry_pb2.DeregisterRequest, context: aio.ServicerContext[Any, Any]
     ) -> registry_pb2.DeregisterReply:
-        self._s.deregister_camera(message.camera_id, self._caller(context, "Deregister"), message.registration_secret)
+        who = self._caller(context, "Deregister")
+        if self._s.shared is not None:
+            await self._s.deregister_camera_shared(message.camera_id, who, message.registration_secret)
+        else:
+            self._s.deregister_camera(message.camera_id, who, message.registration_secret)
         return registry_pb2.DeregisterReply()
 
     def _camera_info(self, e: CameraEntry) -> registry_pb2.CameraInfo:

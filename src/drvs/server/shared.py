@@ -1,0 +1,225 @@
+"""A camera registry several DRVS servers share in etcd (`drvs-server --registry etcd://...`).
+
+Each registration is one key, `/drvs/v1/cameras/<camera_id>`, whose value is a `Record` (JSON: what
+the camera registered, who holds the id and the registration's secret, the forward secret the
+servers present to the camera) attached to an etcd lease whose TTL is the camera's lease. Any
+server renews it (a heartbeat keeps the lease alive) or deletes it (deregistration revokes the
+lease). A registration replaces a key only by compare-and-put against the value it checked the
+id's holder in, so two servers cannot both hand one id to different holders.
+
+Every server watches the prefix from the revision it read it at, and keeps its own index (its
+in-memory `Registry`, the STRtree routing reads) current: a put adds or replaces a camera, a delete
+(deregistration, or the lease running out with nobody renewing it) removes it. When etcd cannot be
+reached, the server routes on the last registry it knew, says so in its log, and refuses
+registrations (UNAVAILABLE); when etcd answers again it reads the prefix anew and reconciles.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import json
+import logging
+import math
+from collections.abc import Callable
+from dataclasses import asdict, dataclass, replace
+from typing import Any
+
+from drvs.errors import DrvsError, FailedPrecondition, Unavailable
+from drvs.etcd import Endpoints, EtcdClient, Event
+from drvs.registry import Claim
+
+log = logging.getLogger("drvs.server.shared")
+
+PREFIX = b"/drvs/v1/cameras/"
+#: Reconnect backoff when etcd cannot be reached, seconds: first wait and the most.
+INITIAL_BACKOFF_S = 0.2
+MAX_BACKOFF_S = 5.0
+
+
+@dataclass(frozen=True)
+class Record:
+    """One camera's registration as the servers share it."""
+
+    camera_id: str
+    address: str
+    homography: tuple[float, ...]
+    image_size: tuple[int, int]
+    detector_kinds: tuple[str, ...]
+    max_range_m: float
+    #: Who holds the id ("" anonymous), whose quota it counts against, the registration's secret.
+    owner: str
+    quota: str
+    secret: str
+    forward_secret: str
+    #: The etcd lease the key is attached to (the camera's lease), and its TTL in seconds.
+    lease: int = 0
+    lease_ttl_s: float = 0.0
+    #: The server that took the registration, and when (seconds since the Unix epoch).
+    server: str = ""
+    registered_at: float = 0.0
+
+    def encode(self) -> bytes:
+        return json.dumps(asdict(self), sort_keys=True, separators=(",", ":")).encode()
+
+    @classmethod
+    def decode(cls, data: bytes) -> Record:
+        """A record from etcd; ValueError when it is not one."""
+        raw = json.loads(data)
+        if not isinstance(raw, dict):
+            raise ValueError("not an object")
+        raw["homography"] = tuple(float(v) for v in raw["homography"])
+        raw["image_size"] = (int(raw["image_size"][0]), int(raw["image_size"][1]))
+        raw["detector_kinds"] = tuple(str(k) for k in raw["detector_kinds"])
+        return cls(**raw)
+
+    def claim(self) -> Claim:
+        """The id's hold as this record gives it: until the key goes (its lease decides)."""
+        return Claim(self.owner, self.quota, self.secret, math.inf, self.forward_secret)
+
+
+def key_of(camera_id: str) -> bytes:
+    return PREFIX + camera_id.encode()
+
+
+class SharedRegistry:
+    """The etcd side of a server's registry: reads, compare-and-puts, lease renewals and deletes,
+    and a watch that hands every change to the server (`apply` a record, `drop` an id)."""
+
+    def __init__(
+        self,
+        endpoints: Endpoints,
+        apply: Callable[[Record], Any],
+        drop: Callable[[str, str], None],
+        known: Callable[[], list[str]],
+        *,
+        client: EtcdClient | None = None,
+    ) -> None:
+        self.endpoints = endpoints
+        self.client = client or EtcdClient(endpoints)
+        self._apply = apply
+        self._drop = drop
+        self._known = known
+        self._task: asyncio.Task[None] | None = None
+        #: Set once the prefix has been read (and again after every resynchronisation).
+        self.synced = asyncio.Event()
+        #: Why etcd cannot be reached now ("" when it can).
+        self.trouble = ""
+        self.records: dict[str, Record] = {}
+
+    async def start(self) -> None:
+        await self.client.start()
+        self._task = asyncio.get_running_loop().create_task(self._follow())
+
+    async def stop(self) -> None:
+        if self._task is not None:
+            self._task.cancel()
+            with contextlib.suppress(asyncio.CancelledError, Exception):
+                await self._task
+        await self.client.close()
+
+    # --- what registration does ------------------------------------------------------------------
+
+    async def get(self, camera_id: str) -> Record | None:
+        """The id's current record in etcd (not this server's copy): who holds it now."""
+        found = await self._guard(self.client.get(key_of(camera_id)))
+        if found is None:
+            return None
+        return self._decode(found[0])
+
+    async def put(self, record: Record, previous: Record | None, lease_ttl_s: float) -> Record:
+        """Store `record` under a new lease of `lease_ttl_s`, only if the id still holds `previous`
+        (None: only if it is free); the previous registration's lease is ended. FailedPrecondition
+        when another server changed the id meanwhile."""
+        lease = await self._guard(self.client.grant(lease_ttl_s))
+        stored = replace(record, lease=lease, lease_ttl_s=lease_ttl_s)
+        expected = previous.encode() if previous is not None else None
+        if not await self._guard(self.client.put_if(key_of(record.camera_id), stored.encode(), lease, expected)):
+            await self._guard(self.client.revoke(lease))
+            raise FailedPrecondition(
+                f"camera_id: {record.camera_id!r} was registered through another server meanwhile; register again"
+            )
+        if previous is not None and previous.lease and previous.lease != lease:
+            await self._guard(self.client.revoke(previous.lease))  # its key is on the new lease now
+        return stored
+
+    async def renew(self, record: Record) -> bool:
+        """Keep the record's lease alive; False when it has run out (the key is gone)."""
+        left: float = await self._guard(self.client.keep_alive(record.lease))
+        return left > 0
+
+    async def delete(self, record: Record) -> None:
+        """Deregistration: the key goes (every server drops the camera) and its lease ends."""
+        await self._guard(self.client.delete(key_of(record.camera_id)))
+        await self._guard(self.client.revoke(record.lease))
+
+    async def _guard(self, call: Any) -> Any:
+        try:
+            return await call
+        except Unavailable as exc:
+            raise Unavailable(f"registry: {exc}; registrations wait until etcd answers") from None
+
+    # --- the watch -------------------------------------------------------------------------------
+
+    def _decode(self, data: bytes) -> Record | None:
+        try:
+            return Record.decode(data)
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("registry: a record in etcd is not one DRVS wrote (%s); ignored", exc)
+            return None
+
+    def _take(self, event: Event) -> None:
+        camera_id = event.key[len(PREFIX) :].decode(errors="replace")
+        if event.kind == "delete":
+            if self.records.pop(camera_id, None) is not None:
+                self._drop(camera_id, "its registration ended (deregistered, or its lease ran out)")
+            return
+        record = self._decode(event.value)
+        if record is None or record.camera_id != camera_id:
+            return
+        if self.records.get(camera_id) == record:
+            return  # this server's own write, already applied
+        self.records[camera_id] = record
+        try:
+            self._apply(record)
+        except DrvsError as exc:
+            log.warning("registry: camera %s's record in etcd was refused here: %s", camera_id, exc)
+
+    async def _resync(self) -> int:
+        """Read the whole prefix: apply what is there, drop what is not; the revision read at."""
+        kvs, revision = await self.client.get_prefix(PREFIX)
+        present: set[str] = set()
+        for key, value, lease in kvs:
+            self._take(Event("put", key, value, lease, revision))
+            present.add(key[len(PREFIX) :].decode(errors="replace"))
+        for camera_id in [c for c in self._known() if c not in present]:
+            self.records.pop(camera_id, None)
+            self._drop(camera_id, "not in the shared registry when it was read again")
+        return revision
+
+    async def _follow(self) -> None:
+        backoff = INITIAL_BACKOFF_S
+        while True:
+            try:
+                revision = await self._resync()
+                if self.trouble:
+                    log.warning("registry: etcd %s answers again; resynchronised (%d cameras)", self.endpoints,
+                                len(self.records))  # fmt: skip
+                self.trouble = ""
+                self.synced.set()
+                backoff = INITIAL_BACKOFF_S
+                async for event in self.client.watch_prefix(PREFIX, revision + 1):
+                    self._take(event)
+                raise Unavailable(f"etcd {self.endpoints}: the watch ended")
+            except Unavailable as exc:
+                if not self.trouble:
+                    log.warning(
+                        "registry: etcd unreachable (%s): routing on the last registry known (%d cameras); "
+                        "registrations are refused until it answers",
+                        exc,
+                        len(self.records),
+                    )
+                self.trouble = str(exc) or "etcd unreachable"
+                self.synced.clear()
+            await asyncio.sleep(backoff)
+            backoff = min(backoff * 2, MAX_BACKOFF_S)

@@ -1,0 +1,151 @@
+"""Several drvs-server processes sharing one registry in a real etcd (--registry etcd://...): a
+camera registered through one server is routed by the others, the id's holder is the same on every
+server, a lease that nobody renews ends everywhere, and while etcd is down the servers route on what
+they knew and refuse registrations, then resynchronise when it is back."""
+
+from __future__ import annotations
+
+import re
+import shutil
+from collections.abc import AsyncIterator
+from dataclasses import dataclass
+from pathlib import Path
+
+import grpc
+import pytest
+import pytest_asyncio
+from grpc import aio
+
+from drvs.launch import EtcdMember, ManagedProcess, start_etcd, start_server
+from drvs.v1 import registry_pb2, registry_pb2_grpc
+
+from .helpers import register_message
+
+pytestmark = pytest.mark.skipif(shutil.which("etcd") is None, reason="etcd is not installed (./run setup installs it)")
+
+
+@dataclass
+class Site:
+    etcd: list[EtcdMember]
+    servers: list[tuple[ManagedProcess, str]]
+
+    @property
+    def registry(self) -> str:
+        return "etcd://" + ",".join(m.address for m in self.etcd)
+
+
+@pytest_asyncio.fixture
+async def site(tmp_path: Path) -> AsyncIterator[Site]:
+    """One etcd member and two servers on it (lease 2 s)."""
+    etcd = await start_etcd(tmp_path)
+    site = Site(etcd, [])
+    try:
+        for _ in range(2):
+            site.servers.append(await start_server("--registry", site.registry, "--lease-ttl", "2"))
+        yield site
+    finally:
+        for proc, _ in site.servers:
+            await proc.stop()
+        for m in etcd:
+            await m.stop()
+
+
+async def call(address: str, method: str, message: object) -> object:
+    async with aio.insecure_channel(address) as channel:
+        return await getattr(registry_pb2_grpc.RegisterVisionServiceStub(channel), method)(message)
+
+
+async def listed(address: str) -> list[str]:
+    reply = await call(address, "ListCameras", registry_pb2.ListCamerasRequest())
+    assert isinstance(reply, registry_pb2.ListCamerasReply)
+    return [c.camera_id for c in reply.cameras]
+
+
+def registered_line(camera_id: str) -> re.Pattern[str]:
+    return re.compile(rf"camera {camera_id} registered at \S+ through")
+
+
+def left_line(camera_id: str) -> re.Pattern[str]:
+    return re.compile(rf"camera {camera_id} left routing: ")
+
+
+async def test_a_camera_registered_through_one_server_is_routed_by_the_other(site: Site) -> None:
+    (a, a_address), (b, b_address) = site.servers
+    reply = await call(a_address, "Register", register_message("cam1"))
+    assert isinstance(reply, registry_pb2.RegisterReply) and reply.registration_secret
+    await b.wait_for_line(registered_line("cam1"), timeout=10)  # B's watch saw it
+    assert await listed(b_address) == ["cam1"] == await listed(a_address)
+    # Its holder heartbeats through B, with the secret A handed out; then leaves through B.
+    secret = reply.registration_secret
+    await call(b_address, "Heartbeat", registry_pb2.HeartbeatRequest(camera_id="cam1", registration_secret=secret))
+    seen = len(a.lines)
+    await call(b_address, "Deregister", registry_pb2.DeregisterRequest(camera_id="cam1", registration_secret=secret))
+    await a.wait_for_line(left_line("cam1"), timeout=10, start=seen)
+    assert await listed(a_address) == [] == await listed(b_address)
+
+
+async def test_the_ids_holder_is_the_same_on_every_server(site: Site) -> None:
+    (_, a_address), (b, b_address) = site.servers
+    first = await call(a_address, "Register", register_message("cam1"))
+    assert isinstance(first, registry_pb2.RegisterReply)
+    await b.wait_for_line(registered_line("cam1"), timeout=10)
+    # Another (anonymous) caller, without the registration's secret, cannot take the id through B.
+    with pytest.raises(aio.AioRpcError) as err:
+        await call(b_address, "Register", register_message("cam1", address="127.0.0.1:7"))
+    assert err.value.code() == grpc.StatusCode.PERMISSION_DENIED
+    assert "camera_id: 'cam1' belongs to another credential" in str(err.value.details())
+    # Nor renew or deregister it through A with a guessed secret.
+    for method, message in (
+        ("Heartbeat", registry_pb2.HeartbeatRequest(camera_id="cam1", registration_secret="guess")),
+        ("Deregister", registry_pb2.DeregisterRequest(camera_id="cam1", registration_secret="guess")),
+    ):
+        with pytest.raises(aio.AioRpcError) as err:
+            await call(a_address, method, message)
+        assert err.value.code() == grpc.StatusCode.FAILED_PRECONDITION, method
+    # The holder registers again through B (proving it with its secret): a new secret, and the old
+    # one is refused on A as well.
+    again = register_message("cam1")
+    again.registration_secret = first.registration_secret
+    second = await call(b_address, "Register", again)
+    assert isinstance(second, registry_pb2.RegisterReply) and second.registration_secret != first.registration_secret
+    with pytest.raises(aio.AioRpcError) as err:
+        await call(
+            a_address,
+            "Heartbeat",
+            registry_pb2.HeartbeatRequest(camera_id="cam1", registration_secret=first.registration_secret),
+        )
+    assert err.value.code() == grpc.StatusCode.FAILED_PRECONDITION
+    assert await listed(a_address) == ["cam1"]
+
+
+async def test_a_lease_nobody_renews_ends_on_every_server(site: Site) -> None:
+    (a, a_address), (b, b_address) = site.servers
+    await call(a_address, "Register", register_message("cam1"))
+    await b.wait_for_line(registered_line("cam1"), timeout=10)
+    # No heartbeat: etcd ends the 2 s lease, and both servers' watches drop the camera.
+    await a.wait_for_line(left_line("cam1"), timeout=15)
+    await b.wait_for_line(left_line("cam1"), timeout=15)
+    assert await listed(a_address) == [] == await listed(b_address)
+
+
+async def test_without_etcd_servers_route_on_what_they_knew_and_refuse_registrations(site: Site) -> None:
+    (a, a_address), (b, b_address) = site.servers
+    reply = await call(a_address, "Register", register_message("cam1"))
+    assert isinstance(reply, registry_pb2.RegisterReply)
+    await b.wait_for_line(registered_line("cam1"), timeout=10)
+    (member,) = site.etcd
+    await member.stop()
+    await a.wait_for_line(re.compile("registry: etcd unreachable"), timeout=15)
+    # Routing goes on with the last registry known (the lease is not counted down without etcd).
+    assert await listed(a_address) == ["cam1"] == await listed(b_address)
+    with pytest.raises(aio.AioRpcError) as err:
+        await call(b_address, "Register", register_message("cam2", x=10.0))
+    assert err.value.code() == grpc.StatusCode.UNAVAILABLE
+    assert "registrations wait until etcd answers" in str(err.value.details())
+    # etcd back (the same member, on its data): both resynchronise; registrations work again.
+    seen = len(b.lines)
+    await member.start(f"{member.name}={member.peer_url}", state="existing")
+    await b.wait_for_line(re.compile("registry: etcd .* answers again"), timeout=30, start=seen)
+    await call(b_address, "Register", register_message("cam2", x=10.0))
+    await a.wait_for_line(registered_line("cam2"), timeout=10)
+    assert "cam2" in await listed(a_address)
