@@ -71,10 +71,15 @@ def left_line(camera_id: str) -> re.Pattern[str]:
 
 async def test_a_camera_registered_through_one_server_is_routed_by_the_other(site: Site) -> None:
     (a, a_address), (b, b_address) = site.servers
-    reply = await call(a_address, "Register", register_message("cam1"))
+    message = register_message("cam1")
+    message.frame = "building-a/floor-2"
+    reply = await call(a_address, "Register", message)
     assert isinstance(reply, registry_pb2.RegisterReply) and reply.registration_secret
     await b.wait_for_line(registered_line("cam1"), timeout=10)  # B's watch saw it
     assert await listed(b_address) == ["cam1"] == await listed(a_address)
+    # In its frame, as registered.
+    on_floor = await call(b_address, "ListCameras", registry_pb2.ListCamerasRequest(frame="building-a/floor-2"))
+    assert isinstance(on_floor, registry_pb2.ListCamerasReply) and [c.camera_id for c in on_floor.cameras] == ["cam1"]
     # Its holder heartbeats through B, with the secret A handed out; then leaves through B.
     secret = reply.registration_secret
     await call(b_address, "Heartbeat", registry_pb2.HeartbeatRequest(camera_id="cam1", registration_secret=secret))

@@ -465,6 +465,17 @@ def cli_cases(tmp: Path) -> list[CliCase]:
         CliCase("drvs-server", ("--metrics-port", "nowhere"), "--metrics-port: '…' is not host:port"),
         CliCase("drvs-server", ("--pose-lease", "0"), "pose_lease_s (--pose-lease): … must be in (0, 3600] seconds"),
         CliCase(
+            "drvs-server",
+            ("--registry", "redis://x:1"),
+            "registry (--registry, DRVS_REGISTRY): '…' is not etcd://HOST:PORT[,HOST:PORT...] (or memory)",
+        ),
+        CliCase(
+            "drvs-camera",
+            (*camera, "--frame", "floor 1"),
+            "frame (--frame): '…' is not ids joined by '/' (letters, digits and - _ . : in each), "
+            "e.g. building-a/floor-2",
+        ),
+        CliCase(
             "drvs-camera",
             (*mobile[:4], "--mount", "0,0,0.8,0", "--hfov", "70"),
             "mount (--mount): '…' is not X,Y,Z,YAW,PITCH (5 finite numbers separated by commas)",

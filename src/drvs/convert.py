@@ -12,6 +12,7 @@ from shapely.geometry import Polygon
 from drvs.errors import InvalidArgument
 from drvs.geometry import MAX_REGION_VERTICES, Homography, box_region, polygon_coords, polygon_region
 from drvs.model import (
+    DEFAULT_FRAME,
     CameraError,
     ContinuousMode,
     Detection,
@@ -22,6 +23,7 @@ from drvs.model import (
     Pose2,
     Snapshot,
     WorldObject,
+    check_frame,
 )
 from drvs.v1 import detection_pb2, geometry_pb2, registry_pb2
 
@@ -144,6 +146,7 @@ def request_to_pb(
         fusion=None
         if req.fusion is None
         else detection_pb2.FusionOptions(deadline_s=req.fusion.deadline_s, drop_after_s=req.fusion.drop_after_s),
+        frame="" if req.frame == DEFAULT_FRAME else req.frame,
     )
 
 
@@ -160,6 +163,7 @@ def request_from_pb(msg: detection_pb2.DetectionRequest, *, require_request_id: 
         report_key=msg.report_key,
         fusion=FusionOptions(msg.fusion.deadline_s, msg.fusion.drop_after_s) if msg.HasField("fusion") else None,
         report_to_server=msg.report_to_server,
+        frame=check_frame(msg.frame),
     )
     req.validate(require_request_id=require_request_id)
     return req

@@ -19,6 +19,9 @@ MAX_RATE_HZ = 100.0
 MAX_DURATION_S = 3600.0
 #: Longest id (request, robot, camera), characters.
 MAX_ID_LENGTH = 128
+#: The frame of a camera or request that names none: one floor plan, the map.
+DEFAULT_FRAME = "map"
+MAX_FRAME_LENGTH = 128
 #: Longest report key, bytes.
 MAX_KEY_BYTES = 64
 
@@ -352,6 +355,8 @@ class DetectionRequest:
     fusion: FusionOptions | None = None
     #: Server -> camera: report to the server this camera registered with, not to callback_address.
     report_to_server: bool = False
+    #: The floor plan the region is in ("building-a/floor-2"); only cameras of this frame are asked.
+    frame: str = DEFAULT_FRAME
 
     def validate(self, *, require_request_id: bool = True, unknown_types: bool = False) -> None:
         """Everything but the region, which is validated when it is built. unknown_types=True (the
@@ -372,6 +377,7 @@ class DetectionRequest:
         if self.fusion is None and not self.report_to_server:
             parse_address(self.callback_address, "callback_address")
         self.continuous.validate()
+        check_frame(self.frame)
         if len(self.report_key) > MAX_KEY_BYTES:
             raise InvalidArgument(f"report_key: longer than {MAX_KEY_BYTES} bytes")
 
@@ -381,6 +387,22 @@ class DetectionRequest:
         from drvs.filters import detector_kind
 
         return detector_kind(self.filter_def)
+
+
+def check_frame(value: str, name: str = "frame") -> str:
+    """A frame: one or more ids joined by "/" ("building-a/floor-2"), at most MAX_FRAME_LENGTH
+    characters; "" is the default, "map". InvalidArgument naming `name` otherwise."""
+    if not value:
+        return DEFAULT_FRAME
+    if len(value) > MAX_FRAME_LENGTH:
+        raise InvalidArgument(f"{name}: longer than {MAX_FRAME_LENGTH} characters")
+    for part in value.split("/"):
+        if not part or not (part.isascii() and all(c.isalnum() or c in "-_.:" for c in part)):
+            raise InvalidArgument(
+                f"{name}: {value[:40]!r} is not ids joined by '/' (letters, digits and - _ . : in each), "
+                "e.g. building-a/floor-2"
+            )
+    return value
 
 
 def check_id(value: str, name: str, *, allow_empty: bool = False) -> str:

@@ -18,7 +18,7 @@ from shapely.geometry import Polygon
 from drvs.errors import FailedPrecondition, InvalidArgument, NotFound, PermissionDenied, ResourceExhausted
 from drvs.geometry import FieldOfView, Homography
 from drvs.mobile import check_pose_on_floor, move_polygon
-from drvs.model import Pose2, check_id
+from drvs.model import DEFAULT_FRAME, Pose2, check_frame, check_id
 from drvs.net import parse_address
 
 DEFAULT_LEASE_TTL_S = 10.0
@@ -58,6 +58,8 @@ class CameraEntry:
     #: A camera on a robot: `homography` maps to the robot's base frame and `field_of_view` is
     #: where its last pose puts it (empty before the first pose, or when it sees no floor).
     mobile: bool = False
+    #: The floor plan its field of view is in; requests are routed to it only in this frame.
+    frame: str = DEFAULT_FRAME
 
 
 @dataclass
@@ -151,6 +153,7 @@ class Registry:
         *,
         mobile: bool = False,
         pose_lease_s: float = 0.0,
+        frame: str = DEFAULT_FRAME,
     ) -> CameraEntry:
         """Validate everything first, then add or replace the entry (replacing renews the lease).
 
@@ -160,7 +163,7 @@ class Registry:
         return self.store(
             *self.check(
                 camera_id, address, homography, image_size, detector_kinds, max_range_m,
-                mobile=mobile, pose_lease_s=pose_lease_s,
+                mobile=mobile, pose_lease_s=pose_lease_s, frame=frame,
             )
         )  # fmt: skip
 
@@ -175,10 +178,12 @@ class Registry:
         *,
         mobile: bool = False,
         pose_lease_s: float = 0.0,
+        frame: str = DEFAULT_FRAME,
     ) -> tuple[CameraEntry, MobileState | None]:
         """Every check of a registration, and the entry (and a mobile camera's state) it would
         make, with nothing stored (InvalidArgument naming the field)."""
         check_id(camera_id, "camera_id")
+        frame = check_frame(frame)
         parse_address(address, "address")
         if not detector_kinds:
             raise InvalidArgument("detector_kinds: empty; a camera must run at least one detector")
@@ -214,6 +219,7 @@ class Registry:
             homography=homography,
             image_size=image_size,
             mobile=mobile,
+            frame=frame,
         )
         return entry, state
 
@@ -398,16 +404,25 @@ class Registry:
         live = (e for e in self._entries.values() if self._expires.get(e.camera_id, 0.0) > now)
         return {kind for e in live for kind in e.detector_kinds}
 
-    def cameras_seeing(self, region: Polygon, kind: str | None = None) -> list[CameraEntry]:
-        """Live cameras whose field of view meets `region` with positive area (and run `kind`)."""
+    def cameras_seeing(
+        self, region: Polygon, kind: str | None = None, frame: str | None = DEFAULT_FRAME
+    ) -> list[CameraEntry]:
+        """Live cameras of `frame` (None: of every frame) whose field of view meets `region` with
+        positive area (and run `kind`)."""
         now = self._clock()
         found = [
             e
             for e in self._overlapping(region)
-            if self._expires.get(e.camera_id, 0.0) > now and (kind is None or kind in e.detector_kinds)
+            if self._expires.get(e.camera_id, 0.0) > now
+            and (kind is None or kind in e.detector_kinds)
+            and (frame is None or e.frame == frame)
         ]
         if self._mobile:
-            moving = [e for e in self._mobile_near(region, now) if kind is None or kind in e.detector_kinds]
+            moving = [
+                e
+                for e in self._mobile_near(region, now)
+                if (kind is None or kind in e.detector_kinds) and (frame is None or e.frame == frame)
+            ]
             if moving:
                 fovs = np.array([e.field_of_view for e in moving], dtype=object)
                 hits = shapely.relate_pattern(fovs, region, "T********")

@@ -50,6 +50,10 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--advertise", help=f"HOST:PORT the server should dial, if not --listen ({e['advertise']})")
     p.add_argument(
+        "--frame",
+        help=f"the floor plan its homography maps to, e.g. building-a/floor-2 (default map; {e['frame']})",
+    )
+    p.add_argument(
         "--max-range", dest="max_range_m", type=float, metavar="M", help="field-of-view range, metres (default 15)"
     )
     p.add_argument("--min-area", dest="min_area_px", type=float, metavar="PX", help="smallest blob, pixels")
@@ -421,6 +425,7 @@ def main(argv: list[str] | None = None) -> int:
             pose_update_distance_m=config.pose_update_distance_m,
             pose_update_angle_deg=config.pose_update_angle_deg,
             max_pose_rate_hz=config.max_pose_rate_hz,
+            frame=config.frame,
         )
     except DrvsError as exc:
         parser.error(str(exc))

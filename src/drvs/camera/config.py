@@ -23,7 +23,7 @@ from drvs.geometry import DEFAULT_MAX_RANGE_M
 from drvs.logs import FORMATS
 from drvs.metrics import DEFAULT_METRICS_HOST
 from drvs.mobile import DEFAULT_MAX_POSE_GAP_S, Mount
-from drvs.model import check_id
+from drvs.model import DEFAULT_FRAME, check_frame, check_id
 from drvs.net import format_address, parse_address
 from drvs.security import Security
 
@@ -46,6 +46,7 @@ ENVIRONMENT = {
     "source": "DRVS_CAMERA_SOURCE",
     "homography": "DRVS_CAMERA_HOMOGRAPHY",
     "server": "DRVS_SERVER",
+    "frame": "DRVS_CAMERA_FRAME",
     "listen": "DRVS_CAMERA_LISTEN",
     "advertise": "DRVS_CAMERA_ADVERTISE",
     "max_range_m": "DRVS_CAMERA_MAX_RANGE",
@@ -131,10 +132,13 @@ class CameraConfig:
     pose_update_distance_m: float = 0.1
     pose_update_angle_deg: float = 5.0
     max_pose_rate_hz: float = 5.0
+    #: The floor plan its homography maps to ("building-a/floor-2"; default "map").
+    frame: str = DEFAULT_FRAME
 
     def __post_init__(self) -> None:
         check_settings({f.name: getattr(self, f.name) for f in fields(self)})
         self.mount_spec()  # refuses a malformed mount now, not at start
+        check_frame(self.frame, f"frame ({_FLAGS['frame']})")
 
     def mount_spec(self) -> Mount | None:
         """The mount, parsed (None for a fixed camera); InvalidArgument naming the flag."""
@@ -187,7 +191,8 @@ _FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max
           "people_min_height_px": "--people-min-height", "mount": "--mount", "hfov_deg": "--hfov",
           "camera_matrix": "--camera-matrix", "pose_source": "--pose-source", "max_pose_gap_s": "--max-pose-gap",
           "pose_lease_s": "--pose-lease", "pose_update_distance_m": "--pose-update-distance",
-          "pose_update_angle_deg": "--pose-update-angle", "max_pose_rate_hz": "--max-pose-rate"}  # fmt: skip
+          "pose_update_angle_deg": "--pose-update-angle", "max_pose_rate_hz": "--max-pose-rate",
+          "frame": "--frame"}  # fmt: skip
 
 
 #: Numeric settings, checked wherever they come from (CameraConfig, CameraNode's constructor, the

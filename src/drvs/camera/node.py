@@ -38,7 +38,7 @@ from drvs.errors import DrvsError, FailedPrecondition, InvalidArgument, Resource
 from drvs.filters import object_type
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
 from drvs.mobile import DEFAULT_MAX_POSE_GAP_S, Mount, PoseBuffer, move_detection
-from drvs.model import Detection, DetectionReport, DetectionRequest, Pose2, check_id
+from drvs.model import DEFAULT_FRAME, Detection, DetectionReport, DetectionRequest, Pose2, check_frame, check_id
 from drvs.net import dialable_address, parse_address
 from drvs.request_stream import serve_request_batches
 from drvs.security import Security, bearer_token
@@ -105,6 +105,7 @@ class CameraNode(Lifecycle):
         pose_update_angle_deg: float = 5.0,
         max_pose_rate_hz: float = 5.0,
         pose_source: str | None = None,
+        frame: str = DEFAULT_FRAME,
     ) -> None:
         check_settings(
             {
@@ -117,6 +118,8 @@ class CameraNode(Lifecycle):
             }
         )
         self.security = security or Security()
+        #: The floor plan its field of view is in; the server routes to it only in this frame.
+        self.frame = check_frame(frame)
         #: Continuous requests one robot (callback address) may have running here at once.
         self.max_continuous = max_continuous
         # callback address, or ("server", robot id) for a fused request's -> continuous requests of
@@ -273,6 +276,7 @@ class CameraNode(Lifecycle):
                 forward_secret=self.forward_secret,
                 mobile=self.mount is not None,
                 pose_lease_s=self.pose_lease_s,
+                frame="" if self.frame == DEFAULT_FRAME else self.frame,
             ),
             self.field_of_view.floor.area,
         )

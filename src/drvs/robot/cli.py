@@ -13,6 +13,7 @@ from drvs._cli import add_security_arguments, env, join_negative_values, securit
 from drvs.errors import DrvsError, InvalidArgument
 from drvs.logs import FORMATS
 from drvs.model import (
+    DEFAULT_FRAME,
     MAX_DURATION_S,
     MAX_FUSION_DEADLINE_S,
     MAX_FUSION_DROP_AFTER_S,
@@ -162,6 +163,7 @@ def connecting(args: argparse.Namespace, *, listener: bool = False) -> Connectin
         robot_id=args.robot_id,
         security=security_from(vars(args)),
         retry=RetryPolicy.retries(args.retries),
+        frame=args.frame or DEFAULT_FRAME,
         **places,
     )
 
@@ -248,7 +250,8 @@ async def detect(args: argparse.Namespace) -> int:
 async def cameras(args: argparse.Namespace) -> int:
     region = parse_roi(args) if (args.roi or args.polygon) else None
     async with DrvsClient.connect(args.server, robot_id=args.robot_id, security=security_from(vars(args))) as client:
-        found = await client.cameras(region)
+        # Every frame's cameras unless --frame names one.
+        found = await client.cameras(region, frame=args.frame or "")
     for c in found:
         if args.json:
             coords = [[round(x, 4), round(y, 4)] for x, y in list(c.field_of_view.exterior.coords)[:-1]]
@@ -259,6 +262,7 @@ async def cameras(args: argparse.Namespace) -> int:
                 "detector_kinds": list(c.detector_kinds),
                 "lease_remaining_s": round(c.lease_remaining_s, 2),
                 "mobile": c.mobile,
+                "frame": c.frame,
             }
             if c.mobile:
                 line["pose"] = (
@@ -299,6 +303,11 @@ def build_parser() -> argparse.ArgumentParser:
         sp.add_argument("--roi", help="box X0,Y0,X1,Y1 in metres")
         sp.add_argument("--polygon", help="polygon X0,Y0,X1,Y1,X2,Y2,... in metres")
         sp.add_argument("--robot-id", default="drvs-robot-cli")
+        sp.add_argument(
+            "--frame",
+            default=None,
+            help="the floor plan the region is in, e.g. building-a/floor-2 (default map; cameras: every frame)",
+        )
         sp.add_argument("--json", action="store_true", help="one JSON object per line")
         sp.add_argument("--log-level", default="WARNING")
         sp.add_argument("--log-format", choices=FORMATS, default=None, help="text or json (env DRVS_LOG_FORMAT)")

@@ -42,6 +42,7 @@ from drvs.convert import polygon_from_pb, pose_from_pb, region_to_pb, report_fro
 from drvs.errors import DeadlineExceeded, DrvsError, FailedPrecondition, InvalidArgument, Unavailable
 from drvs.geometry import box_region, polygon_region
 from drvs.model import (
+    DEFAULT_FRAME,
     CameraError,
     ContinuousMode,
     Detection,
@@ -50,6 +51,7 @@ from drvs.model import (
     FusionOptions,
     Pose2,
     Snapshot,
+    check_frame,
 )
 from drvs.net import dialable_address, format_address, local_ip_towards, parse_address
 from drvs.report_auth import key_matches, new_secret
@@ -227,6 +229,8 @@ class CameraInfo:
     pose: Pose2 | None = None
     pose_age_s: float = 0.0
     unroutable: str = ""
+    #: The floor plan it registered in ("map" unless it gave one).
+    frame: str = DEFAULT_FRAME
 
 
 @dataclass
@@ -762,11 +766,15 @@ class DrvsClient:
         advertise: str | None = None,
         retry: RetryPolicy | None = None,
         security: Security | None = None,
+        frame: str = DEFAULT_FRAME,
     ) -> None:
         self.security = security or Security()
         parse_address(server, "server")
         self.server = server
         self.robot_id = robot_id
+        #: The floor plan this robot's regions are in ("building-a/floor-2"; "map" by default): its
+        #: requests go only to cameras of this frame. Set it when the robot changes floors.
+        self.frame = check_frame(frame)
         #: HOST:PORT the listener binds; "" until start() picks the default.
         self.listen = listen or ""
         if listen:
@@ -813,6 +821,7 @@ class DrvsClient:
         retry: RetryPolicy | None = None,
         security: Security | None = None,
         connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S,
+        frame: str = DEFAULT_FRAME,
     ) -> Connecting:
         """A client that has checked its server: `await DrvsClient.connect(...)` or
         `async with DrvsClient.connect(...) as drvs:` (closed on leaving the block).
@@ -824,7 +833,9 @@ class DrvsClient:
         arguments are DrvsClient's; bad ones raise InvalidArgument at once.
         """
         timeout_s = _seconds(connect_timeout_s, "connect_timeout_s", 3600.0)
-        client = cls(server, robot_id=robot_id, listen=listen, advertise=advertise, retry=retry, security=security)
+        client = cls(
+            server, robot_id=robot_id, listen=listen, advertise=advertise, retry=retry, security=security, frame=frame
+        )
         return Connecting(client, timeout_s)
 
     @property
@@ -1046,6 +1057,7 @@ class DrvsClient:
             continuous=continuous,
             omit_outlines=not outlines,
             fusion=fusion,
+            frame=check_frame(self.frame),
         )
         # Every field but a callback address still to come (this client's own) is checked now.
         checked = request if request.callback_address or fusion else replace(request, fusion=FusionOptions())
@@ -1290,12 +1302,20 @@ class DrvsClient:
         return track
 
     async def cameras(
-        self, region: RegionLike | None = None, *, rpc_timeout_s: float = DEFAULT_RPC_TIMEOUT_S
+        self,
+        region: RegionLike | None = None,
+        *,
+        frame: str | None = None,
+        rpc_timeout_s: float = DEFAULT_RPC_TIMEOUT_S,
     ) -> list[CameraInfo]:
-        """The cameras the server routes to (optionally only those that see `region`); each page of
-        the answer waits at most `rpc_timeout_s` seconds per attempt."""
+        """The cameras the server routes to in this client's `frame` (or in `frame`; "" every
+        frame's), optionally only those that see `region`; each page of the answer waits at most
+        `rpc_timeout_s` seconds per attempt."""
         self._require_started()
         msg = registry_pb2.ListCamerasRequest()
+        wanted = self.frame if frame is None else frame
+        if wanted:
+            msg.frame = check_frame(wanted)
         if region is not None:
             msg.region.CopyFrom(self._regions.get(region)[1])
         found: list[CameraInfo] = []
@@ -1324,6 +1344,7 @@ class DrvsClient:
                     pose=pose_from_pb(c.pose) if c.HasField("pose") else None,
                     pose_age_s=c.pose_age_s,
                     unroutable=c.unroutable,
+                    frame=c.frame or DEFAULT_FRAME,
                 )
                 for c in reply.cameras
             )

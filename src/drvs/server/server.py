@@ -9,6 +9,7 @@ import dataclasses
 import functools
 import itertools
 import logging
+import math
 import secrets
 import time
 import uuid
@@ -43,7 +44,7 @@ from drvs.errors import (
 )
 from drvs.etcd import Endpoints
 from drvs.geometry import DEFAULT_MAX_RANGE_M, Homography
-from drvs.model import CameraError, DetectionReport, DetectionRequest, Pose2, check_id
+from drvs.model import DEFAULT_FRAME, CameraError, DetectionReport, DetectionRequest, Pose2, check_frame, check_id
 from drvs.net import host_of, is_loopback_host
 from drvs.registry import (
     DEFAULT_GRACE_S,
@@ -185,6 +186,8 @@ class CameraRegistration:
     mobile: bool = False
     #: Mobile: seconds a pose update keeps it routed (0: the server's default; capped).
     pose_lease_s: float = 0.0
+    #: The floor plan its homography maps to ("" or "map": the default).
+    frame: str = DEFAULT_FRAME
 
 
 class _CameraLink:
@@ -477,6 +480,7 @@ class DrvsServer(Lifecycle):
             max_range_m=registration.max_range_m or self.default_max_range_m,
             mobile=registration.mobile,
             pose_lease_s=registration.pose_lease_s,
+            frame=registration.frame,
         )
         expires = self.registry.expires_at(entry.camera_id)
         secret = self.claims.grant(entry.camera_id, owner, quota, expires, registration.forward_secret)
@@ -528,7 +532,7 @@ class DrvsServer(Lifecycle):
         max_range_m = registration.max_range_m or self.default_max_range_m
         self.registry.check(
             camera_id, registration.address, Homography.from_values(registration.homography, "homography"),
-            registration.image_size, set(registration.detector_kinds), max_range_m,
+            registration.image_size, set(registration.detector_kinds), max_range_m, frame=registration.frame,
         )  # fmt: skip
         record = Record(
             camera_id=camera_id,
@@ -543,6 +547,7 @@ class DrvsServer(Lifecycle):
             forward_secret=registration.forward_secret or presented_token,
             server=self.address,
             registered_at=time.time(),
+            frame=check_frame(registration.frame),
         )
         stored = await shared.put(record, previous, self.registry.lease_ttl_s)
         shared.records[camera_id] = stored
@@ -580,7 +585,7 @@ class DrvsServer(Lifecycle):
         key goes; the id held as recorded; forwards present the camera's forward secret."""
         entry, state = self.registry.check(
             record.camera_id, record.address, Homography.from_values(record.homography, "homography"),
-            record.image_size, set(record.detector_kinds), record.max_range_m,
+            record.image_size, set(record.detector_kinds), record.max_range_m, frame=record.frame,
         )  # fmt: skip
         self.registry.store(entry, state)
         self.registry.hold(entry.camera_id)  # etcd's lease decides when it goes
@@ -702,15 +707,19 @@ class DrvsServer(Lifecycle):
         log.info("camera %s deregistered", camera_id)
 
     def list_cameras(
-        self, region: Polygon | None = None, page_token: str = "", page_size: int = 0
+        self, region: Polygon | None = None, page_token: str = "", page_size: int = 0, frame: str = ""
     ) -> tuple[list[CameraEntry], str]:
-        """One page of the live cameras (those that see `region`, if given), sorted by id, after the
-        id `page_token` names; `page_size` 0 or above MAX_PAGE_SIZE means MAX_PAGE_SIZE. Returns
-        the page and the next page's token ("" on the last page)."""
+        """One page of the live cameras (those of `frame`, "" every frame, that see `region`, if
+        given), sorted by id, after the id `page_token` names; `page_size` 0 or above MAX_PAGE_SIZE
+        means MAX_PAGE_SIZE. Returns the page and the next page's token ("" on the last page)."""
         if page_token:
             check_id(page_token, "page_token")
+        only = check_frame(frame) if frame else None
         size = min(page_size or DEFAULT_PAGE_SIZE, MAX_PAGE_SIZE)
-        entries = self.registry.cameras() if region is None else self.registry.cameras_seeing(region)
+        if region is None:
+            entries = [e for e in self.registry.cameras() if only is None or e.frame == only]
+        else:
+            entries = self.registry.cameras_seeing(region, frame=only)
         # Both lists are sorted by camera id: a page starts after the id its token names.
         start = bisect.bisect_right([e.camera_id for e in entries], page_token) if page_token else 0
         more = len(entries) > start + size
@@ -726,7 +735,7 @@ class DrvsServer(Lifecycle):
     def plan(self, request: DetectionRequest) -> tuple[list[CameraEntry], list[MissingCamera]]:
         """The cameras to ask, and those that see the region and run the detector but will not be
         asked: skipped after a failed forward, or gone without deregistering."""
-        seeing = self.registry.cameras_seeing(request.region, request.kind)
+        seeing = self.registry.cameras_seeing(request.region, request.kind, request.frame)
         if not self._unreachable and not self._lost:
             return seeing, []  # the common case costs nothing more
         cameras = [c for c in seeing if c.camera_id not in self._unreachable]
@@ -748,6 +757,8 @@ class DrvsServer(Lifecycle):
                 continue
             fx0, fy0, fx1, fy1 = entry.field_of_view.bounds  # cheap test first: most are far away
             if fx0 >= x1 or fx1 <= x0 or fy0 >= y1 or fy1 <= y0 or request.kind not in entry.detector_kinds:
+                continue
+            if entry.frame != request.frame:
                 continue
             if shapely.relate_pattern(entry.field_of_view, request.region, "T********"):
                 message = f"{why} {now - since:.0f} s ago"
@@ -1355,6 +1366,7 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
             forward_secret=message.forward_secret,
             mobile=message.mobile,
             pose_lease_s=message.pose_lease_s,
+            frame=message.frame,
         )
         peer = str(peer_ip(context.peer()) or context.peer())
         token = bearer_token(list(context.invocation_metadata() or ()))
@@ -1421,7 +1433,9 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
             address=e.address,
             field_of_view=polygon_to_pb(e.field_of_view) if not e.field_of_view.is_empty else None,
             detector_kinds=sorted(e.detector_kinds),
-            lease_remaining_s=registry.remaining_s(e.camera_id),
+            # (0 on a registry shared in etcd: etcd's lease decides, renewed through any server.)
+            lease_remaining_s=left if math.isfinite(left := registry.remaining_s(e.camera_id)) else 0.0,
+            frame=e.frame,
         )
         state = registry.mobile_state(e.camera_id)
         if state is not None:
@@ -1437,7 +1451,7 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
         self, message: registry_pb2.ListCamerasRequest, context: aio.ServicerContext[Any, Any]
     ) -> registry_pb2.ListCamerasReply:
         region = region_from_pb(message.region) if message.HasField("region") else None
-        entries, next_token = self._s.list_cameras(region, message.page_token, message.page_size)
+        entries, next_token = self._s.list_cameras(region, message.page_token, message.page_size, message.frame)
         return registry_pb2.ListCamerasReply(
             next_page_token=next_token,
             cameras=[self._camera_info(e) for e in entries],

@@ -27,6 +27,7 @@ from typing import Any
 
 from drvs.errors import DrvsError, FailedPrecondition, Unavailable
 from drvs.etcd import Endpoints, EtcdClient, Event
+from drvs.model import DEFAULT_FRAME
 from drvs.registry import Claim
 
 log = logging.getLogger("drvs.server.shared")
@@ -58,6 +59,8 @@ class Record:
     #: The server that took the registration, and when (seconds since the Unix epoch).
     server: str = ""
     registered_at: float = 0.0
+    #: The floor plan it registered in.
+    frame: str = DEFAULT_FRAME
 
     def encode(self) -> bytes:
         return json.dumps(asdict(self), sort_keys=True, separators=(",", ":")).encode()

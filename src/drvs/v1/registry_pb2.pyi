@@ -14,7 +14,7 @@ class Homography(_message.Message):
     def __init__(self, m: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class RegisterRequest(_message.Message):
-    __slots__ = ("camera_id", "address", "homography", "image_width", "image_height", "max_range_m", "detector_kinds", "registration_secret", "forward_secret", "mobile", "pose_lease_s")
+    __slots__ = ("camera_id", "address", "homography", "image_width", "image_height", "max_range_m", "detector_kinds", "registration_secret", "forward_secret", "mobile", "pose_lease_s", "frame")
     CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
     ADDRESS_FIELD_NUMBER: _ClassVar[int]
     HOMOGRAPHY_FIELD_NUMBER: _ClassVar[int]
@@ -26,6 +26,7 @@ class RegisterRequest(_message.Message):
     FORWARD_SECRET_FIELD_NUMBER: _ClassVar[int]
     MOBILE_FIELD_NUMBER: _ClassVar[int]
     POSE_LEASE_S_FIELD_NUMBER: _ClassVar[int]
+    FRAME_FIELD_NUMBER: _ClassVar[int]
     camera_id: str
     address: str
     homography: Homography
@@ -37,7 +38,8 @@ class RegisterRequest(_message.Message):
     forward_secret: str
     mobile: bool
     pose_lease_s: float
-    def __init__(self, camera_id: _Optional[str] = ..., address: _Optional[str] = ..., homography: _Optional[_Union[Homography, _Mapping]] = ..., image_width: _Optional[int] = ..., image_height: _Optional[int] = ..., max_range_m: _Optional[float] = ..., detector_kinds: _Optional[_Iterable[str]] = ..., registration_secret: _Optional[str] = ..., forward_secret: _Optional[str] = ..., mobile: bool = ..., pose_lease_s: _Optional[float] = ...) -> None: ...
+    frame: str
+    def __init__(self, camera_id: _Optional[str] = ..., address: _Optional[str] = ..., homography: _Optional[_Union[Homography, _Mapping]] = ..., image_width: _Optional[int] = ..., image_height: _Optional[int] = ..., max_range_m: _Optional[float] = ..., detector_kinds: _Optional[_Iterable[str]] = ..., registration_secret: _Optional[str] = ..., forward_secret: _Optional[str] = ..., mobile: bool = ..., pose_lease_s: _Optional[float] = ..., frame: _Optional[str] = ...) -> None: ...
 
 class RegisterReply(_message.Message):
     __slots__ = ("lease_ttl_s", "field_of_view", "registration_secret", "unroutable", "pose_lease_s", "min_pose_interval_s")
@@ -102,17 +104,19 @@ class DeregisterReply(_message.Message):
     def __init__(self) -> None: ...
 
 class ListCamerasRequest(_message.Message):
-    __slots__ = ("region", "page_size", "page_token")
+    __slots__ = ("region", "page_size", "page_token", "frame")
     REGION_FIELD_NUMBER: _ClassVar[int]
     PAGE_SIZE_FIELD_NUMBER: _ClassVar[int]
     PAGE_TOKEN_FIELD_NUMBER: _ClassVar[int]
+    FRAME_FIELD_NUMBER: _ClassVar[int]
     region: _geometry_pb2.Region
     page_size: int
     page_token: str
-    def __init__(self, region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., page_size: _Optional[int] = ..., page_token: _Optional[str] = ...) -> None: ...
+    frame: str
+    def __init__(self, region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., page_size: _Optional[int] = ..., page_token: _Optional[str] = ..., frame: _Optional[str] = ...) -> None: ...
 
 class CameraInfo(_message.Message):
-    __slots__ = ("camera_id", "address", "field_of_view", "detector_kinds", "lease_remaining_s", "mobile", "pose", "pose_age_s", "unroutable")
+    __slots__ = ("camera_id", "address", "field_of_view", "detector_kinds", "lease_remaining_s", "mobile", "pose", "pose_age_s", "unroutable", "frame")
     CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
     ADDRESS_FIELD_NUMBER: _ClassVar[int]
     FIELD_OF_VIEW_FIELD_NUMBER: _ClassVar[int]
@@ -122,6 +126,7 @@ class CameraInfo(_message.Message):
     POSE_FIELD_NUMBER: _ClassVar[int]
     POSE_AGE_S_FIELD_NUMBER: _ClassVar[int]
     UNROUTABLE_FIELD_NUMBER: _ClassVar[int]
+    FRAME_FIELD_NUMBER: _ClassVar[int]
     camera_id: str
     address: str
     field_of_view: _geometry_pb2.Polygon
@@ -131,7 +136,8 @@ class CameraInfo(_message.Message):
     pose: _geometry_pb2.Pose2
     pose_age_s: float
     unroutable: str
-    def __init__(self, camera_id: _Optional[str] = ..., address: _Optional[str] = ..., field_of_view: _Optional[_Union[_geometry_pb2.Polygon, _Mapping]] = ..., detector_kinds: _Optional[_Iterable[str]] = ..., lease_remaining_s: _Optional[float] = ..., mobile: bool = ..., pose: _Optional[_Union[_geometry_pb2.Pose2, _Mapping]] = ..., pose_age_s: _Optional[float] = ..., unroutable: _Optional[str] = ...) -> None: ...
+    frame: str
+    def __init__(self, camera_id: _Optional[str] = ..., address: _Optional[str] = ..., field_of_view: _Optional[_Union[_geometry_pb2.Polygon, _Mapping]] = ..., detector_kinds: _Optional[_Iterable[str]] = ..., lease_remaining_s: _Optional[float] = ..., mobile: bool = ..., pose: _Optional[_Union[_geometry_pb2.Pose2, _Mapping]] = ..., pose_age_s: _Optional[float] = ..., unroutable: _Optional[str] = ..., frame: _Optional[str] = ...) -> None: ...
 
 class ListCamerasReply(_message.Message):
     __slots__ = ("cameras", "next_page_token")
