@@ -15,6 +15,7 @@ import grpc
 import pytest
 import pytest_asyncio
 from grpc import aio
+from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from drvs.launch import EtcdMember, ManagedProcess, start_etcd, start_server
 from drvs.v1 import registry_pb2, registry_pb2_grpc
@@ -59,6 +60,15 @@ async def listed(address: str) -> list[str]:
     reply = await call(address, "ListCameras", registry_pb2.ListCamerasRequest())
     assert isinstance(reply, registry_pb2.ListCamerasReply)
     return [c.camera_id for c in reply.cameras]
+
+
+REGISTRATION = "drvs.v1.RegisterVisionService"
+
+
+async def health(address: str, service: str) -> int:
+    async with aio.insecure_channel(address) as channel:
+        reply = await health_pb2_grpc.HealthStub(channel).Check(health_pb2.HealthCheckRequest(service=service))
+        return int(reply.status)
 
 
 def registered_line(camera_id: str) -> re.Pattern[str]:
@@ -141,6 +151,9 @@ async def test_without_etcd_servers_route_on_what_they_knew_and_refuse_registrat
     (member,) = site.etcd
     await member.stop()
     await a.wait_for_line(re.compile("registry: etcd unreachable"), timeout=15)
+    # Health says registrations cannot be taken now; the process as a whole still serves (routing).
+    assert await health(a_address, REGISTRATION) == health_pb2.HealthCheckResponse.NOT_SERVING
+    assert await health(a_address, "") == health_pb2.HealthCheckResponse.SERVING
     # Routing goes on with the last registry known (the lease is not counted down without etcd).
     assert await listed(a_address) == ["cam1"] == await listed(b_address)
     with pytest.raises(aio.AioRpcError) as err:
@@ -151,6 +164,7 @@ async def test_without_etcd_servers_route_on_what_they_knew_and_refuse_registrat
     seen = len(b.lines)
     await member.start(f"{member.name}={member.peer_url}", state="existing")
     await b.wait_for_line(re.compile("registry: etcd .* answers again"), timeout=30, start=seen)
+    assert await health(b_address, REGISTRATION) == health_pb2.HealthCheckResponse.SERVING
     await call(b_address, "Register", register_message("cam2", x=10.0))
     await a.wait_for_line(registered_line("cam2"), timeout=10)
     assert "cam2" in await listed(a_address)

@@ -85,6 +85,12 @@ class Endpoint:
         for name in ("", *self.service_names):
             await self._health.set(name, status)
 
+    async def set_service_serving(self, name: str, serving: bool) -> None:
+        """What the health service answers for one service (the whole process's "" unchanged)."""
+        if self._health is not None and not self._stopped:
+            status = health_pb2.HealthCheckResponse.SERVING if serving else health_pb2.HealthCheckResponse.NOT_SERVING
+            await self._health.set(name, status)
+
     async def stop(self, grace: float) -> None:
         """Report NOT_SERVING first, so health checkers stop sending, then let calls finish."""
         if self._server is None or self._stopped:

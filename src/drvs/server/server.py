@@ -102,6 +102,7 @@ SERVICE_NAMES = (
     registry_pb2.DESCRIPTOR.services_by_name["RegisterVisionService"].full_name,
     detection_pb2.DESCRIPTOR.services_by_name["CallbackCoordinates"].full_name,
 )
+REGISTRATION_SERVICE = SERVICE_NAMES[1]
 #: Fused single shots one request stream may have waiting for their answers at once.
 MAX_FUSED_WAITING_PER_STREAM = 256
 REPORT_TO_SERVER_REFUSED = (
@@ -320,6 +321,7 @@ class DrvsServer(Lifecycle):
                 self._apply_shared,
                 self._drop_shared,
                 lambda: [e.camera_id for e in self.registry.cameras()],
+                on_reachable=self._registry_reachable,
             )
 
     @classmethod
@@ -355,6 +357,8 @@ class DrvsServer(Lifecycle):
             except TimeoutError:
                 log.warning("registry: etcd %s has not answered yet; serving with no camera", self.shared.endpoints)
         await self._endpoint.start()
+        if self.shared is not None and self.shared.trouble:
+            await self._registry_reachable(False)
         self._started_at = time.monotonic()
         self._sweeper = asyncio.get_running_loop().create_task(self._sweep_leases())
         log.info("security: %s", self.describe_security())
@@ -579,6 +583,11 @@ class DrvsServer(Lifecycle):
         await self._shared().delete(record)
         self._shared().records.pop(camera_id, None)
         self._drop_shared(camera_id, "deregistered")
+
+    async def _registry_reachable(self, reachable: bool) -> None:
+        """Health says whether registrations can be taken: the registration service is NOT_SERVING
+        while etcd cannot be reached (routing, the whole process's health, goes on)."""
+        await self._endpoint.set_service_serving(REGISTRATION_SERVICE, reachable)
 
     def _apply_shared(self, record: Record) -> CameraEntry:
         """A registration etcd holds (made through this server or another): routed here until its

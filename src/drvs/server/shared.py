@@ -21,7 +21,7 @@ import contextlib
 import json
 import logging
 import math
-from collections.abc import Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import asdict, dataclass, replace
 from typing import Any
 
@@ -97,12 +97,15 @@ class SharedRegistry:
         known: Callable[[], list[str]],
         *,
         client: EtcdClient | None = None,
+        on_reachable: Callable[[bool], Awaitable[None]] | None = None,
     ) -> None:
         self.endpoints = endpoints
         self.client = client or EtcdClient(endpoints)
         self._apply = apply
         self._drop = drop
         self._known = known
+        #: Told whether etcd can be reached, each time that changes (the server's health says it).
+        self._on_reachable = on_reachable
         self._task: asyncio.Task[None] | None = None
         #: Set once the prefix has been read (and again after every resynchronisation).
         self.synced = asyncio.Event()
@@ -208,7 +211,9 @@ class SharedRegistry:
                 if self.trouble:
                     log.warning("registry: etcd %s answers again; resynchronised (%d cameras)", self.endpoints,
                                 len(self.records))  # fmt: skip
-                self.trouble = ""
+                    self.trouble = ""
+                    if self._on_reachable is not None:
+                        await self._on_reachable(True)
                 self.synced.set()
                 backoff = INITIAL_BACKOFF_S
                 async for event in self.client.watch_prefix(PREFIX, revision + 1):
@@ -222,6 +227,8 @@ class SharedRegistry:
                         exc,
                         len(self.records),
                     )
+                    if self._on_reachable is not None:
+                        await self._on_reachable(False)
                 self.trouble = str(exc) or "etcd unreachable"
                 self.synced.clear()
             await asyncio.sleep(backoff)
