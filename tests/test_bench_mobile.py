@@ -63,3 +63,15 @@ def test_mobile_staleness_smoke(tmp_path: Path) -> None:
 def test_mobile_benchmark_refuses_bad_flags(args: list[str], capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["mobile", *args]) == 2
     assert "drvs-bench mobile: " in capsys.readouterr().err
+
+
+@pytest.mark.skipif(__import__("shutil").which("etcd") is None, reason="etcd is not installed")
+def test_cluster_propagation_smoke(tmp_path: Path) -> None:
+    """drvs-bench cluster: a real etcd and two servers; every registration through A reached B's
+    routing index, and the published figures are what the delays say."""
+    assert main(["cluster", "--registrations", "10", "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "cluster.json").read_text())["propagation"]
+    assert result["registrations"] == len(result["delays_ms"]) == 10
+    assert 0 < result["propagation_ms_p50"] <= result["propagation_ms_p99"] == max(result["delays_ms"])
+    assert result["etcd_cpu_s"] >= 0 and (tmp_path / "cluster.png").is_file()
+    assert main(["cluster", "--parts", "throughput"]) == 2

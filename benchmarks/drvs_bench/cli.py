@@ -13,6 +13,7 @@ import time
 from pathlib import Path
 
 from .bare import add_bare_parsers
+from .cluster import add_cluster_parser
 from .fusion import add_fusion_parser
 from .helpers import add_helper_parsers
 from .load import add_load_parser
@@ -145,6 +146,7 @@ def main(argv: list[str] | None = None) -> int:
     add_fusion_parser(sub)
     add_load_parser(sub)
     add_mobile_parser(sub)
+    add_cluster_parser(sub)
     add_helper_parsers(sub)
     add_bare_parsers(sub)
     r = sub.add_parser("robot", help="(internal) the paper benchmark's robot process")
