@@ -14,7 +14,6 @@ a camera id), and a watch of the prefix from a revision (every server keeps its 
 
 from __future__ import annotations
 
-import ipaddress
 import logging
 from collections.abc import AsyncIterator, Sequence
 from dataclasses import dataclass
@@ -24,7 +23,7 @@ import grpc
 from grpc import aio
 
 from drvs.errors import InvalidArgument, Unavailable
-from drvs.net import parse_address
+from drvs.net import format_address, grpc_target, parse_address
 
 log = logging.getLogger("drvs.etcd")
 SCHEME = "etcd://"
@@ -56,30 +55,12 @@ class Endpoints:
         return cls(tuple(parse_address(p, name) for p in parts))
 
     def target(self) -> str:
-        """A gRPC target naming every member: `ipv4:`/`ipv6:` lists for addresses, DNS otherwise
-        (one name, which may resolve to several addresses)."""
-        hosts = [h for h, _ in self.addresses]
-        if all(_is_ip(h, 4) for h in hosts):
-            return "ipv4:" + ",".join(f"{h}:{p}" for h, p in self.addresses)
-        if all(_is_ip(h, 6) for h in hosts):
-            return "ipv6:" + ",".join(f"[{h}]:{p}" for h, p in self.addresses)
-        if len(self.addresses) == 1:
-            h, p = self.addresses[0]
-            return f"dns:///{h}:{p}"
-        raise InvalidArgument(
-            "registry: several etcd endpoints must all be IP addresses (or give one DNS name that "
-            "resolves to every member)"
-        )
+        """A gRPC target naming every member (drvs.net.grpc_target): an `ipv4:`/`ipv6:` list for
+        addresses, or one DNS name (which may resolve to several members)."""
+        return grpc_target([format_address(h, p) for h, p in self.addresses], "registry")
 
     def __str__(self) -> str:
         return SCHEME + ",".join(f"{h}:{p}" for h, p in self.addresses)
-
-
-def _is_ip(host: str, version: int) -> bool:
-    try:
-        return ipaddress.ip_address(host).version == version
-    except ValueError:
-        return False
 
 
 @dataclass(frozen=True)

@@ -6,6 +6,7 @@ import functools
 import ipaddress
 import re
 import socket
+from collections.abc import Sequence
 
 from drvs.errors import InvalidArgument
 
@@ -95,3 +96,37 @@ def is_loopback_host(host: str) -> bool:
         return ipaddress.ip_address(host.strip("[]")).is_loopback
     except ValueError:
         return False
+
+
+def parse_address_list(text: str, name: str) -> list[str]:
+    """`HOST:PORT[,HOST:PORT...]`: several peers of one role (servers, etcd members), each checked
+    as parse_address does; InvalidArgument naming `name`."""
+    parts = [p.strip() for p in text.split(",")]
+    if not all(parts):
+        raise InvalidArgument(f"{name}: {text[:80]!r} has an empty address in its list")
+    for part in parts:
+        parse_address(part, name)
+    return parts
+
+
+def grpc_target(addresses: Sequence[str], name: str = "server") -> str:
+    """One gRPC target naming every address: the address itself when there is one, an `ipv4:` /
+    `ipv6:` list for several IP addresses (gRPC's own resolver: its load-balancing policy picks
+    among them and moves on from one that fails)."""
+    if len(addresses) == 1:
+        return addresses[0]
+    hosts = [parse_address(a, name) for a in addresses]
+    versions: set[int] = set()
+    for host, _ in hosts:
+        try:
+            versions.add(ipaddress.ip_address(host).version)
+        except ValueError:
+            versions.add(0)
+    if versions == {4}:
+        return "ipv4:" + ",".join(addresses)
+    if versions == {6}:
+        return "ipv6:" + ",".join(format_address(h, p) for h, p in hosts)
+    raise InvalidArgument(
+        f"{name}: several addresses must all be IPv4 or all IPv6 addresses (or give one DNS name that "
+        "resolves to every peer)"
+    )
