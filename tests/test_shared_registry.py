@@ -5,6 +5,7 @@ they knew and refuse registrations, then resynchronise when it is back."""
 
 from __future__ import annotations
 
+import asyncio
 import re
 import shutil
 from collections.abc import AsyncIterator
@@ -17,10 +18,12 @@ import pytest_asyncio
 from grpc import aio
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-from drvs.launch import EtcdMember, ManagedProcess, start_etcd, start_server
+from drvs import DrvsClient
+from drvs.launch import EtcdMember, ManagedProcess, start_camera, start_etcd, start_server
+from drvs.sim.scene import RecordedCamera
 from drvs.v1 import registry_pb2, registry_pb2_grpc
 
-from .helpers import register_message
+from .helpers import CAM1_REGION, MAX_RANGE, YELLOW, register_message
 
 pytestmark = pytest.mark.skipif(shutil.which("etcd") is None, reason="etcd is not installed (./run setup installs it)")
 
@@ -168,3 +171,60 @@ async def test_without_etcd_servers_route_on_what_they_knew_and_refuse_registrat
     await call(b_address, "Register", register_message("cam2", x=10.0))
     await a.wait_for_line(registered_line("cam2"), timeout=10)
     assert "cam2" in await listed(a_address)
+
+
+@pytest.mark.slow
+async def test_a_camera_that_knows_several_servers_survives_one_being_killed(
+    tmp_path: Path, recorded: dict[str, RecordedCamera]
+) -> None:
+    """Three servers on one etcd; a real drvs-camera given all three (`--server A,B,C`) registers
+    through A. A robot's fused request through B gets the camera's report (the camera reports to
+    the server that asked, B, not to A). A is killed (SIGKILL): the camera's heartbeats move on to
+    another server, so its registration outlives A, and a robot asking C still gets its detections."""
+    etcd = await start_etcd(tmp_path)
+    registry = "etcd://" + etcd[0].address
+    procs: list[ManagedProcess] = []
+    try:
+        # (DEBUG: the servers log each heartbeat they take.)
+        servers = [
+            await start_server("--registry", registry, "--lease-ttl", "2", "--log-level", "DEBUG") for _ in range(3)
+        ]
+        procs += [p for p, _ in servers]
+        (a, a_address), (b, b_address), (c, c_address) = servers
+        rec = recorded["cam1"]
+        camera = await start_camera(
+            "cam1", rec.video, rec.homography_file, f"{a_address},{b_address},{c_address}", "--max-range", MAX_RANGE
+        )
+        procs.append(camera)
+        await b.wait_for_line(registered_line("cam1"), timeout=10)
+        await c.wait_for_line(registered_line("cam1"), timeout=10)
+        async with DrvsClient.connect(b_address, robot_id="r1") as drvs:
+            snapshot = await drvs.detect(YELLOW, CAM1_REGION, fuse=True, timeout_s=10)
+            assert snapshot.camera_ids == ("cam1",) and len(snapshot.objects) == 2, snapshot
+        a.kill()
+        # gRPC moves the camera's channel on to B (it may not even see a heartbeat fail): the next
+        # heartbeats renew its etcd lease through B or C, so its 2 s lease outlives A.
+        beat = re.compile(r"camera cam1: heartbeat; its lease in etcd renewed")
+        marks = [len(b.lines), len(c.lines)]
+        for _ in range(4):  # four heartbeats after the kill (one every 2/3 s): longer than the lease
+            waits = [
+                asyncio.get_running_loop().create_task(s.wait_for_line(beat, timeout=30, start=m))
+                for s, m in zip((b, c), marks, strict=True)
+            ]
+            done, pending = await asyncio.wait(waits, return_when=asyncio.FIRST_COMPLETED)
+            for task in pending:
+                task.cancel()
+            await asyncio.gather(*pending, return_exceptions=True)
+            (first,) = list(done)[:1]
+            first.result()
+            marks = [len(b.lines), len(c.lines)]
+        # Both still route to it, and answer for it.
+        assert await listed(c_address) == ["cam1"]
+        async with DrvsClient.connect(c_address, robot_id="r2") as drvs:
+            result = await drvs.detect(YELLOW, CAM1_REGION, timeout_s=10)
+            assert result.camera_ids == ("cam1",) and not result.errors and len(result.detections) == 2, result
+    finally:
+        for proc in reversed(procs):
+            await proc.stop()
+        for m in etcd:
+            await m.stop()

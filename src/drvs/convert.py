@@ -163,6 +163,7 @@ def request_from_pb(msg: detection_pb2.DetectionRequest, *, require_request_id: 
         report_key=msg.report_key,
         fusion=FusionOptions(msg.fusion.deadline_s, msg.fusion.drop_after_s) if msg.HasField("fusion") else None,
         report_to_server=msg.report_to_server,
+        report_address=msg.report_address,
         frame=check_frame(msg.frame),
     )
     req.validate(require_request_id=require_request_id)

@@ -355,6 +355,9 @@ class DetectionRequest:
     fusion: FusionOptions | None = None
     #: Server -> camera: report to the server this camera registered with, not to callback_address.
     report_to_server: bool = False
+    #: Server -> camera, with report_to_server: the forwarding server's own address ("": the one
+    #: the camera registered with).
+    report_address: str = ""
     #: The floor plan the region is in ("building-a/floor-2"); only cameras of this frame are asked.
     frame: str = DEFAULT_FRAME
 
@@ -376,6 +379,8 @@ class DetectionRequest:
             self.fusion.validate()
         if self.fusion is None and not self.report_to_server:
             parse_address(self.callback_address, "callback_address")
+        if self.report_address:
+            parse_address(self.report_address, "report_address")
         self.continuous.validate()
         check_frame(self.frame)
         if len(self.report_key) > MAX_KEY_BYTES:

@@ -24,7 +24,7 @@ from drvs.logs import FORMATS
 from drvs.metrics import DEFAULT_METRICS_HOST
 from drvs.mobile import DEFAULT_MAX_POSE_GAP_S, Mount
 from drvs.model import DEFAULT_FRAME, check_frame, check_id
-from drvs.net import format_address, parse_address
+from drvs.net import format_address, parse_address, parse_address_list
 from drvs.security import Security
 
 DEFAULT_SERVER = "127.0.0.1:50051"
@@ -343,7 +343,9 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
         text = str(raw)
         if name == "id":
             return check_id(text, where)
-        if name in ("server", "advertise"):
+        if name == "server":
+            parse_address_list(text, where)  # one server, or several sharing a registry (a,b,...)
+        elif name == "advertise":
             parse_address(text, where)
         elif name == "listen":
             parse_address(text, where, allow_port_zero=True)

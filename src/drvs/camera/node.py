@@ -39,7 +39,7 @@ from drvs.filters import object_type
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
 from drvs.mobile import DEFAULT_MAX_POSE_GAP_S, Mount, PoseBuffer, move_detection
 from drvs.model import DEFAULT_FRAME, Detection, DetectionReport, DetectionRequest, Pose2, check_frame, check_id
-from drvs.net import dialable_address, parse_address
+from drvs.net import dialable_address, parse_address, parse_address_list
 from drvs.request_stream import serve_request_batches
 from drvs.security import Security, bearer_token
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, stream_pb2, stream_pb2_grpc
@@ -147,8 +147,9 @@ class CameraNode(Lifecycle):
                 "homography: give a fixed camera's homography, or a mobile camera's mount (not both, not neither)"
             )
         self.homography: Homography = homography if homography is not None else Homography.from_values(np.eye(3))
+        #: The server, or several (a,b,...: servers sharing one registry in etcd) tried in turn.
         self.server_address = server
-        parse_address(server, "server")
+        self.servers = parse_address_list(server, "server")
         self.listen = listen
         parse_address(listen, "listen", allow_port_zero=True)
         self.advertise = advertise
@@ -221,7 +222,7 @@ class CameraNode(Lifecycle):
         """The address the server is told to dial."""
         if self.advertise:
             return self.advertise
-        return dialable_address(self.listen, self.port, self.server_address)
+        return dialable_address(self.listen, self.port, self.servers[0])
 
     def _add_servicers(self, server: aio.Server) -> None:
         detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(_ServerFacing(self), server)
@@ -479,7 +480,8 @@ class CameraNode(Lifecycle):
         last = len(offsets) - 1
         start = loop.time()
         if request.report_to_server:
-            sender, address = self._server_reports, self.server_address
+            # The server that forwarded the request says where (several servers share a registry).
+            sender, address = self._server_reports, request.report_address or self.servers[0]
         else:
             sender, address = self._callbacks, request.callback_address
         try:

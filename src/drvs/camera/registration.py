@@ -18,6 +18,7 @@ from grpc import aio
 from drvs.convert import pose_to_pb
 from drvs.mobile import PoseBuffer
 from drvs.model import Pose2
+from drvs.net import grpc_target, parse_address_list
 from drvs.security import Security
 from drvs.v1 import registry_pb2, registry_pb2_grpc
 
@@ -75,7 +76,8 @@ class Registration:
 
     def start(self, request: registry_pb2.RegisterRequest, fov_m2: float = 0.0) -> None:
         """Open the channel to the server and keep `request` registered (`fov_m2`: for the log)."""
-        self._channel = self.security.channel(self.server_address)
+        # One channel for every server given (a,b,...): gRPC moves on from one that fails.
+        self._channel = self.security.channel(grpc_target(parse_address_list(self.server_address, "server")))
         self._stub = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
         self._task = asyncio.get_running_loop().create_task(self.run(request, fov_m2))
 
@@ -134,6 +136,8 @@ class Registration:
                     registered = ever_registered = True
                 else:
                     interval = await self._heartbeat(interval)
+                    if backoff != INITIAL_BACKOFF_S:  # it had failed: say the lease is kept again
+                        log.info("camera %s: heartbeats reach %s again", self.camera_id, self.server_address)
                 backoff = INITIAL_BACKOFF_S
                 await asyncio.sleep(interval)
             except grpc.RpcError as exc:

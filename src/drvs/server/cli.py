@@ -221,6 +221,13 @@ def build_parser() -> argparse.ArgumentParser:
         help="where the camera registry lives: in this server's memory (default), or in etcd, shared by "
         "every server given the same etcd (DRVS_REGISTRY)",
     )
+    p.add_argument(
+        "--advertise",
+        default=None,
+        metavar="HOST:PORT",
+        help="where cameras send this server fused requests' reports, if not the --listen address (needed "
+        "when cameras know several servers and this one listens on 0.0.0.0; DRVS_SERVER_ADVERTISE)",
+    )
     add_security_arguments(p, "unused by the server (it checks tokens, it presents none)")
     add_observability_arguments(p)
     return p
@@ -271,6 +278,7 @@ def config_from(args: argparse.Namespace) -> ServerConfig:
             "max_pose_lease_s": args.max_pose_lease,
             "min_pose_interval_s": args.min_pose_interval,
             "registry": args.registry,
+            "advertise": args.advertise,
         },
         os.environ,
     )

@@ -53,6 +53,7 @@ ENVIRONMENT = {
     "lease_ttl_s": "DRVS_LEASE_TTL",
     "trust_network": "DRVS_TRUST_NETWORK",
     "registry": "DRVS_REGISTRY",
+    "advertise": "DRVS_SERVER_ADVERTISE",
 }
 
 #: Each setting's command-line flag.
@@ -80,6 +81,7 @@ FLAGS = {
     "max_pose_lease_s": "--max-pose-lease",
     "min_pose_interval_s": "--min-pose-interval",
     "registry": "--registry",
+    "advertise": "--advertise",
 }
 
 #: Inclusive numeric ranges: setting -> (lowest, highest, whether the lowest is allowed, unit text).
@@ -166,6 +168,10 @@ class ServerConfig:
     #: Where the registry lives: "memory" (this server alone) or etcd://HOST:PORT[,HOST:PORT...],
     #: shared by every server given the same etcd (drvs.server.shared).
     registry: str = "memory"
+    #: HOST:PORT cameras dial to send this server a fused request's reports ("": the bound address,
+    #: unless it is a wildcard). Needed when cameras know several servers (they must report to the
+    #: one that asked) and this one listens on 0.0.0.0.
+    advertise: str = ""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "allow_callback", tuple(self.allow_callback))
@@ -198,6 +204,8 @@ class ServerConfig:
                 f"max_pose_lease_s {self.max_pose_lease_s:g} s"
             )
         CallbackPolicy(self.allow_callback)  # refuses a malformed network
+        if self.advertise:
+            parse_address(self.advertise, setting("advertise"))
         if self.registry != "memory":
             Endpoints.parse(self.registry, setting("registry"))
 

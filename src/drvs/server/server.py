@@ -570,6 +570,7 @@ class DrvsServer(Lifecycle):
         if not await self._shared().renew(record):
             raise NotFound(f"camera_id: {camera_id!r}'s lease expired; register again")
         self._unreachable.discard(camera_id)
+        log.debug("camera %s: heartbeat; its lease in etcd renewed", camera_id)
 
     async def deregister_camera_shared(self, camera_id: str, who: str, registration_secret: str) -> None:
         """The holder leaves through any server: its key goes from etcd, and every server drops it."""
@@ -583,6 +584,16 @@ class DrvsServer(Lifecycle):
         await self._shared().delete(record)
         self._shared().records.pop(camera_id, None)
         self._drop_shared(camera_id, "deregistered")
+
+    @property
+    def report_address(self) -> str:
+        """Where cameras send a fused request's reports: `advertise`, else the bound address unless
+        it is a wildcard ("": the server each camera registered with, which is this one when a
+        camera knows a single server)."""
+        if self.config.advertise:
+            return self.config.advertise
+        host = host_of(self.config.listen)
+        return "" if host in ("0.0.0.0", "::", "") else self.address
 
     async def _registry_reachable(self, reachable: bool) -> None:
         """Health says whether registrations can be taken: the registration service is NOT_SERVING
@@ -914,6 +925,7 @@ class DrvsServer(Lifecycle):
         message.ClearField("fusion")
         message.callback_address = ""
         message.report_to_server = True
+        message.report_address = self.report_address
         message.omit_outlines = False
         # The cameras know it by an id unique in this server (robots choose theirs, and two may
         # choose the same): a cancel one robot's request sends a camera stops no other's.
@@ -1142,6 +1154,8 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         request = request_from_pb(message, require_request_id=False)
         if request.report_to_server:
             raise InvalidArgument(REPORT_TO_SERVER_REFUSED)
+        if request.report_address:
+            raise InvalidArgument("report_address: set only by the server on its forwards to cameras")
         # Unknown fields are not forwarded: they would make every camera's copy as large as the sender likes.
         message.DiscardUnknownFields()
         secret = message.report_secret
