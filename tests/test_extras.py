@@ -68,7 +68,7 @@ def pyproject_extras() -> dict[str, list[Requirement]]:
 
 def test_the_launcher_knows_every_extra_and_the_modules_it_installs() -> None:
     extras = pyproject_extras()
-    assert set(extras) == set(EXTRAS) == {"sim", "bench", "certs"}
+    assert set(extras) == set(EXTRAS) == {"sim", "bench", "certs", "etcd"}
     modules_of: dict[str, set[str]] = {}
     for module, owners in importlib.metadata.packages_distributions().items():
         for dist in owners:

@@ -1,4 +1,4 @@
-"""The console scripts of DRVS's optional parts (pyproject.toml's extras: sim, bench, certs).
+"""The console scripts of DRVS's optional parts (pyproject.toml's extras: sim, bench, certs, etcd).
 
 Each checks that its extra's libraries are installed, then imports its module and runs its `main`;
 when one is missing it says which extra to install (`drvs-office: needs the simulator: pip install
@@ -28,6 +28,7 @@ EXTRAS = {
     "sim": Extra("the simulator", ("matplotlib",)),
     "bench": Extra("the benchmarks", ("matplotlib", "onnx")),
     "certs": Extra("the certificate tooling", ("cryptography",)),
+    "etcd": Extra("the etcd client (drvs-server --registry etcd://...)", ("aetcd",)),
 }
 
 
