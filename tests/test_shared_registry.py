@@ -228,3 +228,46 @@ async def test_a_camera_that_knows_several_servers_survives_one_being_killed(
             await proc.stop()
         for m in etcd:
             await m.stop()
+
+
+@pytest.mark.slow
+async def test_a_robots_track_resumes_through_another_server_when_its_server_dies(
+    tmp_path: Path, recorded: dict[str, RecordedCamera]
+) -> None:
+    """Two servers on one etcd, a camera and a robot that know both. The robot's track runs through
+    A; A is SIGKILLed mid-track; without the robot's code doing anything, the track is sent again
+    through B for what remains, its snapshots go on (the camera's objects in them), it ends with its
+    final snapshot, and the gap the robot saw is measured (`track.gaps_s`)."""
+    etcd = await start_etcd(tmp_path)
+    registry = "etcd://" + etcd[0].address
+    procs: list[ManagedProcess] = []
+    try:
+        servers = [await start_server("--registry", registry, "--lease-ttl", "2") for _ in range(2)]
+        procs += [p for p, _ in servers]
+        (a, a_address), (b, b_address) = servers
+        both = f"{a_address},{b_address}"
+        rec = recorded["cam1"]
+        procs.append(await start_camera("cam1", rec.video, rec.homography_file, both, "--max-range", MAX_RANGE))
+        await b.wait_for_line(registered_line("cam1"), timeout=10)
+        async with DrvsClient.connect(both, robot_id="r1") as drvs:
+            before: list[int] = []
+            after: list[int] = []
+            final = False
+            async with drvs.track(YELLOW, CAM1_REGION, rate_hz=5, duration_s=8) as track:
+                async for snapshot in track:
+                    if track.resumes == 0:
+                        before.append(len(snapshot.objects))
+                        if len(before) == 3:
+                            a.kill()  # the server the robot's requests go to: no goodbye
+                    else:
+                        after.append(len(snapshot.objects))
+                    final = snapshot.final
+            assert final and track.resumes == 1 and len(track.gaps_s) == 1, (track.resumes, track.gaps_s)
+            assert before[:3] == [2, 2, 2] and after and after[-1] == 2, (before, after)
+            # The gap: from the stream's end to the first snapshot from B (published in the benchmark).
+            assert 0 < track.gaps_s[0] < 8
+    finally:
+        for proc in reversed(procs):
+            await proc.stop()
+        for m in etcd:
+            await m.stop()

@@ -53,7 +53,7 @@ from drvs.model import (
     Snapshot,
     check_frame,
 )
-from drvs.net import dialable_address, format_address, local_ip_towards, parse_address
+from drvs.net import dialable_address, format_address, grpc_target, local_ip_towards, parse_address, parse_address_list
 from drvs.report_auth import key_matches, new_secret
 from drvs.request_stream import RequestStream
 from drvs.security import Security
@@ -590,10 +590,28 @@ class Track(_Delivery):
     - `received`: snapshots that arrived; `dropped`: those dropped unread; `last`: the newest read.
     """
 
-    def __init__(self, client: DrvsClient, request: DetectionRequest, timeout_s: float, max_queued: int) -> None:
+    def __init__(
+        self,
+        client: DrvsClient,
+        request: DetectionRequest,
+        timeout_s: float,
+        max_queued: int,
+        message: detection_pb2.DetectionRequest | None = None,
+        rpc_timeout_s: float = DEFAULT_RPC_TIMEOUT_S,
+    ) -> None:
         self._client = client
         self.request = request
         self.request_id = request.request_id
+        #: The request as first sent, whole (a resumed track sends it again, for what remains).
+        self._message = message
+        self._rpc_timeout_s = rpc_timeout_s
+        #: Times the track was resumed through another server, and each gap: seconds from the
+        #: stream's end to the first snapshot after it.
+        self.resumes = 0
+        self.gaps_s: list[float] = []
+        self._broke_at: float | None = None
+        self._ends_at = 0.0
+        self._resuming: asyncio.Task[None] | None = None
         self.camera_ids: tuple[str, ...] = ()
         self.missing_cameras: tuple[CameraError, ...] = ()
         self.uncovered: list[Polygon] = []
@@ -619,7 +637,12 @@ class Track(_Delivery):
         # The final snapshot is due at the end of the duration, the server's grace for late
         # reports (its deadline, or one period) after it at most.
         grace = request.fusion.deadline_s or 1.0 / request.continuous.rate_hz
-        limit = request.continuous.duration_s + grace + self._timeout_s
+        if not self._ends_at:
+            self._ends_at = asyncio.get_running_loop().time() + request.continuous.duration_s
+        remaining = max(0.0, self._ends_at - asyncio.get_running_loop().time())
+        limit = remaining + grace + self._timeout_s
+        if self._timer is not None:
+            self._timer.cancel()
         if not self.finished and not self.closed:
             self._timer = asyncio.get_running_loop().call_later(limit, self._expire, limit)
 
@@ -637,12 +660,20 @@ class Track(_Delivery):
         if self.closed or self.finished:
             return
         if isinstance(item, DrvsError):
+            if len(self._client.servers) > 1 and self._message is not None and self._resuming is None:
+                # Several servers share the registry: ask another for what remains of the track.
+                self._broke_at = asyncio.get_running_loop().time()
+                self._resuming = asyncio.get_running_loop().create_task(self._resume(item))
+                return
             if self._failure is None:
                 self._failure = Unavailable(
                     f"request {self.request_id}: the request stream ended before the final snapshot ({item})"
                 )
             self._wake()
             return
+        if self._broke_at is not None:
+            self.gaps_s.append(asyncio.get_running_loop().time() - self._broke_at)
+            self._broke_at = None
         snapshot = snapshot_from_pb(item.snapshot, self.request_id)
         self.received += 1
         if snapshot.final:
@@ -656,6 +687,51 @@ class Track(_Delivery):
             self.dropped += 1
         self._pending.append(snapshot)
         self._wake()
+
+    async def _resume(self, why: DrvsError) -> None:
+        """Send the track again, through the client's channel (which moves on to a server that
+        answers), for what remains of its duration; the robot's iteration goes on. Track ids start
+        anew (another server's tracker). Gives up, as a single-server track does (Unavailable),
+        when less than a period remains or no server answers before the track would have ended."""
+        assert self._message is not None
+        loop = asyncio.get_running_loop()
+        period = 1.0 / self.request.continuous.rate_hz
+        backoff = 0.05
+        try:
+            while not (self.closed or self.finished):
+                remaining = self._ends_at - loop.time()
+                if remaining < period:
+                    raise Unavailable(f"request {self.request_id}: no server took it back before it would have ended")
+                message = detection_pb2.DetectionRequest()
+                message.CopyFrom(self._message)
+                message.continuous.duration_s = remaining
+                requests = self._client._requests
+                assert requests is not None
+                try:
+                    reply = await requests.request(message, self._rpc_timeout_s, self._take)
+                except Unavailable as exc:
+                    log.info("request %s: no server answers yet (%s); again in %.2f s", self.request_id, exc, backoff)
+                    await asyncio.sleep(backoff)
+                    backoff = min(2 * backoff, 1.0)
+                    continue
+                self.resumes += 1
+                log.info(
+                    "request %s: resumed through another server for the remaining %.1f s (%s)",
+                    self.request_id,
+                    remaining,
+                    why,
+                )
+                self._dispatched(reply)
+                return
+        except DrvsError as exc:
+            if self._failure is None:
+                self._failure = Unavailable(
+                    f"request {self.request_id}: the request stream ended before the final snapshot ({why}); "
+                    f"resuming failed: {exc}"
+                )
+            self._wake()
+        finally:
+            self._resuming = None
 
     def __aiter__(self) -> AsyncIterator[Snapshot]:
         return self._iterate()
@@ -684,6 +760,8 @@ class Track(_Delivery):
         if self.closed:
             return
         self.closed = True
+        if self._resuming is not None:
+            self._resuming.cancel()
         self._client._release(self.request_id)
         if not self.finished and not isinstance(self._failure, Unavailable):
             self._client._cancel_at_server(self.request_id)
@@ -769,7 +847,9 @@ class DrvsClient:
         frame: str = DEFAULT_FRAME,
     ) -> None:
         self.security = security or Security()
-        parse_address(server, "server")
+        #: The server, or several sharing one registry ("a:50051,b:50051"): one gRPC channel over
+        #: them, which moves on from one that fails; with several, tracks resume through another.
+        self.servers = parse_address_list(server, "server")
         self.server = server
         self.robot_id = robot_id
         #: The floor plan this robot's regions are in ("building-a/floor-2"; "map" by default): its
@@ -846,7 +926,7 @@ class DrvsClient:
             return self._advertise
         if self._listener is None:
             return ""
-        return dialable_address(self.listen, self.port, self.server)
+        return dialable_address(self.listen, self.port, self.servers[0])
 
     @property
     def listening(self) -> bool:
@@ -858,7 +938,7 @@ class DrvsClient:
         """Open the channel to the server (no check of the server: DrvsClient.connect does that),
         and the report listener when `listen` or `advertise` was given (otherwise it starts with the
         first per-camera request)."""
-        self._channel = self.security.channel(self.server)
+        self._channel = self.security.channel(grpc_target(self.servers))
         self._detect = detection_pb2_grpc.DetectObjectBoundaryStub(self._channel)
         self._requests = RequestStream(self._detect, f"server {self.server}", metadata=self.security.metadata())
         self._registry = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
@@ -1278,7 +1358,9 @@ class DrvsClient:
         rpc_timeout_s: float,
         max_queued: int,
     ) -> Track:
-        track = Track(self, request, timeout_s, max_queued)
+        whole = detection_pb2.DetectionRequest()
+        whole.CopyFrom(message)  # the request stream leaves out what repeats: keep it whole to resend
+        track = Track(self, request, timeout_s, max_queued, whole, rpc_timeout_s)
         if track.request_id in self._subscriptions or track.request_id in self._tracks:
             raise InvalidArgument(f"request_id: {track.request_id!r} is already in use")
         self._tracks[track.request_id] = track
