@@ -580,14 +580,18 @@ class Track(_Delivery):
 
     Errors come out of the iteration: Unavailable when the request stream ends before the final
     snapshot (the server restarted, the network broke; the track is over: call track() again for a
-    new one), DeadlineExceeded when no final snapshot came within `duration_s` plus the fusion
+    new one) and the client knows one server; a client given several (servers sharing one
+    registry) sends the track again through the next that answers, for what remains of it, and
+    the iteration goes on (`resumes`, `gaps_s`; track ids start anew). DeadlineExceeded when no final snapshot came within `duration_s` plus the fusion
     deadline plus `timeout_s` seconds of the server's reply.
 
     - `request_id`: the request; `camera_ids`: the cameras the server dispatched it to;
     - `missing_cameras`: CameraErrors for the cameras that see the region but were not asked (the
       server's reply; each snapshot names the cameras missing from it too);
     - `uncovered`: parts of the region (shapely Polygons, metres) nobody looks at because of them;
-    - `received`: snapshots that arrived; `dropped`: those dropped unread; `last`: the newest read.
+    - `received`: snapshots that arrived; `dropped`: those dropped unread; `last`: the newest read;
+    - `resumes`: times it was sent again through another server; `gaps_s`: for each, seconds from
+      the end of the stream to the first snapshot after it.
     """
 
     def __init__(
