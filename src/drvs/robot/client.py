@@ -582,8 +582,9 @@ class Track(_Delivery):
     snapshot (the server restarted, the network broke; the track is over: call track() again for a
     new one) and the client knows one server; a client given several (servers sharing one
     registry) sends the track again through the next that answers, for what remains of it, and
-    the iteration goes on (`resumes`, `gaps_s`; track ids start anew). DeadlineExceeded when no final snapshot came within `duration_s` plus the fusion
-    deadline plus `timeout_s` seconds of the server's reply.
+    the iteration goes on (`resumes`, `gaps_s`; track ids start anew). DeadlineExceeded when no
+    final snapshot came within `duration_s` plus the fusion deadline plus `timeout_s` seconds of
+    the server's reply.
 
     - `request_id`: the request; `camera_ids`: the cameras the server dispatched it to;
     - `missing_cameras`: CameraErrors for the cameras that see the region but were not asked (the
