@@ -69,9 +69,20 @@ def test_mobile_benchmark_refuses_bad_flags(args: list[str], capsys: pytest.Capt
 def test_cluster_propagation_smoke(tmp_path: Path) -> None:
     """drvs-bench cluster: a real etcd and two servers; every registration through A reached B's
     routing index, and the published figures are what the delays say."""
-    assert main(["cluster", "--registrations", "10", "--out", str(tmp_path)]) == 0
+    assert main(["cluster", "--parts", "propagation", "--registrations", "10", "--out", str(tmp_path)]) == 0
     result = json.loads((tmp_path / "cluster.json").read_text())["propagation"]
     assert result["registrations"] == len(result["delays_ms"]) == 10
     assert 0 < result["propagation_ms_p50"] <= result["propagation_ms_p99"] == max(result["delays_ms"])
     assert result["etcd_cpu_s"] >= 0 and (tmp_path / "cluster.png").is_file()
     assert main(["cluster", "--parts", "throughput"]) == 2
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(__import__("shutil").which("etcd") is None, reason="etcd is not installed")
+def test_cluster_failover_smoke(tmp_path: Path) -> None:
+    """drvs-bench cluster --parts failover: a round kills the robot's server mid-track; the track
+    resumed once through the other, with snapshots before and after, and the gap is published."""
+    assert main(["cluster", "--parts", "failover", "--rounds", "1", "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "cluster.json").read_text())["failover"]
+    assert result["rounds"] == 1 and len(result["gaps_ms"]) == 1 and result["gaps_ms"][0] > 0
+    assert result["snapshots_before_kill"][0] >= 20 and result["snapshots_after_kill"][0] > 0

@@ -1,5 +1,7 @@
-"""drvs-bench cluster --parts propagation: how long a registration made through one server takes to
-be routable through another, with the registry shared in a real etcd.
+"""drvs-bench cluster: several servers on one registry in a real etcd.
+
+`--parts propagation`: how long a registration made through one server takes to be routable
+through another.
 
 A real etcd member (Debian's etcd-server, on loopback) and two `DrvsServer`s in this process, each
 on its own gRPC port with `--registry etcd://…`. A camera registers through A over gRPC (a real
@@ -10,8 +12,14 @@ write on its watch, often before the camera hears A's answer. Registrations are 
 time), so each delay is the path's own, not a queue's. Also published: the CPU seconds etcd spent
 (its process, from /proc) against the two servers' (this process).
 
-Not measured yet (issue 19 goes on): routing throughput with one and with two servers, and the
-fail-over gap a robot sees.
+`--parts failover`: the gap a robot sees when the server its track goes through dies. Two
+drvs-server processes on the etcd, a camera node in this process (pushed frames of a yellow disc)
+and a robot that both know both servers; the robot tracks the disc at 10 Hz through A; after two
+seconds A is killed (SIGKILL, at a random phase of the snapshot period); the track resumes
+through B by itself, and the gap is the robot's own measure (`Track.gaps_s`: from the last
+snapshot A sent to the first B sends). A new pair of servers each round.
+
+Not measured yet (issue 19 goes on): routing throughput with one and with two servers.
 """
 
 from __future__ import annotations
@@ -20,6 +28,7 @@ import argparse
 import asyncio
 import json
 import os
+import random
 import statistics
 import sys
 import tempfile
@@ -29,17 +38,28 @@ from typing import Any
 
 from grpc import aio
 
-from drvs.launch import start_etcd
+from drvs.camera import CameraNode, PushSource
+from drvs.filters import HsvRange
+from drvs.geometry import homography_from_pose
+from drvs.launch import start_etcd, start_server
+from drvs.robot import DrvsClient
 from drvs.server import DrvsServer
 from drvs.server.config import ServerConfig
+from drvs.sim.scene import FloorPatch, render_view
 from drvs.v1 import registry_pb2_grpc
 
-from .common import machine, pyplot, write_result
+from .common import YELLOW, machine, pyplot, write_result
 from .fakes import register_message
 from .helpers import percentile
 
+#: The bench camera: 3 m up at the origin, looking 40° down along +y, 60° wide.
+HOMOGRAPHY = homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
 FULL_REGISTRATIONS = 300
 QUICK_REGISTRATIONS = 40
+PARTS = ("propagation", "failover")
+FULL_FAILOVERS = 5
+QUICK_FAILOVERS = 2
+TRACK_RATE_HZ = 10.0
 
 
 def _cpu_s(pid: int) -> float:
@@ -110,15 +130,85 @@ async def propagation(registrations: int) -> dict[str, Any]:
     }
 
 
-def run_cluster(quick: bool, registrations: int | None = None) -> dict[str, Any]:
-    result: dict[str, Any] = {"machine": machine(), "parts": ["propagation"]}
-    result["propagation"] = asyncio.run(
-        propagation(registrations or (QUICK_REGISTRATIONS if quick else FULL_REGISTRATIONS))
-    )
+async def one_failover(data: Path, image: Any, phase: random.Random) -> tuple[float, int, int]:
+    """One round: (the gap, seconds; snapshots before the kill; snapshots after it)."""
+    members = await start_etcd(data)
+    procs: list[Any] = []
+    try:
+        registry = "etcd://" + members[0].address
+        servers = [await start_server("--registry", registry, "--lease-ttl", "2") for _ in range(2)]
+        procs += [p for p, _ in servers]
+        (a, a_address), (_, b_address) = servers
+        both = f"{a_address},{b_address}"
+        source = PushSource("bench camera")
+        source.push(image)
+        node = CameraNode("cam1", source, HOMOGRAPHY, both, max_range_m=6.0, detectors=("hsv",))
+        async with node, DrvsClient.connect(both, robot_id="bench") as drvs:
+            await asyncio.wait_for(node.registered.wait(), 30)
+            before = after = 0
+            killed = False
+            loop = asyncio.get_running_loop()
+            async with drvs.track(YELLOW, (-3.0, 1.5, 3.0, 7.0), rate_hz=TRACK_RATE_HZ, duration_s=6.0) as track:
+                async for _snapshot in track:
+                    source.push(image)  # a camera that keeps delivering frames
+                    if track.resumes == 0:
+                        before += 1
+                        if not killed and before >= 2 * TRACK_RATE_HZ:
+                            # At a random phase of the period (right after a snapshot is the best case).
+                            loop.call_later(phase.uniform(0, 1 / TRACK_RATE_HZ), a.kill)
+                            killed = True
+                    else:
+                        after += 1
+            if track.resumes != 1 or not track.gaps_s:
+                raise RuntimeError(f"the track did not resume once (resumes {track.resumes}, gaps {track.gaps_s})")
+            return track.gaps_s[0], before, after
+    finally:
+        for proc in reversed(procs):
+            await proc.stop()
+        for m in members:
+            await m.stop()
+
+
+async def failover(rounds: int) -> dict[str, Any]:
+    patches = [FloorPatch.disc((0.0, 4.0), 0.3, HsvRange.parse(YELLOW).centre_bgr())]
+    image = render_view(HOMOGRAPHY, (640, 480), patches)
+    gaps, befores, afters = [], [], []
+    phase = random.Random(19)
+    for _ in range(rounds):
+        with tempfile.TemporaryDirectory(prefix="drvs-bench-etcd-") as data:
+            gap, before, after = await one_failover(Path(data), image, phase)
+        gaps.append(1000 * gap)
+        befores.append(before)
+        afters.append(after)
+    period_ms = 1000 / TRACK_RATE_HZ
+    return {
+        "rounds": rounds,
+        "track_rate_hz": TRACK_RATE_HZ,
+        "gap_ms_median": statistics.median(gaps),
+        "gap_ms_spread": [min(gaps), max(gaps)],
+        "gaps_ms": gaps,
+        # Snapshots that did not come: the gap less the one period that always separates two.
+        "snapshots_missed_median": statistics.median([max(0.0, g / period_ms - 1) for g in gaps]),
+        "snapshots_before_kill": befores,
+        "snapshots_after_kill": afters,
+    }
+
+
+def run_cluster(
+    quick: bool, parts: list[str], registrations: int | None = None, rounds: int | None = None
+) -> dict[str, Any]:
+    result: dict[str, Any] = {"machine": machine(), "parts": parts}
+    if "propagation" in parts:
+        count = registrations or (QUICK_REGISTRATIONS if quick else FULL_REGISTRATIONS)
+        result["propagation"] = asyncio.run(propagation(count))
+    if "failover" in parts:
+        result["failover"] = asyncio.run(failover(rounds or (QUICK_FAILOVERS if quick else FULL_FAILOVERS)))
     return result
 
 
 def plot(result: dict[str, Any], out: Path) -> None:
+    if "propagation" not in result:
+        return
     plt = pyplot()
     fig, ax = plt.subplots(figsize=(6, 4), dpi=100)
     ms = sorted(result["propagation"]["delays_ms"])
@@ -132,24 +222,34 @@ def plot(result: dict[str, Any], out: Path) -> None:
 
 
 def cluster_main(args: argparse.Namespace) -> int:
-    if args.parts != "propagation":
-        print(f"drvs-bench cluster: --parts {args.parts!r}: only 'propagation' is built so far", file=sys.stderr)
+    parts = [p for p in args.parts.split(",") if p]
+    if not parts or any(p not in PARTS for p in parts):
+        print(f"drvs-bench cluster: --parts {args.parts!r}: expected some of {', '.join(PARTS)}", file=sys.stderr)
         return 2
-    if args.registrations < 0:
-        print("drvs-bench cluster: --registrations must be >= 0", file=sys.stderr)
+    if args.registrations < 0 or args.rounds < 0:
+        print("drvs-bench cluster: --registrations and --rounds must be >= 0", file=sys.stderr)
         return 2
-    result = run_cluster(args.quick, args.registrations or None)
-    shown = {k: v for k, v in result["propagation"].items() if k != "delays_ms"}
-    print(json.dumps({"machine": result["machine"], "propagation": shown}, indent=1))
+    result = run_cluster(args.quick, parts, args.registrations or None, args.rounds or None)
+    shown: dict[str, Any] = {"machine": result["machine"]}
+    if "propagation" in result:
+        shown["propagation"] = {k: v for k, v in result["propagation"].items() if k != "delays_ms"}
+    if "failover" in result:
+        shown["failover"] = result["failover"]
+    print(json.dumps(shown, indent=1))
     if args.out is not None:
         write_result(result, args.out, "cluster", plot)
     return 0
 
 
 def add_cluster_parser(sub: Any) -> None:
-    c = sub.add_parser("cluster", help="several servers on etcd: how long a registration takes to propagate")
-    c.add_argument("--quick", action="store_true", help=f"a smoke run: {QUICK_REGISTRATIONS} registrations")
-    c.add_argument("--parts", default="propagation", help="parts to run (built so far: propagation)")
+    c = sub.add_parser("cluster", help="several servers on etcd: propagation of a registration, a robot's fail-over")
+    c.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"a smoke run: {QUICK_REGISTRATIONS} registrations, {QUICK_FAILOVERS} fail-overs",
+    )
+    c.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated parts (default: {','.join(PARTS)})")
     c.add_argument("--registrations", type=int, default=0, help=f"override (full: {FULL_REGISTRATIONS})")
+    c.add_argument("--rounds", type=int, default=0, help=f"fail-overs (full: {FULL_FAILOVERS})")
     c.add_argument("--out", type=Path, default=None)
     c.set_defaults(func=cluster_main)

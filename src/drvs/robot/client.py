@@ -591,8 +591,8 @@ class Track(_Delivery):
       server's reply; each snapshot names the cameras missing from it too);
     - `uncovered`: parts of the region (shapely Polygons, metres) nobody looks at because of them;
     - `received`: snapshots that arrived; `dropped`: those dropped unread; `last`: the newest read;
-    - `resumes`: times it was sent again through another server; `gaps_s`: for each, seconds from
-      the end of the stream to the first snapshot after it.
+    - `resumes`: times it was sent again through another server; `gaps_s`: for each, the seconds
+      the robot went without a snapshot (the last before the stream ended to the first after).
     """
 
     def __init__(
@@ -610,11 +610,12 @@ class Track(_Delivery):
         #: The request as first sent, whole (a resumed track sends it again, for what remains).
         self._message = message
         self._rpc_timeout_s = rpc_timeout_s
-        #: Times the track was resumed through another server, and each gap: seconds from the
-        #: stream's end to the first snapshot after it.
+        #: Times the track was resumed through another server, and each gap the robot saw: seconds
+        #: from the last snapshot before the stream ended to the first after it.
         self.resumes = 0
         self.gaps_s: list[float] = []
         self._broke_at: float | None = None
+        self._last_snapshot_at: float | None = None
         self._ends_at = 0.0
         self._resuming: asyncio.Task[None] | None = None
         self.camera_ids: tuple[str, ...] = ()
@@ -667,7 +668,7 @@ class Track(_Delivery):
         if isinstance(item, DrvsError):
             if len(self._client.servers) > 1 and self._message is not None and self._resuming is None:
                 # Several servers share the registry: ask another for what remains of the track.
-                self._broke_at = asyncio.get_running_loop().time()
+                self._broke_at = self._last_snapshot_at or asyncio.get_running_loop().time()
                 self._resuming = asyncio.get_running_loop().create_task(self._resume(item))
                 return
             if self._failure is None:
@@ -676,9 +677,11 @@ class Track(_Delivery):
                 )
             self._wake()
             return
+        now = asyncio.get_running_loop().time()
         if self._broke_at is not None:
-            self.gaps_s.append(asyncio.get_running_loop().time() - self._broke_at)
+            self.gaps_s.append(now - self._broke_at)
             self._broke_at = None
+        self._last_snapshot_at = now
         snapshot = snapshot_from_pb(item.snapshot, self.request_id)
         self.received += 1
         if snapshot.final:
