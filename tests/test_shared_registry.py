@@ -19,6 +19,7 @@ from grpc import aio
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from drvs import DrvsClient
+from drvs.certs import make_all
 from drvs.launch import EtcdMember, ManagedProcess, start_camera, start_etcd, start_server
 from drvs.sim.scene import RecordedCamera
 from drvs.v1 import registry_pb2, registry_pb2_grpc
@@ -266,6 +267,39 @@ async def test_a_robots_track_resumes_through_another_server_when_its_server_die
             assert before[:3] == [2, 2, 2] and after and after[-1] == 2, (before, after)
             # The gap: from the stream's end to the first snapshot from B (published in the benchmark).
             assert 0 < track.gaps_s[0] < 8
+    finally:
+        for proc in reversed(procs):
+            await proc.stop()
+        for m in etcd:
+            await m.stop()
+
+
+async def test_servers_reach_etcd_over_mutual_tls_and_not_without_a_certificate(tmp_path: Path) -> None:
+    """etcd asking for client certificates (a CA of drvs-certs): a server given --etcd-ca,
+    --etcd-cert and --etcd-key registers through it and another such server routes; a server
+    without a certificate cannot reach etcd, says so, and refuses registrations."""
+    made = make_all(tmp_path / "certs", ["server", "server-etcd"], [])
+    ca = tmp_path / "certs" / "ca.pem"
+    etcd_cert, etcd_key = made["server-etcd"]
+    cert, key = made["server"]
+    etcd = await start_etcd(tmp_path / "etcd", tls=(ca, etcd_cert, etcd_key), client_tls=(cert, key))
+    registry = "etcd://" + etcd[0].address
+    tls = ("--etcd-ca", str(ca), "--etcd-cert", str(cert), "--etcd-key", str(key))
+    procs: list[ManagedProcess] = []
+    try:
+        servers = [await start_server("--registry", registry, *tls) for _ in range(2)]
+        procs += [p for p, _ in servers]
+        (_, a_address), (b, b_address) = servers
+        await call(a_address, "Register", register_message("cam1"))
+        await b.wait_for_line(registered_line("cam1"), timeout=10)
+        assert await listed(b_address) == ["cam1"]
+        stranger, stranger_address = await start_server("--registry", registry)
+        procs.append(stranger)
+        await stranger.wait_for_line(re.compile("registry: etcd unreachable"), timeout=15)
+        assert await listed(stranger_address) == []
+        with pytest.raises(aio.AioRpcError) as err:
+            await call(stranger_address, "Register", register_message("cam2"))
+        assert err.value.code() == grpc.StatusCode.UNAVAILABLE
     finally:
         for proc in reversed(procs):
             await proc.stop()

@@ -223,10 +223,12 @@ def _prefix_end(prefix: bytes) -> bytes:
     return b"\0"
 
 
-async def wait_ready(endpoints: Endpoints, timeout_s: float) -> None:
+async def wait_ready(
+    endpoints: Endpoints, timeout_s: float, credentials: grpc.ChannelCredentials | None = None
+) -> None:
     """Until some member answers Status (gRPC waits for a connection), within `timeout_s` seconds;
     Unavailable naming the endpoints otherwise."""
-    async with EtcdClient(endpoints, timeout_s=timeout_s) as client:
+    async with EtcdClient(endpoints, timeout_s=timeout_s, credentials=credentials) as client:
         try:
             await client.maintenance.Status(client._rpc.StatusRequest(), timeout=timeout_s, wait_for_ready=True)
         except aio.AioRpcError as exc:

@@ -438,10 +438,12 @@ class EtcdMember:
     peer_port: int
     data_dir: Path
     proc: ManagedProcess | None = None
+    #: TLS for clients: (CA, certificate, key) PEM files; clients must present a certificate too.
+    tls: tuple[Path, Path, Path] | None = None
 
     @property
     def client_url(self) -> str:
-        return f"http://127.0.0.1:{self.client_port}"
+        return f"{'https' if self.tls else 'http'}://127.0.0.1:{self.client_port}"
 
     @property
     def peer_url(self) -> str:
@@ -464,6 +466,11 @@ class EtcdMember:
                 "--initial-cluster", cluster, "--initial-cluster-state", state,
                 "--initial-cluster-token", "drvs", "--heartbeat-interval", "50", "--election-timeout", "500",
                 "--log-level", "warn",
+                *(
+                    ("--trusted-ca-file", str(self.tls[0]), "--cert-file", str(self.tls[1]),
+                     "--key-file", str(self.tls[2]), "--client-cert-auth")
+                    if self.tls else ()
+                ),
             ],
             echo=echo,
         ).start()  # fmt: skip
@@ -477,18 +484,36 @@ class EtcdMember:
             self.proc.kill()
 
 
-async def start_etcd(data_dir: Path, members: int = 1, *, echo: TextIO | None = None) -> list[EtcdMember]:
+async def start_etcd(
+    data_dir: Path,
+    members: int = 1,
+    *,
+    echo: TextIO | None = None,
+    tls: tuple[Path, Path, Path] | None = None,
+    client_tls: tuple[Path, Path] | None = None,
+) -> list[EtcdMember]:
     """A real etcd cluster of `members` on loopback ports, its data under `data_dir`, returned once
-    it answers; on failure every member is stopped and reaped."""
+    it answers; on failure every member is stopped and reaped. `tls`: (CA, certificate, key) for
+    its client port, which then asks clients for a certificate: `client_tls` (certificate, key) is
+    the one the readiness check presents."""
+    import grpc
+
     from drvs.etcd import Endpoints, wait_ready
 
     ports = free_ports(2 * members)
-    cluster = [EtcdMember(f"m{i}", ports[2 * i], ports[2 * i + 1], data_dir / f"m{i}") for i in range(members)]
+    cluster = [EtcdMember(f"m{i}", ports[2 * i], ports[2 * i + 1], data_dir / f"m{i}", tls=tls) for i in range(members)]
+    credentials = None
+    if tls is not None:
+        assert client_tls is not None, "client_tls: the readiness check needs a client certificate"
+        credentials = grpc.ssl_channel_credentials(
+            tls[0].read_bytes(), client_tls[1].read_bytes(), client_tls[0].read_bytes()
+        )
     initial = ",".join(f"{m.name}={m.peer_url}" for m in cluster)
     try:
         for m in cluster:
             await m.start(initial, echo=echo)
-        await wait_ready(Endpoints(tuple(("127.0.0.1", m.client_port) for m in cluster)), READY_TIMEOUT_S)
+        endpoints = Endpoints(tuple(("127.0.0.1", m.client_port) for m in cluster))
+        await wait_ready(endpoints, READY_TIMEOUT_S, credentials=credentials)
     except BaseException:
         for m in cluster:
             await asyncio.shield(m.stop())

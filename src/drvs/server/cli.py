@@ -228,6 +228,12 @@ def build_parser() -> argparse.ArgumentParser:
         help="where cameras send this server fused requests' reports, if not the --listen address (needed "
         "when cameras know several servers and this one listens on 0.0.0.0; DRVS_SERVER_ADVERTISE)",
     )
+    e = p.add_argument_group("TLS to etcd (with --registry etcd://...)")
+    e.add_argument("--etcd-ca", default=None, metavar="FILE", help="CA certificate etcd's members are checked against")
+    e.add_argument(
+        "--etcd-cert", default=None, metavar="FILE", help="this server's certificate, when etcd asks for one"
+    )
+    e.add_argument("--etcd-key", default=None, metavar="FILE", help="its private key")
     add_security_arguments(p, "unused by the server (it checks tokens, it presents none)")
     add_observability_arguments(p)
     return p
@@ -279,6 +285,9 @@ def config_from(args: argparse.Namespace) -> ServerConfig:
             "min_pose_interval_s": args.min_pose_interval,
             "registry": args.registry,
             "advertise": args.advertise,
+            "etcd_ca": args.etcd_ca,
+            "etcd_cert": args.etcd_cert,
+            "etcd_key": args.etcd_key,
         },
         os.environ,
     )

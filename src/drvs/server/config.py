@@ -54,6 +54,9 @@ ENVIRONMENT = {
     "trust_network": "DRVS_TRUST_NETWORK",
     "registry": "DRVS_REGISTRY",
     "advertise": "DRVS_SERVER_ADVERTISE",
+    "etcd_ca": "DRVS_ETCD_CA",
+    "etcd_cert": "DRVS_ETCD_CERT",
+    "etcd_key": "DRVS_ETCD_KEY",
 }
 
 #: Each setting's command-line flag.
@@ -82,6 +85,9 @@ FLAGS = {
     "min_pose_interval_s": "--min-pose-interval",
     "registry": "--registry",
     "advertise": "--advertise",
+    "etcd_ca": "--etcd-ca",
+    "etcd_cert": "--etcd-cert",
+    "etcd_key": "--etcd-key",
 }
 
 #: Inclusive numeric ranges: setting -> (lowest, highest, whether the lowest is allowed, unit text).
@@ -172,6 +178,11 @@ class ServerConfig:
     #: unless it is a wildcard). Needed when cameras know several servers (they must report to the
     #: one that asked) and this one listens on 0.0.0.0.
     advertise: str = ""
+    #: TLS to etcd: the CA its members' certificates are checked against, and this server's own
+    #: certificate and key when etcd asks for one (--client-cert-auth). PEM files; "" none.
+    etcd_ca: str = ""
+    etcd_cert: str = ""
+    etcd_key: str = ""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "allow_callback", tuple(self.allow_callback))
@@ -208,6 +219,31 @@ class ServerConfig:
             parse_address(self.advertise, setting("advertise"))
         if self.registry != "memory":
             Endpoints.parse(self.registry, setting("registry"))
+        if bool(self.etcd_cert) != bool(self.etcd_key):
+            raise InvalidArgument(f"{setting('etcd_cert')} and {setting('etcd_key')}: give both or neither")
+        if (self.etcd_cert or self.etcd_key) and not self.etcd_ca:
+            raise InvalidArgument(f"{setting('etcd_ca')}: needed with a certificate for etcd (TLS)")
+        if self.etcd_ca and self.registry == "memory":
+            raise InvalidArgument(f"{setting('etcd_ca')}: only with --registry etcd://...")
+        for name in ("etcd_ca", "etcd_cert", "etcd_key"):
+            path = getattr(self, name)
+            if path and not os.path.isfile(path):
+                raise InvalidArgument(f"{setting(name)}: {path!r} is not a file")
+
+    def etcd_credentials(self) -> Any:
+        """grpc.ChannelCredentials for etcd over TLS, or None (plain TCP)."""
+        if not self.etcd_ca:
+            return None
+        import grpc
+
+        def read(path: str) -> bytes | None:
+            return open(path, "rb").read() if path else None
+
+        return grpc.ssl_channel_credentials(
+            root_certificates=read(self.etcd_ca),
+            private_key=read(self.etcd_key),
+            certificate_chain=read(self.etcd_cert),
+        )
 
     @property
     def warm_up(self) -> float:

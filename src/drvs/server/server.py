@@ -42,7 +42,7 @@ from drvs.errors import (
     Unauthenticated,
     Unavailable,
 )
-from drvs.etcd import Endpoints
+from drvs.etcd import Endpoints, EtcdClient
 from drvs.geometry import DEFAULT_MAX_RANGE_M, Homography
 from drvs.model import DEFAULT_FRAME, CameraError, DetectionReport, DetectionRequest, Pose2, check_frame, check_id
 from drvs.net import host_of, is_loopback_host
@@ -316,12 +316,14 @@ class DrvsServer(Lifecycle):
         #: The registry's etcd side when it is shared with other servers (--registry etcd://...).
         self.shared: SharedRegistry | None = None
         if config.registry != "memory":
+            endpoints = Endpoints.parse(config.registry, "registry")
             self.shared = SharedRegistry(
-                Endpoints.parse(config.registry, "registry"),
+                endpoints,
                 self._apply_shared,
                 self._drop_shared,
                 lambda: [e.camera_id for e in self.registry.cameras()],
                 on_reachable=self._registry_reachable,
+                client=EtcdClient(endpoints, credentials=config.etcd_credentials()),
             )
 
     @classmethod
