@@ -86,3 +86,16 @@ def test_cluster_failover_smoke(tmp_path: Path) -> None:
     result = json.loads((tmp_path / "cluster.json").read_text())["failover"]
     assert result["rounds"] == 1 and len(result["gaps_ms"]) == 1 and result["gaps_ms"][0] > 0
     assert result["snapshots_before_kill"][0] >= 20 and result["snapshots_after_kill"][0] > 0
+
+
+@pytest.mark.slow
+@pytest.mark.skipif(__import__("shutil").which("etcd") is None, reason="etcd is not installed")
+def test_cluster_throughput_smoke(tmp_path: Path) -> None:
+    """drvs-bench cluster --parts throughput: 1000 cameras registered through A are routed by both
+    servers; every run completes without an error, and the ratio is the rounds' own."""
+    assert main(["cluster", "--quick", "--parts", "throughput", "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "cluster.json").read_text())["throughput"]
+    assert result["cameras"] == 1000 and len(result["two_over_one_runs"]) == result["rounds"] == 3
+    assert all(r > 0 for r in result["rps_one_server_runs"] + result["rps_two_servers_runs"])
+    ratios = [t / o for t, o in zip(result["rps_two_servers_runs"], result["rps_one_server_runs"], strict=True)]
+    assert result["two_over_one_runs"] == pytest.approx(ratios)

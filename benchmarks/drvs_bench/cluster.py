@@ -19,7 +19,14 @@ seconds A is killed (SIGKILL, at a random phase of the snapshot period); the tra
 through B by itself, and the gap is the robot's own measure (`Track.gaps_s`: from the last
 snapshot A sent to the first B sends). A new pair of servers each round.
 
-Not measured yet (issue 19 goes on): routing throughput with one and with two servers.
+`--parts throughput`: routing requests a second with one and with two servers, as a ratio. 1000
+fake cameras (one acking endpoint) registered through A, routable through both; two load
+processes (64 workers each, each on its own request stream, as drvs-bench service's routing
+part) send single-shot requests for 8 s: both at A (one server), or one at A and one at B (two
+servers); the sum of their requests a second. Modes interleaved, a ratio per round. On this
+machine's 2 cores the two servers, the load, the fake cameras and etcd all share two cores: a
+second server adds a process, not a core, so the ratio measures what a second server costs or
+gains here, not what one on its own machine would.
 """
 
 from __future__ import annotations
@@ -29,6 +36,7 @@ import asyncio
 import json
 import os
 import random
+import re
 import statistics
 import sys
 import tempfile
@@ -51,12 +59,14 @@ from drvs.v1 import registry_pb2_grpc
 from .common import YELLOW, machine, pyplot, write_result
 from .fakes import register_message
 from .helpers import percentile
+from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, interleaved, publish
 
 #: The bench camera: 3 m up at the origin, looking 40° down along +y, 60° wide.
 HOMOGRAPHY = homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
 FULL_REGISTRATIONS = 300
 QUICK_REGISTRATIONS = 40
-PARTS = ("propagation", "failover")
+PARTS = ("propagation", "failover", "throughput")
+THROUGHPUT_CAMERAS = 1000
 FULL_FAILOVERS = 5
 QUICK_FAILOVERS = 2
 TRACK_RATE_HZ = 10.0
@@ -194,6 +204,62 @@ async def failover(rounds: int) -> dict[str, Any]:
     }
 
 
+async def throughput(quick: bool) -> dict[str, Any]:
+    from .service import CAPACITY_NOT_POLICY, ack_server, run_helper
+
+    seconds = "2" if quick else "8"
+    n_rounds = QUICK_ROUNDS if quick else FULL_ROUNDS
+    procs: list[Any] = []
+    with tempfile.TemporaryDirectory(prefix="drvs-bench-etcd-") as data:
+        members = await start_etcd(Path(data))
+        try:
+            registry = "etcd://" + members[0].address
+            ack, ack_address = await ack_server()
+            procs.append(ack)
+            flags = ("--registry", registry, "--lease-ttl", "3600", *CAPACITY_NOT_POLICY)
+            servers = [await start_server(*flags) for _ in range(2)]
+            procs += [p for p, _ in servers]
+            (_, a_address), (b, b_address) = servers
+
+            async def register() -> None:
+                seen = len(b.lines)
+                await run_helper("register", "register", "--server", a_address, "--camera-address", ack_address,
+                                 "--count", str(THROUGHPUT_CAMERAS))  # fmt: skip
+                # B's watch applies the registrations in order: the last one's log line says all are in.
+                last = re.compile(rf"camera fake{THROUGHPUT_CAMERAS - 1} registered at \S+ through")
+                await b.wait_for_line(last, timeout=60, start=seen)
+
+            async def load(targets: tuple[str, str]) -> float:
+                runs = await asyncio.gather(
+                    *(run_helper(f"load-{i}", "routing-load", "--target", t, "--seconds", seconds)
+                      for i, t in enumerate(targets))
+                )  # fmt: skip
+                if any(r["errors"] for r in runs):
+                    raise WorkMismatch(f"throughput: errors {[r['error_kinds'] for r in runs]}")
+                return float(sum(r["rps"] for r in runs))
+
+            await register()
+            # Warm-up, not counted: each server opens its 1000 camera connections on first use; the
+            # fake cameras register again after it (some first connects time out under load).
+            await load((a_address, b_address))
+            await register()
+            modes = {"one": (a_address, a_address), "two": (a_address, b_address)}
+            per_round: list[dict[str, float]] = [{} for _ in range(n_rounds)]
+            for r, mode in interleaved(list(modes), n_rounds):
+                per_round[r][mode] = await load(modes[mode])
+        finally:
+            for proc in reversed(procs):
+                await proc.stop()
+            for m in members:
+                await m.stop()
+    result: dict[str, Any] = {"cameras": THROUGHPUT_CAMERAS, "rounds": n_rounds, "seconds_per_run": float(seconds)}
+    publish(result, "rps_one_server", [p["one"] for p in per_round])
+    publish(result, "rps_two_servers", [p["two"] for p in per_round])
+    publish(result, "two_over_one", [p["two"] / p["one"] for p in per_round])
+    result["cores"] = os.cpu_count()
+    return result
+
+
 def run_cluster(
     quick: bool, parts: list[str], registrations: int | None = None, rounds: int | None = None
 ) -> dict[str, Any]:
@@ -203,6 +269,8 @@ def run_cluster(
         result["propagation"] = asyncio.run(propagation(count))
     if "failover" in parts:
         result["failover"] = asyncio.run(failover(rounds or (QUICK_FAILOVERS if quick else FULL_FAILOVERS)))
+    if "throughput" in parts:
+        result["throughput"] = asyncio.run(throughput(quick))
     return result
 
 
@@ -233,8 +301,9 @@ def cluster_main(args: argparse.Namespace) -> int:
     shown: dict[str, Any] = {"machine": result["machine"]}
     if "propagation" in result:
         shown["propagation"] = {k: v for k, v in result["propagation"].items() if k != "delays_ms"}
-    if "failover" in result:
-        shown["failover"] = result["failover"]
+    for part in ("failover", "throughput"):
+        if part in result:
+            shown[part] = result[part]
     print(json.dumps(shown, indent=1))
     if args.out is not None:
         write_result(result, args.out, "cluster", plot)
