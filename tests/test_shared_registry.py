@@ -305,3 +305,34 @@ async def test_servers_reach_etcd_over_mutual_tls_and_not_without_a_certificate(
             await proc.stop()
         for m in etcd:
             await m.stop()
+
+
+async def test_servers_on_a_three_member_cluster_go_on_when_a_member_is_killed(tmp_path: Path) -> None:
+    """Two servers given all three members of an etcd cluster; one member is SIGKILLed: the
+    servers' channels skip it, the two left keep a quorum, and a registration through B (once they
+    have a leader again, if the dead member led) reaches A."""
+    etcd = await start_etcd(tmp_path, members=3)
+    registry = "etcd://" + ",".join(m.address for m in etcd)
+    procs: list[ManagedProcess] = []
+    try:
+        servers = [await start_server("--registry", registry) for _ in range(2)]
+        procs += [p for p, _ in servers]
+        (a, a_address), (_, b_address) = servers
+        await call(a_address, "Register", register_message("cam1"))
+        etcd[0].kill()
+        deadline = asyncio.get_running_loop().time() + 20
+        while True:  # as a camera does: register again until a server takes it
+            try:
+                await call(b_address, "Register", register_message("cam2", x=10.0))
+                break
+            except aio.AioRpcError as exc:
+                assert exc.code() in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED), exc
+                assert asyncio.get_running_loop().time() < deadline, exc
+                await asyncio.sleep(0.1)  # a camera's backoff between attempts
+        await a.wait_for_line(registered_line("cam2"), timeout=15)
+        assert await listed(a_address) == ["cam1", "cam2"]
+    finally:
+        for proc in reversed(procs):
+            await proc.stop()
+        for m in etcd:
+            await m.stop()
