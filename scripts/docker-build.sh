@@ -22,6 +22,7 @@ export DRVS_PIP_ARGS=${DRVS_PIP_ARGS---no-index}
 WHEELHOUSE=services/wheelhouse
 REQUIREMENTS=services/requirements.txt
 REQUIREMENTS_SIM=services/requirements-sim.txt
+REQUIREMENTS_ETCD=services/requirements-etcd.txt
 
 host_python() {
   if [ -n "${PYTHON:-}" ]; then echo "$PYTHON"; return; fi
@@ -32,7 +33,7 @@ host_python() {
 pin() {
   local py
   py=$(host_python)
-  "$py" - "$REQUIREMENTS" "$REQUIREMENTS_SIM" <<'PY'
+  "$py" - "$REQUIREMENTS" "$REQUIREMENTS_SIM" "$REQUIREMENTS_ETCD" <<'PY'
 """The installed versions of drvs's runtime dependencies and theirs: the pins. The first file gets
 the base package's (every image), the second what the sim extra adds (the simulator's images)."""
 import importlib.metadata as md
@@ -69,6 +70,7 @@ base = closure("")
 write(Path(sys.argv[1]), base)
 base_names = {name.lower() for name in base}
 write(Path(sys.argv[2]), {n: v for n, v in closure("sim").items() if n.lower() not in base_names})
+write(Path(sys.argv[3]), {n: v for n, v in closure("etcd").items() if n.lower() not in base_names})
 PY
 }
 
@@ -96,7 +98,7 @@ if [ "$DRVS_PIP_ARGS" = --no-index ]; then
   log=$(mktemp)
   if ! "$py" -m pip download --disable-pip-version-check --dest "$WHEELHOUSE" \
     --only-binary :all: --python-version "$pyver" --implementation cp --abi "cp${pyver/./}" "${platforms[@]}" \
-    -r "$REQUIREMENTS" -r "$REQUIREMENTS_SIM" "setuptools>=77" wheel >"$log" 2>&1; then
+    -r "$REQUIREMENTS" -r "$REQUIREMENTS_SIM" -r "$REQUIREMENTS_ETCD" "setuptools>=77" wheel >"$log" 2>&1; then
     tail -20 "$log" >&2
     rm -f "$log"
     die "pip download failed (is PyPI reachable from this host?)"
@@ -105,10 +107,20 @@ if [ "$DRVS_PIP_ARGS" = --no-index ]; then
   say "$(find "$WHEELHOUSE" -name '*.whl' | wc -l) wheels, $(du -sm "$WHEELHOUSE" | cut -f1) MB, in $(($(date +%s) - start)) s"
 fi
 
+# compose.yaml's ha profile runs Debian's etcd: the host's binary (./run installs etcd-server),
+# which needs only libc, goes into the image.
+etcd_bin=$(command -v etcd || true)
+if [ -n "$etcd_bin" ]; then
+  install -m 0755 "$etcd_bin" "$WHEELHOUSE/etcd"
+else
+  say "no etcd on this host: the etcd image installs Debian's etcd-server with apt"
+  rm -f "$WHEELHOUSE/etcd"
+fi
+
 # Without buildx (Debian's docker.io has none) compose warns that it cannot use bake, and builds
 # through the engine's own BuildKit: the same result.
 say "docker compose build (base $DRVS_BASE_IMAGE${DRVS_PIP_ARGS:+, pip $DRVS_PIP_ARGS})"
 start=$(date +%s)
-docker compose build
+docker compose --profile ha build
 say "images built in $(($(date +%s) - start)) s:"
 docker images --format '{{.Repository}}:{{.Tag}}\t{{.Size}}' | grep -E '^drvs-' | sort >&2

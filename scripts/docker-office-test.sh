@@ -9,7 +9,9 @@
 #      (reached_goal true, collisions 0) and map.png;
 #   5. starts the office again and times `docker compose stop` mid-mission: every container must stop
 #      within STOP_LIMIT_S, the servers with exit 0 (graceful) and the robot by the SIGTERM passed on to it;
-#   6. removes the containers and network it made (images stay cached; --rmi removes them too).
+#   6. runs the ha profile (etcd and two servers sharing the registry; cameras and robot know both) and
+#      kills one server (SIGKILL) mid-mission: the mission must still succeed;
+#   7. removes the containers and network it made (images stay cached; --rmi removes them too).
 #
 #   scripts/docker-office-test.sh [--rmi]
 #
@@ -52,10 +54,10 @@ cleanup() {
   if [ "$project_up" = 1 ]; then
     say "cleaning up: docker compose down (containers, network)$([ "$RMI" = 1 ] && echo ', images')"
     if [ "$RMI" = 1 ]; then
-      docker compose down --remove-orphans --timeout 10 --rmi all >/dev/null 2>&1
+      docker compose --profile ha down --remove-orphans --timeout 10 --rmi all >/dev/null 2>&1
       docker image rm "$DRVS_BASE_IMAGE" >/dev/null 2>&1
     else
-      docker compose down --remove-orphans --timeout 10 >/dev/null 2>&1
+      docker compose --profile ha down --remove-orphans --timeout 10 >/dev/null 2>&1
     fi
   fi
   if [ -n "$started_dockerd" ]; then
@@ -110,7 +112,7 @@ say "$(docker compose version)"
 
 # --- 3. images -------------------------------------------------------------------------------------
 project_up=1
-docker compose down --remove-orphans --timeout 10 >/dev/null 2>&1 || true
+docker compose --profile ha down --remove-orphans --timeout 10 >/dev/null 2>&1 || true
 start=$(date +%s)
 scripts/docker-build.sh || fail "building the images"
 say "images ready in $(($(date +%s) - start)) s"
@@ -185,3 +187,37 @@ for camera in camera-1 camera-2 camera-3 scout-1-cam; do
   grep -q 'deregistered' <<<"$(logs_of "$camera")" || fail "$camera did not deregister on SIGTERM"
 done
 grep -q 'drvs-server stopped' <<<"$(logs_of server)" || fail "the server did not stop gracefully"
+
+# --- 6. the ha profile: a server killed mid-mission ------------------------------------------------
+say "ha test: docker compose --profile ha up -d, then kill one server mid-mission"
+docker compose --profile ha down --remove-orphans --timeout 10 >/dev/null 2>&1 || true
+mkdir -p "$work/ha-out"
+DRVS_OUT=$work/ha-out docker compose --profile ha up --no-build --detach >"$work/ha-up.log" 2>&1 ||
+  { tail -30 "$work/ha-up.log" >&2; fail "docker compose --profile ha up --detach"; }
+for _ in $(seq 180); do
+  grep -q 'robot: mission ' <<<"$(logs_of robot)" && break
+  sleep 1
+done
+grep -q 'robot: mission ' <<<"$(logs_of robot)" || { docker compose --profile ha logs --no-color 2>&1 | tail -60 >&2; fail "ha: the robot did not start its mission in 180 s"; }
+grep -q 'registry is shared in etcd' <<<"$(logs_of server)" || fail "ha: the first server does not share its registry in etcd"
+sleep 3
+docker compose --profile ha kill server >/dev/null 2>&1 || fail "docker compose kill server"
+say "ha test: server killed; waiting for the robot"
+robot_id=$(docker compose --profile ha ps --all --quiet robot)
+code=$(timeout "$UP_TIMEOUT_S" docker wait "$robot_id") || fail "ha: the robot did not finish"
+grep -E 'reached goal|collisions|failure' <<<"$(logs_of robot)" | tail -5 >&2 || true
+[ "$code" = 0 ] || { logs_of robot | tail -40 >&2; fail "ha: the mission failed after a server was killed (robot exit $code)"; }
+python3 - "$work/ha-out" <<'PY' || fail "ha: result.json is not a success"
+import json
+import sys
+from pathlib import Path
+
+result = json.loads((Path(sys.argv[1]) / "result.json").read_text())
+if result.get("reached_goal") is not True or result.get("collisions") != 0:
+    sys.exit(f"reached_goal {result.get('reached_goal')!r}, collisions {result.get('collisions')!r}")
+print(f"docker-office-test: ha: the mission succeeded with a server killed: {result['replans']} re-plan(s), "
+      f"{result.get('blind_steps', 0)} blind step(s), coverage events {len(result.get('coverage_events', []))}",
+      file=sys.stderr)
+PY
+docker compose --profile ha down --remove-orphans --timeout 10 >/dev/null 2>&1 || true
+
