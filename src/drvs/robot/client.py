@@ -24,6 +24,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import contextlib
+import ipaddress
 import itertools
 import logging
 import math
@@ -53,7 +54,15 @@ from drvs.model import (
     Snapshot,
     check_frame,
 )
-from drvs.net import dialable_address, format_address, grpc_target, local_ip_towards, parse_address, parse_address_list
+from drvs.net import (
+    dialable_address,
+    format_address,
+    grpc_target,
+    host_of,
+    local_ip_towards,
+    parse_address,
+    parse_address_list,
+)
 from drvs.report_auth import key_matches, new_secret
 from drvs.request_stream import RequestStream
 from drvs.security import Security
@@ -580,9 +589,9 @@ class Track(_Delivery):
 
     Errors come out of the iteration: Unavailable when the request stream ends before the final
     snapshot (the server restarted, the network broke; the track is over: call track() again for a
-    new one) and the client knows one server; a client given several (servers sharing one
-    registry) sends the track again through the next that answers, for what remains of it, and
-    the iteration goes on (`resumes`, `gaps_s`; track ids start anew). DeadlineExceeded when no
+    new one) and the client knows one server by its address; a client given several (servers
+    sharing one registry), or a DNS name, sends the track again through the next that answers, for
+    what remains of it, and the iteration goes on (`resumes`, `gaps_s`; track ids start anew). DeadlineExceeded when no
     final snapshot came within `duration_s` plus the fusion deadline plus `timeout_s` seconds of
     the server's reply.
 
@@ -666,7 +675,7 @@ class Track(_Delivery):
         if self.closed or self.finished:
             return
         if isinstance(item, DrvsError):
-            if len(self._client.servers) > 1 and self._message is not None and self._resuming is None:
+            if self._client.fails_over and self._message is not None and self._resuming is None:
                 # Several servers share the registry: ask another for what remains of the track.
                 self._broke_at = self._last_snapshot_at or asyncio.get_running_loop().time()
                 self._resuming = asyncio.get_running_loop().create_task(self._resume(item))
@@ -859,6 +868,9 @@ class DrvsClient:
         #: them, which moves on from one that fails; with several, tracks resume through another.
         self.servers = parse_address_list(server, "server")
         self.server = server
+        #: Several servers given, or a DNS name (which may stand for several): a track whose
+        #: server's stream ends is sent again through the channel, which moves on to one that answers.
+        self.fails_over = len(self.servers) > 1 or not _is_ip_literal(self.servers[0])
         self.robot_id = robot_id
         #: The floor plan this robot's regions are in ("building-a/floor-2"; "map" by default): its
         #: requests go only to cameras of this frame. Set it when the robot changes floors.
@@ -1536,3 +1548,12 @@ class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):
                     await asyncio.wait_for(context.write(control), 0.5)
         finally:
             stream.end()
+
+
+def _is_ip_literal(address: str) -> bool:
+    host = host_of(address).strip("[]")
+    try:
+        ipaddress.ip_address(host)
+    except ValueError:
+        return False
+    return True
