@@ -21,8 +21,9 @@ from grpc_health.v1 import health_pb2, health_pb2_grpc
 from drvs import DrvsClient
 from drvs.certs import make_all
 from drvs.launch import EtcdMember, ManagedProcess, start_camera, start_etcd, start_server
+from drvs.mobile import Mount
 from drvs.sim.scene import RecordedCamera
-from drvs.v1 import registry_pb2, registry_pb2_grpc
+from drvs.v1 import geometry_pb2, registry_pb2, registry_pb2_grpc
 
 from .helpers import CAM1_REGION, MAX_RANGE, YELLOW, register_message
 
@@ -41,12 +42,14 @@ class Site:
 
 @pytest_asyncio.fixture
 async def site(tmp_path: Path) -> AsyncIterator[Site]:
-    """One etcd member and two servers on it (lease 2 s)."""
+    """One etcd member and two servers on it (lease 2 s; pose updates as often as a test sends them)."""
     etcd = await start_etcd(tmp_path)
     site = Site(etcd, [])
     try:
         for _ in range(2):
-            site.servers.append(await start_server("--registry", site.registry, "--lease-ttl", "2"))
+            site.servers.append(
+                await start_server("--registry", site.registry, "--lease-ttl", "2", "--min-pose-interval", "0")
+            )
         yield site
     finally:
         for proc, _ in site.servers:
@@ -336,3 +339,44 @@ async def test_servers_on_a_three_member_cluster_go_on_when_a_member_is_killed(t
             await proc.stop()
         for m in etcd:
             await m.stop()
+
+
+async def test_a_mobile_camera_on_a_shared_registry_is_routed_by_every_server_where_it_is(site: Site) -> None:
+    """A mobile camera registers through A and sends its poses to A; B routes it where its latest
+    pose puts it (the pose goes through etcd), not where it was, and not when it has no pose."""
+    (_, a_address), (b, b_address) = site.servers
+    mount = Mount(0.1, 0.0, 0.8, 0.0, 30.0, hfov_deg=70.0).base_homography((640, 480))
+    message = register_message("scout")
+    message.homography.CopyFrom(registry_pb2.Homography(m=mount.to_list()))
+    message.mobile = True
+    reply = await call(a_address, "Register", message)
+    assert isinstance(reply, registry_pb2.RegisterReply)
+    await b.wait_for_line(registered_line("scout"), timeout=10)
+    ahead_of = {  # 2.5 m ahead of a robot at (x, 1) facing +x
+        5.0: registry_pb2.ListCamerasRequest(region=box(7.2, 0.7, 7.8, 1.3)),
+        20.0: registry_pb2.ListCamerasRequest(region=box(22.2, 0.7, 22.8, 1.3)),
+    }
+
+    async def seen_by_b(x: float) -> list[str]:
+        found = await call(b_address, "ListCameras", ahead_of[x])
+        assert isinstance(found, registry_pb2.ListCamerasReply)
+        return [c.camera_id for c in found.cameras]
+
+    assert await seen_by_b(5.0) == []  # no pose yet: not routed anywhere
+    for x in (5.0, 20.0):
+        await call(
+            a_address,
+            "UpdatePose",
+            registry_pb2.UpdatePoseRequest(
+                camera_id="scout", registration_secret=reply.registration_secret, pose=geometry_pb2.Pose2(x=x, y=1.0)
+            ),
+        )
+        deadline = asyncio.get_running_loop().time() + 10
+        while await seen_by_b(x) != ["scout"]:
+            assert asyncio.get_running_loop().time() < deadline, f"B does not route the scout at x={x}"
+            await asyncio.sleep(0.02)
+    assert await seen_by_b(5.0) == []  # it has moved on
+
+
+def box(x0: float, y0: float, x1: float, y1: float) -> geometry_pb2.Region:
+    return geometry_pb2.Region(box=geometry_pb2.Box(x_lower=x0, y_lower=y0, x_upper=x1, y_upper=y1))

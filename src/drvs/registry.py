@@ -262,7 +262,9 @@ class Registry:
         state = self._mobile.get(camera_id)
         return math.inf if state is None or state.pose is None else self._clock() - state.received
 
-    def update_pose(self, camera_id: str, pose: Pose2, pose_time_unix: float = 0.0) -> CameraEntry:
+    def update_pose(
+        self, camera_id: str, pose: Pose2, pose_time_unix: float = 0.0, *, check_rate: bool = True
+    ) -> CameraEntry:
         """A mobile camera's robot is at `pose` (map frame): its field of view moves there and is
         routed for its pose lease. Checks (all before any change): NOT_FOUND unknown or expired,
         FAILED_PRECONDITION a fixed camera, INVALID_ARGUMENT a pose that is not finite or off any
@@ -278,7 +280,7 @@ class Registry:
         if not math.isfinite(pose_time_unix):
             raise InvalidArgument(f"pose_time_unix: {pose_time_unix} is not a finite number")
         now = self._clock()
-        if now - state.received < self.min_pose_interval_s:
+        if check_rate and now - state.received < self.min_pose_interval_s:
             raise ResourceExhausted(
                 f"pose: camera {camera_id!r} updated {now - state.received:.3f} s ago; at most one update "
                 f"every {self.min_pose_interval_s:g} s"

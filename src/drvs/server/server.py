@@ -76,7 +76,7 @@ from drvs.server.config import (
 )
 from drvs.server.fusion_session import Continuous, FusionSession, FusionSessions, ReportIntake, SingleShot
 from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits, peer_ip
-from drvs.server.shared import Record, SharedRegistry
+from drvs.server.shared import PoseRecord, Record, SharedRegistry
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 #: How long a server sharing its registry in etcd waits for it at start before serving, seconds.
@@ -323,6 +323,7 @@ class DrvsServer(Lifecycle):
                 self._drop_shared,
                 lambda: [e.camera_id for e in self.registry.cameras()],
                 on_reachable=self._registry_reachable,
+                apply_pose=self._apply_shared_pose,
                 client=EtcdClient(endpoints, credentials=config.etcd_credentials()),
             )
 
@@ -525,20 +526,16 @@ class DrvsServer(Lifecycle):
         UNAVAILABLE while etcd cannot be reached."""
         shared = self._shared()
         camera_id, owner, quota = self._registrant(registration, who, peer)
-        if registration.mobile:
-            raise FailedPrecondition(
-                "mobile: this server shares its registry in etcd, which does not carry mobile cameras' poses "
-                "yet; register a mobile camera with a server whose registry is in memory"
-            )
         previous = await shared.get(camera_id)
         self.claims.adopt(camera_id, previous.claim() if previous is not None else None)
         self.claims.check_register(
             camera_id, owner, registration.registration_secret, quota, registration.forward_secret
         )
         max_range_m = registration.max_range_m or self.default_max_range_m
-        self.registry.check(
+        _, state = self.registry.check(
             camera_id, registration.address, Homography.from_values(registration.homography, "homography"),
             registration.image_size, set(registration.detector_kinds), max_range_m, frame=registration.frame,
+            mobile=registration.mobile, pose_lease_s=registration.pose_lease_s,
         )  # fmt: skip
         record = Record(
             camera_id=camera_id,
@@ -554,6 +551,8 @@ class DrvsServer(Lifecycle):
             server=self.address,
             registered_at=time.time(),
             frame=check_frame(registration.frame),
+            mobile=registration.mobile,
+            pose_lease_s=state.pose_lease_s if state is not None else 0.0,
         )
         stored = await shared.put(record, previous, self.registry.lease_ttl_s)
         shared.records[camera_id] = stored
@@ -608,6 +607,7 @@ class DrvsServer(Lifecycle):
         entry, state = self.registry.check(
             record.camera_id, record.address, Homography.from_values(record.homography, "homography"),
             record.image_size, set(record.detector_kinds), record.max_range_m, frame=record.frame,
+            mobile=record.mobile, pose_lease_s=record.pose_lease_s,
         )  # fmt: skip
         self.registry.store(entry, state)
         self.registry.hold(entry.camera_id)  # etcd's lease decides when it goes
@@ -626,6 +626,12 @@ class DrvsServer(Lifecycle):
             ",".join(sorted(entry.detector_kinds)),
         )
         return entry
+
+    def _apply_shared_pose(self, camera_id: str, pose: PoseRecord) -> None:
+        """A mobile camera's pose another server took: its field of view moves here too (the rate
+        was checked where the update came in), and it may join this server's tracks."""
+        entry = self.registry.update_pose(camera_id, Pose2(pose.x, pose.y, pose.yaw), pose.time_unix, check_rate=False)
+        self._pick_up(entry)
 
     def _drop_shared(self, camera_id: str, why: str) -> None:
         """A registration etcd no longer holds: out of routing here, its id free."""
@@ -657,6 +663,8 @@ class DrvsServer(Lifecycle):
             metrics.POSE_UPDATES.labels(outcome=exc.code.lower()).inc()
             raise
         metrics.POSE_UPDATES.labels(outcome="ok").inc()
+        if self.shared is not None:  # the other servers route it by this pose too
+            self.shared.share_pose(camera_id, PoseRecord(pose.x, pose.y, pose.yaw, pose_time_unix, self.shared.origin))
         self._pick_up(entry)
         return entry
 

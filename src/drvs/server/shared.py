@@ -21,6 +21,7 @@ import contextlib
 import json
 import logging
 import math
+import secrets
 from collections.abc import Awaitable, Callable
 from dataclasses import asdict, dataclass, replace
 from typing import Any
@@ -32,7 +33,10 @@ from drvs.registry import Claim
 
 log = logging.getLogger("drvs.server.shared")
 
-PREFIX = b"/drvs/v1/cameras/"
+ROOT = b"/drvs/v1/"
+PREFIX = ROOT + b"cameras/"
+#: A mobile camera's latest pose, on the camera's lease (it goes with the camera).
+POSES = ROOT + b"poses/"
 #: Reconnect backoff when etcd cannot be reached, seconds: first wait and the most.
 INITIAL_BACKOFF_S = 0.2
 MAX_BACKOFF_S = 5.0
@@ -61,6 +65,9 @@ class Record:
     registered_at: float = 0.0
     #: The floor plan it registered in.
     frame: str = DEFAULT_FRAME
+    #: A mobile camera (homography to its robot's base frame), and the pose lease it was granted.
+    mobile: bool = False
+    pose_lease_s: float = 0.0
 
     def encode(self) -> bytes:
         return json.dumps(asdict(self), sort_keys=True, separators=(",", ":")).encode()
@@ -85,6 +92,26 @@ def key_of(camera_id: str) -> bytes:
     return PREFIX + camera_id.encode()
 
 
+@dataclass(frozen=True)
+class PoseRecord:
+    """A mobile camera's pose as the server that took the update shares it."""
+
+    x: float
+    y: float
+    yaw: float
+    #: When it held (the camera's clock), and which server instance wrote it.
+    time_unix: float
+    origin: str
+
+    def encode(self) -> bytes:
+        return json.dumps(asdict(self), separators=(",", ":")).encode()
+
+    @classmethod
+    def decode(cls, data: bytes) -> PoseRecord:
+        raw = json.loads(data)
+        return cls(float(raw["x"]), float(raw["y"]), float(raw["yaw"]), float(raw["time_unix"]), str(raw["origin"]))
+
+
 class SharedRegistry:
     """The etcd side of a server's registry: reads, compare-and-puts, lease renewals and deletes,
     and a watch that hands every change to the server (`apply` a record, `drop` an id)."""
@@ -96,6 +123,7 @@ class SharedRegistry:
         drop: Callable[[str, str], None],
         known: Callable[[], list[str]],
         *,
+        apply_pose: Callable[[str, PoseRecord], Any] | None = None,
         client: EtcdClient | None = None,
         on_reachable: Callable[[bool], Awaitable[None]] | None = None,
     ) -> None:
@@ -103,6 +131,10 @@ class SharedRegistry:
         self.client = client or EtcdClient(endpoints)
         self._apply = apply
         self._drop = drop
+        self._apply_pose = apply_pose
+        #: This server instance, in the poses it writes (its own come back on the watch: skipped).
+        self.origin = secrets.token_hex(6)
+        self._pose_writes: dict[str, asyncio.Task[None]] = {}
         self._known = known
         #: Told whether etcd can be reached, each time that changes (the server's health says it).
         self._on_reachable = on_reachable
@@ -159,6 +191,26 @@ class SharedRegistry:
         await self._guard(self.client.delete(key_of(record.camera_id)))
         await self._guard(self.client.revoke(record.lease))
 
+    def share_pose(self, camera_id: str, pose: PoseRecord) -> None:
+        """Write a mobile camera's pose for the other servers, on its lease, without waiting; if a
+        write for it is still on its way, this one replaces it (only the newest matters)."""
+        record = self.records.get(camera_id)
+        if record is None:
+            return
+        running = self._pose_writes.get(camera_id)
+        if running is not None and not running.done():
+            running.cancel()
+        task = asyncio.get_running_loop().create_task(self._put_pose(record, pose))
+        self._pose_writes[camera_id] = task
+
+    async def _put_pose(self, record: Record, pose: PoseRecord) -> None:
+        try:
+            await self.client.put(POSES + record.camera_id.encode(), pose.encode(), record.lease)
+        except Unavailable as exc:
+            log.warning("registry: camera %s's pose not shared: %s", record.camera_id, exc)
+        finally:
+            self._pose_writes.pop(record.camera_id, None)
+
     async def _guard(self, call: Any) -> Any:
         try:
             return await call
@@ -175,6 +227,11 @@ class SharedRegistry:
             return None
 
     def _take(self, event: Event) -> None:
+        if event.key.startswith(POSES):
+            self._take_pose(event)
+            return
+        if not event.key.startswith(PREFIX):
+            return
         camera_id = event.key[len(PREFIX) :].decode(errors="replace")
         if event.kind == "delete":
             if self.records.pop(camera_id, None) is not None:
@@ -191,13 +248,32 @@ class SharedRegistry:
         except DrvsError as exc:
             log.warning("registry: camera %s's record in etcd was refused here: %s", camera_id, exc)
 
+    def _take_pose(self, event: Event) -> None:
+        if event.kind != "put" or self._apply_pose is None:
+            return  # a pose goes with its camera's key: nothing to do on its own
+        camera_id = event.key[len(POSES) :].decode(errors="replace")
+        try:
+            pose = PoseRecord.decode(event.value)
+        except (ValueError, KeyError, TypeError) as exc:
+            log.warning("registry: a pose in etcd is not one DRVS wrote (%s); ignored", exc)
+            return
+        if pose.origin == self.origin or camera_id not in self.records:
+            return
+        try:
+            self._apply_pose(camera_id, pose)
+        except DrvsError as exc:
+            log.debug("registry: camera %s's pose from etcd not applied: %s", camera_id, exc)
+
     async def _resync(self) -> int:
-        """Read the whole prefix: apply what is there, drop what is not; the revision read at."""
-        kvs, revision = await self.client.get_prefix(PREFIX)
+        """Read the whole prefix: apply what is there (cameras, then their poses), drop what is
+        not; the revision read at."""
+        kvs, revision = await self.client.get_prefix(ROOT)
         present: set[str] = set()
+        kvs.sort(key=lambda kv: not kv[0].startswith(PREFIX))  # cameras before poses
         for key, value, lease in kvs:
             self._take(Event("put", key, value, lease, revision))
-            present.add(key[len(PREFIX) :].decode(errors="replace"))
+            if key.startswith(PREFIX):
+                present.add(key[len(PREFIX) :].decode(errors="replace"))
         for camera_id in [c for c in self._known() if c not in present]:
             self.records.pop(camera_id, None)
             self._drop(camera_id, "not in the shared registry when it was read again")
@@ -216,7 +292,7 @@ class SharedRegistry:
                         await self._on_reachable(True)
                 self.synced.set()
                 backoff = INITIAL_BACKOFF_S
-                async for event in self.client.watch_prefix(PREFIX, revision + 1):
+                async for event in self.client.watch_prefix(ROOT, revision + 1):
                     self._take(event)
                 raise Unavailable(f"etcd {self.endpoints}: the watch ended")
             except Unavailable as exc:
