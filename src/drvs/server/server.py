@@ -559,15 +559,20 @@ class DrvsServer(Lifecycle):
         entry = self._apply_shared(stored)
         return entry, stored.secret
 
-    async def renew_camera_shared(self, camera_id: str, who: str, registration_secret: str) -> None:
-        """A heartbeat through any server: the holder (as etcd records it) keeps the etcd lease alive."""
+    async def _held_record(self, camera_id: str, who: str, registration_secret: str, method: str) -> Record:
+        """The id's record in etcd, once the caller is shown to hold it (as etcd records the holder)."""
         check_id(camera_id, "camera_id")
-        owner = self._camera_owner(who, "Heartbeat")
+        owner = self._camera_owner(who, method)
         record = await self._shared().get(camera_id)
         if record is None:
             raise NotFound(f"camera_id: {camera_id!r} is not registered")
         self.claims.adopt(camera_id, record.claim())
         self.claims.check(camera_id, owner, registration_secret)
+        return record
+
+    async def renew_camera_shared(self, camera_id: str, who: str, registration_secret: str) -> None:
+        """A heartbeat through any server: the holder (as etcd records it) keeps the etcd lease alive."""
+        record = await self._held_record(camera_id, who, registration_secret, "Heartbeat")
         if not await self._shared().renew(record):
             raise NotFound(f"camera_id: {camera_id!r}'s lease expired; register again")
         self._unreachable.discard(camera_id)
@@ -575,13 +580,7 @@ class DrvsServer(Lifecycle):
 
     async def deregister_camera_shared(self, camera_id: str, who: str, registration_secret: str) -> None:
         """The holder leaves through any server: its key goes from etcd, and every server drops it."""
-        check_id(camera_id, "camera_id")
-        owner = self._camera_owner(who, "Deregister")
-        record = await self._shared().get(camera_id)
-        if record is None:
-            raise NotFound(f"camera_id: {camera_id!r} is not registered")
-        self.claims.adopt(camera_id, record.claim())
-        self.claims.check(camera_id, owner, registration_secret)
+        record = await self._held_record(camera_id, who, registration_secret, "Deregister")
         await self._shared().delete(record)
         self._shared().records.pop(camera_id, None)
         self._drop_shared(camera_id, "deregistered")
