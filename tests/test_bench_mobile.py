@@ -74,7 +74,7 @@ def test_cluster_propagation_smoke(tmp_path: Path) -> None:
     assert result["registrations"] == len(result["delays_ms"]) == 10
     assert 0 < result["propagation_ms_p50"] <= result["propagation_ms_p99"] == max(result["delays_ms"])
     assert result["etcd_cpu_s"] >= 0 and (tmp_path / "cluster.png").is_file()
-    assert main(["cluster", "--parts", "throughput"]) == 2
+    assert main(["cluster", "--parts", "nonsense"]) == 2 and main(["cluster", "--rounds", "-1"]) == 2
 
 
 @pytest.mark.slow
