@@ -395,7 +395,10 @@ async def test_a_slow_camera_delays_nobody_else(office: Office) -> None:
         async for report in sub:
             arrivals[report.camera_id] = loop.time() - t_sub
         assert sub.result.complete and not sub.result.errors
-        assert max(arrivals["cam1"], arrivals["cam2"]) * 1000 <= 3 * p90(baseline) + 20, arrivals
+        # Not held back by the slow camera: held, they would come with its report, 3 s late. (A
+        # bound near the unloaded latency, 3 x p90 + 20 ms, failed once in CI on a busy machine at
+        # 40 ms; the benchmarks measure how fast, this checks that nobody waits for the slow one.)
+        assert max(arrivals["cam1"], arrivals["cam2"]) <= 1.0, arrivals
         assert arrivals["slow"] >= 2.5, arrivals
         results = [await s.collect() for s in waiting]
         assert all(r.complete and r.reports[0].camera_id == "slow" for r in results)
