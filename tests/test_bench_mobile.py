@@ -4,12 +4,17 @@ the static index; bad flags are refused with exit 2."""
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
 from drvs_bench.cli import main
 
 pytestmark = pytest.mark.bench
+#: Debian's etcd-server, which `./run test` installs as root (as CI runs it).
+NEEDS_ETCD = pytest.mark.skipif(
+    shutil.which("etcd") is None, reason="etcd is not installed (./run test installs it as root)"
+)
 
 
 @pytest.mark.slow
@@ -65,7 +70,7 @@ def test_mobile_benchmark_refuses_bad_flags(args: list[str], capsys: pytest.Capt
     assert "drvs-bench mobile: " in capsys.readouterr().err
 
 
-@pytest.mark.skipif(__import__("shutil").which("etcd") is None, reason="etcd is not installed")
+@NEEDS_ETCD
 def test_cluster_propagation_smoke(tmp_path: Path) -> None:
     """drvs-bench cluster: a real etcd and two servers; every registration through A reached B's
     routing index, and the published figures are what the delays say."""
@@ -78,7 +83,7 @@ def test_cluster_propagation_smoke(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(__import__("shutil").which("etcd") is None, reason="etcd is not installed")
+@NEEDS_ETCD
 def test_cluster_failover_smoke(tmp_path: Path) -> None:
     """drvs-bench cluster --parts failover: a round kills the robot's server mid-track; the track
     resumed once through the other, with snapshots before and after, and the gap is published."""
@@ -89,7 +94,7 @@ def test_cluster_failover_smoke(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.skipif(__import__("shutil").which("etcd") is None, reason="etcd is not installed")
+@NEEDS_ETCD
 def test_cluster_throughput_smoke(tmp_path: Path) -> None:
     """drvs-bench cluster --parts throughput: 1000 cameras registered through A are routed by both
     servers; every run completes without an error, and the ratio is the rounds' own."""

@@ -17,7 +17,9 @@ from drvs.errors import InvalidArgument, Unavailable
 from drvs.etcd import Endpoints, EtcdClient, Event
 from drvs.launch import EtcdMember, start_etcd
 
-pytestmark = pytest.mark.skipif(shutil.which("etcd") is None, reason="etcd is not installed (./run setup installs it)")
+pytestmark = pytest.mark.skipif(
+    shutil.which("etcd") is None, reason="etcd is not installed (./run test installs it as root)"
+)
 
 
 def endpoints(members: list[EtcdMember]) -> Endpoints:

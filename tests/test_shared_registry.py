@@ -27,7 +27,9 @@ from drvs.v1 import geometry_pb2, registry_pb2, registry_pb2_grpc
 
 from .helpers import CAM1_REGION, MAX_RANGE, YELLOW, register_message
 
-pytestmark = pytest.mark.skipif(shutil.which("etcd") is None, reason="etcd is not installed (./run setup installs it)")
+pytestmark = pytest.mark.skipif(
+    shutil.which("etcd") is None, reason="etcd is not installed (./run test installs it as root)"
+)
 
 
 @dataclass
