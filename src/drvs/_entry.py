@@ -1,4 +1,4 @@
-"""The console scripts of DRVS's optional parts (pyproject.toml's extras: sim, bench, certs, etcd).
+"""The console scripts of DRVS's optional parts (pyproject.toml's extras: sim, bench, certs, etcd, live).
 
 Each checks that its extra's libraries are installed, then imports its module and runs its `main`;
 when one is missing it says which extra to install (`drvs-office: needs the simulator: pip install
@@ -25,10 +25,11 @@ class Extra:
 
 #: pyproject.toml's extras but dev (tests/test_extras.py keeps the two in step).
 EXTRAS = {
-    "sim": Extra("the simulator", ("matplotlib",)),
+    "sim": Extra("the simulator", ("matplotlib", "foxglove", "mcap", "mcap_protobuf", "websockets")),
     "bench": Extra("the benchmarks", ("matplotlib", "onnx")),
     "certs": Extra("the certificate tooling", ("cryptography",)),
     "etcd": Extra("the etcd client (drvs-server --registry etcd://...)", ("aetcd",)),
+    "live": Extra("the live view and recordings", ("foxglove", "mcap", "mcap_protobuf", "websockets")),
 }
 
 
@@ -76,3 +77,7 @@ def bench() -> int:
 
 def certs() -> int:
     return run("drvs-certs", "certs", "drvs.certs")
+
+
+def replay() -> int:
+    return run("drvs-replay", "live", "drvs.replay")

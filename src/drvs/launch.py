@@ -34,6 +34,8 @@ T = TypeVar("T")
 #: Longest output line read (a benchmark's result line can be large); a longer one is dropped.
 MAX_LINE_BYTES = 16 * 1024 * 1024
 SERVER_READY = re.compile(r"drvs-server listening on (\S+)")
+#: What a drvs-server with --foxglove logs before SERVER_READY: where its live view listens.
+LIVE_READY = re.compile(r"live view on (wss?://\S+)")
 #: A camera's own listener (format with id=re.escape(camera_id)); group 1 is the address.
 CAMERA_LISTENING = r"camera {id} listening on (\S+)"
 CAMERA_REGISTERED = r"camera {id} (?:re-)?registered with"

@@ -17,7 +17,8 @@ from drvs._cli import (
     setup_logging,
     shutdown_event,
 )
-from drvs.errors import DrvsError
+from drvs.errors import DrvsError, InvalidArgument
+from drvs.liveview import parse_listen, require
 from drvs.metrics import DEFAULT_METRICS_HOST, parse_metrics_address, serve_metrics
 from drvs.registry import (
     DEFAULT_GRACE_S,
@@ -37,6 +38,7 @@ from drvs.server.config import (
     ENVIRONMENT,
     ServerConfig,
 )
+from drvs.server.liveview import load_floor_plan
 from drvs.server.policy import DEFAULT_FORWARD_BYTES_PER_S, DEFAULT_MAX_ACTIVE, DEFAULT_RATE_HZ
 from drvs.server.server import DrvsServer
 
@@ -234,6 +236,30 @@ def build_parser() -> argparse.ArgumentParser:
         "--etcd-cert", default=None, metavar="FILE", help="this server's certificate, when etcd asks for one"
     )
     e.add_argument("--etcd-key", default=None, metavar="FILE", help="its private key")
+    v = p.add_argument_group("live view and recording (pip install 'drvs[live]'; docs/operations.md)")
+    v.add_argument(
+        "--foxglove",
+        default=None,
+        metavar="HOST:PORT",
+        help="serve a Foxglove live view (WebSocket) here: cameras' fields of view, requests' regions, detections, "
+        "tracks, and what robots publish to it; PORT alone listens on 127.0.0.1. Anyone who reaches it sees "
+        "the building: keep it on loopback or a trusted network (DRVS_FOXGLOVE)",
+    )
+    v.add_argument(
+        "--record",
+        default=None,
+        metavar="FILE.mcap",
+        type=Path,
+        help="record the live view's channels and every request, reply and report to this MCAP file "
+        "(replaced if it exists; drvs-replay plays it back; DRVS_RECORD)",
+    )
+    v.add_argument(
+        "--floor-plan",
+        default=None,
+        metavar="FILE",
+        type=Path,
+        help="walls to draw in the live view: a scenario YAML or a file with `walls:` polygons (DRVS_FLOOR_PLAN)",
+    )
     add_security_arguments(p, "unused by the server (it checks tokens, it presents none)")
     add_observability_arguments(p)
     return p
@@ -247,6 +273,8 @@ async def serve(args: argparse.Namespace) -> None:
         camera_tokens=args.camera_token_table,
         robot_tokens=args.robot_token_table,
     )
+    if args.live is not None or args.record is not None:
+        server.show(args.live, args.record, args.floor_plan)
     await server.start()
     if args.metrics is not None:
         serve_metrics(args.metrics[1], args.metrics[0])
@@ -306,6 +334,16 @@ def main(argv: list[str] | None = None) -> int:
                 env("DRVS_METRICS_PORT", "-1") or "-1", "DRVS_METRICS_PORT", metrics_host
             )
         args.security = security_from(vars(args))
+        live = args.foxglove or env("DRVS_FOXGLOVE")
+        args.live = parse_listen(live, "--foxglove") if live else None
+        args.record = args.record or (Path(r) if (r := env("DRVS_RECORD")) else None)
+        args.floor_plan = args.floor_plan or (Path(f) if (f := env("DRVS_FLOOR_PLAN")) else None)
+        if args.live is not None or args.record is not None:
+            require("--foxglove" if args.live is not None else "--record")
+            if args.floor_plan is not None:
+                load_floor_plan(args.floor_plan)  # a bad file is named before anything starts
+        elif args.floor_plan is not None:
+            raise InvalidArgument("--floor-plan: only drawn in a live view or a recording (--foxglove, --record)")
         for role in ("camera", "robot"):
             path = getattr(args, f"{role}_tokens") or env(f"DRVS_{role.upper()}_TOKENS")
             setattr(args, f"{role}_token_table", load_tokens(Path(path), f"--{role}-tokens") if path else None)
@@ -314,6 +352,9 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging(args.log_level, args.log_format)
     try:
         asyncio.run(serve(args))
+    except DrvsError as exc:
+        log.error("%s", exc)
+        return 2
     except OSError as exc:
         log.error("%s", exc)
         return 1

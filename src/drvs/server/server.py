@@ -16,7 +16,8 @@ import uuid
 from collections import OrderedDict
 from collections.abc import AsyncIterator, Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import Any
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import grpc
 import shapely
@@ -78,6 +79,9 @@ from drvs.server.fusion_session import Continuous, FusionSession, FusionSessions
 from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits, peer_ip
 from drvs.server.shared import PoseRecord, Record, SharedRegistry
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
+
+if TYPE_CHECKING:
+    from drvs.server.liveview import ServerView
 
 #: How long a server sharing its registry in etcd waits for it at start before serving, seconds.
 SHARED_SYNC_WAIT_S = 5.0
@@ -315,6 +319,8 @@ class DrvsServer(Lifecycle):
         self._stopped = False
         #: The registry's etcd side when it is shared with other servers (--registry etcd://...).
         self.shared: SharedRegistry | None = None
+        #: The live view and recording (--foxglove, --record): see `show`.
+        self.view: ServerView | None = None
         if config.registry != "memory":
             endpoints = Endpoints.parse(config.registry, "registry")
             self.shared = SharedRegistry(
@@ -338,6 +344,23 @@ class DrvsServer(Lifecycle):
     ) -> DrvsServer:
         """A server with `config`'s settings and these credentials (drvs-server's way in)."""
         return cls(config=config, security=security, camera_tokens=camera_tokens, robot_tokens=robot_tokens)
+
+    def show(
+        self,
+        listen: tuple[str, int] | None = None,
+        record: Path | None = None,
+        floor_plan: Path | None = None,
+    ) -> None:
+        """Before start(): a Foxglove live view on `listen` (host, port; port 0 picks one) and/or a
+        recording to the MCAP file `record`, drawing `floor_plan` (see drvs.server.liveview).
+        Needs the live extra (FailedPrecondition names it)."""
+        from drvs import liveview
+        from drvs.server.liveview import ServerView, load_floor_plan
+
+        liveview.require("--foxglove" if listen is not None else "--record")
+        plan = load_floor_plan(floor_plan) if floor_plan is not None else None
+        hub = liveview.LiveHub("drvs-server", listen=listen, record=record, accept_clients=True)
+        self.view = ServerView(hub, self, plan)
 
     @property
     def port(self) -> int:
@@ -364,6 +387,13 @@ class DrvsServer(Lifecycle):
             await self._registry_reachable(False)
         self._started_at = time.monotonic()
         self._sweeper = asyncio.get_running_loop().create_task(self._sweep_leases())
+        if self.view is not None:
+            self.view.start()
+            hub = self.view.hub
+            if hub.server is not None:
+                log.info("live view on %s (open it in Foxglove)", hub.url)
+            if hub.record is not None:
+                log.info("recording to %s", hub.record)
         log.info("security: %s", self.describe_security())
         log.log(
             logging.INFO if self.anonymous_cameras or self._camera_credentials else logging.ERROR,
@@ -438,6 +468,10 @@ class DrvsServer(Lifecycle):
         await self._callbacks.close()
         if self.shared is not None:
             await self.shared.stop()
+        if self.view is not None:
+            await self.view.stop()
+            if self.view.dropped:
+                log.warning("live view: %d messages dropped (its thread fell behind)", self.view.dropped)
         log.info("drvs-server stopped")
 
     async def wait_for_termination(self) -> None:
@@ -754,6 +788,27 @@ class DrvsServer(Lifecycle):
         more = len(entries) > start + size
         entries = entries[start : start + size]
         return entries, entries[-1].camera_id if more else ""
+
+    def camera_info(self, e: CameraEntry) -> registry_pb2.CameraInfo:
+        """A camera as ListCameras describes it."""
+        registry = self.registry
+        info = registry_pb2.CameraInfo(
+            camera_id=e.camera_id,
+            address=e.address,
+            field_of_view=polygon_to_pb(e.field_of_view) if not e.field_of_view.is_empty else None,
+            detector_kinds=sorted(e.detector_kinds),
+            # (0 on a registry shared in etcd: etcd's lease decides, renewed through any server.)
+            lease_remaining_s=left if math.isfinite(left := registry.remaining_s(e.camera_id)) else 0.0,
+            frame=e.frame,
+        )
+        state = registry.mobile_state(e.camera_id)
+        if state is not None:
+            info.mobile = True
+            info.unroutable = registry.unroutable(e.camera_id)
+            if state.pose is not None:
+                info.pose.CopyFrom(pose_to_pb(state.pose))
+                info.pose_age_s = registry.pose_age_s(e.camera_id)
+        return info
 
     # --- routing ---------------------------------------------------------------------------
 
@@ -1221,10 +1276,15 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
     async def DetectObjects(
         self, message: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
     ) -> detection_pb2.DetectionReply:
+        view = self._s.view
+        if view is not None:
+            view.request(message)
         if message.cancel:
             raise InvalidArgument("cancel: only a request stream (DetectStream) can cancel its continuous requests")
         reply = await self._answer(message, peer_ip(context.peer()), {}, self._robot(context))
         assert reply is not None  # only a fused single shot on a stream answers later
+        if view is not None:
+            view.reply(reply)
         return reply
 
     async def DetectStream(
@@ -1238,10 +1298,13 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         slots = _Slots(self._s.limits, robot)
         out = ReplyQueue()
         fused = _FusedOnStream(out)
+        view = self._s.view
 
         async def answer(
             message: detection_pb2.DetectionRequest, out: ReplyQueue
         ) -> detection_pb2.DetectionReply | None:
+            if view is not None:
+                view.request(message)
             if not message.request_id:
                 raise InvalidArgument("request_id: empty; a streamed request needs its own id")
             if message.cancel:
@@ -1254,6 +1317,8 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
 
         try:
             async for reply in serve_request_stream_queued(request_iterator, answer, "drvs-server", out):
+                if view is not None:
+                    view.reply(reply)
                 yield reply
         finally:
             for session in list(fused.sessions.values()):
@@ -1351,10 +1416,13 @@ class _CameraReports(detection_pb2_grpc.CallbackCoordinatesServicer):
                 await asyncio.wait_for(anext(aiter(request_iterator)), 1.0)
             await context.abort(_grpc.status_of(exc), str(exc))
         intake = ReportIntake(server.fusion, context.peer())
+        view = server.view
 
         async def read() -> None:
             try:
                 async for message in request_iterator:
+                    if view is not None:
+                        view.report(message)
                     intake.receive(message)
             finally:
                 intake.input_ended()
@@ -1458,26 +1526,6 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
             self._s.deregister_camera(message.camera_id, who, message.registration_secret)
         return registry_pb2.DeregisterReply()
 
-    def _camera_info(self, e: CameraEntry) -> registry_pb2.CameraInfo:
-        registry = self._s.registry
-        info = registry_pb2.CameraInfo(
-            camera_id=e.camera_id,
-            address=e.address,
-            field_of_view=polygon_to_pb(e.field_of_view) if not e.field_of_view.is_empty else None,
-            detector_kinds=sorted(e.detector_kinds),
-            # (0 on a registry shared in etcd: etcd's lease decides, renewed through any server.)
-            lease_remaining_s=left if math.isfinite(left := registry.remaining_s(e.camera_id)) else 0.0,
-            frame=e.frame,
-        )
-        state = registry.mobile_state(e.camera_id)
-        if state is not None:
-            info.mobile = True
-            info.unroutable = registry.unroutable(e.camera_id)
-            if state.pose is not None:
-                info.pose.CopyFrom(pose_to_pb(state.pose))
-                info.pose_age_s = registry.pose_age_s(e.camera_id)
-        return info
-
     @_grpc.servicer_method
     async def ListCameras(
         self, message: registry_pb2.ListCamerasRequest, context: aio.ServicerContext[Any, Any]
@@ -1486,7 +1534,7 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
         entries, next_token = self._s.list_cameras(region, message.page_token, message.page_size, message.frame)
         return registry_pb2.ListCamerasReply(
             next_page_token=next_token,
-            cameras=[self._camera_info(e) for e in entries],
+            cameras=[self._s.camera_info(e) for e in entries],
         )
 
 

@@ -38,6 +38,7 @@ def robot_main(args: argparse.Namespace) -> int:
                 detector=args.detector,
                 delivery=args.delivery,
                 predict=not args.no_predict,
+                live=args.live,
             )
         )
     except DrvsError as exc:
@@ -61,6 +62,13 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--server", default="127.0.0.1:50051", help="HOST:PORT of the DRVS server")
     r.add_argument("--no-drvs", action="store_true", help="the paper's baseline: no DRVS, learn by touching")
     r.add_argument("--out", default=".", help="folder for result.json")
+    r.add_argument(
+        "--live",
+        default=None,
+        metavar="ws://HOST:PORT",
+        help="publish the robot's pose, planned path and path driven into this Foxglove live view (a drvs-server's "
+        "--foxglove)",
+    )
     r.add_argument("--max-time", type=float, default=120.0, help="give up after this many seconds")
     r.add_argument(
         "--detector",

@@ -20,10 +20,13 @@ import yaml
 from drvs.certs import make_all
 from drvs.errors import DrvsError
 from drvs.homography_file import save_homography
-from drvs.launch import ManagedProcess, start_camera, start_server, wait_serving
+from drvs.launch import LIVE_READY, ManagedProcess, start_camera, start_server, wait_serving
+from drvs.liveview import parse_listen
 from drvs.sim.cli import PROGRESS_PREFIX
 from drvs.sim.scenario import DEFAULT_SCENARIO, CameraDef, Scenario, ScoutDef, load_scenario
 
+#: The run's recording, beside result.json (drvs-replay plays it back).
+RECORDING = "run.mcap"
 WORLD_READY = re.compile(r"sim world .* listening on (\S+)")
 SCOUT_READY = re.compile(r"pose feed listening on (tcp://\S+)")
 
@@ -138,9 +141,27 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
                     tls[role] = ["--tls-cert", str(cert), "--tls-key", str(key), "--tls-ca", str(certs / "ca.pem"),
                                  "--tls-client-auth"]  # fmt: skip
                 say(f"TLS        mutual TLS on every hop; certificates from drvs-certs in {certs}")
-            server, server_address = await start_server(*tls["server"], echo=echo)
+            view: list[str] = []
+            if args.foxglove is not None or args.record:
+                # The robot publishes into the server's live view, so a recording holds it too: with no
+                # --foxglove the view listens on a port of loopback's own choosing, for the robot alone.
+                host, port = args.foxglove or ("127.0.0.1", 0)
+                view = ["--foxglove", f"{host}:{port}", "--floor-plan", str(scenario_path)]
+                if args.record:
+                    view += ["--record", str(out / RECORDING)]
+            server, server_address = await start_server(*tls["server"], *view, echo=echo)
             procs.append(server)
             say(f"server     drvs-server on {server_address}")
+            if view:
+                live_url = next(m.group(1) for line in server.lines if (m := LIVE_READY.search(line)))
+                robot_args += ["--live", live_url]
+                if args.foxglove is not None:
+                    say(
+                        f"live view  {live_url}: open it in Foxglove (Open connection, Foxglove WebSocket), "
+                        "add a 3D panel"
+                    )
+                if args.record:
+                    say(f"recording  {out / RECORDING}")
             if args.detector == "foreground":
                 say("detector   foreground: obstacles are anything not in each camera's picture of the empty floor")
             cams_dir = out / "cameras"
@@ -199,6 +220,10 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
     from drvs.sim.report import draw_map
 
     draw_map(scenario, result, out / "map.png", seed=args.seed)
+    recording = out / RECORDING
+    if args.record and recording.exists():
+        result["recording"] = {"file": RECORDING, "bytes": recording.stat().st_size}
+        result_file.write_text(json.dumps(result, indent=1) + "\n")
     summarise(result, out, quiet=args.quiet)
     return code
 
@@ -244,6 +269,9 @@ def summarise(result: dict[str, Any], out: Path, quiet: bool) -> None:
     if result.get("failure"):
         print(f"failure          {result['failure']}")
     print(f"results          {out / 'result.json'}, {out / 'map.png'}")
+    if result.get("recording"):
+        rec = result["recording"]
+        print(f"recording        {out / rec['file']} ({rec['bytes'] / 1e3:.0f} kB; drvs-replay plays it back)")
 
 
 def parse_kill(text: str) -> tuple[str, float]:
@@ -291,6 +319,15 @@ def main(argv: list[str] | None = None) -> int:
         metavar="ID@SECONDS",
         help="crash this camera (SIGKILL) once the robot has run SECONDS: where only it looked, the robot slows",
     )
+    parser.add_argument(
+        "--foxglove",
+        metavar="[HOST:]PORT",
+        help="a Foxglove live view of the office on ws://HOST:PORT while the mission runs (HOST: 127.0.0.1): "
+        "walls, cameras, requests, detections, tracks, the robot and its paths",
+    )
+    parser.add_argument(
+        "--no-record", dest="record", action="store_false", help=f"do not record the run to {RECORDING}"
+    )
     parser.add_argument("--max-time", type=float, default=120.0, help="give the mission up after this many seconds")
     parser.add_argument("--quiet", "--headless", action="store_true", help="no progress; print only the result path")
     parser.add_argument("--verbose", action="store_true", help="show every process's log")
@@ -300,6 +337,8 @@ def main(argv: list[str] | None = None) -> int:
     try:
         if args.kill_camera:
             args.kill_camera = parse_kill(args.kill_camera)
+        if args.foxglove is not None:
+            args.foxglove = parse_listen(args.foxglove, "--foxglove")
         scenario = load_scenario(scenario_path)
         if args.kill_camera and args.kill_camera[0] not in {c.id for c in scenario.cameras} | {
             s.camera_id for s in scenario.scouts

@@ -23,7 +23,7 @@ import math
 import time
 from collections.abc import Callable, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import grpc
 import shapely
@@ -40,6 +40,9 @@ from drvs.sim.planner import NoPath, OccupancyGrid, plan_path
 from drvs.sim.predict import MovingObstacle, TrackRecord, decide
 from drvs.sim.scenario import Scenario
 from drvs.v1 import sim_pb2, sim_pb2_grpc
+
+if TYPE_CHECKING:
+    from drvs.sim.robot_view import RobotView
 
 log = logging.getLogger("drvs.sim.robot")
 
@@ -146,6 +149,9 @@ class SimRobot:
         self.blind_steps = 0
         self._started = time.monotonic()
         self._last_progress = 0.0
+        #: Where the robot shows itself in the live view (drvs.sim.robot_view), if anywhere.
+        self.view: RobotView | None = None
+        self.heading = 0.0
         # The paper's robot knows the obstacle colour model (yellow), not where obstacles are.
         self.obstacle_filters = sorted({o.color.filter_def for o in scenario.obstacles if o.color is not None})
         if detector == "foreground":
@@ -454,6 +460,8 @@ class SimRobot:
     def plan(self, goal: tuple[float, float]) -> list[tuple[float, float]]:
         path = plan_path(self.grid, self.pose, goal)
         self.plans.append(path)
+        if self.view is not None:
+            self.view.update(self.pose, self.heading, path)
         return path
 
     async def go_to(self, goal: tuple[float, float], *, look: bool) -> bool:
@@ -531,6 +539,7 @@ class SimRobot:
         self.world_time_s = reply.world_time_s
         self.history.append((sent, reply.pose.x, reply.pose.y, reply.pose.theta))
         self.path_driven.append(self.pose)
+        self.heading = reply.pose.theta
         if reply.collided:
             self.collisions += 1
             contact = polygon_from_pb(reply.contact, "contact")
@@ -540,6 +549,8 @@ class SimRobot:
         elif math.dist(self.pose, target) < 1e-6 and step > 0:
             path.pop(0)
         path[0] = self.pose
+        if self.view is not None:
+            self.view.update(self.pose, self.heading, path)
         self.report_progress()
         await tick  # drive in real time, so the cameras see the robot move
 
@@ -685,6 +696,7 @@ async def run_robot(
     detector: str = "hsv",
     delivery: str = "fused",
     predict: bool = True,
+    live: str | None = None,
 ) -> dict[str, Any]:
     from drvs.sim.scenario import parse_scenario
 
@@ -710,6 +722,11 @@ async def run_robot(
                 delivery=delivery,
                 predict=predict,
             )
+            if live:
+                from drvs.sim.robot_view import RobotView
+
+                robot.view = RobotView(live, scenario.robot.radius)
+                await robot.view.start()
             mission = getattr(robot, scenario.mission)
             try:
                 outcome = await mission()
@@ -718,6 +735,8 @@ async def run_robot(
                 outcome = {"reached_goal": False, "charging_station": None, "candidates": []}
                 failure = str(exc)
             robot.report_progress(force=True)
+            if robot.view is not None:
+                await robot.view.close()
             received = metered.payload_bytes()[0] if metered is not None else 0
             wire_received = metered.ethernet_bytes()[0] if metered is not None else 0
         finally:
