@@ -76,9 +76,10 @@ def load_floor_plan(path: Path) -> FloorPlan:
     walls: list[Polygon] = []
     for i, raw in enumerate(data["walls"] or []):
         try:
-            polygon = Polygon([(float(x), float(y)) for x, y in raw])
-        except (TypeError, ValueError) as exc:
-            raise InvalidArgument(f"--floor-plan {path}: walls[{i}]: not a list of [x, y] points ({exc})") from None
+            points = [(float(x), float(y)) for x, y in raw]
+        except (TypeError, ValueError):
+            raise InvalidArgument(f"--floor-plan {path}: walls[{i}]: not a list of [x, y] points") from None
+        polygon = Polygon(points) if len(points) >= 3 else Polygon()
         if not polygon.is_valid or polygon.area <= 0:
             raise InvalidArgument(f"--floor-plan {path}: walls[{i}]: not a simple polygon with an area")
         walls.append(polygon)

@@ -157,8 +157,8 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
                 robot_args += ["--live", live_url]
                 if args.foxglove is not None:
                     say(
-                        f"live view  {live_url}: open it in Foxglove (Open connection, Foxglove WebSocket), "
-                        "add a 3D panel"
+                        f"live view  {live_url}  (in Foxglove: Open connection, Foxglove WebSocket, this URL; "
+                        "then a 3D panel, or docs/foxglove-layout.json)"
                     )
                 if args.record:
                     say(f"recording  {out / RECORDING}")
