@@ -119,7 +119,10 @@ async def test_the_live_view_shows_the_site_and_the_recording_holds_every_reques
             assert {e.id for e in walls.entities} >= {"wall/0", "wall/1", "floor"}
             assert all(e.frame_id == "map" for e in walls.entities)
             cams = await updates(
-                client, decoders, "/drvs/cameras", lambda u: {e.id for e in u.entities} >= {"camera/left", "camera/right"}
+                client,
+                decoders,
+                "/drvs/cameras",
+                lambda u: {e.id for e in u.entities} >= {"camera/left", "camera/right"},
             )
             left = next(e for e in cams.entities if e.id == "camera/left")
             assert left.triangles and left.lines and left.texts[0].text == "left"
@@ -131,17 +134,24 @@ async def test_the_live_view_shows_the_site_and_the_recording_holds_every_reques
                 for i in range(2):
                     await call.write(
                         detection_pb2.DetectionRequest(
-                            request_id=f"shot-{i}", robot_id="r", filter_def=YELLOW, region=box(REGION),
-                            callback_address="127.0.0.1:1", report_secret=b"s" * 32,
-                        )  # fmt: skip
+                            request_id=f"shot-{i}",
+                            robot_id="r",
+                            filter_def=YELLOW,
+                            region=box(REGION),
+                            callback_address="127.0.0.1:1",
+                            report_secret=b"s" * 32,
+                        )
                     )
                     sent += 1
                 await call.write(
                     detection_pb2.DetectionRequest(
-                        request_id="track", robot_id="r", filter_def=YELLOW, region=box(REGION),
+                        request_id="track",
+                        robot_id="r",
+                        filter_def=YELLOW,
+                        region=box(REGION),
                         continuous=detection_pb2.ContinuousMode(rate_hz=5, duration_s=1.5),
                         fusion=detection_pb2.FusionOptions(),
-                    )  # fmt: skip
+                    )
                 )
                 sent += 1
                 # The region and the fused tracks appear in the view while the request runs.
@@ -171,7 +181,7 @@ async def test_the_live_view_shows_the_site_and_the_recording_holds_every_reques
         assert summary.statistics.chunk_count >= 1
         counts: Counter[str] = Counter()
         decoded: dict[str, list[Any]] = {}
-        for schema, channel, message, proto in reader.iter_decoded_messages():
+        for schema, channel, _message, proto in reader.iter_decoded_messages():
             assert schema is not None and schema.encoding == "protobuf" and channel.message_encoding == "protobuf"
             counts[channel.topic] += 1
             decoded.setdefault(channel.topic, []).append(proto)
@@ -194,20 +204,19 @@ async def test_the_live_view_shows_the_site_and_the_recording_holds_every_reques
 async def test_a_camera_that_leaves_is_deleted_from_the_view(
     overlap: dict[str, RecordedCamera], tmp_path: Path
 ) -> None:
-    async with site(overlap, tmp_path) as s:
-        async with await FoxgloveClient.connect(s.url) as client:
-            channels = await client.wait_for_topics(["/drvs/cameras"])
-            await client.subscribe(channels.values())
-            decode = decoder(channels["/drvs/cameras"])
-            while True:  # both drawn
-                u = decode((await client.next_message()).data)
-                if {e.id for e in u.entities} >= {"camera/left", "camera/right"}:
-                    break
-            await s.cameras["right"].stop()  # it deregisters
-            while True:
-                u = decode((await client.next_message()).data)
-                if any(d.id == "camera/right" for d in u.deletions):
-                    break
+    async with site(overlap, tmp_path) as s, await FoxgloveClient.connect(s.url) as client:
+        channels = await client.wait_for_topics(["/drvs/cameras"])
+        await client.subscribe(channels.values())
+        decode = decoder(channels["/drvs/cameras"])
+        while True:  # both drawn
+            u = decode((await client.next_message()).data)
+            if {e.id for e in u.entities} >= {"camera/left", "camera/right"}:
+                break
+        await s.cameras["right"].stop()  # it deregisters
+        while True:
+            u = decode((await client.next_message()).data)
+            if any(d.id == "camera/right" for d in u.deletions):
+                break
 
 
 def free_port() -> int:
