@@ -1,6 +1,7 @@
 """drvs-bench: `paper` (the paper's comparison), `service` (DRVS's own costs), `load` (many robots at
 once), `detectors` (each detector's costs and accuracy), `fusion` (fused delivery: accuracy, tracking,
-the server's cost), `mobile` (what mobile cameras cost routing); the rest are the benchmarks'
+the server's cost), `mobile` (what mobile cameras cost routing), `cluster` (several servers on etcd),
+`liveview` (what the live view and recording cost the office); the rest are the benchmarks'
 internal processes."""
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from .bare import add_bare_parsers
 from .cluster import add_cluster_parser
 from .fusion import add_fusion_parser
 from .helpers import add_helper_parsers
+from .liveview import add_liveview_parser
 from .load import add_load_parser
 from .mobile import add_mobile_parser
 from .workload import add_workload_arguments, workload_main
@@ -147,6 +149,7 @@ def main(argv: list[str] | None = None) -> int:
     add_load_parser(sub)
     add_mobile_parser(sub)
     add_cluster_parser(sub)
+    add_liveview_parser(sub)
     add_helper_parsers(sub)
     add_bare_parsers(sub)
     r = sub.add_parser("robot", help="(internal) the paper benchmark's robot process")

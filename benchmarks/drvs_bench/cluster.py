@@ -49,7 +49,7 @@ from grpc import aio
 from drvs.camera import CameraNode, PushSource
 from drvs.filters import HsvRange
 from drvs.geometry import homography_from_pose
-from drvs.launch import start_etcd, start_server
+from drvs.launch import cpu_seconds, start_etcd, start_server
 from drvs.robot import DrvsClient
 from drvs.server import DrvsServer
 from drvs.server.config import ServerConfig
@@ -70,12 +70,6 @@ THROUGHPUT_CAMERAS = 1000
 FULL_FAILOVERS = 5
 QUICK_FAILOVERS = 2
 TRACK_RATE_HZ = 10.0
-
-
-def _cpu_s(pid: int) -> float:
-    """User + system CPU seconds of a process, from /proc."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
 async def propagation(registrations: int) -> dict[str, Any]:
@@ -100,7 +94,7 @@ async def propagation(registrations: int) -> dict[str, Any]:
             b._apply_shared = timed  # type: ignore[method-assign]
             b.shared._apply = timed  # type: ignore[union-attr]
             assert members[0].proc is not None
-            etcd_cpu0, own_cpu0 = _cpu_s(members[0].proc.pid), time.process_time()
+            etcd_cpu0, own_cpu0 = cpu_seconds(members[0].proc.pid), time.process_time()
             delays: list[float] = []
             replies: list[float] = []
             try:
@@ -116,7 +110,7 @@ async def propagation(registrations: int) -> dict[str, Any]:
                             await asyncio.wait_for(applied.wait(), 10)
                             applied.clear()
                         delays.append(arrived[camera_id] - sent)
-                etcd_cpu, own_cpu = _cpu_s(members[0].proc.pid) - etcd_cpu0, time.process_time() - own_cpu0
+                etcd_cpu, own_cpu = cpu_seconds(members[0].proc.pid) - etcd_cpu0, time.process_time() - own_cpu0
             finally:
                 await a.stop()
                 await b.stop()

@@ -14,6 +14,7 @@ from typing import Any
 
 from drvs.homography_file import save_homography
 from drvs.launch import ManagedProcess
+from drvs.launch import cpu_seconds as cpu_seconds  # re-exported for the benchmarks
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import load_scenario
 from drvs.sim.scene import RecordedCamera, write_video
@@ -26,7 +27,6 @@ SCENE = Path(__file__).parent / "scene.yaml"
 BOTH_REGION = (-6.0, 0.0, 26.0, 10.0)
 #: Covers all three cameras' fields of view.
 ALL_REGION = (-6.0, 0.0, 46.0, 10.0)
-_TICK = os.sysconf("SC_CLK_TCK")
 
 #: Real footage of people walking (Debian's opencv-doc; ./run test installs it where it can).
 VTEST = Path("/usr/share/doc/opencv-doc/examples/data/vtest.avi")
@@ -89,12 +89,6 @@ def record_scene(directory: Path, cameras: int = 2, frames: int = 40) -> dict[st
         save_homography(hfile, cam.homography)
         out[cam.id] = RecordedCamera(cam.id, video, hfile, cam.homography)
     return out
-
-
-def cpu_seconds(pid: int) -> float:
-    """User + system CPU time of a process (all its threads), from /proc."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / _TICK
 
 
 def peak_rss_bytes(pid: int) -> int:

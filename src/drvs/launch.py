@@ -43,6 +43,12 @@ CAMERA_REGISTERED = r"camera {id} (?:re-)?registered with"
 READY_TIMEOUT_S = 30.0
 
 
+def cpu_seconds(pid: int) -> float:
+    """User + system CPU seconds of a process (all its threads) so far, from /proc."""
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
 def running() -> set[ManagedProcess]:
     """Every ManagedProcess started and not yet seen to exit (a test harness kills what a failed
     test left behind: see `kill`)."""

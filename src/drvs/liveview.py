@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import importlib.util
 import itertools
+import json
 import logging
 import math
 import threading
@@ -309,17 +310,18 @@ def area_entity(
     lifetime_s: float = 0.0,
     t: float | None = None,
     metadata: dict[str, str] | None = None,
+    filled: bool = True,
 ) -> Any:
     """A flat area on the floor (a field of view, a region, a detection's outline): filled with
     `color`, outlined with `edge`, labelled at its centroid; gone after `lifetime_s` (0: until
-    deleted or replaced by an entity of the same id)."""
+    deleted or replaced by an entity of the same id). `filled` False: the outline alone (cheaper)."""
     from foxglove.messages import Duration, KeyValuePair, SceneEntity
 
     lines, triangles, texts = [], [], []
     for polygon in outlines(geometry):
-        filled = fill(polygon, color, z=z + 0.005)
-        if filled is not None:
-            triangles.append(filled)
+        area = fill(polygon, color, z=z + 0.005) if filled else None
+        if area is not None:
+            triangles.append(area)
         lines.append(line(polygon.exterior.coords, edge or color, z=z + 0.01, loop=True))
     if label and not geometry.is_empty:
         c = geometry.centroid
@@ -384,3 +386,45 @@ def heading_quaternion(yaw: float) -> Any:
     from foxglove.messages import Quaternion
 
     return Quaternion(x=0.0, y=0.0, z=math.sin(yaw / 2), w=math.cos(yaw / 2))
+
+
+# --- the layout shipped in docs/foxglove-layout.json -------------------------------------------------
+
+#: The topics a 3D panel shows, in drawing order.
+SCENE_TOPICS = ("/drvs/floor_plan", "/drvs/cameras", "/drvs/requests", "/drvs/detections", "/drvs/tracks")
+ROBOT_TOPICS = ("/robot/paths",)
+
+
+def foxglove_layout() -> str:
+    """A Foxglove layout (foxglove-sdk's own `foxglove.layouts`): a 3D panel on the map frame,
+    looking down on the floor, with every scene topic and the robot on, beside the raw replies.
+    docs/foxglove-layout.json is this, written by `python -m drvs.liveview > docs/foxglove-layout.json`
+    (tests/test_liveview.py checks the two agree)."""
+    import foxglove.layouts as fl
+
+    topics: dict[str, Any] = {t: fl.BaseRendererSceneUpdateTopicSettings(visible=True) for t in SCENE_TOPICS}
+    topics |= {t: fl.BaseRendererSceneUpdateTopicSettings(visible=True) for t in ROBOT_TOPICS}
+    topics["/robot/pose"] = fl.BaseRendererPoseTopicSettings(visible=True, type="arrow")
+    three_d = fl.ThreeDeePanel(
+        title="DRVS: the building",
+        config=fl.ThreeDeeConfig(
+            fixed_frame=FRAME,
+            follow_tf=FRAME,
+            topics=topics,
+            camera_state=fl.ThreeDeeCameraState(
+                distance=30.0, perspective=True, phi=30.0, target=(10.0, 5.0, 0.0), theta_offset=0.0
+            ),
+        ),
+    )
+    replies = fl.RawMessagesPanel(title="replies", config=fl.RawMessagesConfig(topic_path="/drvs/rpc/replies"))
+    layout = fl.Layout(
+        content=fl.SplitContainer(
+            direction="row",
+            items=[fl.SplitItem(proportion=3, content=three_d), fl.SplitItem(proportion=1, content=replies)],
+        )
+    )
+    return json.dumps(json.loads(layout.to_json()), indent=1) + "\n"
+
+
+if __name__ == "__main__":
+    print(foxglove_layout(), end="")

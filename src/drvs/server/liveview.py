@@ -110,8 +110,9 @@ class ServerView:
         # camera id -> what was last drawn of it (a change redraws it)
         self._drawn: dict[str, tuple[Any, ...]] = {}
         self._last_refresh = 0.0
-        # request id -> its region's entity id, for a cancel
-        self._regions: dict[str, str] = {}
+        # Drawn once, sent again at each refresh: the floor plan, and each camera as last drawn.
+        self._floor_msg: Any = None
+        self._camera_entities: dict[str, tuple[tuple[Any, ...], Any]] = {}
         scene = hub.scene_channel
         self.floor = scene("/drvs/floor_plan")
         self.cameras = scene("/drvs/cameras")
@@ -190,7 +191,7 @@ class ServerView:
             self._last_refresh = time.monotonic()
         changed = [registry.get(i) for i, k in now.items() if refresh or self._drawn.get(i) != k]
         gone = [i for i in self._drawn if i not in now]
-        cameras = [(e.camera_id, e.field_of_view, e.mobile, now[e.camera_id][3]) for e in changed]
+        cameras = [(e.camera_id, e.field_of_view, e.mobile, now[e.camera_id]) for e in changed]
         infos = None
         if now != self._drawn:
             infos = registry_pb2.ListCamerasReply(
@@ -218,24 +219,29 @@ class ServerView:
         plan = self.floor_plan
         if plan is None:
             return
-        entities = [lv.wall_entity(f"wall/{i}", w) for i, w in enumerate(plan.walls)]
-        if plan.bounds is not None:
-            entities.append(
-                lv.area_entity("floor", box(*plan.bounds), lv.rgba(0.93, 0.93, 0.9, 0.35), edge=lv.rgba(0.3, 0.3, 0.3))
-            )
-        self.floor.log(lv.scene(entities))
+        if self._floor_msg is None:
+            entities = [lv.wall_entity(f"wall/{i}", w) for i, w in enumerate(plan.walls)]
+            if plan.bounds is not None:
+                entities.append(
+                    lv.area_entity(
+                        "floor", box(*plan.bounds), lv.rgba(0.93, 0.93, 0.9, 0.35), edge=lv.rgba(0.3, 0.3, 0.3)
+                    )
+                )
+            self._floor_msg = lv.scene(entities)
+        self.floor.log(self._floor_msg)
 
     def _on_cameras(self, payload: Any, t: float) -> None:
         cameras, gone, infos, refresh = payload
         if refresh:
             self._draw_floor()
         entities = []
-        for camera_id, fov, mobile, unroutable in cameras:
+        for camera_id, fov, mobile, key in cameras:
             if fov.is_empty:
                 continue
-            color = lv.rgba(0.6, 0.6, 0.6, 0.12) if unroutable else lv.palette(camera_id, 0.15)
-            entities.append(
-                lv.area_entity(
+            cached = self._camera_entities.get(camera_id)
+            if cached is None or cached[0] != key:
+                color = lv.rgba(0.6, 0.6, 0.6, 0.12) if key[3] else lv.palette(camera_id, 0.15)
+                entity = lv.area_entity(
                     f"camera/{camera_id}",
                     fov,
                     color,
@@ -244,7 +250,10 @@ class ServerView:
                     t=t,
                     metadata={"camera_id": camera_id, "mobile": str(mobile).lower()},
                 )
-            )
+                cached = self._camera_entities[camera_id] = (key, entity)
+            entities.append(cached[1])
+        for camera_id in gone:
+            self._camera_entities.pop(camera_id, None)
         deletions = [lv.deletion(f"camera/{i}") for i in gone]
         deletions += [lv.deletion(f"camera/{c[0]}") for c in cameras if c[1].is_empty]
         if entities or deletions:
@@ -257,7 +266,6 @@ class ServerView:
         message = detection_pb2.DetectionRequest.FromString(data)
         entity = f"request/{message.request_id}"
         if message.cancel:
-            self._regions.pop(message.request_id, None)
             self.requests.log(lv.scene(deletions=[lv.deletion(entity)]), log_time=_ns(t))
             return
         if not message.HasField("region"):
@@ -334,6 +342,7 @@ class ServerView:
                     lifetime_s=SHORT_LIFETIME_S,
                     t=t,
                     metadata={"camera_id": message.camera_id, "request_id": message.request_id},
+                    filled=False,
                 )
             )
         if entities:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import dataclasses
 import json
 import math
@@ -20,7 +21,7 @@ import yaml
 from drvs.certs import make_all
 from drvs.errors import DrvsError
 from drvs.homography_file import save_homography
-from drvs.launch import LIVE_READY, ManagedProcess, start_camera, start_server, wait_serving
+from drvs.launch import LIVE_READY, ManagedProcess, cpu_seconds, start_camera, start_server, wait_serving
 from drvs.liveview import parse_listen
 from drvs.sim.cli import PROGRESS_PREFIX
 from drvs.sim.scenario import DEFAULT_SCENARIO, CameraDef, Scenario, ScoutDef, load_scenario
@@ -114,6 +115,8 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
 
     procs: list[ManagedProcess] = []
     cameras: dict[str, ManagedProcess] = {}
+    server: ManagedProcess | None = None
+    server_cpu_s: float | None = None
     progress = Progress(args.quiet, sys.stdout)
     try:
         world = await sim_process(
@@ -211,6 +214,9 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
         if code not in (0, 1):
             print(f"drvs-office: the robot failed (exit {code}):\n" + "\n".join(robot.lines[-15:]), file=sys.stderr)
     finally:
+        if server is not None and server.returncode is None:
+            with contextlib.suppress(OSError):  # what the server spent on the mission, before it stops
+                server_cpu_s = cpu_seconds(server.pid)
         for proc in reversed(procs):
             await proc.stop()
     result_file = out / "result.json"
@@ -223,7 +229,9 @@ async def run_office(args: argparse.Namespace, scenario: Scenario, scenario_path
     recording = out / RECORDING
     if args.record and recording.exists():
         result["recording"] = {"file": RECORDING, "bytes": recording.stat().st_size}
-        result_file.write_text(json.dumps(result, indent=1) + "\n")
+    if server_cpu_s is not None:
+        result["server_cpu_s"] = round(server_cpu_s, 3)
+    result_file.write_text(json.dumps(result, indent=1) + "\n")
     summarise(result, out, quiet=args.quiet)
     return code
 
