@@ -181,10 +181,10 @@ async def test_the_live_view_shows_the_site_and_the_recording_holds_every_reques
         assert summary.statistics.chunk_count >= 1
         counts: Counter[str] = Counter()
         decoded: dict[str, list[Any]] = {}
-        for schema, channel, _message, proto in reader.iter_decoded_messages():
-            assert schema is not None and schema.encoding == "protobuf" and channel.message_encoding == "protobuf"
-            counts[channel.topic] += 1
-            decoded.setdefault(channel.topic, []).append(proto)
+        for schema, chan, _message, proto in reader.iter_decoded_messages():
+            assert schema is not None and schema.encoding == "protobuf" and chan.message_encoding == "protobuf"
+            counts[chan.topic] += 1
+            decoded.setdefault(chan.topic, []).append(proto)
     assert set(counts) >= {"/drvs/floor_plan", "/drvs/cameras", "/drvs/requests", "/drvs/tracks"} | set(RPC_TOPICS)
     # Every request the robot sent, every reply it got, in the project's own schemas.
     requests = decoded["/drvs/rpc/requests"]

@@ -26,7 +26,7 @@ class Extra:
 #: pyproject.toml's extras but dev (tests/test_extras.py keeps the two in step).
 EXTRAS = {
     "sim": Extra("the simulator", ("matplotlib", "foxglove", "mcap", "mcap_protobuf", "websockets")),
-    "bench": Extra("the benchmarks", ("matplotlib", "onnx")),
+    "bench": Extra("the benchmarks", ("matplotlib", "onnx", "foxglove", "mcap", "mcap_protobuf", "websockets")),
     "certs": Extra("the certificate tooling", ("cryptography",)),
     "etcd": Extra("the etcd client (drvs-server --registry etcd://...)", ("aetcd",)),
     "live": Extra("the live view and recordings", ("foxglove", "mcap", "mcap_protobuf", "websockets")),

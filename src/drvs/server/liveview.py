@@ -135,6 +135,8 @@ class ServerView:
             self._poller.cancel()
             with contextlib.suppress(asyncio.CancelledError):
                 await self._poller
+            with contextlib.suppress(Exception):  # the registry as it was at the end, even if it changed just now
+                self._cameras_now()
         self._queue.put(None)
         await asyncio.to_thread(self._thread.join, 10)
         self.hub.close()
