@@ -15,7 +15,8 @@ import numpy as np
 from drvs._cli import add_security_arguments, join_negative_values, setup_logging, shutdown_event
 from drvs.camera.aruco import DEFAULT_DICTIONARY, BoardSpec, board_image, find_correspondences
 from drvs.camera.calibration import fit_homography, load_points, save_calibration
-from drvs.camera.config import DEFAULT_LISTEN, DEFAULT_SERVER, ENVIRONMENT, load_config
+from drvs.camera.config import DEFAULT_FOXGLOVE_FPS, DEFAULT_LISTEN, DEFAULT_SERVER, ENVIRONMENT, load_config
+from drvs.camera.liveview import MAX_FPS
 from drvs.camera.node import CameraNode
 from drvs.camera.source import FrameSource, VideoSource, plugin_source
 from drvs.detection import Frame
@@ -125,6 +126,21 @@ def build_parser() -> argparse.ArgumentParser:
                    help="... or turned this much (default 5)")  # fmt: skip
     m.add_argument("--max-pose-rate", dest="max_pose_rate_hz", type=float, metavar="HZ",
                    help="at most this many pose updates a second (default 5)")  # fmt: skip
+    v = p.add_argument_group("live view (pip install 'drvs[live]'; docs/operations.md)")
+    v.add_argument(
+        "--foxglove",
+        metavar="[HOST:]PORT",
+        help=f"serve a Foxglove live view (WebSocket) of this camera's frames, JPEG, with its latest detections "
+        f"drawn, on topic /camera/ID/image; sent only while someone subscribes. PORT alone listens on 127.0.0.1, "
+        f"0 picks a free port. It has no access control: anyone who reaches it sees the images ({e['foxglove']})",
+    )
+    v.add_argument(
+        "--foxglove-fps",
+        dest="foxglove_fps",
+        metavar="N",
+        help=f"at most N frames a second to the live view, above 0 and at most {MAX_FPS:g} "
+        f"(default {DEFAULT_FOXGLOVE_FPS:g}; {e['foxglove_fps']})",
+    )
     add_security_arguments(p, "file holding this camera's registration token")
     p.add_argument("--log-level", help=f"DEBUG, INFO, WARNING ({e['log_level']})")
     p.add_argument("--log-format", help=f"text, or json: one object per line with the request id ({e['log_format']})")
@@ -426,6 +442,8 @@ def main(argv: list[str] | None = None) -> int:
             pose_update_angle_deg=config.pose_update_angle_deg,
             max_pose_rate_hz=config.max_pose_rate_hz,
             frame=config.frame,
+            foxglove=config.foxglove,
+            foxglove_fps=DEFAULT_FOXGLOVE_FPS if config.foxglove_fps is None else config.foxglove_fps,
         )
     except DrvsError as exc:
         parser.error(str(exc))

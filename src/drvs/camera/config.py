@@ -20,12 +20,15 @@ from drvs.detectors.model import ModelSpec, parse_models
 from drvs.errors import InvalidArgument
 from drvs.filters import DETECTOR_KINDS
 from drvs.geometry import DEFAULT_MAX_RANGE_M
+from drvs.liveview import parse_listen
 from drvs.logs import FORMATS
 from drvs.metrics import DEFAULT_METRICS_HOST
 from drvs.mobile import DEFAULT_MAX_POSE_GAP_S, Mount
 from drvs.model import DEFAULT_FRAME, check_frame, check_id
 from drvs.net import format_address, parse_address, parse_address_list
 from drvs.security import Security
+
+from .liveview import check_fps
 
 DEFAULT_SERVER = "127.0.0.1:50051"
 DEFAULT_LISTEN = "127.0.0.1:0"
@@ -39,6 +42,8 @@ DEFAULT_MAX_CONTINUOUS_PER_ROBOT = 32
 #: of requests queues for them instead of starting a thread per request. One on two cores,
 #: leaving one for the rest.
 DEFAULT_DETECT_WORKERS = max(1, min(2, (os.cpu_count() or 1) - 1))
+#: Frames a second a live view (--foxglove) sends at most while someone watches, unless told.
+DEFAULT_FOXGLOVE_FPS = 5.0
 
 #: Every environment variable a camera node reads, by setting.
 ENVIRONMENT = {
@@ -62,6 +67,8 @@ ENVIRONMENT = {
     "max_continuous": "DRVS_CAMERA_MAX_CONTINUOUS",
     "detect_workers": "DRVS_CAMERA_DETECT_WORKERS",
     "people_min_height_px": "DRVS_CAMERA_PEOPLE_MIN_HEIGHT",
+    "foxglove": "DRVS_CAMERA_FOXGLOVE",
+    "foxglove_fps": "DRVS_CAMERA_FOXGLOVE_FPS",
     "log_level": "DRVS_LOG_LEVEL",
     "log_format": "DRVS_LOG_FORMAT",
     "metrics_port": "DRVS_METRICS_PORT",
@@ -134,9 +141,18 @@ class CameraConfig:
     max_pose_rate_hz: float = 5.0
     #: The floor plan its homography maps to ("building-a/floor-2"; default "map").
     frame: str = DEFAULT_FRAME
+    #: A Foxglove live view of the camera's frames, detections drawn (drvs.camera.liveview): where
+    #: it listens (host, port; port 0 picks one; None: no live view), and at most how many frames a
+    #: second it sends while someone watches (None: DEFAULT_FOXGLOVE_FPS).
+    foxglove: tuple[str, int] | None = None
+    foxglove_fps: float | None = None
 
     def __post_init__(self) -> None:
         check_settings({f.name: getattr(self, f.name) for f in fields(self)})
+        if self.foxglove_fps is not None:
+            check_fps(self.foxglove_fps, f"foxglove_fps ({_FLAGS['foxglove_fps']})")
+            if self.foxglove is None:
+                raise InvalidArgument("foxglove_fps (--foxglove-fps): only with --foxglove (a live view to send to)")
         self.mount_spec()  # refuses a malformed mount now, not at start
         check_frame(self.frame, f"frame ({_FLAGS['frame']})")
 
@@ -192,7 +208,7 @@ _FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max
           "camera_matrix": "--camera-matrix", "pose_source": "--pose-source", "max_pose_gap_s": "--max-pose-gap",
           "pose_lease_s": "--pose-lease", "pose_update_distance_m": "--pose-update-distance",
           "pose_update_angle_deg": "--pose-update-angle", "max_pose_rate_hz": "--max-pose-rate",
-          "frame": "--frame"}  # fmt: skip
+          "frame": "--frame", "foxglove": "--foxglove", "foxglove_fps": "--foxglove-fps"}  # fmt: skip
 
 
 #: Numeric settings, checked wherever they come from (CameraConfig, CameraNode's constructor, the
@@ -306,6 +322,10 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
             return (w, h)
         if name == "models":
             return parse_models(raw, where, base)
+        if name == "foxglove_fps":
+            if isinstance(raw, bool):
+                raise InvalidArgument(f"{where}: {raw!r} is not a number")
+            return check_fps(float(raw), where)
         if name == "detectors":
             kinds = raw if isinstance(raw, list) else str(raw).split(",")
             kinds = [str(k).strip() for k in kinds if str(k).strip()]
@@ -343,6 +363,8 @@ def _convert(name: str, raw: Any, origin: str, base: Path) -> Any:
         text = str(raw)
         if name == "id":
             return check_id(text, where)
+        if name == "foxglove":
+            return parse_listen(text, where)
         if name == "server":
             parse_address_list(text, where)  # one server, or several sharing a registry (a,b,...)
         elif name == "advertise":

@@ -19,7 +19,7 @@ import numpy as np
 from grpc import aio
 from numpy.typing import NDArray
 
-from drvs import logs, metrics
+from drvs import liveview, logs, metrics
 from drvs._service import Endpoint, Lifecycle
 from drvs.callback import CallbackSender
 from drvs.convert import homography_to_pb, request_from_pb
@@ -46,10 +46,12 @@ from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, stream_pb2,
 
 from .config import (
     DEFAULT_DETECT_WORKERS,
+    DEFAULT_FOXGLOVE_FPS,
     DEFAULT_MAX_CONTINUOUS_PER_ROBOT,
     DEFAULT_MAX_FRAME_AGE_S,
     check_settings,
 )
+from .liveview import CameraLiveView, check_fps
 from .poses import open_pose_source
 from .prefetch import Analyses
 from .registration import PoseUpdates, Registration
@@ -75,7 +77,12 @@ class CameraNode(Lifecycle):
 
     The settings it shares with drvs-camera (max_range_m, min_area_px, max_frame_age_s,
     heartbeat_s, max_continuous, detect_workers; see CameraConfig for units and ranges) are
-    checked by the same `check_settings` as the CLI's, with the same messages."""
+    checked by the same `check_settings` as the CLI's, with the same messages.
+
+    `foxglove` (host, port; port 0 picks one): a Foxglove live view of its frames with its recent
+    detections drawn, at most `foxglove_fps` frames a second and only while someone watches
+    (drvs.camera.liveview; needs pip install 'drvs[live]'). It starts and stops with the node;
+    `live` is it once started."""
 
     def __init__(
         self,
@@ -106,6 +113,8 @@ class CameraNode(Lifecycle):
         max_pose_rate_hz: float = 5.0,
         pose_source: str | None = None,
         frame: str = DEFAULT_FRAME,
+        foxglove: tuple[str, int] | None = None,
+        foxglove_fps: float = DEFAULT_FOXGLOVE_FPS,
     ) -> None:
         check_settings(
             {
@@ -207,6 +216,12 @@ class CameraNode(Lifecycle):
         # Handed to the server at registration; the server presents it on every forward, so this
         # node takes requests only from the server it registered with (see _ServerFacing).
         self.forward_secret = secrets.token_urlsafe(24)
+        self.foxglove = foxglove
+        self.foxglove_fps = check_fps(foxglove_fps, "foxglove_fps")
+        if foxglove is not None:
+            liveview.require("--foxglove")
+        #: The live view (with `foxglove`), from start() on.
+        self.live: CameraLiveView | None = None
 
     @property
     def port(self) -> int:
@@ -250,6 +265,10 @@ class CameraNode(Lifecycle):
         observers = [d for d in self.runners.values() if d.observes]
         self._analyses = Analyses(self.source, self._prefetch, self.camera_id, observers=observers)
         self._analyses.start()
+        if self.foxglove is not None:
+            # Before the node listens: a port the view cannot take stops the camera at start.
+            self.live = CameraLiveView(self.camera_id, self.source, self.foxglove, fps=self.foxglove_fps)
+            self.live.start()
         log.info(
             "camera %s: source %s gives %dx%d; field of view %.1f m²",
             self.camera_id,
@@ -306,6 +325,8 @@ class CameraNode(Lifecycle):
         await asyncio.gather(*self._jobs, return_exceptions=True)
         await self._callbacks.close()
         await self._server_reports.close()
+        if self.live is not None:
+            await self.live.stop()
         if self._analyses is not None:
             await asyncio.to_thread(self._analyses.stop)
         if self._heavy_pool is not None:
@@ -552,6 +573,8 @@ class CameraNode(Lifecycle):
         # paying a hop to a thread and back.
         detections = select(narrowed, request.region)
         metrics.STAGE_DETECT.observe(time.perf_counter() - started)
+        if self.live is not None:
+            self.live.show(request.request_id, detections)
         return report(capture_time=frame.capture_time, detections=tuple(detections), camera_pose=pose)
 
 
