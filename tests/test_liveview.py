@@ -314,3 +314,24 @@ def test_the_shipped_foxglove_layout_is_the_one_the_code_makes() -> None:
     assert shipped == foxglove_layout(), "regenerate: python -m drvs.liveview > docs/foxglove-layout.json"
     panel = json.loads(shipped)["content"]["items"][0]["content"]
     assert panel["panelType"] == "ThreeDee" and set(panel["config"]["topics"]) >= set(SCENE_TOPICS)
+
+
+def test_the_liveview_benchmark_takes_its_ratios_within_each_round() -> None:
+    """drvs-bench liveview's figures: each ratio is a round's `live` (or `record`) over the same
+    round's `off`, published as the median and [min, max] of the rounds."""
+    from drvs_bench.liveview import figures
+
+    def run(wall: float, server: float, robot: float, rec: int = 0, viewer: float = 0.0) -> dict[str, float]:
+        return {"wall_s": wall, "server_cpu_s": server, "robot_cpu_s": robot, "recording_bytes": rec,
+                "viewer_bytes": viewer, "viewer_channels": 11}  # fmt: skip
+
+    runs = [
+        {"off": run(20, 1.0, 0.5), "record": run(20, 1.2, 0.6, 100_000), "live": run(20, 1.5, 0.6, 100_000, 8e5)},
+        {"off": run(25, 2.0, 0.5), "record": run(25, 2.2, 0.5, 125_000), "live": run(25, 2.4, 0.7, 125_000, 1e6)},
+    ]
+    out = figures({"runs": runs})
+    assert out["live_server_cpu_s_over_off_runs"] == [1.5, 1.2]
+    assert out["live_server_cpu_s_over_off_spread"] == [1.2, 1.5] and out["live_server_cpu_s_over_off"] == 1.35
+    assert out["record_recording_bytes_per_s_runs"] == [5000.0, 5000.0]
+    assert out["live_viewer_bytes_per_s_runs"] == [40_000.0, 40_000.0]
+    assert out["record_robot_cpu_s_over_off_runs"] == [1.2, 1.0]

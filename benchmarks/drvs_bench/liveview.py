@@ -104,23 +104,29 @@ async def _office(mode: str, out: Path) -> dict[str, Any]:
     return run
 
 
+def figures(result: dict[str, Any]) -> dict[str, Any]:
+    """The published figures of `result["runs"]` (one dict per round: mode -> that run's figures)."""
+    runs = result["runs"]
+    for mode in MODES:
+        for key in ("wall_s", "server_cpu_s", "robot_cpu_s"):
+            publish(result, f"{mode}_{key}", [r[mode][key] for r in runs])
+    for mode in ("record", "live"):
+        for key in ("wall_s", "server_cpu_s", "robot_cpu_s"):
+            publish(result, f"{mode}_{key}_over_off", per_round_ratio(runs, itemgetter(key), mode, "off"))
+        publish(result, f"{mode}_recording_bytes", [r[mode]["recording_bytes"] for r in runs])
+        publish(result, f"{mode}_recording_bytes_per_s", [r[mode]["recording_bytes"] / r[mode]["wall_s"] for r in runs])
+    publish(result, "live_viewer_bytes_per_s", [r["live"]["viewer_bytes"] / r["live"]["wall_s"] for r in runs])
+    publish(result, "live_viewer_channels", [r["live"]["viewer_channels"] for r in runs])
+    return result
+
+
 async def run_liveview(out: Path, rounds: int) -> dict[str, Any]:
     runs: list[dict[str, dict[str, Any]]] = [{} for _ in range(rounds)]
     with tempfile.TemporaryDirectory(prefix="drvs-bench-liveview-") as tmp:
         for r, mode in interleaved(MODES, rounds):
             runs[r][mode] = await _office(mode, Path(tmp) / f"{mode}-{r}")
             print(f"round {r + 1}/{rounds} {mode}: {runs[r][mode]}", file=sys.stderr, flush=True)
-    result: dict[str, Any] = {"machine": machine(), "rounds": rounds, "runs": runs}
-    for mode in MODES:
-        for key in ("wall_s", "server_cpu_s", "robot_cpu_s"):
-            publish(result, f"{mode}_{key}", [r[mode][key] for r in runs])
-    for mode in ("record", "live"):
-        for key in ("wall_s", "server_cpu_s"):
-            publish(result, f"{mode}_{key}_over_off", per_round_ratio(runs, itemgetter(key), mode, "off"))
-        publish(result, f"{mode}_recording_bytes", [r[mode]["recording_bytes"] for r in runs])
-        publish(result, f"{mode}_recording_bytes_per_s", [r[mode]["recording_bytes"] / r[mode]["wall_s"] for r in runs])
-    publish(result, "live_viewer_bytes_per_s", [r["live"]["viewer_bytes"] / r["live"]["wall_s"] for r in runs])
-    publish(result, "live_viewer_channels", [r["live"]["viewer_channels"] for r in runs])
+    result = figures({"machine": machine(), "rounds": rounds, "runs": runs})
     write_result(result, out, "liveview", _plot)
     return result
 
