@@ -132,7 +132,11 @@ class _Relay:
 class LiveHub:
     """One foxglove-sdk context and its sinks: `listen` (host, port) for a WebSocket server, `record`
     a new MCAP file. Channels come from `channel`, `proto_channel` and `scene_channel`; log to them
-    from any thread. `close()` stops the server and finishes the file (its summary and index)."""
+    from any thread. `close()` stops the server and finishes the file (its summary and index).
+
+    The server: `accept_clients` offers clientPublish (what clients publish is relayed onto the
+    hub), `capabilities` more of Foxglove's (e.g. `time`), `listener` a foxglove ServerListener of
+    one's own instead of the relay, `backlog` messages per client before the oldest are dropped."""
 
     def __init__(
         self,
@@ -142,6 +146,9 @@ class LiveHub:
         record: Path | None = None,
         accept_clients: bool = False,
         tls: tuple[bytes, bytes] | None = None,
+        capabilities: Sequence[Any] = (),
+        listener: Any = None,
+        backlog: int = CLIENT_BACKLOG,
     ) -> None:
         import foxglove
         from foxglove.mcap import MCAPCompression, MCAPWriteOptions
@@ -175,10 +182,10 @@ class LiveHub:
                     host=host,
                     port=port,
                     context=self.context,
-                    capabilities=[Capability.ClientPublish] if accept_clients else [],
+                    capabilities=[*([Capability.ClientPublish] if accept_clients else []), *capabilities],
                     supported_encodings=CLIENT_ENCODINGS if accept_clients else None,
-                    server_listener=_Relay(self),
-                    message_backlog_size=CLIENT_BACKLOG,
+                    server_listener=listener if listener is not None else _Relay(self),
+                    message_backlog_size=backlog,
                     tls_cert=tls[0] if tls else None,
                     tls_key=tls[1] if tls else None,
                 )

@@ -431,14 +431,11 @@ class _Watchers:
 def open_view(listen: tuple[str, int]) -> tuple[LiveHub, _Watchers]:
     """A LiveHub with a WebSocket server on `listen` that offers Foxglove's `time` capability (the
     app's clock then follows the recording, not the wall clock)."""
-    import foxglove
     from foxglove.websocket import Capability, ChannelView, Client, ServerListener
 
-    from drvs.errors import InvalidArgument
     from drvs.liveview import LiveHub
 
-    hub = LiveHub(PROG)
-    watchers = _Watchers(hub.subscribed)
+    watchers = _Watchers(threading.Event())
 
     class Listener(ServerListener):
         # foxglove-sdk calls these from its own threads.
@@ -448,21 +445,7 @@ def open_view(listen: tuple[str, int]) -> tuple[LiveHub, _Watchers]:
         def on_unsubscribe(self, client: Client, channel: ChannelView) -> None:
             watchers.unsubscribe(client.id, channel.id)
 
-    host, port = listen
-    try:
-        hub.server = foxglove.start_server(
-            name=PROG,
-            host=host,
-            port=port,
-            context=hub.context,
-            capabilities=[Capability.Time],
-            server_listener=Listener(),
-            message_backlog_size=BACKLOG,
-        )
-    except Exception as exc:
-        hub.close()
-        raise InvalidArgument(f"--foxglove: cannot listen on {host}:{port}: {exc}") from exc
-    hub.url = f"ws://{host}:{hub.server.port}"
+    hub = LiveHub(PROG, listen=listen, capabilities=[Capability.Time], listener=Listener(), backlog=BACKLOG)
     return hub, watchers
 
 
