@@ -23,6 +23,7 @@ WHEELHOUSE=services/wheelhouse
 REQUIREMENTS=services/requirements.txt
 REQUIREMENTS_SIM=services/requirements-sim.txt
 REQUIREMENTS_ETCD=services/requirements-etcd.txt
+REQUIREMENTS_LIVE=services/requirements-live.txt
 
 host_python() {
   if [ -n "${PYTHON:-}" ]; then echo "$PYTHON"; return; fi
@@ -33,7 +34,7 @@ host_python() {
 pin() {
   local py
   py=$(host_python)
-  "$py" - "$REQUIREMENTS" "$REQUIREMENTS_SIM" "$REQUIREMENTS_ETCD" <<'PY'
+  "$py" - "$REQUIREMENTS" "$REQUIREMENTS_SIM" "$REQUIREMENTS_ETCD" "$REQUIREMENTS_LIVE" <<'PY'
 """The installed versions of drvs's runtime dependencies and theirs: the pins. The first file gets
 the base package's (every image), the second what the sim extra adds (the simulator's images)."""
 import importlib.metadata as md
@@ -48,7 +49,10 @@ def closure(extra: str) -> dict[str, str]:
     todo = [(Requirement(r), extra) for r in md.requires("drvs") or []]
     while todo:
         req, wanted = todo.pop()
-        if req.name == "drvs" or (req.marker is not None and not req.marker.evaluate({"extra": wanted})):
+        if req.marker is not None and not req.marker.evaluate({"extra": wanted}):
+            continue
+        if req.name == "drvs":  # an extra that includes others (sim includes live): theirs too
+            todo += [(Requirement(r), inner) for inner in req.extras for r in md.requires("drvs") or []]
             continue
         dist = md.distribution(req.name)
         name = dist.metadata["Name"]
@@ -71,6 +75,7 @@ write(Path(sys.argv[1]), base)
 base_names = {name.lower() for name in base}
 write(Path(sys.argv[2]), {n: v for n, v in closure("sim").items() if n.lower() not in base_names})
 write(Path(sys.argv[3]), {n: v for n, v in closure("etcd").items() if n.lower() not in base_names})
+write(Path(sys.argv[4]), {n: v for n, v in closure("live").items() if n.lower() not in base_names})
 PY
 }
 
@@ -98,7 +103,7 @@ if [ "$DRVS_PIP_ARGS" = --no-index ]; then
   log=$(mktemp)
   if ! "$py" -m pip download --disable-pip-version-check --dest "$WHEELHOUSE" \
     --only-binary :all: --python-version "$pyver" --implementation cp --abi "cp${pyver/./}" "${platforms[@]}" \
-    -r "$REQUIREMENTS" -r "$REQUIREMENTS_SIM" -r "$REQUIREMENTS_ETCD" "setuptools>=77" wheel >"$log" 2>&1; then
+    -r "$REQUIREMENTS" -r "$REQUIREMENTS_SIM" -r "$REQUIREMENTS_ETCD" -r "$REQUIREMENTS_LIVE" "setuptools>=77" wheel >"$log" 2>&1; then
     tail -20 "$log" >&2
     rm -f "$log"
     die "pip download failed (is PyPI reachable from this host?)"

@@ -7,7 +7,8 @@
 #   3. builds the local base image and the role images (scripts/docker-build.sh; cached layers are reused);
 #   4. runs `docker compose up --exit-code-from robot` and checks the robot's result.json
 #      (reached_goal true, collisions 0) and map.png;
-#   5. starts the office again and times `docker compose stop` mid-mission: every container must stop
+#   5. starts the office again, watches its live view from the host as Foxglove would (port 8765), and
+#      times `docker compose stop` mid-mission: every container must stop
 #      within STOP_LIMIT_S, the servers with exit 0 (graceful) and the robot by the SIGTERM passed on to it;
 #   6. runs the ha profile (etcd and two servers sharing the registry; cameras and robot know both) and
 #      kills one server (SIGKILL) mid-mission: the mission must still succeed;
@@ -144,12 +145,15 @@ if not result.get("drvs"):
     problems.append("the robot ran without DRVS")
 if (out / "map.png").stat().st_size < 10_000:
     problems.append("map.png is missing or empty")
+if not (result.get("live_view") or {}).get("published"):
+    problems.append(f"the robot published nothing into the server's live view: {result.get('live_view')!r}")
 if problems:
     sys.exit("docker-office-test: " + "; ".join(problems))
 print(
     f"docker-office-test: result.json: mission {result['mission']}, reached goal, 0 collisions, "
     f"{result['replans']} re-plan(s), {len(result['detections'])} detections, {result['bytes_to_robot']} bytes "
-    f"to the robot, {result['localisation']['fixes']} DRVS fixes; map.png {(out / 'map.png').stat().st_size} bytes",
+    f"to the robot, {result['localisation']['fixes']} DRVS fixes; map.png {(out / 'map.png').stat().st_size} bytes; "
+    f"{result['live_view']['published']} updates of the robot published into the live view",
     file=sys.stderr,
 )
 PY
@@ -165,6 +169,29 @@ for _ in $(seq 120); do
   sleep 1
 done
 grep -q 'robot: mission ' <<<"$(logs_of robot)" || fail "the robot did not start its mission in 120 s"
+# The live view from the host, as Foxglove sees it: compose publishes it on loopback.
+grep -q 'live view on ws://0.0.0.0:8765' <<<"$(logs_of server)" || fail "the server has no live view"
+"${PYTHON:-.venv/bin/python}" - "${DRVS_FOXGLOVE_PORT:-8765}" <<'PY' || fail "no live view on the host's port"
+import asyncio
+import sys
+
+from drvs.foxglove_client import FoxgloveClient
+
+WANTED = {"/drvs/floor_plan", "/drvs/cameras", "/robot/pose"}
+
+
+async def main() -> None:
+    client = await FoxgloveClient.connect(f"ws://127.0.0.1:{sys.argv[1]}", timeout=10)
+    await client.subscribe((await client.wait_for_topics(WANTED, timeout=30)).values())
+    seen: set[str] = set()
+    while seen != WANTED:
+        seen.add((await client.next_message(timeout=30)).channel.topic)
+    await client.close()
+    print(f"docker-office-test: the live view on the host's port {sys.argv[1]} shows {sorted(seen)}", file=sys.stderr)
+
+
+asyncio.run(main())
+PY
 sleep 3
 start_ns=$(date +%s%N)
 docker compose stop >/dev/null 2>&1 || fail "docker compose stop"

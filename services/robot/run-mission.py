@@ -1,6 +1,7 @@
 """Robot container entrypoint: the simulated office's robot, as drvs-office runs it, across containers.
 
     run-mission.py --world world:50070 --server server:50051 --out /out [--max-time S] [--no-drvs]
+                   [--live ws://server:8765]
 
 Waits for the world and for every camera of its scenario to be registered with the server, runs
 `drvs-sim robot` (progress every 2 s), then draws map.png beside its result.json and prints the
@@ -97,6 +98,7 @@ def main() -> int:
     p.add_argument("--max-time", type=float, default=120.0, help="give the mission up after this many seconds")
     p.add_argument("--no-drvs", action="store_true", help="the paper's baseline: no DRVS, learn by touching")
     p.add_argument("--wait-cameras", type=float, default=90.0, help="seconds to wait for the cameras to register")
+    p.add_argument("--live", default=None, help="ws://HOST:PORT of the server's live view, to publish the robot into")
     args = p.parse_args()
 
     stop_signal: list[int] = []
@@ -125,6 +127,8 @@ def main() -> int:
     result_file.unlink(missing_ok=True)
     argv = ["drvs-sim", "robot", "--world", args.world, "--out", str(args.out), "--max-time", str(args.max_time)]
     argv += ["--no-drvs"] if args.no_drvs else ["--server", args.server]
+    if args.live and not args.no_drvs:
+        argv += ["--live", args.live]
     say(f"mission {scenario.mission} from {list(scenario.robot.start)}; results go to {args.out}/")
     progress = Progress(False, sys.stdout)
     child = subprocess.Popen(argv, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True, bufsize=1)

@@ -779,6 +779,9 @@ async def run_robot(
         "robot_cpu_s": round(time.process_time() - cpu_start, 3),
         "elapsed_s": round(time.monotonic() - robot._started, 2),
     }
+    if robot.view is not None:
+        # What the robot published into the live view (0: it could not reach it, and went on without).
+        result["live_view"] = {"url": robot.view.url, "published": robot.view.sent}
     if failure:
         result["failure"] = failure
     await asyncio.to_thread(write_result, out_dir, result)
