@@ -165,6 +165,8 @@ class TrackRecord:
         self.static = False
         self.moving = False
         self.history: list[tuple[float, float, float]] = []
+        #: The moving track of an earlier request this one continues (a re-plan's new request).
+        self.handed_over: TrackRecord | None = None
         self.last = obj
         self.last_seen = at
         self.update(obj, at)

@@ -37,7 +37,7 @@ from drvs.model import Detection, PixelBox, Snapshot, WorldObject
 from drvs.robot import DetectionResult, DrvsClient, Subscription, Track
 from drvs.security import Security
 from drvs.sim.planner import NoPath, OccupancyGrid, plan_path
-from drvs.sim.predict import MovingObstacle, TrackRecord, decide
+from drvs.sim.predict import STILL_MPS, MovingObstacle, TrackRecord, decide
 from drvs.sim.scenario import Scenario
 from drvs.v1 import sim_pb2, sim_pb2_grpc
 
@@ -80,6 +80,11 @@ SELF_SLIVER_M2 = 0.01
 DELIVERIES = ("fused", "per-camera")
 #: Snapshots a second of the obstacle tracks the robot follows while it drives.
 TRACK_RATE_HZ = 2.0
+#: A re-plan's new track request numbers its tracks anew, and a new track has no velocity until its
+#: second look: a new track this close to where a moving track of an earlier request was last seen,
+#: this recently, is that obstacle, and keeps its motion until the new track has its own.
+HANDOVER_M = 0.5
+HANDOVER_S = 1.5
 
 
 class MissionFailed(Exception):
@@ -212,6 +217,9 @@ class SimRobot:
             record = self.tracks.get(key)
             if record is None:
                 record = self.tracks[key] = TrackRecord(key, filter_def, obj, snapshot.time)
+                record.handed_over = self._moving_before(request_id, filter_def, obj, snapshot.time)
+                if record.handed_over is not None:
+                    record.moving = True
             else:
                 was_moving = record.moving
                 record.update(obj, snapshot.time)
@@ -223,12 +231,26 @@ class SimRobot:
                 if self.mark(outline, ragged=filter_def == "foreground"):
                     self.detections_used.append(object_detection(filter_def, obj, outline))
             elif record.moving or not any(k.buffer(SAME_OBSTACLE_M).contains(outline) for k in self.known_obstacles):
-                # Moving, or not yet known to stand still: predicted (velocity 0 until the tracker has one).
+                # Moving, or not yet known to stand still: predicted (velocity 0 until the tracker has
+                # one, or the velocity of the moving track it takes over from, until it has its own).
+                velocity = obj.velocity_xy
+                if record.handed_over is not None and obj.speed_mps < STILL_MPS and record.snapshots <= 2:
+                    velocity = record.handed_over.last.velocity_xy
                 self.moving[key] = MovingObstacle.from_track(
-                    key, dataclasses.replace(obj, outline=outline), predict=self.predict
+                    key, dataclasses.replace(obj, outline=outline, velocity_xy=velocity), predict=self.predict
                 )
         for key in [k for k in self.moving if k.startswith(request_id + "/") and k not in alive]:
             del self.moving[key]
+
+    def _moving_before(self, request_id: str, filter_def: str, obj: WorldObject, at: float) -> TrackRecord | None:
+        """The moving track of an earlier request that `obj`, new in `request_id`, continues: the
+        same filter, last seen within HANDOVER_S and HANDOVER_M of it (the nearest), or None."""
+        near = [
+            r for r in self.tracks.values()
+            if r.moving and not r.static and r.filter_def == filter_def and not r.key.startswith(request_id + "/")
+            and at - r.last_seen <= HANDOVER_S and math.dist(r.last.centroid_xy, obj.centroid_xy) <= HANDOVER_M
+        ]  # fmt: skip
+        return min(near, key=lambda r: math.dist(r.last.centroid_xy, obj.centroid_xy), default=None)
 
     async def watch_tracks(self, region: Polygon) -> None:
         """Fused Algorithm 1: the server tracks the obstacles along the way while the robot drives."""
