@@ -95,3 +95,25 @@ def test_tracks_are_told_apart_as_standing_or_moving() -> None:
     summary = mover.summary(NOW)
     assert summary["used_as"] == "moving, then standing" and summary["max_speed_mps"] == 0.5
     assert summary["first"] == [1.0, 1.0] and summary["last"] == [1.0, 1.45] and summary["snapshots"] == 25
+
+
+def test_a_replans_new_track_of_a_moving_obstacle_keeps_its_motion() -> None:
+    """A re-plan sends a new track request, whose tracks are numbered anew and have no velocity
+    until their second look. A new track where a moving track of the earlier request was just seen
+    is that obstacle: it is predicted at that track's velocity, not taken to stand still (the
+    default office's robot was once run into by the trolley that way; CI, 6e30bf9)."""
+    from drvs.model import Snapshot
+    from drvs.sim.robot import SimRobot
+    from drvs.sim.scenario import load_scenario
+
+    robot = SimRobot(load_scenario(), None, None)
+    for i in range(4):  # the trolley heads south at 0.4 m/s, followed by the first request
+        t = NOW + 0.5 * i
+        robot.use_snapshot("hsv_x", "r1", Snapshot(t, (trolley(16.8, 7.7 - 0.2 * i, -0.4, seen=t),)))
+    assert robot.moving["r1/1"].velocity_xy == (0.0, -0.4)
+    t = NOW + 2.0  # re-planned: the new request's first look, no velocity yet
+    robot.use_snapshot("hsv_x", "r2", Snapshot(t, (trolley(16.8, 6.95, 0.0, seen=t),)))
+    assert robot.moving["r2/1"].velocity_xy == (0.0, -0.4)
+    far = NOW + 2.0 + 0.1  # something new elsewhere takes over nothing
+    robot.use_snapshot("hsv_x", "r3", Snapshot(far, (trolley(3.0, 3.0, 0.0, seen=far),)))
+    assert robot.moving["r3/1"].velocity_xy == (0.0, 0.0)
