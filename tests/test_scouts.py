@@ -10,8 +10,9 @@ from __future__ import annotations
 import asyncio
 import json
 import math
+import re
 import time
-from collections.abc import AsyncIterator
+from collections.abc import AsyncIterator, Callable
 
 import grpc
 import pytest
@@ -185,16 +186,24 @@ async def test_a_scout_is_a_mobile_camera_node_the_server_routes_as_it_drives(wo
     server routes by follows the scout, and the camera's reports carry its pose at capture."""
     (scout,) = world.state.scenario.scouts
     server: ManagedProcess
-    server, address = await start_server("--min-pose-interval", "0.05")
+    # DEBUG: the server logs every pose it moves a mobile camera to (POSE_APPLIED); the test waits on those.
+    server, address = await start_server("--min-pose-interval", "0.05", "--log-level", "DEBUG")
     procs: list[ManagedProcess] = [server]
+    posed = re.compile(rf"camera {re.escape(scout.camera_id)} at pose x=(\S+) y=(\S+)")
+
+    def pose_where(accept: Callable[[float, float], bool]) -> Callable[[str], tuple[float, float] | None]:
+        def check(line: str) -> tuple[float, float] | None:
+            m = posed.search(line)
+            xy = (float(m.group(1)), float(m.group(2))) if m else None
+            return xy if xy is not None and accept(*xy) else None
+
+        return check
+
     try:
         procs += await start_scout(scout, world.address, address, "--detectors", "hsv")
         async with DrvsClient.connect(address, robot_id="turtle") as drvs:
-            deadline = time.monotonic() + 20
-            while not (cams := await drvs.cameras(HIDDEN)):
-                assert time.monotonic() < deadline, [p.output() for p in procs[1:]]
-                await asyncio.sleep(0.05)
-            (cam,) = cams
+            await server.wait_for(pose_where(lambda x, y: True), "the scout's first pose", 20)
+            (cam,) = await drvs.cameras(HIDDEN)
             assert cam.camera_id == scout.camera_id and cam.mobile and cam.unroutable == ""
             start = scout.pose_at(0.0)
             assert cam.pose is not None and math.dist((cam.pose.x, cam.pose.y), (start.x, start.y)) < 1e-6
@@ -210,14 +219,9 @@ async def test_a_scout_is_a_mobile_camera_node_the_server_routes_as_it_drives(wo
             # The clock starts: the scout drives; its routed field of view goes with it.
             async with _grpc.insecure_channel(world.address) as channel:
                 await sim_pb2_grpc.SimulatedWorldStub(channel).Start(sim_pb2.StartRequest())
-            deadline = time.monotonic() + 20
-            while True:
-                (cam,) = [c for c in await drvs.cameras() if c.camera_id == scout.camera_id]
-                assert cam.pose is not None
-                if cam.pose.y < start.y - 0.3:
-                    break
-                assert time.monotonic() < deadline, cam
-                await asyncio.sleep(0.1)
+            await server.wait_for(pose_where(lambda x, y: y < start.y - 0.3), "the scout 0.3 m on", 20)
+            (cam,) = [c for c in await drvs.cameras() if c.camera_id == scout.camera_id]
+            assert cam.pose is not None and cam.pose.y < start.y - 0.3
             # Where it is now (by the world's clock), within what the pose-update thresholds allow.
             truth = scout.pose_at(world.state.world_time())
             assert math.dist((cam.pose.x, cam.pose.y), (truth.x, truth.y)) < 0.5

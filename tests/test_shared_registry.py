@@ -44,13 +44,16 @@ class Site:
 
 @pytest_asyncio.fixture
 async def site(tmp_path: Path) -> AsyncIterator[Site]:
-    """One etcd member and two servers on it (lease 2 s; pose updates as often as a test sends them)."""
+    """One etcd member and two servers on it (lease 2 s; pose updates as often as a test sends them;
+    DEBUG logs)."""
     etcd = await start_etcd(tmp_path)
     site = Site(etcd, [])
     try:
         for _ in range(2):
             site.servers.append(
-                await start_server("--registry", site.registry, "--lease-ttl", "2", "--min-pose-interval", "0")
+                await start_server(  # DEBUG: the tests wait on the poses a server logs it applied
+                    "--registry", site.registry, "--lease-ttl", "2", "--min-pose-interval", "0", "--log-level", "DEBUG"
+                )
             )
         yield site
     finally:
@@ -373,10 +376,9 @@ async def test_a_mobile_camera_on_a_shared_registry_is_routed_by_every_server_wh
                 camera_id="scout", registration_secret=reply.registration_secret, pose=geometry_pb2.Pose2(x=x, y=1.0)
             ),
         )
-        deadline = asyncio.get_running_loop().time() + 10
-        while await seen_by_b(x) != ["scout"]:
-            assert asyncio.get_running_loop().time() < deadline, f"B does not route the scout at x={x}"
-            await asyncio.sleep(0.02)
+        # B logs (DEBUG) each pose it moves the camera to from etcd: then it routes it there.
+        await b.wait_for_line(rf"camera scout at pose x={x:.3f} y=1\.000 .*from the shared registry", timeout=10)
+        assert await seen_by_b(x) == ["scout"], f"B does not route the scout at x={x}"
     assert await seen_by_b(5.0) == []  # it has moved on
 
 

@@ -118,6 +118,10 @@ FUSED_CONTINUOUS_UNARY = (
 )
 
 
+#: The DEBUG line of every pose a mobile camera's field of view moves to (tests wait on it).
+POSE_APPLIED = "camera %s at pose x=%.3f y=%.3f yaw=%.4f %s"
+
+
 class _Outcome:
     """Counts a request's forwards that failed; calls `on_none_accepted` once when all have."""
 
@@ -664,6 +668,7 @@ class DrvsServer(Lifecycle):
         """A mobile camera's pose another server took: its field of view moves here too (the rate
         was checked where the update came in), and it may join this server's tracks."""
         entry = self.registry.update_pose(camera_id, Pose2(pose.x, pose.y, pose.yaw), pose.time_unix, check_rate=False)
+        log.debug(POSE_APPLIED, camera_id, pose.x, pose.y, pose.yaw, "from the shared registry")
         self._pick_up(entry)
 
     def _drop_shared(self, camera_id: str, why: str) -> None:
@@ -696,6 +701,7 @@ class DrvsServer(Lifecycle):
             metrics.POSE_UPDATES.labels(outcome=exc.code.lower()).inc()
             raise
         metrics.POSE_UPDATES.labels(outcome="ok").inc()
+        log.debug(POSE_APPLIED, camera_id, pose.x, pose.y, pose.yaw, "")
         if self.shared is not None:  # the other servers route it by this pose too
             self.shared.share_pose(camera_id, PoseRecord(pose.x, pose.y, pose.yaw, pose_time_unix, self.shared.origin))
         self._pick_up(entry)
