@@ -9,8 +9,9 @@ import math
 import os
 import re
 import shutil
+import time
 import urllib.request
-from collections.abc import AsyncIterator, Sequence
+from collections.abc import AsyncIterator, Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -179,6 +180,24 @@ async def scrape(port: int) -> dict[str, float]:
             name, value = line.rsplit(" ", 1)
             values[name] = float(value)
     return values
+
+
+async def metrics_at_least(port: int, name: str, value: float, timeout: float = 10.0) -> dict[str, float]:
+    """The metrics on `port` once `name` has reached `value`. Another process's counter tells no
+    one when it moves: this polls its scrape endpoint, failing after `timeout` s."""
+    deadline = time.monotonic() + timeout
+    while (values := await scrape(port)).get(name, 0.0) < value:
+        assert time.monotonic() < deadline, f"{name} is {values.get(name, 0.0)}, not {value}, after {timeout} s"
+        await asyncio.sleep(0.05)
+    return values
+
+
+async def wait_until(check: Callable[[], object], what: str = "the condition", timeout: float = 5.0) -> None:
+    """Poll `check()` (a state the test cannot be told about) until true; fail after `timeout` s."""
+    deadline = time.monotonic() + timeout
+    while not check():
+        assert time.monotonic() < deadline, f"still not {what} after {timeout} s"
+        await asyncio.sleep(0.01)
 
 
 # --- real footage ------------------------------------------------------------------------------

@@ -11,7 +11,7 @@ import contextlib
 import importlib.util
 import socket
 import time
-from collections.abc import AsyncIterator, Callable
+from collections.abc import AsyncIterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -34,7 +34,7 @@ from drvs.robot import DrvsClient
 from drvs.sim.scene import RecordedCamera
 
 from .fakes import start_recorded_camera
-from .helpers import CAM1_REGION, IMAGE_SIZE, YELLOW, metrics_port, scrape
+from .helpers import CAM1_REGION, IMAGE_SIZE, YELLOW, metrics_at_least, metrics_port, scrape, wait_until
 
 TOPIC = "/camera/cam1/image"
 PUBLISHED = 'drvs_liveview_frames_total{outcome="published"}'
@@ -99,24 +99,6 @@ def box_drawn(image: NDArray[np.uint8], box: PixelBox) -> float:
     return float(np.concatenate(edges).mean())
 
 
-async def until(condition: Callable[[], bool], what: str, timeout: float = 5.0) -> None:
-    deadline = time.monotonic() + timeout
-    while not condition():
-        assert time.monotonic() < deadline, f"still not {what} after {timeout} s"
-        await asyncio.sleep(0.02)
-
-
-async def metrics_until(port: int, name: str, at_least: float, timeout: float = 10.0) -> dict[str, float]:
-    """The camera's metrics once `name` has reached `at_least`."""
-    deadline = time.monotonic() + timeout
-    while True:
-        values = await scrape(port)
-        if values.get(name, 0.0) >= at_least:
-            return values
-        assert time.monotonic() < deadline, f"{name} still {values.get(name, 0.0)} < {at_least} after {timeout} s"
-        await asyncio.sleep(0.05)
-
-
 async def test_the_camera_sends_frames_only_while_watched_with_its_detections_drawn(
     recorded: dict[str, RecordedCamera],
 ) -> None:
@@ -133,7 +115,7 @@ async def test_the_camera_sends_frames_only_while_watched_with_its_detections_dr
             decode = decoder(channel)
 
             # (a) Connected, not subscribed: the view's turns pass, and not one frame is encoded or sent.
-            values = await metrics_until(cam.metrics, UNWATCHED, 5)
+            values = await metrics_at_least(cam.metrics, UNWATCHED, 5)
             assert values.get(PUBLISHED, 0.0) == 0.0 and values.get(BYTES, 0.0) == 0.0, values
             with pytest.raises(asyncio.TimeoutError):
                 await client.next_message(timeout=0.2)
@@ -162,8 +144,8 @@ async def test_the_camera_sends_frames_only_while_watched_with_its_detections_dr
             # (e) Unsubscribed: the turns pass unwatched again, and nothing more is encoded.
             before = await scrape(cam.metrics)
             await client.unsubscribe_all()
-            stopped = await metrics_until(cam.metrics, UNWATCHED, before[UNWATCHED] + 2)
-            later = await metrics_until(cam.metrics, UNWATCHED, stopped[UNWATCHED] + 5)
+            stopped = await metrics_at_least(cam.metrics, UNWATCHED, before[UNWATCHED] + 2)
+            later = await metrics_at_least(cam.metrics, UNWATCHED, stopped[UNWATCHED] + 5)
             assert later[PUBLISHED] == stopped[PUBLISHED] > 0, (stopped, later)
             assert later[BYTES] == stopped[BYTES]
         finally:
@@ -217,16 +199,16 @@ async def test_an_unwatched_view_reads_no_frame() -> None:
         client = await FoxgloveClient.connect(view.url)
         try:
             channel = (await client.wait_for_topics([TOPIC]))[TOPIC]
-            await until(lambda: view.frames_skipped_unwatched >= 5, "5 turns unwatched")
+            await wait_until(lambda: view.frames_skipped_unwatched >= 5, "5 turns unwatched")
             assert source.reads == 0 and view.frames_published == 0
             await client.subscribe([channel])
             await client.next_message(timeout=5)
             assert source.reads > 0 and view.frames_published == 1
             await client.unsubscribe_all()
             skipped = view.frames_skipped_unwatched
-            await until(lambda: view.frames_skipped_unwatched > skipped, "unwatched again")
+            await wait_until(lambda: view.frames_skipped_unwatched > skipped, "unwatched again")
             reads = source.reads
-            await until(lambda: view.frames_skipped_unwatched >= skipped + 5, "5 more turns unwatched")
+            await wait_until(lambda: view.frames_skipped_unwatched >= skipped + 5, "5 more turns unwatched")
             assert source.reads == reads and view.frames_published == 1
         finally:
             await client.close()

@@ -23,7 +23,7 @@ from mcap_protobuf.decoder import DecoderFactory
 
 from drvs.filters import HsvRange
 from drvs.foxglove_client import Channel, FoxgloveClient
-from drvs.launch import LIVE_READY, ManagedProcess, start_server
+from drvs.launch import LIVE_READY, ManagedProcess, free_ports, start_server
 from drvs.liveview import SCENE_TOPICS, foxglove_layout
 from drvs.sim.scene import FloorPatch, RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
@@ -219,13 +219,6 @@ async def test_a_camera_that_leaves_is_deleted_from_the_view(
                 break
 
 
-def free_port() -> int:
-    """A port free now, for drvs-office --foxglove (which, like Foxglove's users, wants a fixed one)."""
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
-
-
 @pytest.mark.slow
 async def test_the_office_live_the_way_foxglove_sees_it_and_its_recording(tmp_path: Path) -> None:
     """drvs-office --foxglove: a client receives the advertised channels and the office moving (the
@@ -233,7 +226,12 @@ async def test_the_office_live_the_way_foxglove_sees_it_and_its_recording(tmp_pa
     run.mcap holds the same channels and agrees with result.json."""
     out = tmp_path / "office"
     office = await ManagedProcess.entry_point(
-        "office", "drvs-office", "--out", str(out), "--foxglove", str(free_port())
+        "office",
+        "drvs-office",
+        "--out",
+        str(out),
+        "--foxglove",
+        str(free_ports(1)[0]),  # (it wants a fixed port, as Foxglove's users do)
     ).start()
     seen: Counter[str] = Counter()
     poses: list[Any] = []

@@ -38,7 +38,7 @@ from drvs.sim.scene import FloorPatch, RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc
 
 from .fakes import start_recorded_camera
-from .helpers import YELLOW, Scene, metrics_port, record_facing, scrape, serving_detection
+from .helpers import YELLOW, Scene, metrics_port, record_facing, scrape, serving_detection, wait_until
 
 DOC = Path(__file__).resolve().parents[1] / "docs" / "validation.md"
 #: Filters the in-test server treats specially.
@@ -240,15 +240,6 @@ async def test_leaving_a_track_early_cancels_it_at_the_server(fusing: tuple[Fusi
                 break
         await wait_until(lambda: second in servicer.cancelled)
         assert servicer.sent[rid] == sent  # the server stopped: no snapshot after the cancel
-
-
-async def wait_until(check: Any, timeout: float = 5.0) -> None:
-    """Poll `check()` (a state this test cannot be told about) until true; fail after `timeout` s."""
-    loop = asyncio.get_running_loop()
-    end = loop.time() + timeout
-    while not check():
-        assert loop.time() < end, "condition not met in time"
-        await asyncio.sleep(0.01)
 
 
 async def test_an_unread_track_keeps_the_newest_snapshots_and_always_the_final(

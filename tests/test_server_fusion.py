@@ -38,7 +38,16 @@ from drvs.sim.scene import FloorPatch, RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2_grpc
 
 from .fakes import start_recorded_camera
-from .helpers import YELLOW, CapturingCamera, Scene, metrics_port, record_facing, register_message, scrape
+from .helpers import (
+    YELLOW,
+    CapturingCamera,
+    Scene,
+    metrics_at_least,
+    metrics_port,
+    record_facing,
+    register_message,
+    scrape,
+)
 
 #: Two cameras 3 m apart, both 3 m up looking along +y: at y = 4.5 "left" sees x -4.6..1.6 and
 #: "right" x -1.6..4.6. SHARED lies where both see it, LONE where only left does.
@@ -255,7 +264,7 @@ async def test_a_frozen_camera_does_not_hold_a_single_shot_beyond_its_deadline(
             reply = await stub.DetectObjects(fused("frozen", deadline_s=1.0), timeout=20)
             took = time.monotonic() - started
         # Thawed, right takes the request and reports: late, which is not a forgery.
-        values = await metric_at_least(slow.server, 'drvs_fusion_reports_total{outcome="late"}', 1)
+        values = await metrics_at_least(metrics_port(slow.server), 'drvs_fusion_reports_total{outcome="late"}', 1)
         assert values.get('drvs_fusion_reports_total{outcome="rejected"}', 0.0) == 0.0
     assert took < 5.0, took  # the deadline, not the forward timeout
     assert missing(reply.snapshot) == {"right": "DEADLINE_EXCEEDED"}, reply.snapshot.missing_cameras
@@ -284,16 +293,6 @@ async def test_a_waiting_fused_single_shot_does_not_delay_later_replies(office: 
     assert first.request_id == "later" and list(first.camera_ids) == ["left"] and not first.HasField("snapshot")
     assert second.request_id == "slow" and second.snapshot.final
     assert "right" in missing(second.snapshot) and near(second.snapshot.objects, LONE)
-
-
-async def metric_at_least(proc: ManagedProcess, name: str, value: float) -> dict[str, float]:
-    """The process's metrics once `name` has reached `value` (at most 10 s)."""
-    port = metrics_port(proc)
-    deadline = time.monotonic() + 10
-    while (values := await scrape(port)).get(name, 0.0) < value:
-        assert time.monotonic() < deadline, f"{name} is {values.get(name)}, not {value}, after 10 s"
-        await asyncio.sleep(0.1)  # polling the metrics, not waiting for anything to happen
-    return values
 
 
 async def dropped_at_least(ports: dict[str, int], count: int) -> None:

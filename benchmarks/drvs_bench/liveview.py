@@ -21,7 +21,6 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
-import socket
 import sys
 import tempfile
 import time
@@ -30,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from drvs.foxglove_client import FoxgloveClient
-from drvs.launch import ManagedProcess
+from drvs.launch import ManagedProcess, free_ports
 
 from .common import machine, pyplot, write_result
 from .stats import WorkMismatch, interleaved, per_round_ratio, publish
@@ -39,12 +38,6 @@ MODES = ("off", "record", "live")
 #: Each round is three 25 s offices: 3 rounds take about 4 minutes.
 FULL_ROUNDS = 3
 QUICK_ROUNDS = 1
-
-
-def _free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return int(s.getsockname()[1])
 
 
 async def _watch(url: str, stop: asyncio.Event) -> dict[str, float]:
@@ -75,7 +68,7 @@ async def _office(mode: str, out: Path) -> dict[str, Any]:
     if mode == "off":
         args.append("--no-record")
     if mode == "live":
-        args += ["--foxglove", str(_free_port())]
+        args += ["--foxglove", str(free_ports(1)[0])]
     proc = await ManagedProcess.entry_point(f"office-{mode}", "drvs-office", *args).start()
     stop = asyncio.Event()
     watcher: asyncio.Task[dict[str, float]] | None = None
