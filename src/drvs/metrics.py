@@ -55,6 +55,13 @@ POSE_UPDATES = Counter(
     "Mobile cameras' pose updates the server received, by outcome (ok, or the refusal's status)",
     ["outcome"],
 )
+LIVEVIEW_FRAMES = Counter(
+    "drvs_liveview_frames_total",
+    "A camera's live view, per turn (at most --foxglove-fps a second): published (a frame encoded and sent), "
+    "unwatched (nobody subscribed: no frame read or encoded), unchanged (no frame newer than the last sent)",
+    ["outcome"],
+)
+LIVEVIEW_BYTES = Counter("drvs_liveview_bytes_total", "JPEG bytes a camera's live view sent")
 MOBILE_PICKUPS = Counter(
     "drvs_mobile_pickups_total",
     "Continuous fused requests a mobile camera joined after their dispatch, its field of view having entered "

@@ -37,11 +37,12 @@ from typing import Any
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from prometheus_client import Counter
 
+from drvs import metrics
 from drvs._cli import format_number
 from drvs.errors import InvalidArgument
 from drvs.filters import object_type
+from drvs.imaging import encode_jpeg
 from drvs.liveview import LiveHub, require
 from drvs.model import Detection
 from drvs.net import is_loopback_host
@@ -60,16 +61,9 @@ BOX_THICKNESS = 2
 #: At most this many boxes are drawn on one frame (the most recent requests' first).
 MAX_BOXES = 256
 
-FRAMES = Counter(
-    "drvs_liveview_frames_total",
-    "A camera's live view, per turn (at most --foxglove-fps a second): published (a frame encoded and sent), "
-    "unwatched (nobody subscribed: no frame read or encoded), unchanged (no frame newer than the last sent)",
-    ["outcome"],
-)
-BYTES = Counter("drvs_liveview_bytes_total", "JPEG bytes a camera's live view sent")
-PUBLISHED = FRAMES.labels("published")
-UNWATCHED = FRAMES.labels("unwatched")
-UNCHANGED = FRAMES.labels("unchanged")
+PUBLISHED = metrics.LIVEVIEW_FRAMES.labels("published")
+UNWATCHED = metrics.LIVEVIEW_FRAMES.labels("unwatched")
+UNCHANGED = metrics.LIVEVIEW_FRAMES.labels("unchanged")
 
 
 def check_fps(fps: float, name: str = "--foxglove-fps") -> float:
@@ -124,11 +118,7 @@ def draw_detections(image: NDArray[np.uint8], detections: Iterable[Detection]) -
 
 def encode(image: NDArray[np.uint8], detections: Sequence[Detection], quality: int = JPEG_QUALITY) -> bytes:
     """The frame as JPEG, `detections` drawn on it."""
-    drawn = draw_detections(image, detections) if detections else image
-    ok, buf = cv2.imencode(".jpg", drawn, [cv2.IMWRITE_JPEG_QUALITY, quality])
-    if not ok:
-        raise RuntimeError("JPEG encoding failed")
-    return buf.tobytes()
+    return encode_jpeg(draw_detections(image, detections) if detections else image, quality)
 
 
 class CameraLiveView:
@@ -269,5 +259,5 @@ class CameraLiveView:
         self.frames_published += 1
         self.bytes_published += len(data)
         PUBLISHED.inc()
-        BYTES.inc(len(data))
+        metrics.LIVEVIEW_BYTES.inc(len(data))
         return frame.sequence

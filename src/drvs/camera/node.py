@@ -13,7 +13,6 @@ import time
 from collections.abc import AsyncIterator, Callable, Mapping
 from typing import Any
 
-import cv2
 import grpc
 import numpy as np
 from grpc import aio
@@ -37,6 +36,7 @@ from drvs.detectors import (
 from drvs.errors import DrvsError, FailedPrecondition, InvalidArgument, ResourceExhausted
 from drvs.filters import object_type
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
+from drvs.imaging import encode_jpeg
 from drvs.mobile import DEFAULT_MAX_POSE_GAP_S, Mount, PoseBuffer, move_detection
 from drvs.model import DEFAULT_FRAME, Detection, DetectionReport, DetectionRequest, Pose2, check_frame, check_id
 from drvs.net import dialable_address, parse_address, parse_address_list
@@ -663,10 +663,7 @@ async def check_caller(node: CameraNode, context: aio.ServicerContext[Any, Any],
 def encode_frame(image: NDArray[np.uint8], encoding: int, quality: int) -> bytes:
     if encoding == stream_pb2.FRAME_ENCODING_RAW_BGR:
         return image.tobytes()
-    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, quality])
-    if not ok:
-        raise RuntimeError("JPEG encoding failed")
-    return bytes(buf)
+    return encode_jpeg(image, quality)
 
 
 class _FrameStreaming(stream_pb2_grpc.FrameStreamServicer):
