@@ -38,7 +38,7 @@ from shapely.geometry import Polygon, box
 
 from drvs import liveview as lv
 from drvs._files import read_yaml
-from drvs.convert import region_from_pb
+from drvs.convert import detection_from_pb, region_from_pb, world_object_from_pb
 from drvs.errors import InvalidArgument
 from drvs.v1 import detection_pb2, registry_pb2
 
@@ -302,11 +302,11 @@ class ServerView:
         if not message.HasField("snapshot"):
             return
         entities = []
-        for o in message.snapshot.objects:
+        for o in map(world_object_from_pb, message.snapshot.objects):
             key = f"{message.request_id}/{o.track_id}"
-            geometry = _outline(o.outline_xy) or _box(o.bounds)
-            name = o.label or (f"marker {o.marker_id}" if o.HasField("marker_id") else "object")
-            speed = (o.velocity.x**2 + o.velocity.y**2) ** 0.5
+            geometry = _drawn(o.outline, o.bounds)
+            name = o.label or (f"marker {o.marker_id}" if o.marker_id is not None else "object")
+            speed = o.speed_mps
             label = f"#{o.track_id} {name}" + (f" {speed:.2f} m/s" if speed > 0.05 else "")
             entities.append(
                 lv.area_entity(
@@ -332,8 +332,9 @@ class ServerView:
         self.rpc_reports.log(data, log_time=_ns(t))
         message = detection_pb2.DetectionReport.FromString(data)
         entities = []
-        for i, d in enumerate(message.detections):
-            geometry = _outline(d.outline_xy) or _box(d.bounds)
+        for i, pb in enumerate(message.detections):
+            d = detection_from_pb(pb, message.camera_id, 0.0, "")
+            geometry = _drawn(d.outline, d.bounds)
             entities.append(
                 lv.area_entity(
                     f"detection/{message.camera_id}/{message.request_id}/{i}",
@@ -351,16 +352,13 @@ class ServerView:
             self.detections.log(lv.scene(entities), log_time=_ns(t))
 
 
-def _outline(xy: Any) -> Polygon | None:
-    if len(xy) < 6:
-        return None
-    polygon = Polygon(list(zip(xy[0::2], xy[1::2], strict=False)))
-    return polygon if polygon.is_valid and polygon.area > 0 else polygon.buffer(0) or None
+def _drawn(outline: Polygon, bounds: tuple[float, float, float, float]) -> Polygon:
+    """What to draw of an outline the wire carried: itself, repaired if it is not a valid area (as
+    a packed ring may be), or its bounds when it is empty (outlines omitted) or nothing is left."""
+    if not outline.is_empty and not (outline.is_valid and outline.area > 0):
+        outline = outline.buffer(0)
+    return outline if not outline.is_empty else box(*bounds)
 
 
 def _ns(t: float) -> int:
     return int(t * 1e9)
-
-
-def _box(b: Any) -> Polygon:
-    return box(b.x_lower, b.y_lower, b.x_upper, b.y_upper)
