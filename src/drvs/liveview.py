@@ -111,12 +111,6 @@ class _Relay:
         if channel is not None:
             channel.log(data)
 
-    def on_subscribe(self, client: Any, channel: Any) -> None:
-        self._hub.subscribed.set()
-
-    def on_unsubscribe(self, client: Any, channel: Any) -> None:
-        pass
-
     def on_client_disconnect(self, client: Any) -> None:
         with self._lock:
             for key in [k for k in self._channels if k[0] == client.id]:
@@ -155,7 +149,6 @@ class LiveHub:
         from foxglove.websocket import Capability
 
         self.context = foxglove.Context()
-        self.subscribed = threading.Event()
         self._channels: dict[str, Any] = {}
         self._lock = threading.Lock()
         self.server: Any = None
@@ -224,10 +217,6 @@ class LiveHub:
                 channel = SceneUpdateChannel(topic, context=self.context)
                 self._channels[topic] = channel
             return channel
-
-    def watched(self) -> bool:
-        """Whether any sink (a subscribed client, the recording) takes messages now."""
-        return self.writer is not None or any(c.has_sinks() for c in list(self._channels.values()))
 
     def close(self) -> None:
         if self.server is not None:
