@@ -58,9 +58,21 @@ def format_address(host: str, port: int) -> str:
     return f"[{host}]:{port}" if ":" in host else f"{host}:{port}"
 
 
-def local_ip_towards(address: str) -> str:
-    """The local IP this host would use to reach `address` (no packet is sent)."""
-    host, port = parse_address(address)
+def local_ip_towards(peers: str | Sequence[str]) -> str:
+    """The local IP this host would use to reach `peers` (no packet is sent): one HOST:PORT, a
+    list of them ("a:1,b:2", or a sequence: several servers), or a DNS name. With several, the
+    first that has a route and resolves decides (a dead server still has one; a name nobody
+    resolves does not); with none, 127.0.0.1."""
+    addresses = parse_address_list(peers, "server") if isinstance(peers, str) else list(peers)
+    for address in addresses:
+        ip = _route_towards(*parse_address(address))
+        if ip is not None:
+            return ip
+    return "127.0.0.1"
+
+
+def _route_towards(host: str, port: int) -> str | None:
+    """The local IP of the route to host:port, or None when there is none (or the name resolves to nothing)."""
     if host in ("localhost",) or host.startswith("127."):
         return "127.0.0.1"
     if host == "::1":
@@ -71,7 +83,7 @@ def local_ip_towards(address: str) -> str:
             s.connect((host, port))
             return str(s.getsockname()[0])
     except OSError:
-        return "127.0.0.1"
+        return None
 
 
 def host_of(listen: str) -> str:
@@ -79,9 +91,10 @@ def host_of(listen: str) -> str:
     return parse_address(listen, "listen", allow_port_zero=True)[0]
 
 
-def dialable_address(listen: str, port: int, peer: str) -> str:
+def dialable_address(listen: str, port: int, peer: str | Sequence[str]) -> str:
     """What others should dial for a listener bound to `listen` on `port`: a wildcard host
-    (0.0.0.0, ::) becomes the local IP this host uses to reach `peer`."""
+    (0.0.0.0, ::) becomes the local IP this host uses to reach `peer` (one or several: see
+    local_ip_towards)."""
     host = host_of(listen)
     if host in ("0.0.0.0", "::"):
         host = local_ip_towards(peer)

@@ -45,7 +45,11 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE",
         help=f"JSON/YAML file whose 'homography' is the 3x3 image->floor matrix ({e['homography']})",
     )
-    p.add_argument("--server", help=f"DRVS server HOST:PORT (default {DEFAULT_SERVER}; {e['server']})")
+    p.add_argument(
+        "--server",
+        help=f"DRVS server HOST:PORT, several sharing a registry (A:PORT,B:PORT: registration moves on from one "
+        f"that dies), or a DNS name for several (default {DEFAULT_SERVER}; {e['server']})",
+    )
     p.add_argument(
         "--listen", help=f"HOST:PORT to serve on; port 0 picks a free one (default {DEFAULT_LISTEN}; {e['listen']})"
     )

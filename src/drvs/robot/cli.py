@@ -299,7 +299,11 @@ def build_parser() -> argparse.ArgumentParser:
     sub = p.add_subparsers(dest="command", required=True)
 
     def common(sp: argparse.ArgumentParser) -> None:
-        sp.add_argument("--server", default=env(ENV_SERVER, "127.0.0.1:50051"), help=f"HOST:PORT (env {ENV_SERVER})")
+        sp.add_argument(
+            "--server",
+            default=env(ENV_SERVER, "127.0.0.1:50051"),
+            help=f"HOST:PORT, several sharing a registry (A:PORT,B:PORT), or a DNS name for several (env {ENV_SERVER})",
+        )
         sp.add_argument("--roi", help="box X0,Y0,X1,Y1 in metres")
         sp.add_argument("--polygon", help="polygon X0,Y0,X1,Y1,X2,Y2,... in metres")
         sp.add_argument("--robot-id", default="drvs-robot-cli")

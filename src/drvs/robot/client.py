@@ -823,7 +823,8 @@ class DrvsClient:
         async with DrvsClient.connect("drvs.example:50051", robot_id="turtle-1") as drvs:
             result = await drvs.detect("hsv_014110130035225200", (0, 0, 5, 5))
 
-    - `server`: the server's HOST:PORT;
+    - `server`: the server's HOST:PORT, several sharing one registry ("a:50051,b:50051", all IPv4 or
+      all IPv6), or a DNS name standing for several: every call moves on from one that is down;
     - `robot_id`: this robot's name in the server's logs and limits (letters, digits, - _ . :);
     - `listen`: HOST:PORT the robot's report listener binds (port 0: any free port); default: the
       local address that reaches the server, port 0, chosen when the listener starts;
@@ -946,7 +947,7 @@ class DrvsClient:
             return self._advertise
         if self._listener is None:
             return ""
-        return dialable_address(self.listen, self.port, self.servers[0])
+        return dialable_address(self.listen, self.port, self.servers)
 
     @property
     def listening(self) -> bool:
@@ -972,8 +973,9 @@ class DrvsClient:
         async with self._listener_lock:
             if self._listener is None:
                 if not self.listen:
-                    # Resolving the server's name may block: not on the event loop.
-                    self.listen = format_address(await asyncio.to_thread(local_ip_towards, self.server), 0)
+                    # Resolving the servers' names may block: not on the event loop. Every server
+                    # given is one way to the same cameras: the first with a route picks the interface.
+                    self.listen = format_address(await asyncio.to_thread(local_ip_towards, self.servers), 0)
                 listener = _grpc.new_server()
                 detection_pb2_grpc.add_CallbackCoordinatesServicer_to_server(_Listener(self), listener)
                 self.port = self.security.bind(listener, self.listen)
