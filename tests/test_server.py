@@ -13,6 +13,7 @@ from grpc import aio
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
+from drvs.errors import ResourceExhausted
 from drvs.geometry import homography_from_pose
 from drvs.robot import DrvsClient
 from drvs.server import DrvsServer
@@ -272,12 +273,13 @@ async def test_server_sheds_load_when_a_camera_has_too_many_requests_waiting() -
                 await registry_pb2_grpc.RegisterVisionServiceStub(channel).Register(registration)
             async with DrvsClient(server.address, robot_id="r", listen="127.0.0.1:0") as robot:
                 waiting = [await robot.subscribe(YELLOW, (-1, 0, 1, 5), timeout_s=30) for _ in range(2)]
-                # The third finds two forwards waiting for cam1: it is told at once that cam1 is busy.
-                shed = await robot.detect(YELLOW, (-1, 0, 1, 5), timeout_s=30)
-                assert not shed.complete and shed.camera_ids == ("cam1",)
-                assert shed.camera_errors["cam1"].code == "RESOURCE_EXHAUSTED"
-                assert len(shed.errors) == 1 and "RESOURCE_EXHAUSTED busy: 2 requests already waiting" in shed.errors[0]
+                # The third finds two forwards waiting for cam1: it is refused at once, before cam1
+                # is asked, with a hint of when to come back.
+                with pytest.raises(ResourceExhausted, match="busy: camera cam1 has 2 requests already waiting") as shed:
+                    await robot.detect(YELLOW, (-1, 0, 1, 5), timeout_s=30)
+                assert shed.value.retry_after_s > 0
                 assert "cam1" not in server._unreachable  # busy is not gone: it stays in routing
+                assert [c.camera_id for c in await robot.cameras()] == ["cam1"]
                 for sub in waiting:
                     sub.close()
     finally:

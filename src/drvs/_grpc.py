@@ -102,13 +102,32 @@ def from_rpc_error(exc: grpc.RpcError, what: str) -> errors.DrvsError:
     details = exc.details() if hasattr(exc, "details") else str(exc)
     if code == grpc.StatusCode.INTERNAL and details == CORE_BREAK:
         return errors.Unavailable(f"{what}: the connection broke during the call")
+    if code == grpc.StatusCode.RESOURCE_EXHAUSTED:
+        return errors.ResourceExhausted(f"{what}: {details or code.name}", retry_after_s=retry_hint(exc))
     cls = _FROM_STATUS.get(code, errors.DrvsError)
     return cls(f"{what}: {details or code.name}")
 
 
-def error_from_code(code_name: str, message: str) -> errors.DrvsError:
+#: The trailer a refusal's retry hint travels in on a unary call: gRPC's own name for it (its
+#: retry policy honours it), in whole milliseconds.
+RETRY_PUSHBACK = "grpc-retry-pushback-ms"
+
+
+def retry_hint(exc: grpc.RpcError) -> float:
+    """The seconds a failed call's trailers ask the caller to wait (0: no hint)."""
+    trailers: Any = exc.trailing_metadata() if hasattr(exc, "trailing_metadata") else None
+    for key, value in trailers or ():
+        if key == RETRY_PUSHBACK:
+            try:
+                return max(0.0, int(value) / 1000)
+            except (TypeError, ValueError):
+                return 0.0
+    return 0.0
+
+
+def error_from_code(code_name: str, message: str, retry_after_s: float = 0.0) -> errors.DrvsError:
     """The domain error for a status code sent by name (a refused request on a stream)."""
-    return errors.error_for(code_name, message)
+    return errors.error_for(code_name, message, retry_after_s=retry_after_s)
 
 
 def servicer_method(method: Handler[T]) -> Handler[T]:
@@ -119,7 +138,9 @@ def servicer_method(method: Handler[T]) -> Handler[T]:
         try:
             return await method(self, request, context)
         except errors.DrvsError as exc:
-            await context.abort(status_of(exc), str(exc))
+            hint = getattr(exc, "retry_after_s", 0.0)
+            trailers = ((RETRY_PUSHBACK, str(max(1, round(hint * 1000)))),) if hint > 0 else ()
+            await context.abort(status_of(exc), str(exc), trailing_metadata=trailers)
         except aio.AbortError:
             raise
         except Exception:

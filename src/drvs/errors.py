@@ -59,9 +59,18 @@ class FailedPrecondition(DrvsError):
 
 
 class ResourceExhausted(DrvsError):
-    """A bound was hit (too many concurrent requests, a busy camera); retry later (RESOURCE_EXHAUSTED)."""
+    """A bound was hit (too many concurrent requests, a busy camera, a server past its capacity);
+    retry later (RESOURCE_EXHAUSTED).
+
+    `retry_after_s`: how long the refuser asks the caller to wait before sending more (seconds; 0
+    when it gave no hint). DrvsClient waits that long by itself: requests sent sooner are refused
+    at once, on the robot, without reaching the server."""
 
     code = "RESOURCE_EXHAUSTED"
+
+    def __init__(self, message: str = "", *, camera_id: str | None = None, retry_after_s: float = 0.0) -> None:
+        super().__init__(message, camera_id=camera_id)
+        self.retry_after_s = retry_after_s
 
 
 class PermissionDenied(DrvsError):
@@ -92,7 +101,9 @@ BY_CODE: dict[str, type[DrvsError]] = {
 }
 
 
-def error_for(code: str, message: str, *, camera_id: str | None = None) -> DrvsError:
+def error_for(code: str, message: str, *, camera_id: str | None = None, retry_after_s: float = 0.0) -> DrvsError:
     """The error of status name `code` (an unknown name gives a plain DrvsError whose code is
-    ``"UNKNOWN"``), with `message` and `camera_id`."""
+    ``"UNKNOWN"``), with `message` and `camera_id` (and, for ResourceExhausted, `retry_after_s`)."""
+    if code == ResourceExhausted.code:
+        return ResourceExhausted(message or code, camera_id=camera_id, retry_after_s=retry_after_s)
     return BY_CODE.get(code, DrvsError)(message or code, camera_id=camera_id)

@@ -68,6 +68,12 @@ MOBILE_PICKUPS = Counter(
     "their region (it was asked for the rest of the request)",
 )
 FUSION_SESSIONS = Gauge("drvs_fusion_sessions", "Fused requests in flight in the server")
+ADMISSION_REFUSED = Counter(
+    "drvs_admission_refused_total",
+    "Requests the server refused at its door, RESOURCE_EXHAUSTED before forwarding anything, by whose "
+    "queue stood: the server's own loop, a camera link's, or a camera link already at its bound",
+    ["by"],
+).labels
 STAGE = Histogram(
     "drvs_stage_seconds",
     "Time per stage: route (server: validate, check, route, dispatch), forward (server: until the camera "

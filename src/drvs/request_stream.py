@@ -157,7 +157,7 @@ class RequestStream:
                 future.cancel()
         if reply.HasField("error"):
             self.release(message.request_id)
-            raise _grpc.error_from_code(reply.error.code, reply.error.message)
+            raise _grpc.error_from_code(reply.error.code, reply.error.message, reply.error.retry_after_s)
         return reply
 
     def release(self, request_id: str) -> None:
@@ -656,7 +656,10 @@ def _refused(message: Request, exc: Exception, where: str) -> Reply:
     """The reply to a request whose answer raised: a DrvsError is the peer's to read; anything
     unexpected is logged here and answered as INTERNAL."""
     if isinstance(exc, errors.DrvsError):
-        return refusal(message.request_id, _grpc.status_of(exc), str(exc))
+        reply = refusal(message.request_id, _grpc.status_of(exc), str(exc))
+        if isinstance(exc, errors.ResourceExhausted) and exc.retry_after_s > 0:
+            reply.error.retry_after_s = exc.retry_after_s
+        return reply
     log.error("%s: request %s failed", where, message.request_id, exc_info=exc)
     return refusal(message.request_id, grpc.StatusCode.INTERNAL, f"{where}: internal error")
 

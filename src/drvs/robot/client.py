@@ -40,7 +40,14 @@ from shapely.geometry import Polygon
 
 from drvs import _grpc
 from drvs.convert import polygon_from_pb, pose_from_pb, region_to_pb, report_from_pb, request_to_pb, snapshot_from_pb
-from drvs.errors import DeadlineExceeded, DrvsError, FailedPrecondition, InvalidArgument, Unavailable
+from drvs.errors import (
+    DeadlineExceeded,
+    DrvsError,
+    FailedPrecondition,
+    InvalidArgument,
+    ResourceExhausted,
+    Unavailable,
+)
 from drvs.geometry import box_region, polygon_region
 from drvs.model import (
     DEFAULT_FRAME,
@@ -65,6 +72,7 @@ from drvs.net import (
 )
 from drvs.report_auth import key_matches, new_secret
 from drvs.request_stream import RequestStream
+from drvs.robot.throttle import DEFAULT_K, AdaptiveThrottle
 from drvs.security import Security
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
@@ -836,6 +844,10 @@ class DrvsClient:
     `await start_listener()`). A robot whose requests are all fused (detect(fuse=True), track)
     dials out only and opens no port, so it works behind NAT.
     - `retry`: a RetryPolicy for calls the server could not take (default: no retry);
+    - `throttle_k`: client-side throttling (drvs.robot.throttle): while the server refuses requests
+      for overload (ResourceExhausted, with `retry_after_s`), the client itself refuses new ones
+      at once so that it sends at most about `throttle_k` times what the server accepts (2, the
+      SRE book's value; larger throttles later; math.inf: never, for tools that measure the server);
     - `security`: a drvs.security.Security with TLS files and this robot's token (default: plain).
 
     Constructing one does no network work (no name is resolved); `start()` (or `async with
@@ -863,6 +875,7 @@ class DrvsClient:
         retry: RetryPolicy | None = None,
         security: Security | None = None,
         frame: str = DEFAULT_FRAME,
+        throttle_k: float = DEFAULT_K,
     ) -> None:
         self.security = security or Security()
         #: The server, or several sharing one registry ("a:50051,b:50051"): one gRPC channel over
@@ -910,6 +923,8 @@ class DrvsClient:
         self._id_counter = itertools.count(1)
         self._requests: RequestStream | None = None
         self._regions = _Regions()
+        #: Holds back requests while the server refuses them for overload (drvs.robot.throttle).
+        self.throttle = AdaptiveThrottle(throttle_k)
 
     @classmethod
     def connect(
@@ -923,6 +938,7 @@ class DrvsClient:
         security: Security | None = None,
         connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S,
         frame: str = DEFAULT_FRAME,
+        throttle_k: float = DEFAULT_K,
     ) -> Connecting:
         """A client that has checked its server: `await DrvsClient.connect(...)` or
         `async with DrvsClient.connect(...) as drvs:` (closed on leaving the block).
@@ -935,7 +951,14 @@ class DrvsClient:
         """
         timeout_s = _seconds(connect_timeout_s, "connect_timeout_s", 3600.0)
         client = cls(
-            server, robot_id=robot_id, listen=listen, advertise=advertise, retry=retry, security=security, frame=frame
+            server,
+            robot_id=robot_id,
+            listen=listen,
+            advertise=advertise,
+            retry=retry,
+            security=security,
+            frame=frame,
+            throttle_k=throttle_k,
         )
         return Connecting(client, timeout_s)
 
@@ -1026,6 +1049,26 @@ class DrvsClient:
                     raise
                 log.info("server %s unavailable; retrying %s in %.1f s", self.server, what, wait)
                 await asyncio.sleep(wait)
+
+    async def _asking(self, what: str, call: Callable[[], Awaitable[T]]) -> T:
+        """A request to the server, through the client's throttle: refused here at once while the
+        server refuses this robot for overload (see drvs.robot.throttle), else sent as `_retrying`
+        sends it; the server's answer is counted."""
+        self.throttle.check(what)
+        try:
+            reply = await self._retrying(what, call)
+        except DrvsError as exc:
+            # Refused for overload (the server's door gives a retry hint; a robot over its own
+            # budget gets none) or not answered in time: not accepted. Anything else says nothing
+            # of the server's load.
+            overload = isinstance(exc, DeadlineExceeded) or (
+                isinstance(exc, ResourceExhausted) and exc.retry_after_s > 0
+            )
+            if not overload:
+                self.throttle.accepted()
+            raise
+        self.throttle.accepted()
+        return reply
 
     def _receive(self, peer: str) -> _ReportStream:
         return _ReportStream(self, peer)
@@ -1187,7 +1230,7 @@ class DrvsClient:
         requests = self._requests
         assert requests is not None
         try:
-            reply = await self._retrying(
+            reply = await self._asking(
                 f"request {message.request_id}", lambda: requests.request(message, rpc_timeout_s)
             )
         except BaseException:
@@ -1308,7 +1351,7 @@ class DrvsClient:
         requests = self._requests
         assert requests is not None
         wait = fusion.single_shot_deadline_s + timeout_s
-        reply = await self._retrying(f"request {message.request_id}", lambda: requests.request(message, wait))
+        reply = await self._asking(f"request {message.request_id}", lambda: requests.request(message, wait))
         if not reply.HasField("snapshot"):
             raise FailedPrecondition(
                 f"server {self.server}: answered the fused request {message.request_id} without a snapshot "
@@ -1394,7 +1437,7 @@ class DrvsClient:
             return await requests.request(message, rpc_timeout_s, track._take)
 
         try:
-            reply = await self._retrying(f"request {message.request_id}", attempt)
+            reply = await self._asking(f"request {message.request_id}", attempt)
         except DeadlineExceeded:
             track.close()  # the server may have taken it: tell it to stop
             raise

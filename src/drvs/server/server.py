@@ -69,6 +69,7 @@ from drvs.security import (
     caller_identity,
     camera_identity,
 )
+from drvs.server.admission import Door, LinkDelay
 from drvs.server.config import (
     DEFAULT_FORWARD_TIMEOUT_S,
     DEFAULT_LISTEN,
@@ -205,6 +206,8 @@ class _CameraLink:
     def __init__(self, address: str, security: Security, token: str, timeout_s: float) -> None:
         self.address = address
         self.token = token
+        #: Its forwards' round trips beyond the fastest: the camera's queue, for the server's door.
+        self.delay = LinkDelay()
         self.channel = security.channel(address)
         # The server proves itself to a camera with the camera's own registration token.
         self.requests = BatchSender(
@@ -302,6 +305,8 @@ class DrvsServer(Lifecycle):
             options=self.connection_limits.options(),
         )
         self._links: dict[str, _CameraLink] = {}
+        #: Admission: past capacity requests are refused here, before anything is forwarded.
+        self.door = Door()
         # Cameras whose last forward failed: skipped until their next heartbeat proves them alive.
         self._unreachable: set[str] = set()
         self._unreachable_why: dict[str, str] = {}
@@ -391,6 +396,7 @@ class DrvsServer(Lifecycle):
             await self._registry_reachable(False)
         self._started_at = time.monotonic()
         self._sweeper = asyncio.get_running_loop().create_task(self._sweep_leases())
+        self.door.loop.start()
         if self.view is not None:
             self.view.start()
             hub = self.view.hub
@@ -462,6 +468,7 @@ class DrvsServer(Lifecycle):
         self._stopped = True
         if self._sweeper is not None:
             self._sweeper.cancel()
+        await self.door.loop.stop()
         self.fusion.end_all("the server is stopping")
         await self._endpoint.stop(grace)
         for task in list(self._tasks):
@@ -942,11 +949,13 @@ class DrvsServer(Lifecycle):
         if not cameras and not plan[1]:
             self.refuse_unserved(request)
         # What this request costs the cameras, counted against the robot's budget (not what it
-        # cost the robot to send: on a stream a repeated region is left out).
+        # cost the robot to send: on a stream a repeated region is left out). The robot's own
+        # budget first: one over it hears so, not that the server is busy.
         limits = self.limits
         size = message.ByteSize()
         slot = limits.admit(robot, request.continuous.duration_s, size * len(cameras))
         try:
+            self.admit(cameras)
             verified = checked_callbacks.get(request.callback_address)
             if verified is None:
                 verified = await self.callback_policy.check(request.callback_address, peer)
@@ -1003,6 +1012,11 @@ class DrvsServer(Lifecycle):
         message.request_id = forward_id
         size = message.ByteSize()
         slot = limits.admit(robot, request.continuous.duration_s, size * len(cameras))
+        try:
+            self.admit(cameras)
+        except BaseException:
+            limits.release(robot, slot)
+            raise
         if slot is not None and slots is not None:
             slots.hold(request.request_id, slot)
         secret = new_secret()
@@ -1037,6 +1051,22 @@ class DrvsServer(Lifecycle):
         session.start(reply)
         metrics.FORWARDED_BYTES.inc(size * len(cameras))
         return reply, session
+
+    def admit(self, cameras: list[CameraEntry]) -> None:
+        """The door, once a request is routed: ResourceExhausted, before anything is forwarded, if a
+        camera it needs has as many forwards waiting as it may, or its link is shedding this one."""
+        links = [(c.camera_id, self._link(c)) for c in cameras]
+        for camera_id, link in links:
+            waiting = link.requests.in_flight
+            if waiting >= self.max_queued_forwards:
+                link.delay.shedder.congested()
+                metrics.ADMISSION_REFUSED("queue").inc()
+                raise ResourceExhausted(
+                    f"busy: camera {camera_id} has {waiting} requests already waiting for it "
+                    f"(limit {self.max_queued_forwards}); retry in 100 ms",
+                    retry_after_s=0.1,
+                )
+        self.door.check_cameras((camera_id, link.delay.shedder) for camera_id, link in links)
 
     def _homography_of(self, camera_id: str) -> Homography | None:
         if camera_id not in self.registry:
@@ -1086,8 +1116,11 @@ class DrvsServer(Lifecycle):
                 outcome.failed()
             return
         started = time.perf_counter()
+        waiting = link.requests.in_flight
 
         def done(result: detection_pb2.DetectionReply | DrvsError) -> None:
+            if isinstance(result, (ResourceExhausted, DeadlineExceeded)):
+                link.delay.shedder.congested()  # the camera had no room, or no time: its queue stands
             if isinstance(result, DrvsError):
                 # A link the camera has replaced since (it registered again, at another address)
                 # says nothing of the camera now: closing it fails what was still in flight on it.
@@ -1097,7 +1130,9 @@ class DrvsServer(Lifecycle):
                     outcome.failed()
             else:
                 metrics.ROUTED_OK.inc()
-                metrics.STAGE_FORWARD.observe(time.perf_counter() - started)
+                took = time.perf_counter() - started
+                link.delay.observe(took, waiting)
+                metrics.STAGE_FORWARD.observe(took)
 
         if key:
             # Each camera gets its own key, and only its own: a copy of the request per camera.
@@ -1221,6 +1256,7 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         slots: _Slots | None,
         stream: _FusedOnStream | None = None,
     ) -> detection_pb2.DetectionReply | None:
+        self._s.door.check_server()  # first: a server past capacity spends nothing more on it
         request = request_from_pb(message, require_request_id=False)
         if request.report_to_server:
             raise InvalidArgument(REPORT_TO_SERVER_REFUSED)
@@ -1263,7 +1299,7 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
             finally:
                 session.end("its call ended")
             if reply.HasField("error"):
-                raise _grpc.error_from_code(reply.error.code, reply.error.message)
+                raise _grpc.error_from_code(reply.error.code, reply.error.message, reply.error.retry_after_s)
             return reply
         stream.check(request.request_id, single_shot)
         out = stream.out

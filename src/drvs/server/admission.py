@@ -1,0 +1,207 @@
+"""Admission: the server refuses at its door what it or a camera cannot take now, before anything
+is forwarded, so that past capacity it keeps answering at capacity instead of queueing until every
+answer is late (Google SRE's "Handling Overload"; CoDel's standing-queue signal; AIMD).
+
+Two queues decide. The server's own is its event loop: every request waits there, so the loop's
+scheduling lag is its queue delay (`LoopLag`). A camera's is behind its link: a forward's round
+trip beyond the fastest one lately seen is the time it waited in the camera's loop or on the way.
+Each feeds a `Shedder`, which refuses a share of the requests while a queue *stands* (even the
+shortest delay of an interval was above the target: a burst drains within one, a standing queue
+does not), and admits more again once it has drained. The share moves as TCP's window does:
+cut by a factor while a queue stands, grown by a step while none does.
+
+Pure logic but for LoopLag's task: the clock is injectable, so the control law is testable alone.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import math
+import random
+import time
+from collections.abc import Callable, Iterable
+
+from drvs.errors import ResourceExhausted
+from drvs.metrics import ADMISSION_REFUSED as refused
+
+#: CoDel's interval: a queue that stays this long above the target is standing, not a burst.
+INTERVAL_S = 0.1
+#: Standing queue delay the server's loop tolerates before it sheds, seconds.
+LOOP_TARGET_S = 0.01
+#: Standing delay a camera link tolerates beyond its fastest round trip, seconds.
+LINK_TARGET_S = 0.01
+#: How often the loop's lag is sampled, seconds (a timer callback: about 1 µs of work each).
+LOOP_TICK_S = 0.005
+#: Per interval with a standing queue the admitted share is multiplied by this; per interval
+#: without, it grows by ADMIT_STEP.
+ADMIT_CUT = 0.75
+ADMIT_STEP = 0.05
+#: The share admitted never falls below this: some requests keep probing whether the queue drained.
+MIN_ADMIT = 0.05
+#: A link's base round trip is the fastest of the last two windows of this length.
+BASE_WINDOW_S = 10.0
+#: A forward counts as queued only if this many others were waiting on its link when it was sent,
+#: and the loop's lag only while at least LOOP_MIN_ARRIVALS requests came in the last interval:
+#: a lone request delayed because the host is busy with other work is no queue of requests, and
+#: shedding it would not shorten anything.
+LINK_MIN_WAITING = 2
+LOOP_MIN_ARRIVALS = 20
+
+
+class Shedder:
+    """Decides what share of requests to admit from queue-delay samples (see the module)."""
+
+    __slots__ = ("_clock", "_min", "_until", "admit", "interval_s", "target_s")
+
+    def __init__(
+        self, target_s: float, interval_s: float = INTERVAL_S, clock: Callable[[], float] = time.monotonic
+    ) -> None:
+        self.target_s = target_s
+        self.interval_s = interval_s
+        self._clock = clock
+        #: The share of requests admitted now, in [MIN_ADMIT, 1].
+        self.admit = 1.0
+        self._min = math.inf  # the shortest delay seen in the current interval
+        self._until = clock() + interval_s
+
+    def observe(self, delay_s: float) -> None:
+        """A queue-delay sample (seconds)."""
+        self._roll()
+        if delay_s < self._min:
+            self._min = delay_s
+
+    def congested(self) -> None:
+        """A peer refused for lack of room: the queue stands whatever the delays said."""
+        self._roll()
+        self._min = math.nan  # marks the interval as standing: no later sample compares below it
+
+    def share(self) -> float:
+        """The share of requests to admit now."""
+        self._roll()
+        return self.admit
+
+    def _roll(self) -> None:
+        now = self._clock()
+        if now < self._until:
+            return
+        standing = self._min != math.inf and not self._min <= self.target_s  # nan: told congested
+        if standing:
+            self.admit = max(MIN_ADMIT, self.admit * ADMIT_CUT)
+        else:
+            # Intervals with no sample at all (idle, or everything refused) count as drained.
+            passed = 1 + int((now - self._until) / self.interval_s)
+            self.admit = min(1.0, self.admit + ADMIT_STEP * passed)
+        self._min = math.inf
+        self._until = now + self.interval_s
+
+
+class LinkDelay:
+    """A camera link's queue delay: each forward's round trip beyond the fastest one of the last
+    one or two BASE_WINDOW_S (a link that got slower for good moves its base within 20 s)."""
+
+    __slots__ = ("_base", "_clock", "_previous", "_window_end", "shedder")
+
+    def __init__(self, target_s: float = LINK_TARGET_S, clock: Callable[[], float] = time.monotonic) -> None:
+        self._clock = clock
+        self.shedder = Shedder(target_s, clock=clock)
+        self._base = math.inf
+        self._previous = math.inf
+        self._window_end = clock() + BASE_WINDOW_S
+
+    def observe(self, round_trip_s: float, waiting: int) -> None:
+        """A forward's round trip, and how many forwards were waiting on the link when it was sent."""
+        now = self._clock()
+        if now >= self._window_end:
+            self._previous, self._base = self._base, math.inf
+            self._window_end = now + BASE_WINDOW_S
+        self._base = min(self._base, round_trip_s)
+        queued = waiting >= LINK_MIN_WAITING
+        self.shedder.observe(round_trip_s - min(self._base, self._previous) if queued else 0.0)
+
+
+class LoopLag:
+    """Samples the running event loop's scheduling lag into a Shedder: how late a timer set for
+    LOOP_TICK_S fires is how long any callback, a request's included, waits for the loop now.
+    Counted only while requests arrive (`arrived()`, at least LOOP_MIN_ARRIVALS an interval)."""
+
+    def __init__(self, target_s: float = LOOP_TARGET_S) -> None:
+        self.shedder = Shedder(target_s)
+        self._task: asyncio.Task[None] | None = None
+        #: The last lag measured, seconds.
+        self.last_s = 0.0
+        self._arrivals = 0  # requests in the current interval
+        self._busy = False  # enough of them in the last interval
+
+    def arrived(self) -> None:
+        self._arrivals += 1
+
+    def start(self) -> None:
+        if self._task is None:
+            self._task = asyncio.get_running_loop().create_task(self._run())
+
+    async def stop(self) -> None:
+        task, self._task = self._task, None
+        if task is not None:
+            task.cancel()
+            await asyncio.gather(task, return_exceptions=True)
+
+    async def _run(self) -> None:
+        loop = asyncio.get_running_loop()
+        interval_end = loop.time() + INTERVAL_S
+        while True:
+            due = loop.time() + LOOP_TICK_S
+            await asyncio.sleep(LOOP_TICK_S)
+            now = loop.time()
+            self.last_s = max(0.0, now - due)
+            if now >= interval_end:
+                self._busy, self._arrivals = self._arrivals >= LOOP_MIN_ARRIVALS, 0
+                interval_end = now + INTERVAL_S
+            self.shedder.observe(self.last_s if self._busy or self._arrivals >= LOOP_MIN_ARRIVALS else 0.0)
+
+
+class Door:
+    """The server's admission: a request is admitted with the smallest share of the server's loop
+    and of every camera link it needs; the rest are refused with ResourceExhausted and a retry
+    hint, before anything is forwarded. `draw` is the random source (tests pass their own)."""
+
+    def __init__(self, loop_target_s: float = LOOP_TARGET_S, draw: Callable[[], float] = random.random) -> None:
+        self.loop = LoopLag(loop_target_s)
+        self._draw = draw
+
+    def check_server(self) -> None:
+        """First, before a request is even read whole: ResourceExhausted if the server's own loop
+        sheds this one."""
+        self.loop.arrived()
+        admit = self.loop.shedder.share()
+        if admit < 1.0 and self._draw() >= admit:
+            refused("server").inc()
+            hint = retry_after_s(admit)
+            raise ResourceExhausted(
+                f"overloaded: the server is past its capacity (admitting {admit:.0%} of requests); "
+                f"retry in {hint * 1000:.0f} ms",
+                retry_after_s=hint,
+            )
+
+    def check_cameras(self, links: Iterable[tuple[str, Shedder]]) -> None:
+        """Then, once routed: ResourceExhausted if a camera the request needs sheds it; `links` are
+        (camera id, its link's shedder) for the cameras it would be forwarded to. One draw for all
+        of them, against the smallest share: a request is as admissible as its busiest camera."""
+        admit, who = 1.0, ""
+        for camera_id, shedder in links:
+            share = shedder.share()
+            if share < admit:
+                admit, who = share, camera_id
+        if admit < 1.0 and self._draw() >= admit:
+            refused("camera").inc()
+            hint = retry_after_s(admit)
+            raise ResourceExhausted(
+                f"overloaded: camera {who} is past what it can take now (admitting {admit:.0%} of its requests); "
+                f"retry in {hint * 1000:.0f} ms",
+                retry_after_s=hint,
+            )
+
+
+def retry_after_s(admit: float) -> float:
+    """The wait a refusal asks for: one interval, longer the less is admitted (at most 0.5 s), so a
+    fleet of robots backs off about as much as the server sheds."""
+    return round(INTERVAL_S * (1 + 4 * (1 - admit)), 3)
