@@ -26,6 +26,7 @@ from shapely.geometry import box
 from drvs import DrvsClient
 from drvs.errors import InvalidArgument
 from drvs.launch import EtcdMember, ManagedProcess, free_ports, running_server, start_camera, start_etcd, start_server
+from drvs.meter import MeteredClient
 from drvs.model import Pose2
 from drvs.net import local_ip_towards
 from drvs.robot.client import RetryPolicy
@@ -212,6 +213,14 @@ async def test_without_etcd_a_dead_first_entry_leads_to_the_live_server(recorded
             assert code == 0, lines
             (report,) = json_lines(lines)
             assert len(report["detections"]) == CAM1_YELLOW, report
+            # The simulated robot's metered client (drvs-sim robot --server A,B): a counting relay
+            # in front of each server, their bytes added up.
+            async with MeteredClient(servers, robot_id="r5") as metered:
+                assert metered.client is not None
+                result = await metered.client.detect(YELLOW, CAM1_REGION, timeout_s=10)
+                assert result.camera_ids == ("cam1",) and len(result.detections) == CAM1_YELLOW, result
+                received, sent = metered.payload_bytes()
+                assert received > 0 and sent > 0, (received, sent)
         finally:
             await camera.stop()
 

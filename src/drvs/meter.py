@@ -312,7 +312,8 @@ class MeteredClient:
     """A plain DrvsClient whose two connections pass through counting relays, for benchmarks and
     the simulated robot (robot code never needs it).
 
-    One relay stands in front of the server: the client dials it (`server=` the relay's address).
+    One relay stands in front of each server given (a list: "a:50051,b:50051"): the client dials
+    them (`server=` the relays' addresses, in the same order), and their bytes are added up.
     The other stands in front of the robot's report listener: cameras dial it (`advertise=` its
     address), and it forwards to the listener once the listener has its port. Its measured side is
     the socket to the listener (side="target"), as the robot's own socket would see it.
@@ -326,15 +327,15 @@ class MeteredClient:
     """
 
     def __init__(self, server: str, *, listen_host: str | None = None, **client_args: Any) -> None:
-        from drvs.net import parse_address
+        from drvs.net import parse_address, parse_address_list
 
         self.server = server
-        self._target = parse_address(server, "server")
+        self._targets = [parse_address(a, "server") for a in parse_address_list(server, "server")]
         self._listen_host = listen_host
         self._client_args = client_args
         self.client: DrvsClient | None = None
         self._callback: CountingRelay | None = None
-        self._server_relay: CountingRelay | None = None
+        self._server_relays: list[CountingRelay] = []
 
     async def start(self) -> DrvsClient:
         """Start both relays and the client behind them; returns the (started, unchecked) client."""
@@ -345,11 +346,13 @@ class MeteredClient:
         if host is None:
             host = await asyncio.to_thread(local_ip_towards, self.server)
         self._callback = CountingRelay(listen_host=host, side="target")
-        self._server_relay = CountingRelay(*self._target)
         await self._callback.start()
-        await self._server_relay.start()
+        for target in self._targets:
+            relay = CountingRelay(*target)
+            self._server_relays.append(relay)
+            await relay.start()
         client = DrvsClient(
-            format_address("127.0.0.1", self._server_relay.port),
+            ",".join(format_address("127.0.0.1", relay.port) for relay in self._server_relays),
             listen=format_address(host, 0),
             advertise=format_address(host, self._callback.port),
             **self._client_args,
@@ -359,28 +362,33 @@ class MeteredClient:
         self._callback.set_target(host, client.port)
         return client
 
-    def _relays(self) -> tuple[CountingRelay, CountingRelay]:
-        if self._callback is None or self._server_relay is None:
+    def _relays(self) -> tuple[CountingRelay, list[CountingRelay]]:
+        if self._callback is None or not self._server_relays:
             raise RuntimeError("MeteredClient is not started")
-        return self._callback, self._server_relay
+        return self._callback, self._server_relays
 
     def payload_bytes(self) -> tuple[int, int]:
-        """(received, sent) TCP payload bytes on the robot's two connections."""
-        callback, server = self._relays()
-        return callback.to_target + server.from_target, callback.from_target + server.to_target
+        """(received, sent) TCP payload bytes on the robot's connections."""
+        callback, servers = self._relays()
+        return (
+            callback.to_target + sum(s.from_target for s in servers),
+            callback.from_target + sum(s.to_target for s in servers),
+        )
 
     def ethernet_bytes(self) -> tuple[int, int]:
         """(received, sent) bytes on the robot's connections as a 1500-byte-MTU Ethernet link
         carries them: payload plus Ethernet, IP and TCP headers of every segment, ACKs included."""
-        callback, server = self._relays()
-        wire = callback.wire() + server.wire()
+        callback, servers = self._relays()
+        wire = callback.wire()
+        for relay in servers:
+            wire = wire + relay.wire()
         return wire.to_host, wire.from_host
 
     async def close(self) -> None:
         """Close the client, then both relays."""
         if self.client is not None:
             await self.client.close()
-        for relay in (self._callback, self._server_relay):
+        for relay in (self._callback, *self._server_relays):
             if relay is not None:
                 await relay.close()
 
