@@ -412,6 +412,25 @@ def cli_cases(tmp: Path) -> list[CliCase]:
             ("--max-queued-forwards", "0"),
             "max_queued_forwards (--max-queued-forwards): … must be in [1, 100000]",
         ),
+        CliCase("drvs-server", ("--workers", "0"), "workers (--workers): … must be in [1, 256] processes"),
+        CliCase(
+            "drvs-server",
+            ("--workers", "2"),
+            "workers (--workers): … processes need a shared registry, --registry etcd://HOST:PORT: a camera "
+            "registers with one of them and is routed by all",
+        ),
+        CliCase(
+            "drvs-server",
+            ("--workers", "2", "--registry", "etcd://127.0.0.1:2379", "--listen", "0.0.0.0:0"),
+            "advertise (--advertise, DRVS_SERVER_ADVERTISE): needed with --workers on a wildcard address (…): each "
+            "worker takes the reports of its fused requests on a port of its own, at the advertised host",
+        ),
+        CliCase(
+            "drvs-server",
+            ("--workers", "2", "--registry", "etcd://127.0.0.1:2379", "--record", "x.mcap"),
+            "--workers: the live view and the recording (--foxglove, --record) are one process's; run them on a "
+            "single server",
+        ),
         CliCase("drvs-camera", ("--config", str(config)), "config FILE: KEY: unknown key (expected one of: …)"),
         CliCase(
             "drvs-camera",

@@ -158,7 +158,9 @@ def insecure_channel(address: str) -> aio.Channel:
 def new_server(
     interceptors: Sequence[aio.ServerInterceptor] = (), options: Sequence[tuple[str, Any]] = ()
 ) -> aio.Server:
-    return aio.server(options=[*SERVER_OPTIONS, *options], interceptors=list(interceptors) or None)
+    merged = dict(SERVER_OPTIONS)
+    merged.update(options)  # the caller's win (gRPC would take the first of two with one name)
+    return aio.server(options=list(merged.items()), interceptors=list(interceptors) or None)
 
 
 def bind(server: aio.Server, address: str, credentials: grpc.ServerCredentials | None = None) -> int:

@@ -49,8 +49,12 @@ class Endpoint:
         security: Security | None = None,
         interceptors: Sequence[aio.ServerInterceptor] = (),
         options: Sequence[tuple[str, Any]] = (),
+        also_listen: Sequence[str] = (),
     ) -> None:
         self.listen = listen
+        #: More addresses the same services are served on (port 0: any free port), and their ports.
+        self.also_listen = tuple(also_listen)
+        self.also_ports: list[int] = []
         self._options = tuple(options)
         self.security = security or Security()
         self._interceptors = tuple(interceptors)
@@ -75,6 +79,7 @@ class Endpoint:
         self._add_servicers(server)
         self._health = add_health_and_reflection(server, self.service_names)
         self.port = self.security.bind(server, self.listen)
+        self.also_ports = [self.security.bind(server, address) for address in self.also_listen]
         await server.start()
         self._server = server
         await mark_serving(self._health, self.service_names)

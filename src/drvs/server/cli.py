@@ -6,6 +6,7 @@ import argparse
 import asyncio
 import logging
 import os
+import sys
 from pathlib import Path
 
 from drvs import _grpc
@@ -31,6 +32,7 @@ from drvs.registry import (
     MAX_POSE_LEASE_S,
 )
 from drvs.security import load_tokens
+from drvs.server import workers
 from drvs.server.config import (
     DEFAULT_FORWARD_TIMEOUT_S,
     DEFAULT_LISTEN,
@@ -224,6 +226,14 @@ def build_parser() -> argparse.ArgumentParser:
         "every server given the same etcd (DRVS_REGISTRY)",
     )
     p.add_argument(
+        "--workers",
+        type=int,
+        default=None,
+        metavar="N",
+        help="serve --listen with N processes, so one host's cores all serve (the kernel spreads connections "
+        "over them; they share the registry, so --registry etcd://... is needed; default 1)",
+    )
+    p.add_argument(
         "--advertise",
         default=None,
         metavar="HOST:PORT",
@@ -316,6 +326,7 @@ def config_from(args: argparse.Namespace) -> ServerConfig:
             "etcd_ca": args.etcd_ca,
             "etcd_cert": args.etcd_cert,
             "etcd_key": args.etcd_key,
+            "workers": args.workers,
         },
         os.environ,
     )
@@ -323,9 +334,16 @@ def config_from(args: argparse.Namespace) -> ServerConfig:
 
 def main(argv: list[str] | None = None) -> int:
     parser = build_parser()
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = parser.parse_args(argv)
+    index = workers.worker_index()
     try:
         args.config = config_from(args)
+        if args.config.workers > 1 and index is None and (args.foxglove or args.record or env("DRVS_FOXGLOVE")):
+            raise InvalidArgument(
+                "--workers: the live view and the recording (--foxglove, --record) are one process's; "
+                "run them on a single server"
+            )
         metrics_host = args.metrics_host or env("DRVS_METRICS_HOST", DEFAULT_METRICS_HOST) or DEFAULT_METRICS_HOST
         if args.metrics_port is not None:
             args.metrics = parse_metrics_address(args.metrics_port, "--metrics-port", metrics_host)
@@ -333,6 +351,8 @@ def main(argv: list[str] | None = None) -> int:
             args.metrics = parse_metrics_address(
                 env("DRVS_METRICS_PORT", "-1") or "-1", "DRVS_METRICS_PORT", metrics_host
             )
+        if index is not None and args.metrics is not None and args.metrics[1]:
+            args.metrics = (args.metrics[0], args.metrics[1] + index)  # worker i: the port P + i
         args.security = security_from(vars(args))
         live = args.foxglove or env("DRVS_FOXGLOVE")
         args.live = parse_listen(live, "--foxglove") if live else None
@@ -350,6 +370,8 @@ def main(argv: list[str] | None = None) -> int:
     except DrvsError as exc:
         parser.error(str(exc))
     setup_logging(args.log_level, args.log_format)
+    if args.config.workers > 1 and index is None:
+        return workers.run(argv, args.config.listen, args.config.workers)
     try:
         asyncio.run(serve(args))
     except DrvsError as exc:
@@ -359,3 +381,7 @@ def main(argv: list[str] | None = None) -> int:
         log.error("%s", exc)
         return 1
     return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -21,7 +21,7 @@ from drvs._cli import env_number, format_number, parse_bool
 from drvs.errors import InvalidArgument
 from drvs.etcd import Endpoints
 from drvs.geometry import DEFAULT_MAX_RANGE_M
-from drvs.net import parse_address
+from drvs.net import host_of, parse_address
 from drvs.registry import (
     DEFAULT_GRACE_S,
     DEFAULT_LEASE_TTL_S,
@@ -41,6 +41,8 @@ from drvs.server.policy import (
 )
 
 DEFAULT_LISTEN = "127.0.0.1:50051"
+#: Hosts that bind every interface: no address a camera can dial.
+WILDCARDS = ("0.0.0.0", "::", "")
 #: How long the server waits for a camera to accept a forwarded request.
 DEFAULT_FORWARD_TIMEOUT_S = 2.0
 #: Forwards to one camera waiting for its acceptance at once; past this the server sheds load:
@@ -88,6 +90,7 @@ FLAGS = {
     "etcd_ca": "--etcd-ca",
     "etcd_cert": "--etcd-cert",
     "etcd_key": "--etcd-key",
+    "workers": "--workers",
 }
 
 #: Inclusive numeric ranges: setting -> (lowest, highest, whether the lowest is allowed, unit text).
@@ -110,8 +113,15 @@ _RANGES: dict[str, tuple[float, float, bool, str]] = {
     "pose_lease_s": (0, 3600, False, " seconds"),
     "max_pose_lease_s": (0, 3600, False, " seconds"),
     "min_pose_interval_s": (0, 3600, True, " seconds"),
+    "workers": (1, 256, True, " processes"),
 }
-_INTEGERS = ("max_queued_forwards", "max_continuous", "max_streams_per_connection", "max_cameras_per_identity")
+_INTEGERS = (
+    "max_queued_forwards",
+    "max_continuous",
+    "max_streams_per_connection",
+    "max_cameras_per_identity",
+    "workers",
+)
 
 
 def setting(name: str) -> str:
@@ -183,6 +193,9 @@ class ServerConfig:
     etcd_ca: str = ""
     etcd_cert: str = ""
     etcd_key: str = ""
+    #: Server processes serving `listen` together (SO_REUSEPORT: the kernel spreads connections
+    #: over them), sharing the registry in etcd; drvs-server starts them. 1: this process alone.
+    workers: int = 1
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "allow_callback", tuple(self.allow_callback))
@@ -223,6 +236,16 @@ class ServerConfig:
             raise InvalidArgument(f"{setting('etcd_cert')} and {setting('etcd_key')}: give both or neither")
         if (self.etcd_cert or self.etcd_key) and not self.etcd_ca:
             raise InvalidArgument(f"{setting('etcd_ca')}: needed with a certificate for etcd (TLS)")
+        if self.workers > 1 and self.registry == "memory":
+            raise InvalidArgument(
+                f"{setting('workers')}: {self.workers} processes need a shared registry, --registry "
+                "etcd://HOST:PORT: a camera registers with one of them and is routed by all"
+            )
+        if self.workers > 1 and host_of(self.listen) in WILDCARDS and not self.advertise:
+            raise InvalidArgument(
+                f"{setting('advertise')}: needed with --workers on a wildcard address ({self.listen}): each "
+                "worker takes the reports of its fused requests on a port of its own, at the advertised host"
+            )
         if self.etcd_ca and self.registry == "memory":
             raise InvalidArgument(f"{setting('etcd_ca')}: only with --registry etcd://...")
         for name in ("etcd_ca", "etcd_cert", "etcd_key"):

@@ -46,7 +46,7 @@ from drvs.errors import (
 from drvs.etcd import Endpoints, EtcdClient
 from drvs.geometry import DEFAULT_MAX_RANGE_M, Homography
 from drvs.model import DEFAULT_FRAME, CameraError, DetectionReport, DetectionRequest, Pose2, check_frame, check_id
-from drvs.net import host_of, is_loopback_host
+from drvs.net import format_address, host_of, is_loopback_host
 from drvs.registry import (
     DEFAULT_GRACE_S,
     DEFAULT_LEASE_TTL_S,
@@ -74,6 +74,7 @@ from drvs.server.config import (
     DEFAULT_FORWARD_TIMEOUT_S,
     DEFAULT_LISTEN,
     DEFAULT_MAX_QUEUED_FORWARDS,
+    WILDCARDS,
     ServerConfig,
 )
 from drvs.server.fusion_session import Continuous, FusionSession, FusionSessions, ReportIntake, SingleShot
@@ -296,13 +297,22 @@ class DrvsServer(Lifecycle):
         self.forward_timeout_s = config.forward_timeout_s
         self.max_queued_forwards = config.max_queued_forwards
         self.default_max_range_m = config.default_max_range_m
+        options = self.connection_limits.options()
+        also_listen: list[str] = []
+        if config.workers > 1:
+            # One of several processes on `listen` (drvs.server.workers): the kernel spreads
+            # connections over them, so cameras send a fused request's reports to a port of this
+            # process's own, where the request's session is.
+            options.append(("grpc.so_reuseport", 1))
+            also_listen.append(format_address(host_of(config.listen), 0))
         self._endpoint = Endpoint(
             config.listen,
             SERVICE_NAMES,
             self._add_servicers,
             security=self.security,
             interceptors=[TokenInterceptor(self.tokens)] if self.tokens.enabled else [],
-            options=self.connection_limits.options(),
+            options=options,
+            also_listen=also_listen,
         )
         self._links: dict[str, _CameraLink] = {}
         #: Admission: past capacity requests are refused here, before anything is forwarded.
@@ -410,6 +420,10 @@ class DrvsServer(Lifecycle):
             "registration: %s",
             self.describe_registration(),
         )
+        if self._endpoint.also_ports:
+            log.info(
+                "one of %d workers: reports of its fused requests come to %s", self.config.workers, self.report_address
+            )
         log.info(
             "drvs-server listening on %s (lease %.1f s; registry %s)",
             self.address,
@@ -635,10 +649,13 @@ class DrvsServer(Lifecycle):
         """Where cameras send a fused request's reports: `advertise`, else the bound address unless
         it is a wildcard ("": the server each camera registered with, which is this one when a
         camera knows a single server)."""
+        if self._endpoint.also_ports:  # one of several workers: its own port
+            host = host_of(self.config.advertise or self.config.listen)
+            return format_address(host, self._endpoint.also_ports[0])
         if self.config.advertise:
             return self.config.advertise
         host = host_of(self.config.listen)
-        return "" if host in ("0.0.0.0", "::", "") else self.address
+        return "" if host in WILDCARDS else self.address
 
     async def _registry_reachable(self, reachable: bool) -> None:
         """Health says whether registrations can be taken: the registration service is NOT_SERVING
