@@ -334,3 +334,133 @@ def test_routing_memory_is_bounded(clock: Clock) -> None:
     regions = [box(-1.0 + i * 1e-6, 3.0, 1.0, 4.0) for i in range(registry.ROUTE_CACHE_SIZE + 50)]
     assert all(ids(reg, r) == ["a"] for r in regions)
     assert len(reg._routes) == registry.ROUTE_CACHE_SIZE
+
+
+def brute_force(reg: Registry, region: Polygon, kind: str | None, frame: str | None) -> list[str]:
+    """Every live camera whose field of view meets `region` with positive area, one by one."""
+    return sorted(
+        e.camera_id
+        for e in reg.cameras()
+        if e.field_of_view.intersection(region).area > 0
+        and (kind is None or kind in e.detector_kinds)
+        and (frame is None or e.frame == frame)
+    )
+
+
+def random_camera(rng: np.random.Generator) -> tuple[Homography, float]:
+    """A camera anywhere in a 200 m square, any heading and tilt, 2 to 60 m of range: fields of
+    view from a few metres to a hundred wide, so the index's levels all fill."""
+    x, y = rng.uniform(0.0, 200.0, size=2)
+    h = homography_from_pose(
+        (x, y, rng.uniform(2.0, 8.0)), rng.uniform(0.0, 360.0), rng.uniform(25.0, 70.0), 60.0, SIZE
+    )
+    return h, float(rng.uniform(2.0, 60.0))
+
+
+def random_region(rng: np.random.Generator) -> Polygon:
+    """A box from 0.1 m to the whole site (both ways of reading the index), or a triangle."""
+    x, y = rng.uniform(-20.0, 220.0, size=2)
+    side = float(10.0 ** rng.uniform(-1.0, 2.5))
+    if rng.random() < 0.2:
+        return Polygon([(x, y), (x + side, y + 0.3 * side), (x + 0.2 * side, y + side)])
+    return box(x, y, x + side, y + side * rng.uniform(0.2, 1.0))
+
+
+def test_lookups_equal_a_brute_force_check_through_adds_removes_replacements_and_expiries(clock: Clock) -> None:
+    rng = np.random.default_rng(27)
+    reg = new_registry(clock)
+    frames = ("map", "building-a/floor-2")
+    kinds = (frozenset({"hsv"}), frozenset({"aruco"}), frozenset({"hsv", "aruco"}))
+    live: list[str] = []
+    for step in range(400):
+        op = rng.random()
+        if op < 0.6 or len(live) < 10:  # a new camera, or one replaced (moved, other kinds or frame)
+            camera_id = f"c{step}" if op < 0.4 or not live else live[int(rng.integers(len(live)))]
+            h, max_range = random_camera(rng)
+            kind = kinds[int(rng.integers(3))]
+            reg.register(camera_id, "127.0.0.1:9", h, SIZE, kind, max_range, frame=frames[int(rng.integers(2))])
+            if camera_id not in live:
+                live.append(camera_id)
+        elif op < 0.8:
+            reg.remove(live.pop(int(rng.integers(len(live)))))
+        else:  # time passes: the oldest leases lapse, and expire() drops them
+            clock.advance(float(rng.uniform(0.0, TTL / 20)))
+            if rng.random() < 0.5:
+                gone = {e.camera_id for e in reg.expire()}
+                live = [c for c in live if c not in gone]
+        for _ in range(3):
+            region = random_region(rng)
+            kind_asked = (None, "hsv", "aruco")[int(rng.integers(3))]
+            frame_asked = (None, *frames)[int(rng.integers(3))]
+            got = [e.camera_id for e in reg.cameras_seeing(region, kind_asked, frame_asked)]
+            assert got == brute_force(reg, region, kind_asked, frame_asked), (step, region.wkt)
+    assert len(reg) > 20  # the walk kept a real population
+
+
+def test_frames_are_indexed_apart(clock: Clock) -> None:
+    reg = new_registry(clock)
+    for camera_id, frame in (("ground", "map"), ("upstairs", "building-a/floor-2")):
+        reg.register(camera_id, "127.0.0.1:9", camera_at(0.0), SIZE, {"hsv"}, 15.0, frame=frame)
+    region = box(-1.0, 3.0, 1.0, 4.0)
+    assert ids(reg, region) == ["ground"]  # the default frame
+    assert [e.camera_id for e in reg.cameras_seeing(region, frame="building-a/floor-2")] == ["upstairs"]
+    assert [e.camera_id for e in reg.cameras_seeing(region, frame=None)] == ["ground", "upstairs"]
+    assert reg.cameras_seeing(region, frame="building-b") == []
+    # Moving a camera to another floor moves it in the index.
+    reg.register("ground", "127.0.0.1:9", camera_at(0.0), SIZE, {"hsv"}, 15.0, frame="building-b")
+    assert ids(reg, region) == []
+    assert [e.camera_id for e in reg.cameras_seeing(region, frame="building-b")] == ["ground"]
+
+
+def test_a_large_region_and_a_wide_view_are_found_every_way(clock: Clock) -> None:
+    """A region over more cells than SCAN_MIN_CELLS that hold cameras (every camera's bounds tested
+    at once), one over fewer (the cells probed), and a view many of the finest cells wide."""
+    from drvs import registry
+
+    reg = new_registry(clock)
+    for i in range(100):
+        register(reg, f"near-{i:03d}", 10.0 * (i % 10), 10.0 * (i // 10))
+    high = homography_from_pose((500.0, 500.0, 8.0), 90.0, 25.0, 80.0, SIZE)  # about 80 m x 60 m of floor
+    reg.register("wide", "127.0.0.1:9", high, SIZE, {"hsv"}, 60.0)
+    width = reg.get("wide").field_of_view.bounds
+    assert width[2] - width[0] > 4 * registry.STATIC_CELL_M
+    assert len(reg) > registry.SCAN_MIN_CELLS
+    everything = box(-50.0, -50.0, 1000.0, 1000.0)
+    assert ids(reg, everything) == brute_force(reg, everything, None, "map") and len(ids(reg, everything)) == 101
+    some = box(15.0, 15.0, 45.0, 45.0)
+    assert ((45 - 15) / registry.STATIC_CELL_M + 2) ** 2 < registry.SCAN_MIN_CELLS
+    assert ids(reg, some) == brute_force(reg, some, None, "map") and len(ids(reg, some)) > 10
+    # Just inside the wide view's far edge, many cells from the cell it sits in.
+    far = box(width[0] + 0.4 * (width[2] - width[0]), width[3] - 3.0, width[0] + 0.6 * (width[2] - width[0]), width[3])
+    assert ids(reg, far) == brute_force(reg, far, None, "map") == ["wide"]
+    reg.remove("wide")
+    assert ids(reg, far) == [] and len(ids(reg, everything)) == 100
+
+
+def test_changes_update_the_index_in_place_and_pose_updates_never_touch_it(clock: Clock) -> None:
+    from drvs.mobile import Mount
+    from drvs.model import Pose2
+
+    reg = Registry(lease_ttl_s=TTL, clock=clock.reader(), min_pose_interval_s=0.0)
+    index = reg._tree
+    register(reg, "fixed", 0.0)
+    assert index.changes == 1 and len(index) == 1
+    register(reg, "fixed", 0.0)  # a re-registration replaces the entry: out and in again
+    assert index.changes == 3 and len(index) == 1
+    mount = Mount(0.1, 0.0, 0.8, 0.0, 30.0, hfov_deg=70.0)
+    reg.register("scout", "127.0.0.1:9", mount.base_homography(SIZE), SIZE, {"hsv"}, 6.0, mobile=True)
+    region = box(-1.0, 3.0, 1.0, 4.0)
+    assert ids(reg, region) == ["fixed"]
+    for k in range(20):
+        clock.advance(0.01)
+        reg.update_pose("scout", Pose2(-4.0 + 0.2 * k, 3.5, 0.0))
+        sees = reg.get("scout").field_of_view.intersection(region).area > 0
+        assert ids(reg, region) == (["fixed", "scout"] if sees else ["fixed"])
+    assert index.changes == 3 and len(index) == 1 and reg._tree is index
+    # A fixed camera registered again as a mobile one leaves the index; a mobile one made fixed enters.
+    reg.register("fixed", "127.0.0.1:9", mount.base_homography(SIZE), SIZE, {"hsv"}, 6.0, mobile=True)
+    assert len(index) == 0 and "fixed" not in ids(reg, region)
+    register(reg, "scout", 0.0)
+    assert len(index) == 1 and ids(reg, region) == ["scout"]
+    clock.advance(TTL)
+    assert [e.camera_id for e in reg.expire()] == ["fixed", "scout"] and len(index) == 0

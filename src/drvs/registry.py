@@ -12,7 +12,6 @@ from dataclasses import dataclass
 
 import numpy as np
 import shapely
-from shapely import STRtree
 from shapely.geometry import Polygon
 
 from drvs.errors import FailedPrecondition, InvalidArgument, NotFound, PermissionDenied, ResourceExhausted
@@ -39,6 +38,16 @@ ROUTE_CACHE_SIZE = 1024
 ROUTE_CACHE_POINTS = 64 * 1024
 #: Side of the grid cells that index mobile cameras' fields of view, metres (about a camera's range).
 MOBILE_CELL_M = 8.0
+#: Side of the finest cells of the fixed cameras' grid, metres; cells double in size level by level,
+#: and a camera sits in one cell of the finest level whose cells are at least as wide as its view.
+STATIC_CELL_M = 8.0
+#: A lookup probes the grid's cells while they number at most one per this many fixed cameras (and
+#: at least SCAN_MIN_CELLS); a larger region is cheaper to test against every camera's bounds at once.
+SCAN_CAMERAS_PER_CELL = 16
+SCAN_MIN_CELLS = 64
+#: Up to this many candidates go straight to the relate test (GEOS rejects a polygon whose bounds
+#: miss the region at once); more are first filtered by their bounds, vectorised.
+PREFILTER_CANDIDATES = 32
 #: A mobile camera's field of view is routed this long after a pose update, seconds (default and
 #: cap), and pose updates closer together than MIN_POSE_INTERVAL_S are refused.
 DEFAULT_POSE_LEASE_S = 1.0
@@ -80,12 +89,140 @@ class MobileState:
     bounds: tuple[float, float, float, float] = (math.nan, math.nan, math.nan, math.nan)
 
 
-class Registry:
-    """Cameras by id, with an STRtree over their fields of view rebuilt lazily after changes.
+class StaticIndex:
+    """Fixed cameras' fields of view in a grid per frame, changed in place by each registration.
 
-    Lookups are O(log n + k) in the number of cameras. Registrations are rare next to lookups, so
-    the (immutable) STRtree is rebuilt on the first lookup after one; leases live apart from the
-    index, so heartbeats never touch it. Robots ask about the same regions again and again, and
+    An STRtree is immutable: with leases lapsing and cameras re-registering somewhere on a campus
+    every second, rebuilding it whole (70 ms at 100 000 cameras) would land on nearly every lookup.
+    Here a change costs a few dict and list operations and a lookup never rebuilds anything, so
+    every lookup is correct at once and none pays for another's change. Each camera sits in exactly
+    one cell: the one holding its bounds' lower corner, at the finest level whose cells are at least
+    as wide as its bounds (STATIC_CELL_M, doubling per level), so it reaches at most one cell further
+    up and right, and a lookup probes the region's cells plus one row and column below and left. The
+    bounds and fields of view sit in numpy arrays by slot, so candidates are filtered vectorised.
+    """
+
+    def __init__(self) -> None:
+        #: frame -> level -> cell key -> slots.
+        self._grids: dict[str, dict[int, dict[int, list[int]]]] = {}
+        self._slot_of: dict[str, int] = {}
+        self._entries: list[CameraEntry | None] = []
+        self._free: list[int] = []
+        self._bounds: np.ndarray = np.full((0, 4), np.nan)
+        self._fovs: np.ndarray = np.empty(0, dtype=object)
+        #: Changes so far (adds and discards): the index is never rebuilt, only changed.
+        self.changes = 0
+
+    def __len__(self) -> int:
+        return len(self._slot_of)
+
+    def add(self, entry: CameraEntry) -> None:
+        """Index a fixed camera (replacing any entry under its id)."""
+        self.discard(entry.camera_id)
+        if self._free:
+            slot = self._free.pop()
+            self._entries[slot] = entry
+        else:
+            slot = len(self._entries)
+            self._entries.append(entry)
+            if slot >= len(self._fovs):  # doubling: a copy now and then, amortised per change
+                grown = max(64, 2 * len(self._fovs))
+                self._bounds = np.concatenate([self._bounds, np.full((grown - len(self._fovs), 4), np.nan)])
+                self._fovs = np.concatenate([self._fovs, np.empty(grown - len(self._fovs), dtype=object)])
+        self._slot_of[entry.camera_id] = slot
+        self._fovs[slot] = entry.field_of_view
+        self.changes += 1
+        if entry.field_of_view.is_empty:  # no bounds (nan): never a candidate, as in an STRtree
+            return
+        bounds = entry.field_of_view.bounds
+        self._bounds[slot] = bounds
+        level, key = _static_cell(bounds)
+        self._grids.setdefault(entry.frame, {}).setdefault(level, {}).setdefault(key, []).append(slot)
+
+    def discard(self, camera_id: str) -> None:
+        slot = self._slot_of.pop(camera_id, None)
+        if slot is None:
+            return
+        entry = self._entries[slot]
+        assert entry is not None
+        bounds = self._bounds[slot]
+        if not math.isnan(bounds[0]):
+            level, key = _static_cell(tuple(float(b) for b in bounds))  # type: ignore[arg-type]
+            grid = self._grids[entry.frame]
+            cells = grid[level]
+            held = cells[key]
+            held.remove(slot)
+            if not held:
+                del cells[key]
+                if not cells:
+                    del grid[level]
+                    if not grid:
+                        del self._grids[entry.frame]
+        self._bounds[slot] = np.nan
+        self._fovs[slot] = None
+        self._entries[slot] = None
+        self._free.append(slot)
+        self.changes += 1
+
+    def overlapping(self, region: Polygon, frame: str | None) -> list[CameraEntry]:
+        """Cameras of `frame` (None: every frame) whose field of view meets `region` with positive
+        area, by camera id."""
+        if not self._slot_of:
+            return []
+        x0, y0, x1, y1 = shapely.bounds(region).tolist()
+        if math.isnan(x0):  # an empty region
+            return []
+        grids = [g for g in (self._grids.get(frame),) if g] if frame is not None else list(self._grids.values())
+        spans = []
+        probes = 0
+        for grid in grids:
+            for level, cells in grid.items():
+                size = math.ldexp(STATIC_CELL_M, level)
+                i0, j0 = math.floor(x0 / size) - 1, math.floor(y0 / size) - 1
+                i1, j1 = math.floor(x1 / size), math.floor(y1 / size)
+                spans.append((cells, i0, j0, i1, j1))
+                probes += min((i1 - i0 + 1) * (j1 - j0 + 1), len(cells))
+        if probes > max(SCAN_MIN_CELLS, len(self._slot_of) // SCAN_CAMERAS_PER_CELL):
+            b = self._bounds
+            candidates = np.flatnonzero((b[:, 0] <= x1) & (b[:, 2] >= x0) & (b[:, 1] <= y1) & (b[:, 3] >= y0))
+        else:
+            slots: list[int] = []
+            for cells, i0, j0, i1, j1 in spans:
+                if (i1 - i0 + 1) * (j1 - j0 + 1) > len(cells):  # fewer cells held than under the region
+                    for key, ids in cells.items():
+                        i, j = divmod(key + _HALF, _KEY)
+                        j -= _HALF
+                        if i0 <= i <= i1 and j0 <= j <= j1:
+                            slots += ids
+                else:
+                    for i in range(i0, i1 + 1):
+                        base = i * _KEY
+                        for j in range(j0, j1 + 1):
+                            here = cells.get(base + j)
+                            if here:
+                                slots += here
+            if not slots:
+                return []
+            candidates = np.array(slots, dtype=np.intp)
+            if len(candidates) > PREFILTER_CANDIDATES:
+                b = self._bounds[candidates]
+                candidates = candidates[(b[:, 0] <= x1) & (b[:, 2] >= x0) & (b[:, 1] <= y1) & (b[:, 3] >= y0)]
+        if not len(candidates):
+            return []
+        # Positive-area overlap of two polygons is exactly "their interiors meet" (DE-9IM T********):
+        # a relate test, cheaper than building each intersection to measure it.
+        hits = candidates[shapely.relate_pattern(self._fovs[candidates], region, "T********")]
+        entries = self._entries
+        found = [e for e in (entries[s] for s in hits) if e is not None and (frame is None or e.frame == frame)]
+        return sorted(found, key=lambda e: e.camera_id)
+
+
+class Registry:
+    """Cameras by id, fixed ones in a grid index of their fields of view changed per registration.
+
+    Each registration change updates the index in place (StaticIndex: no rebuild, so a lookup costs
+    the same however often cameras come and go); leases live apart from the index, so heartbeats
+    never touch it. Robots ask about the same regions again and again, and
     `drvs.convert.region_from_pb` hands out one polygon object per distinct region, so the cameras
     a region object overlaps are also remembered, until the next registration change.
     """
@@ -122,12 +259,12 @@ class Registry:
         self._clock = clock
         self._entries: dict[str, CameraEntry] = {}
         self._expires: dict[str, float] = {}
-        self._tree: STRtree | None = None
-        self._tree_entries: list[CameraEntry] = []
-        self._fovs: np.ndarray = np.array([], dtype=object)
-        # id(region) -> (region, the cameras it overlaps by camera id); the region is held, so
-        # its id is not reused while the entry lives.
-        self._routes: dict[int, tuple[Polygon, list[CameraEntry], int]] = {}
+        #: The fixed cameras' index (named as the STRtree it replaced, which tests and the mobile
+        #: benchmark check pose updates never touch).
+        self._tree = StaticIndex()
+        # (id(region), frame) -> (region, the cameras of that frame it overlaps by camera id, its
+        # points); the region is held, so its id is not reused while the entry lives.
+        self._routes: dict[tuple[int, str | None], tuple[Polygon, list[CameraEntry], int]] = {}
         self._route_points = 0
 
     def __len__(self) -> int:
@@ -234,9 +371,19 @@ class Registry:
             self._uncell(camera_id, old)
         if state is not None:
             self._mobile[camera_id] = state
-        if was_static or state is None:  # a mobile camera alone never touches the static index
-            self._tree = None
+        # A mobile camera alone never touches the static index.
+        if state is None:
+            self._tree.add(entry)
+            self._static_changed()
+        elif was_static:
+            self._tree.discard(camera_id)
+            self._static_changed()
         return entry
+
+    def _static_changed(self) -> None:
+        """Regions routed before a change to the fixed cameras are routed afresh."""
+        self._routes.clear()
+        self._route_points = 0
 
     def mobile_state(self, camera_id: str) -> MobileState | None:
         """A mobile camera's pose and routing state; None for a fixed (or unknown) camera."""
@@ -373,7 +520,8 @@ class Registry:
         del self._expires[camera_id]
         state = self._mobile.pop(camera_id, None)
         if state is None:
-            self._tree = None
+            self._tree.discard(camera_id)
+            self._static_changed()
         else:
             self._uncell(camera_id, state)
         return entry
@@ -387,11 +535,13 @@ class Registry:
             del self._entries[entry.camera_id]
             del self._expires[entry.camera_id]
             state = self._mobile.pop(entry.camera_id, None)
-            static_gone |= state is None
-            if state is not None:
+            if state is None:
+                self._tree.discard(entry.camera_id)
+                static_gone = True
+            else:
                 self._uncell(entry.camera_id, state)
         if static_gone:
-            self._tree = None
+            self._static_changed()
         return gone
 
     def is_live(self, camera_id: str) -> bool:
@@ -414,10 +564,8 @@ class Registry:
         now = self._clock()
         found = [
             e
-            for e in self._overlapping(region)
-            if self._expires.get(e.camera_id, 0.0) > now
-            and (kind is None or kind in e.detector_kinds)
-            and (frame is None or e.frame == frame)
+            for e in self._overlapping(region, frame)
+            if self._expires.get(e.camera_id, 0.0) > now and (kind is None or kind in e.detector_kinds)
         ]
         if self._mobile:
             moving = [
@@ -432,32 +580,19 @@ class Registry:
                 found.sort(key=lambda e: e.camera_id)
         return found
 
-    def _overlapping(self, region: Polygon) -> list[CameraEntry]:
-        if self._tree is None:
-            self._tree_entries = [e for e in self._entries.values() if e.camera_id not in self._mobile]
-            self._fovs = np.array([e.field_of_view for e in self._tree_entries], dtype=object)
-            self._tree = STRtree(self._fovs)
-            self._routes.clear()
-            self._route_points = 0
-        known = self._routes.get(id(region))
+    def _overlapping(self, region: Polygon, frame: str | None) -> list[CameraEntry]:
+        key = (id(region), frame)
+        known = self._routes.get(key)
         if known is not None and known[0] is region:
             return known[1]
-        found: list[CameraEntry] = []
-        if self._tree_entries:
-            candidates = np.sort(self._tree.query(region, predicate="intersects"))
-            if len(candidates):
-                # Positive-area overlap of two polygons is exactly "their interiors meet" (DE-9IM
-                # T********): a relate test, cheaper than building each intersection to measure it.
-                overlaps = shapely.relate_pattern(self._fovs[candidates], region, "T********")
-                hits = (self._tree_entries[i] for i, hit in zip(candidates, overlaps, strict=True) if hit)
-                found = sorted(hits, key=lambda e: e.camera_id)
+        found = self._tree.overlapping(region, frame)
         points = int(shapely.get_num_coordinates(region))
         while self._routes and (
             len(self._routes) >= ROUTE_CACHE_SIZE or self._route_points + points > ROUTE_CACHE_POINTS
         ):
             self._route_points -= self._routes.pop(next(iter(self._routes)))[2]  # the oldest
         if points <= ROUTE_CACHE_POINTS:
-            self._routes[id(region)] = (region, found, points)
+            self._routes[key] = (region, found, points)
             self._route_points += points
         return found
 
@@ -606,3 +741,19 @@ def _cells(bounds: tuple[float, float, float, float]) -> list[tuple[int, int]]:
     """The MOBILE_CELL_M grid cells a box covers."""
     x0, y0, x1, y1 = _cell_span(bounds)
     return [(i, j) for i in range(x0, x1 + 1) for j in range(y0, y1 + 1)]
+
+
+#: Cell keys: i * _KEY + j, one int (smaller than a tuple); exact while |j| < 2**31 cells (far
+#: beyond the floor coordinates a homography can map to).
+_KEY = 1 << 32
+_HALF = 1 << 31
+
+
+def _static_cell(bounds: tuple[float, float, float, float]) -> tuple[int, int]:
+    """A fixed camera's level and cell key (see StaticIndex)."""
+    x0, y0, x1, y1 = bounds
+    width = max(x1 - x0, y1 - y0)
+    level, size = 0, STATIC_CELL_M
+    while size < width:
+        level, size = level + 1, size * 2
+    return level, math.floor(x0 / size) * _KEY + math.floor(y0 / size)
