@@ -90,6 +90,10 @@ def test_a_link_measures_its_queue_above_its_fastest_round_trip() -> None:
         link.observe(0.080, 5)
     clock.now += INTERVAL_S
     assert link.shedder.share() == 1.0
+    for _ in range(3):  # 30 ms more for three requests caught behind one stall: no queue
+        link.observe(0.110, 5)
+    clock.now += INTERVAL_S
+    assert link.shedder.share() == 1.0
     for _ in range(5):  # then 30 ms more, all the time: a queue
         link.observe(0.110, 5)
     clock.now += INTERVAL_S

@@ -45,19 +45,28 @@ BASE_WINDOW_S = 10.0
 #: a lone request delayed because the host is busy with other work is no queue of requests, and
 #: shedding it would not shorten anything.
 LINK_MIN_WAITING = 2
-LOOP_MIN_ARRIVALS = 20
+LOOP_MIN_ARRIVALS = 5
+#: A link's interval stands only on at least this many samples: a few requests caught behind one
+#: stall of a camera are no standing queue (a camera that refuses for room counts regardless).
+LINK_MIN_SAMPLES = 4
 
 
 class Shedder:
     """Decides what share of requests to admit from queue-delay samples (see the module)."""
 
-    __slots__ = ("_clock", "_min", "_until", "admit", "interval_s", "target_s")
+    __slots__ = ("_clock", "_min", "_samples", "_until", "admit", "interval_s", "min_samples", "target_s")
 
     def __init__(
-        self, target_s: float, interval_s: float = INTERVAL_S, clock: Callable[[], float] = time.monotonic
+        self,
+        target_s: float,
+        interval_s: float = INTERVAL_S,
+        clock: Callable[[], float] = time.monotonic,
+        min_samples: int = 1,
     ) -> None:
         self.target_s = target_s
         self.interval_s = interval_s
+        self.min_samples = min_samples
+        self._samples = 0
         self._clock = clock
         #: The share of requests admitted now, in [MIN_ADMIT, 1].
         self.admit = 1.0
@@ -67,6 +76,7 @@ class Shedder:
     def observe(self, delay_s: float) -> None:
         """A queue-delay sample (seconds)."""
         self._roll()
+        self._samples += 1
         if delay_s < self._min:
             self._min = delay_s
 
@@ -74,6 +84,7 @@ class Shedder:
         """A peer refused for lack of room: the queue stands whatever the delays said."""
         self._roll()
         self._min = math.nan  # marks the interval as standing: no later sample compares below it
+        self._samples = max(self._samples, self.min_samples)
 
     def share(self) -> float:
         """The share of requests to admit now."""
@@ -84,7 +95,8 @@ class Shedder:
         now = self._clock()
         if now < self._until:
             return
-        standing = self._min != math.inf and not self._min <= self.target_s  # nan: told congested
+        # nan: told congested; too few samples: a stall, not a queue.
+        standing = self._samples >= self.min_samples and self._min != math.inf and not self._min <= self.target_s
         if standing:
             self.admit = max(MIN_ADMIT, self.admit * ADMIT_CUT)
         else:
@@ -92,6 +104,7 @@ class Shedder:
             passed = 1 + int((now - self._until) / self.interval_s)
             self.admit = min(1.0, self.admit + ADMIT_STEP * passed)
         self._min = math.inf
+        self._samples = 0
         self._until = now + self.interval_s
 
 
@@ -103,7 +116,7 @@ class LinkDelay:
 
     def __init__(self, target_s: float = LINK_TARGET_S, clock: Callable[[], float] = time.monotonic) -> None:
         self._clock = clock
-        self.shedder = Shedder(target_s, clock=clock)
+        self.shedder = Shedder(target_s, clock=clock, min_samples=LINK_MIN_SAMPLES)
         self._base = math.inf
         self._previous = math.inf
         self._window_end = clock() + BASE_WINDOW_S
