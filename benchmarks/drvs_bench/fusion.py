@@ -710,7 +710,8 @@ def plot(result: dict[str, Any], out: Path) -> None:
             ax.set_ylabel("robot's latency (ms)")
             ax.set_title(
                 f"Server CPU per request: per-camera {cost.get('per_camera_server_cpu_ms_per_request', math.nan):.2f}"
-                f" ms, fused {cost.get('fused_server_cpu_ms_per_request', math.nan):.2f} ms",
+                f" ms, fused {cost.get('fused_server_cpu_ms_per_request', math.nan):.2f} ms,\nbare-proxy floor "
+                f"{cost.get('bare_server_cpu_ms_per_request', math.nan):.2f} ms (medians of {result['rounds']} rounds)",
                 fontsize=9,
             )
             ax.legend(fontsize=8)

@@ -8,11 +8,16 @@ cameras (three still discs in the overlap, rendered by the simulator). A robot p
   answered when the last camera's final report has arrived;
 - fused: the same requests with fused delivery, the cameras' reports to the server, which fuses them
   and answers with one snapshot on the robot's stream;
+- bare: the floor, DRVS's message flow in bare grpc.aio with no DRVS code (drvs_bench.bare): a bare
+  server that answers each request and forwards it to two bare cameras, which report straight to the
+  robot; the same rate, and requests, one at a time;
 - idle: no robot, the same wall time: the server's CPU when nothing is asked (heartbeats, timers).
 
 Each run's server CPU (/proc utime + stime, all threads) from the robot's START (after its warm-up)
-to its DONE, per request, and over the idle rate (the marginal CPU per request); the robot's latency
-from its call to its answer (p50, p99). Ratios and differences are taken within a round.
+to its DONE, per request, and over the idle rate (the marginal CPU per request); the bare server's
+over the bare robot's whole run (its few warm-up requests counted as requests: it prints no START);
+the robot's latency from its call to its answer (p50, p99). Ratios and differences are taken within
+a round, the modes interleaved.
 """
 
 from __future__ import annotations
@@ -31,9 +36,11 @@ from drvs.sim.scene import write_video
 from .common import YELLOW, bench_process, cpu_seconds
 from .fusion import REGION, Cameras, Disc
 from .paper import check_drvs, check_fused
-from .stats import interleaved, publish
+from .stats import check_work, interleaved, publish
 
-COST_MODES = ("per_camera", "fused", "idle")
+COST_MODES = ("per_camera", "fused", "bare", "idle")
+#: Back-to-back requests the bare robot sends before its paced ones (counted with them, see above).
+BARE_WARMUP = 10
 #: Requests per run at COST_RATE: 20 s a run in the full benchmark, 4 s with --quick.
 FULL_COST_REQUESTS = 600
 QUICK_COST_REQUESTS = 120
@@ -70,6 +77,8 @@ async def run_robot(mode: str, server: str, requests: int, pids: dict[str, list[
         await asyncio.sleep(requests / COST_RATE)  # measuring an interval with nothing asked, not waiting for anything
         wall = loop.time() - t0
         return {"wall_s": wall, **{f"{k}_cpu_s": sum(cpu_seconds(p) for p in v) - before[k] for k, v in pids.items()}}
+    if mode == "bare":
+        return await run_bare(pids["bare"], server, requests)
     region = ",".join(f"{v:g}" for v in REGION)
     args = ["robot", "--mode", "drvs", "--server", server, "--cameras", "2", "--requests", str(requests)]
     args += ["--rate", f"{COST_RATE:g}", f"--region={region}", "--filter", YELLOW]  # = : it starts with a minus
@@ -91,11 +100,29 @@ async def run_robot(mode: str, server: str, requests: int, pids: dict[str, list[
     return {**outcome, **used, "interval_s": interval}
 
 
+async def run_bare(bare_pid: list[int], bare_server: str, requests: int) -> dict[str, Any]:
+    """One run of the bare robot against the bare server: its outcome and the bare server's CPU over the
+    whole run (warm-up included: the bare robot prints no START)."""
+    args = ["--server", bare_server, "--cameras", "2", "--requests", str(requests), "--rate", f"{COST_RATE:g}"]
+    robot = await bench_process("bare-robot", "bare-robot", *args, "--warmup", str(BARE_WARMUP)).start()
+    try:
+        before = sum(cpu_seconds(p) for p in bare_pid)
+        done = await robot.wait_for_line(r"^DONE (.*)", timeout=requests / COST_RATE + 120)
+        used = sum(cpu_seconds(p) for p in bare_pid) - before
+        outcome = {k: v for k, v in json.loads(done.group(1)).items() if not isinstance(v, list)}
+        assert await robot.wait(timeout=30) == 0, robot.output()
+    finally:
+        await robot.stop()
+    return {**outcome, "server_cpu_s": used, "server_requests": requests + BARE_WARMUP}
+
+
 def check_run(mode: str, run: dict[str, Any], requests: int) -> None:
     if mode == "per_camera":
         check_drvs(mode, run, requests, 2, 2 * len(STILL_DISCS))  # each camera sees every disc
     elif mode == "fused":
         check_fused(mode, run, requests, len(STILL_DISCS))  # one world object per disc
+    elif mode == "bare":
+        check_work(mode, {"completed": requests}, {"completed": run["completed"]})
 
 
 async def run_cost(result: dict[str, Any], rounds: int, quick: bool, requests: int = 0) -> dict[str, Any]:
@@ -113,9 +140,18 @@ async def run_cost(result: dict[str, Any], rounds: int, quick: bool, requests: i
                 procs.append(cam)
                 camera_pids.append(cam.pid)
             pids = {"server": [server.pid], "cameras": camera_pids}
+            bare_cameras: list[str] = []
+            for k in range(2):
+                bare = await bench_process(f"bare-camera{k}", "bare-camera", "--id", f"bare{k}").start()
+                procs.append(bare)
+                bare_cameras += ["--camera", (await bare.wait_for_line(r"^LISTENING (\S+)", timeout=30)).group(1)]
+            bare_server = await bench_process("bare-server", "bare-server", *bare_cameras).start()
+            procs.append(bare_server)
+            bare_address = (await bare_server.wait_for_line(r"^LISTENING (\S+)", timeout=30)).group(1)
             for r, mode in interleaved(COST_MODES, rounds):
                 print(f"drvs-bench fusion: round {r + 1}/{rounds}: cost, {mode} ...", file=sys.stderr, flush=True)
-                run = await run_robot(mode, address, requests, pids)
+                target = bare_address if mode == "bare" else address
+                run = await run_robot(mode, target, requests, {**pids, "bare": [bare_server.pid]})
                 check_run(mode, run, requests)
                 runs[r][mode] = run
         finally:
@@ -140,7 +176,11 @@ def summarise_cost(runs: list[dict[str, dict[str, Any]]], requests: int) -> dict
         "robot's START to its DONE over the requests; _marginal_: less the idle server's CPU rate over the same "
         "time; latency: the robot's call to its answer (per-camera: the last camera's final report; fused: the "
         "snapshot); fused_added_latency_ms_*: fused minus per-camera, within each round. Requests ask for "
-        "outlines (the API's default: the fusion merges outlines)",
+        "outlines (the API's default: the fusion merges outlines). bare_server_cpu_ms_per_request: the floor, "
+        "DRVS's message flow in bare grpc.aio (drvs_bench.bare: answer, forward to two bare cameras, which "
+        f"report to the robot) at the same rate, its CPU over the bare robot's whole run per request (its "
+        f"{BARE_WARMUP} back-to-back warm-up requests and its connection counted: the floor is if anything "
+        "high); *_over_bare_server_cpu: the mode's server CPU per request over the floor's, within each round",
     }
     for mode in ("per_camera", "fused"):
         for key, values in (
@@ -152,6 +192,16 @@ def summarise_cost(runs: list[dict[str, dict[str, Any]]], requests: int) -> dict
             ("latency_ms_p99", [r[mode]["latency_ms_p99"] for r in runs]),
         ):
             publish(out, f"{mode}_{key}", values)
+    # The floor: the bare server's CPU per request, and each mode's over it within a round.
+    bare = [1000 * r["bare"]["server_cpu_s"] / r["bare"]["server_requests"] for r in runs]
+    publish(out, "bare_server_cpu_ms_per_request", bare)
+    publish(out, "bare_robot_cpu_ms_per_request", [1000 * r["bare"]["cpu_s"] / requests for r in runs])
+    for mode in ("per_camera", "fused"):
+        publish(
+            out,
+            f"{mode}_over_bare_server_cpu",
+            [1000 * r[mode]["server_cpu_s"] / requests / b for r, b in zip(runs, bare, strict=True)],
+        )
     publish(out, "idle_server_cpu_cores", [r["idle"]["server_cpu_s"] / r["idle"]["wall_s"] for r in runs])
     publish(
         out,

@@ -7,6 +7,7 @@ from collections import OrderedDict
 from typing import Any
 
 import numpy as np
+import shapely
 from shapely.geometry import Polygon
 
 from drvs.errors import InvalidArgument
@@ -284,21 +285,30 @@ def _seconds(msg: Any, name: str) -> float:
     return getattr(msg, name).ToNanoseconds() / 1e9 if msg.HasField(name) else 0.0
 
 
-def world_object_to_pb(o: WorldObject, outline: bool = True) -> detection_pb2.WorldObject:
-    x0, y0, x1, y1 = o.bounds
-    msg = detection_pb2.WorldObject(
-        track_id=o.track_id,
-        bounds=geometry_pb2.FloorBox(x_lower=x0, y_lower=y0, x_upper=x1, y_upper=y1),
-        centroid=geometry_pb2.FloorPoint(x=o.centroid_xy[0], y=o.centroid_xy[1]),
-        velocity=geometry_pb2.FloorPoint(x=o.velocity_xy[0], y=o.velocity_xy[1]),
-        uncertainty_m=o.uncertainty_m,
-        camera_ids=o.camera_ids,
-        label=o.label,
-        score=o.score,
-        area_m2=o.area_m2,
-    )
+def world_object_to_pb(
+    o: WorldObject, outline: bool = True, into: detection_pb2.WorldObject | None = None
+) -> detection_pb2.WorldObject:
+    """`into`: a message to fill in place (a snapshot's `objects.add()`), instead of a new one.
+
+    Filled field by field rather than through the constructor: the constructor copies each
+    sub-message it is given, and a snapshot's objects were copied again into the snapshot and the
+    snapshot into its reply; together that was most of a fused request's conversion cost."""
+    msg = detection_pb2.WorldObject() if into is None else into
+    msg.track_id = o.track_id
+    b = msg.bounds
+    b.x_lower, b.y_lower, b.x_upper, b.y_upper = o.bounds
+    c = msg.centroid
+    c.x, c.y = o.centroid_xy
+    v = msg.velocity
+    v.x, v.y = o.velocity_xy
+    msg.uncertainty_m = o.uncertainty_m
+    msg.camera_ids.extend(o.camera_ids)
+    msg.label = o.label
+    msg.score = o.score
+    msg.area_m2 = o.area_m2
     if outline and not o.outline.is_empty:
-        msg.outline_xy.extend(v for xy in polygon_coords(o.outline) for v in xy)
+        # The exterior ring without its closing point (geometry.polygon_coords), as one array.
+        msg.outline_xy.extend(shapely.get_coordinates(o.outline.exterior)[:-1].ravel().tolist())
     if o.heading_deg is not None:
         msg.heading_deg = o.heading_deg
     if o.marker_id is not None:
@@ -330,17 +340,22 @@ def world_object_from_pb(msg: detection_pb2.WorldObject) -> WorldObject:
     )
 
 
-def snapshot_to_pb(s: Snapshot, outlines: bool = True) -> detection_pb2.WorldSnapshot:
-    msg = detection_pb2.WorldSnapshot(
-        sequence=s.sequence,
-        final=s.final,
-        objects=[world_object_to_pb(o, outlines) for o in s.objects],
-        missing_cameras=[
-            detection_pb2.MissingCamera(camera_id=m.camera_id, code=m.code, message=m.message)
-            for m in s.missing_cameras
-        ],
-        camera_ids=s.camera_ids,
-    )
+def snapshot_to_pb(
+    s: Snapshot, outlines: bool = True, into: detection_pb2.WorldSnapshot | None = None
+) -> detection_pb2.WorldSnapshot:
+    """`into`: a message to fill in place (a reply's `snapshot`, cleared first), instead of a new one to copy there."""
+    if into is None:
+        msg = detection_pb2.WorldSnapshot()
+    else:
+        msg = into
+        msg.Clear()
+    msg.sequence = s.sequence
+    msg.final = s.final
+    for o in s.objects:
+        world_object_to_pb(o, outlines, msg.objects.add())
+    for m in s.missing_cameras:
+        msg.missing_cameras.add(camera_id=m.camera_id, code=m.code, message=m.message)
+    msg.camera_ids.extend(s.camera_ids)
     _timestamp(msg.time, s.time)
     return msg
 

@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Callable, Iterable, Sequence
-from dataclasses import dataclass, replace
+from dataclasses import dataclass
 
 import numpy as np
 import shapely
@@ -97,14 +97,40 @@ def ground_sampling_distance(h: Homography, floor_xy: tuple[float, float]) -> fl
     return float(_gsd(h.matrix, h.inverse().matrix, np.array([[x, y]]))[0])
 
 
-def _gsd(m: NDArray[np.float64], inv: NDArray[np.float64], floor_xy: NDArray[np.float64]) -> NDArray[np.float64]:
-    """ground_sampling_distance for an (N, 2) array of floor points; m the image->floor matrix, inv its inverse."""
+def _gsd(
+    m: NDArray[np.float64], inv: NDArray[np.float64], floor_xy: NDArray[np.float64], abs_det: float | None = None
+) -> NDArray[np.float64]:
+    """ground_sampling_distance for an (N, 2) array of floor points; m the image->floor matrix, inv its
+    inverse, abs_det |det m| (computed here when not given)."""
+    if abs_det is None:
+        abs_det = abs(float(np.linalg.det(m)))
     pix = floor_xy @ inv[:, :2].T + inv[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         uv = pix[:, :2] / pix[:, 2:3]
         w = uv @ m[2, :2] + m[2, 2]
-        det = abs(float(np.linalg.det(m))) / np.abs(w) ** 3
+        det = abs_det / np.abs(w) ** 3
     return np.where(np.isfinite(det), np.sqrt(det), np.inf)
+
+
+#: Homographies whose inverse and |det| `fuse` has computed, by id (the Homography itself is kept,
+#: so that an id is not reused while it is here): a camera's registered homography is one object
+#: for as long as it is registered, and inverting it for every report was a tenth of a fused
+#: request's fusing. Bounded: cleared when full (a mobile camera's homography is new per report).
+_SOLVED: dict[int, tuple[Homography, NDArray[np.float64], float]] = {}
+_MAX_SOLVED = 256
+
+
+def _solved(h: Homography) -> tuple[NDArray[np.float64], float]:
+    """h's inverse matrix and |det| of its matrix, as Homography.inverse and np.linalg.det give them."""
+    hit = _SOLVED.get(id(h))
+    if hit is not None and hit[0] is h:
+        return hit[1], hit[2]
+    inv = h.inverse().matrix
+    abs_det = abs(float(np.linalg.det(h.matrix)))
+    if len(_SOLVED) >= _MAX_SOLVED:
+        _SOLVED.clear()
+    _SOLVED[id(h)] = (h, inv, abs_det)
+    return inv, abs_det
 
 
 @dataclass
@@ -183,8 +209,9 @@ def _union(outlines: Sequence[Polygon]) -> Polygon:
 
 
 def _finite(d: Detection) -> bool:
-    values = (*d.centroid_xy, *d.bounds)
-    return all(math.isfinite(v) for v in values)
+    isfinite = math.isfinite
+    (cx, cy), (x0, y0, x1, y1) = d.centroid_xy, d.bounds
+    return isfinite(cx) and isfinite(cy) and isfinite(x0) and isfinite(y0) and isfinite(x1) and isfinite(y1)
 
 
 def _extent(d: Detection) -> float:
@@ -198,7 +225,8 @@ def _sigmas(detections: Sequence[Detection], h: Homography | None, pixel_sigma: 
     """Each detection's 1-sigma floor error at its centroid: pixel_sigma * the camera's GSD there."""
     if h is not None and detections:
         xy = np.array([d.centroid_xy for d in detections], dtype=np.float64)
-        gsd = _gsd(h.matrix, h.inverse().matrix, xy)
+        inv, abs_det = _solved(h)
+        gsd = _gsd(h.matrix, inv, xy, abs_det)
     else:
         gsd = np.full(len(detections), np.inf)
     out = []
@@ -291,7 +319,7 @@ def _circular_mean(angles_deg: Iterable[tuple[float, float]]) -> float | None:
     return math.degrees(math.atan2(s, c))
 
 
-def _world_object(g: _Group) -> WorldObject:
+def _world_object(g: _Group, track_id: int) -> WorldObject:
     members = g.members
     outline = g.outline
     area = max(m.det.area_m2 for m in members) if outline.is_empty else float(outline.area)
@@ -303,7 +331,7 @@ def _world_object(g: _Group) -> WorldObject:
         if m.det.heading_deg is not None
     )
     return WorldObject(
-        track_id=0,
+        track_id=track_id,
         outline=outline,
         bounds=g.bounds,
         centroid_xy=g.centroid,
@@ -381,8 +409,12 @@ def fuse(
         for cam in sorted(per_camera):
             _assign(typed, per_camera[cam], by_id=key[0] == "marker")
         groups.extend(typed)
-    objects = [_world_object(g) for g in groups]
-    objects.sort(
-        key=lambda o: (o.centroid_xy[0], o.centroid_xy[1], o.marker_id if o.marker_id is not None else -1, o.label)
-    )
-    return [replace(o, track_id=i + 1) for i, o in enumerate(objects)]
+
+    # The objects' order (and so their track ids): by x, then y of the fused centroid, then marker
+    # id and label (each group's first member's, as its object's), sorted stably from group order.
+    def order(g: _Group) -> tuple[float, float, int, str]:
+        first = g.members[0].det
+        return (g.centroid[0], g.centroid[1], first.marker_id if first.marker_id is not None else -1, first.label)
+
+    groups.sort(key=order)
+    return [_world_object(g, i + 1) for i, g in enumerate(groups)]

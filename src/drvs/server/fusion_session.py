@@ -301,7 +301,7 @@ class SingleShot(FusionSession):
                 final=True,
                 request_id=self.request_id,
             )
-            reply.snapshot.CopyFrom(snapshot_to_pb(snapshot, self.outlines))
+            snapshot_to_pb(snapshot, self.outlines, into=reply.snapshot)  # in place: no copy
         except Exception:
             log.exception("fused request %s: making its snapshot failed", self.request_id)
             reply = refusal(self.request_id, grpc.StatusCode.INTERNAL, FUSING_FAILED)
@@ -445,9 +445,8 @@ class Continuous(FusionSession):
             final=final,
             request_id=self.request_id,
         )
-        reply = detection_pb2.DetectionReply(
-            request_id=self.request_id, snapshot=snapshot_to_pb(snapshot, self.outlines)
-        )
+        reply = detection_pb2.DetectionReply(request_id=self.request_id)
+        snapshot_to_pb(snapshot, self.outlines, into=reply.snapshot)  # in place: no copy
         self._deliver(reply, last=final)
 
     def _track(self, reports: Sequence[DetectionReport], at: float) -> list[WorldObject]:
