@@ -162,8 +162,11 @@ class LoopLag:
         loop = asyncio.get_running_loop()
         interval_end = loop.time() + INTERVAL_S
         while True:
-            due = loop.time() + LOOP_TICK_S
-            await asyncio.sleep(LOOP_TICK_S)
+            # While too few requests come for their lag to count, one tick an interval: a timer 200
+            # times a second cost an idle server 1.5 % of a core, half a millisecond per request at 30 Hz.
+            period = LOOP_TICK_S if self._busy or self._arrivals >= LOOP_MIN_ARRIVALS else INTERVAL_S
+            due = loop.time() + period
+            await asyncio.sleep(period)
             now = loop.time()
             self.last_s = max(0.0, now - due)
             if now >= interval_end:
