@@ -4,6 +4,7 @@ the static index; bad flags are refused with exit 2."""
 from __future__ import annotations
 
 import json
+import os
 import shutil
 from pathlib import Path
 
@@ -80,6 +81,8 @@ def test_cluster_propagation_smoke(tmp_path: Path) -> None:
     assert 0 < result["propagation_ms_p50"] <= result["propagation_ms_p99"] == max(result["delays_ms"])
     assert result["etcd_cpu_s"] >= 0 and (tmp_path / "cluster.png").is_file()
     assert main(["cluster", "--parts", "nonsense"]) == 2 and main(["cluster", "--rounds", "-1"]) == 2
+    for bad in ("0", "1,x", "2,2", ""):
+        assert main(["cluster", "--parts", "throughput", "--workers-list", bad]) == 2
 
 
 @pytest.mark.slow
@@ -97,10 +100,31 @@ def test_cluster_failover_smoke(tmp_path: Path) -> None:
 @NEEDS_ETCD
 def test_cluster_throughput_smoke(tmp_path: Path) -> None:
     """drvs-bench cluster --parts throughput: 1000 cameras registered through A are routed by both
-    servers; every run completes without an error, and the ratio is the rounds' own."""
+    servers; every run completes without an error, and the ratio is the rounds' own. drvs-server
+    --workers 1 and 2 (--quick's list): every worker served, the scaling ratio is each round's own,
+    and the cores, the harness's size and the plot are there."""
     assert main(["cluster", "--quick", "--parts", "throughput", "--out", str(tmp_path)]) == 0
     result = json.loads((tmp_path / "cluster.json").read_text())["throughput"]
     assert result["cameras"] == 1000 and len(result["two_over_one_runs"]) == result["rounds"] == 3
     assert all(r > 0 for r in result["rps_one_server_runs"] + result["rps_two_servers_runs"])
     ratios = [t / o for t, o in zip(result["rps_two_servers_runs"], result["rps_one_server_runs"], strict=True)]
     assert result["two_over_one_runs"] == pytest.approx(ratios)
+    workers = json.loads((tmp_path / "cluster.json").read_text())["workers"]
+    assert workers["cores"] == os.cpu_count() and workers["workers_list"] == [1, 2]
+    assert workers["baseline_workers"] == 1 and workers["cameras"] == 1000
+    assert workers["fake_camera_processes"] >= 2 and workers["load_processes"] >= 2
+    assert workers["channels_per_load"] > 1 and (tmp_path / "cluster_workers.png").is_file()
+    one, two = workers["by_workers"]["1"], workers["by_workers"]["2"]
+    for n, data in ((1, one), (2, two)):
+        assert len(data["rps_runs"]) == workers["rounds"] == 3 and all(r > 0 for r in data["rps_runs"])
+        assert data["rps"] == data["rps_median"] and data["rps_spread"] == [
+            min(data["rps_runs"]),
+            max(data["rps_runs"]),
+        ]
+        assert data["processes"] == n + workers["fake_camera_processes"] + workers["load_processes"]
+        # Every worker took connections and spent CPU on them; the harness's CPU is recorded.
+        assert all(len(cpu) == n and min(cpu) > 0 for cpu in data["worker_cpu_s_runs"])
+        assert data["server_cores"] > 0 and data["load_cores"] > 0 and data["fake_cameras_cores"] > 0
+    assert one["over_baseline_runs"] == [1.0, 1.0, 1.0]
+    scaling = [t / o for t, o in zip(two["rps_runs"], one["rps_runs"], strict=True)]
+    assert two["over_baseline_runs"] == pytest.approx(scaling)
