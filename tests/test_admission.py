@@ -128,6 +128,11 @@ def test_the_door_draws_once_against_the_busiest_camera_and_hints_a_wait() -> No
     with pytest.raises(ResourceExhausted, match="the server is past its capacity"):
         door.check_server()
     assert retry_after_s(1.0) == INTERVAL_S and retry_after_s(MIN_ADMIT) <= 0.5
+    # --admission-target 0: the door is off, whatever the queues say.
+    off = Door(0.0, draw=lambda: 0.99)
+    off.loop.shedder.admit = MIN_ADMIT
+    off.check_server()
+    off.check_cameras([("cam-b", busy)])
 
 
 def test_the_client_throttles_in_proportion_to_refusals_and_recovers() -> None:

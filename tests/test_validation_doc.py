@@ -415,6 +415,11 @@ def cli_cases(tmp: Path) -> list[CliCase]:
         CliCase("drvs-server", ("--workers", "0"), "workers (--workers): … must be in [1, 256] processes"),
         CliCase(
             "drvs-server",
+            ("--admission-target", "-1"),
+            "admission_target_s (--admission-target): … must be in [0, 10] seconds (0: admission off)",
+        ),
+        CliCase(
+            "drvs-server",
             ("--workers", "2"),
             "workers (--workers): … processes need a shared registry, --registry etcd://HOST:PORT: a camera "
             "registers with one of them and is routed by all",

@@ -68,7 +68,8 @@ TARGETS: dict[str, tuple[float, bool]] = {
     "camera_cpu_200_over_20_moving": (3.0, False),
 }
 #: The service benchmark measures capacity and cost, not policy: besides the per-robot rate limit,
-#: it lifts load shedding (`busy` past 64 queued forwards) and the 2 s forward timeout, after which a
+#: it lifts load shedding (`busy` past 64 queued forwards, and admission: `--admission-target 0`) and
+#: the 2 s forward timeout, after which a
 #: camera leaves routing until its next heartbeat (fake cameras never send one). On this shared
 #: machine a stall of a fraction of a second would otherwise turn into refusals, and any refusal
 #: fails the run's work check. It lifts the per-robot budget of forwarded bytes too, and has no
@@ -76,7 +77,7 @@ TARGETS: dict[str, tuple[float, bool]] = {
 #: what they are in steady state.
 CAPACITY_NOT_POLICY = (
     *NO_RATE_LIMIT, "--forward-timeout", "60", "--max-queued-forwards", "100000",
-    "--max-forward-bytes", "1e12", "--warm-up", "0",
+    "--max-forward-bytes", "1e12", "--warm-up", "0", "--admission-target", "0",
 )  # fmt: skip
 #: Where the floors hold.
 FLOOR_HOLDS = (

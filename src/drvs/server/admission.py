@@ -26,10 +26,10 @@ from drvs.metrics import ADMISSION_REFUSED as refused
 
 #: CoDel's interval: a queue that stays this long above the target is standing, not a burst.
 INTERVAL_S = 0.1
-#: Standing queue delay the server's loop tolerates before it sheds, seconds.
-LOOP_TARGET_S = 0.01
-#: Standing delay a camera link tolerates beyond its fastest round trip, seconds.
-LINK_TARGET_S = 0.01
+#: Standing queue delay tolerated before shedding, seconds: the server's loop, and a camera link
+#: beyond its fastest round trip (drvs-server --admission-target; 0 turns admission off).
+DEFAULT_TARGET_S = 0.01
+LOOP_TARGET_S = LINK_TARGET_S = DEFAULT_TARGET_S
 #: How often the loop's lag is sampled, seconds (a timer callback: about 1 µs of work each).
 LOOP_TICK_S = 0.005
 #: Per interval with a standing queue the admitted share is multiplied by this; per interval
@@ -180,13 +180,25 @@ class Door:
     and of every camera link it needs; the rest are refused with ResourceExhausted and a retry
     hint, before anything is forwarded. `draw` is the random source (tests pass their own)."""
 
-    def __init__(self, loop_target_s: float = LOOP_TARGET_S, draw: Callable[[], float] = random.random) -> None:
-        self.loop = LoopLag(loop_target_s)
+    def __init__(self, target_s: float = DEFAULT_TARGET_S, draw: Callable[[], float] = random.random) -> None:
+        #: 0: admission off (every request passes; the fixed bounds, such as a link's queue, stay).
+        self.target_s = target_s
+        self.loop = LoopLag(target_s)
         self._draw = draw
+
+    def start(self) -> None:
+        if self.target_s > 0:
+            self.loop.start()
+
+    def link(self) -> LinkDelay:
+        """A new camera link's delay, shedding at this door's target."""
+        return LinkDelay(self.target_s)
 
     def check_server(self) -> None:
         """First, before a request is even read whole: ResourceExhausted if the server's own loop
         sheds this one."""
+        if not self.target_s:
+            return
         self.loop.arrived()
         admit = self.loop.shedder.share()
         if admit < 1.0 and self._draw() >= admit:
@@ -202,6 +214,8 @@ class Door:
         """Then, once routed: ResourceExhausted if a camera the request needs sheds it; `links` are
         (camera id, its link's shedder) for the cameras it would be forwarded to. One draw for all
         of them, against the smallest share: a request is as admissible as its busiest camera."""
+        if not self.target_s:
+            return
         admit, who = 1.0, ""
         for camera_id, shedder in links:
             share = shedder.share()

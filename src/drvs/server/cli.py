@@ -226,6 +226,14 @@ def build_parser() -> argparse.ArgumentParser:
         "every server given the same etcd (DRVS_REGISTRY)",
     )
     p.add_argument(
+        "--admission-target",
+        type=float,
+        default=None,
+        metavar="SECONDS",
+        help="refuse requests at once (RESOURCE_EXHAUSTED, with a retry hint) while the server's or a camera's "
+        "queue stands longer than this (default 0.01; 0: admission off, for measuring raw capacity)",
+    )
+    p.add_argument(
         "--workers",
         type=int,
         default=None,
@@ -327,6 +335,7 @@ def config_from(args: argparse.Namespace) -> ServerConfig:
             "etcd_cert": args.etcd_cert,
             "etcd_key": args.etcd_key,
             "workers": args.workers,
+            "admission_target_s": args.admission_target,
         },
         os.environ,
     )

@@ -32,6 +32,7 @@ from drvs.registry import (
     DEFAULT_POSE_LEASE_S,
     MAX_POSE_LEASE_S,
 )
+from drvs.server.admission import DEFAULT_TARGET_S
 from drvs.server.policy import (
     DEFAULT_FORWARD_BYTES_PER_S,
     DEFAULT_MAX_ACTIVE,
@@ -91,6 +92,7 @@ FLAGS = {
     "etcd_cert": "--etcd-cert",
     "etcd_key": "--etcd-key",
     "workers": "--workers",
+    "admission_target_s": "--admission-target",
 }
 
 #: Inclusive numeric ranges: setting -> (lowest, highest, whether the lowest is allowed, unit text).
@@ -114,6 +116,7 @@ _RANGES: dict[str, tuple[float, float, bool, str]] = {
     "max_pose_lease_s": (0, 3600, False, " seconds"),
     "min_pose_interval_s": (0, 3600, True, " seconds"),
     "workers": (1, 256, True, " processes"),
+    "admission_target_s": (0, 10, True, " seconds (0: admission off)"),
 }
 _INTEGERS = (
     "max_queued_forwards",
@@ -196,6 +199,9 @@ class ServerConfig:
     #: Server processes serving `listen` together (SO_REUSEPORT: the kernel spreads connections
     #: over them), sharing the registry in etcd; drvs-server starts them. 1: this process alone.
     workers: int = 1
+    #: The standing queue delay tolerated before requests are refused at the door (the server's
+    #: loop; a camera link beyond its fastest round trip), seconds; 0 turns admission off.
+    admission_target_s: float = DEFAULT_TARGET_S
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "allow_callback", tuple(self.allow_callback))

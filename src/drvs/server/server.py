@@ -204,11 +204,11 @@ class CameraRegistration:
 class _CameraLink:
     """One reused channel per camera, replaced when the camera registers a new address."""
 
-    def __init__(self, address: str, security: Security, token: str, timeout_s: float) -> None:
+    def __init__(self, address: str, security: Security, token: str, timeout_s: float, delay: LinkDelay) -> None:
         self.address = address
         self.token = token
         #: Its forwards' round trips beyond the fastest: the camera's queue, for the server's door.
-        self.delay = LinkDelay()
+        self.delay = delay
         self.channel = security.channel(address)
         # The server proves itself to a camera with the camera's own registration token.
         self.requests = BatchSender(
@@ -316,7 +316,7 @@ class DrvsServer(Lifecycle):
         )
         self._links: dict[str, _CameraLink] = {}
         #: Admission: past capacity requests are refused here, before anything is forwarded.
-        self.door = Door()
+        self.door = Door(config.admission_target_s)
         # Cameras whose last forward failed: skipped until their next heartbeat proves them alive.
         self._unreachable: set[str] = set()
         self._unreachable_why: dict[str, str] = {}
@@ -406,7 +406,7 @@ class DrvsServer(Lifecycle):
             await self._registry_reachable(False)
         self._started_at = time.monotonic()
         self._sweeper = asyncio.get_running_loop().create_task(self._sweep_leases())
-        self.door.loop.start()
+        self.door.start()
         if self.view is not None:
             self.view.start()
             hub = self.view.hub
@@ -1101,7 +1101,7 @@ class DrvsServer(Lifecycle):
         if link is None or link.address != camera.address or link.token != token:
             if link is not None:
                 self._spawn(link.close())
-            link = _CameraLink(camera.address, self.security, token, self.forward_timeout_s)
+            link = _CameraLink(camera.address, self.security, token, self.forward_timeout_s, self.door.link())
             self._links[camera.camera_id] = link
         return link
 
