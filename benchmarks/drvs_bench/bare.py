@@ -16,6 +16,7 @@ import asyncio
 import itertools
 import json
 import os
+import secrets
 import time
 from collections.abc import AsyncIterator
 from typing import Any
@@ -23,7 +24,7 @@ from typing import Any
 from grpc import aio
 
 from drvs import _grpc
-from drvs.v1 import detection_pb2, detection_pb2_grpc
+from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
 
 from .common import peak_rss_bytes
 from .fakes import AckingCamera
@@ -201,6 +202,119 @@ async def bare_robot(args: argparse.Namespace) -> None:
     )
 
 
+async def capture_snapshots(
+    server: str, filter_def: str, region: tuple[float, float, float, float], rate: float, cameras: int
+) -> list[detection_pb2.DetectionReply]:
+    """Real snapshot replies, as the DRVS server at `server` sends them to a robot: a fused track
+    (boxes only) of one second over `region` on a bare DetectStream, the replies that merged every
+    camera kept as they came (the first reply, the dispatch, left out)."""
+    x0, y0, x1, y1 = region
+    request = detection_pb2.DetectionRequest(
+        request_id=f"{secrets.token_urlsafe(3)}0",  # as long as a DRVS client's first id
+        robot_id="bench",
+        filter_def=filter_def,
+        region=geometry_pb2.Region(box=geometry_pb2.Box(x_lower=x0, y_lower=y0, x_upper=x1, y_upper=y1)),
+        continuous=detection_pb2.ContinuousMode(rate_hz=rate, duration_s=1.0),
+        omit_outlines=True,
+        fusion=detection_pb2.FusionOptions(),
+    )
+    kept: list[detection_pb2.DetectionReply] = []
+    async with _grpc.insecure_channel(server) as channel:
+        call = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
+        await call.write(request)
+        async for reply in call:
+            if reply.HasField("error"):
+                raise SystemExit(f"the DRVS server refused the capture track: {reply.error.message}")
+            if not reply.HasField("snapshot"):
+                continue
+            if len(reply.snapshot.camera_ids) == cameras and not reply.snapshot.final:
+                kept.append(reply)
+            if reply.snapshot.final:
+                break
+        call.cancel()
+    if not kept:
+        raise SystemExit(f"no snapshot from {server} merged {cameras} cameras")
+    return kept
+
+
+class _TrackFloorServer(detection_pb2_grpc.DetectObjectBoundaryServicer):
+    """Answers each request on the stream with snapshots pushed at its rate for its duration, as
+    DRVS's server answers a track (one at half of each period, the last final): captured DRVS
+    replies in turn, each with its sequence, final flag and the request's id set. Nothing else."""
+
+    def __init__(self, snapshots: list[detection_pb2.DetectionReply]) -> None:
+        self._snapshots = snapshots
+
+    async def DetectStream(
+        self,
+        request_iterator: AsyncIterator[detection_pb2.DetectionRequest],
+        context: aio.ServicerContext[Any, Any],
+    ) -> AsyncIterator[detection_pb2.DetectionReply]:
+        loop = asyncio.get_running_loop()
+        async for request in request_iterator:
+            rate = request.continuous.rate_hz
+            count = round(request.continuous.duration_s * rate) + 1
+            yield detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=["bare0", "bare1"])
+            t0 = loop.time()
+            for k in range(count):
+                delay = t0 + (k + 0.5) / rate - loop.time()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                reply = detection_pb2.DetectionReply()
+                reply.CopyFrom(self._snapshots[k % len(self._snapshots)])
+                reply.request_id = request.request_id
+                reply.snapshot.sequence = k
+                reply.snapshot.final = k == count - 1
+                yield reply
+
+
+async def track_floor_server(args: argparse.Namespace) -> None:
+    snapshots = await capture_snapshots(args.drvs_server, args.filter, args.region, args.rate, args.cameras)
+    sizes = sorted(s.ByteSize() for s in snapshots)
+    print(f"CAPTURED {len(snapshots)} snapshot replies of {sizes[0]}-{sizes[-1]} bytes", flush=True)
+    await serve_detection(_TrackFloorServer(snapshots))
+
+
+async def track_floor_robot(args: argparse.Namespace) -> None:
+    """The floor of a robot that follows a track: one request on a long-lived DetectStream, then only
+    receiving the snapshot messages pushed on it (protobuf-parsed by the stub, nothing more) until
+    the final one. A short stream first (--warmup-snapshots), as the DRVS track robot's warm-up;
+    measured from START (before the request) to the final snapshot, as it is."""
+    loop = asyncio.get_running_loop()
+    prefix = secrets.token_urlsafe(3)
+    async with _grpc.insecure_channel(args.server) as channel:
+        call = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
+        print("READY 0", flush=True)
+
+        async def follow(k: int, snapshots: int) -> int:
+            duration = max(1, snapshots - 1) / args.rate
+            message = detection_pb2.DetectionRequest(
+                request_id=f"{prefix}{k:x}",
+                continuous=detection_pb2.ContinuousMode(rate_hz=args.rate, duration_s=duration),
+            )
+            await call.write(message)
+            received = 0
+            async for reply in call:
+                if reply.HasField("snapshot"):
+                    received += 1
+                    if reply.snapshot.final:
+                        break
+            return received
+
+        await follow(0, args.warmup_snapshots)
+        print("START", flush=True)
+        cpu_start = time.process_time()
+        start = loop.time()
+        received = await follow(1, args.requests)
+        cpu = time.process_time() - cpu_start
+        wall = loop.time() - start
+        call.cancel()
+    print(
+        "DONE " + json.dumps({"cpu_s": cpu, "wall_s": wall, "requests": args.requests, "snapshots": received}),
+        flush=True,
+    )
+
+
 async def idle_robot(args: argparse.Namespace) -> None:
     """A robot process that only wakes at the request rate and does nothing: the floor of any
     asyncio robot on a schedule."""
@@ -222,6 +336,11 @@ def _camera_main(args: argparse.Namespace) -> int:
     return 0
 
 
+def _region(text: str) -> tuple[float, float, float, float]:
+    x0, y0, x1, y1 = (float(v) for v in text.split(","))
+    return x0, y0, x1, y1
+
+
 def add_bare_parsers(sub: Any) -> None:
     s = sub.add_parser("bare-server", help="(internal) bare grpc.aio: answer and forward each request")
     s.add_argument("--camera", action="append", required=True, help="camera HOST:PORT (repeat)")
@@ -238,6 +357,19 @@ def add_bare_parsers(sub: Any) -> None:
     r.add_argument("--rate", type=float, required=True, help="requests a second (0: back to back)")
     r.add_argument("--warmup", type=int, default=50, help="back-to-back requests first, not counted")
     r.set_defaults(func=lambda args: asyncio.run(bare_robot(args)) or 0)
+    ts = sub.add_parser("track-floor-server", help="(internal) bare grpc.aio: push captured DRVS snapshots")
+    ts.add_argument("--drvs-server", required=True, help="the DRVS server to capture real snapshot replies from")
+    ts.add_argument("--filter", required=True)
+    ts.add_argument("--region", type=_region, required=True, help="X0,Y0,X1,Y1")
+    ts.add_argument("--rate", type=float, required=True, help="the capture track's rate")
+    ts.add_argument("--cameras", type=int, required=True, help="cameras a captured snapshot must merge")
+    ts.set_defaults(func=lambda args: asyncio.run(track_floor_server(args)) or 0)
+    tr = sub.add_parser("track-floor-robot", help="(internal) bare grpc.aio robot: one request, snapshots received")
+    tr.add_argument("--server", required=True)
+    tr.add_argument("--requests", type=int, required=True, help="snapshots to receive")
+    tr.add_argument("--rate", type=float, required=True, help="snapshots a second")
+    tr.add_argument("--warmup-snapshots", type=int, default=10, help="a short stream of these first, not counted")
+    tr.set_defaults(func=lambda args: asyncio.run(track_floor_robot(args)) or 0)
     i = sub.add_parser("idle-robot", help="(internal) a robot that only wakes at the request rate")
     i.add_argument("--requests", type=int, required=True)
     i.add_argument("--rate", type=float, required=True)

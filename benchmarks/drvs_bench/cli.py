@@ -42,7 +42,11 @@ def paper_main(args: argparse.Namespace) -> int:
     summary: dict[str, object] = {
         k: v
         for k, v in result.items()
-        if ("ratio" in k or k.endswith(("_over_bare_path", "_over_floor", "_over_per_camera")) or "_per_request_" in k)
+        if (
+            "ratio" in k
+            or k.endswith(("_over_bare_path", "_over_floor", "_over_per_camera", "_over_receive_floor"))
+            or "_per_request_" in k
+        )
         and not k.endswith("_runs")
     }
     for mode, data in result["modes"].items():

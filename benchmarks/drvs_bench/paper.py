@@ -16,6 +16,14 @@ unlikely to scale ... on mobile robots"), measured: two more cameras play real f
 `people` (drvs_people) or has both cameras stream raw frames at the request rate and runs the same
 HOG people detector itself on every frame (raw_people): robot_cpu_ratio_people, beside the colour
 robot_cpu_ratio. The streaming robot there gets only the frames it analyses (its best case).
+
+A video stream is continuous: its like-for-like counterpart is a continuous fused track at the same
+rate (drvs_track: one request, then one snapshot a period on the robot's own stream), not single
+shots with a request, a reply and ACKs each. Its floor (track_floor, drvs_bench.bare) is the same
+snapshot messages, captured from the DRVS server, pushed on one bare grpc.aio stream at the same rate
+and only received: bandwidth_ratio_raw_track, bandwidth_ratio_jpeg_track and
+robot_cpu_track_over_receive_floor. The single-shot modes stay: they are what a robot that looks
+only now and then pays.
 """
 
 from __future__ import annotations
@@ -64,6 +72,16 @@ MODES = ("drvs", "drvs_boxes", "drvs_boxes_moving", "raw", "jpeg")
 #: The robot CPU floors, run in the same rounds: DRVS's messages in bare grpc.aio, one bare round
 #: trip per request, an idle loop at the request rate.
 FLOORS = ("bare_path", "rtt_floor", "idle")
+#: The continuous counterpart of a video stream (issue 27): one fused track at the request rate for as
+#: many snapshots as the other modes make requests, boxes only; and its floor, the same snapshot
+#: messages pushed at the same rate on one bare grpc.aio stream and only received.
+TRACK_MODE = "drvs_track"
+TRACK_FLOOR = "track_floor"
+#: Its targets: (target, higher is better), each to be met in every round.
+TRACK_TARGETS: dict[str, tuple[float, bool]] = {
+    "bandwidth_ratio_jpeg_track": (100.0, True),
+    "robot_cpu_track_over_receive_floor": (1.1, False),
+}
 #: Requests per run (30 Hz): the full run takes about 15-20 minutes on the 2-core machine, --quick 2-3.
 FULL_REQUESTS = 600
 QUICK_REQUESTS = 90
@@ -161,18 +179,23 @@ async def run_mode(
     loop = asyncio.get_running_loop()
     t_relays = loop.time()
     args = ["robot", "--mode", mode.split("_")[0], "--requests", str(requests), "--rate", str(rate)]
-    if mode.startswith("drvs_boxes") or mode == "drvs_people":
+    if mode == TRACK_FLOOR:
+        args = ["track-floor-robot", "--requests", str(requests), "--rate", str(rate)]
+    if mode.startswith("drvs_boxes") or mode in ("drvs_people", TRACK_MODE):
         args.append("--no-outlines")
     args += extra
     if mode.endswith("_moving"):
         args.append("--moving")
     callback_relay: CountingRelay | None = None
-    if mode.endswith("_fused"):
-        # Fused delivery: everything travels on the robot's own connection to the server; it has no listener.
+    if mode.endswith("_fused") or mode in (TRACK_MODE, TRACK_FLOOR):
+        # Fused delivery: everything travels on the robot's own connection to the server; it has no
+        # listener. The track floor: its one connection to the bare server pushing snapshots (`server`).
         host, port = server.rsplit(":", 1)
         relays = [CountingRelay(host, int(port), bucket_s=BUCKET_S)]
         await relays[0].start()
-        args += ["--fuse", "--server", f"127.0.0.1:{relays[0].port}", "--cameras", str(len(cameras))]
+        args += ["--server", f"127.0.0.1:{relays[0].port}"]
+        if mode != TRACK_FLOOR:
+            args += ["--fuse" if mode.endswith("_fused") else "--track", "--cameras", str(len(cameras))]
     elif mode.startswith("drvs"):
         host, port = server.rsplit(":", 1)
         server_relay = CountingRelay(host, int(port), bucket_s=BUCKET_S)
@@ -319,6 +342,33 @@ def check_fused(mode: str, run: dict[str, Any], requests: int, objects: int | No
     check_work_saying_failures(mode, expected, run)
 
 
+def check_track(mode: str, run: dict[str, Any], requests: int, objects: int | None) -> None:
+    """The track delivered a snapshot a period, `requests` in all (at least 2: a track has a first and
+    a last), the last of them final, none dropped unread, and at least one merged a fresh report from
+    every camera; with a fixed scene, every such snapshot held the objects the scene holds.
+
+    Published, not checked (as the streams' `frames_expected`): `snapshots_every_camera`, and the
+    snapshots naming a camera silent past its period and grace (`snapshots_missing_a_camera`), which
+    a loaded machine makes. Neither flatters the ratios: a report later than half a period goes into
+    the next snapshot and the tracker keeps its objects meanwhile, and a snapshot naming a missing
+    camera carries more bytes, not fewer."""
+    expected: dict[str, float] = {
+        "snapshots": max(2, requests),
+        "final_snapshots": 1,
+        "dropped_snapshots": 0,
+    }
+    if objects is not None:
+        expected["objects_every_camera"] = objects * run["snapshots_every_camera"]
+    check_work_saying_failures(mode, expected, run)
+    if run["snapshots_every_camera"] <= 0:
+        raise WorkMismatch(f"{mode}: no snapshot merged every camera, no ratio published")
+
+
+def check_track_floor(run: dict[str, Any], requests: int) -> None:
+    """The floor received as many snapshot messages as the track delivers."""
+    check_work(TRACK_FLOOR, {"snapshots": max(2, requests)}, run)
+
+
 def check_stream(mode: str, run: dict[str, Any], per_frame: list[int] | None) -> None:
     """Every frame received was analysed, each camera sent frames, and (with a fixed scene) each frame's
     detections were the objects its camera sees."""
@@ -404,8 +454,10 @@ async def run_paper(
             ack, ack_address = await ack_server()
             procs.append(ack)
             bare_server = await start_bare_path(procs, len(cameras))
+            track_floor = await start_track_floor(procs, address, rate, len(cameras))
             fused_modes = FUSED_MODES if fused else ()
-            for r, mode in interleaved((*MODES, *fused_modes, *people_modes, *FLOORS), rounds):
+            order = (*MODES, TRACK_MODE, *fused_modes, *people_modes, *FLOORS, TRACK_FLOOR)
+            for r, mode in interleaved(order, rounds):
                 print(f"drvs-bench paper: round {r + 1}/{rounds}: {mode} ...", file=sys.stderr, flush=True)
                 if mode in PEOPLE_MODES:
                     run = await run_mode(
@@ -417,6 +469,12 @@ async def run_paper(
                     run = await run_mode(mode, address, cameras, requests, rate, cpu_procs, camera_token)
                     # The scene's cameras do not overlap: each object is one world object.
                     check_fused(mode, run, requests, None if per_camera is None else sum(per_camera))
+                elif mode == TRACK_MODE:
+                    run = await run_mode(mode, address, cameras, requests, rate, cpu_procs, camera_token)
+                    check_track(mode, run, requests, None if per_camera is None else sum(per_camera))
+                elif mode == TRACK_FLOOR:
+                    run = await run_mode(mode, track_floor, cameras, requests, rate)
+                    check_track_floor(run, requests)
                 elif mode in MODES:
                     run = await run_mode(mode, address, cameras, requests, rate, cpu_procs, camera_token)
                     if mode.startswith("drvs"):
@@ -517,14 +575,17 @@ def summarise(
 ) -> dict[str, Any]:
     """paper.json from the rounds' runs: each figure and each ratio (within a round) as median and spread.
     people_requests: the people modes' requests per run (0: they did not run, no footage); fused:
-    FUSED_MODES ran too (their figures join `modes`, their ratios and targets the rest)."""
-    modes = {mode: _mode_figures(runs, mode) for mode in (*MODES, *(FUSED_MODES if fused else ()))}
+    FUSED_MODES ran too (their figures join `modes`, their ratios and targets the rest). The track mode
+    and its floor join them when the runs have them (every run_paper does)."""
+    track = TRACK_MODE in runs[0] and TRACK_FLOOR in runs[0]
+    track_modes = (TRACK_MODE,) if track else ()
+    modes = {mode: _mode_figures(runs, mode) for mode in (*MODES, *track_modes, *(FUSED_MODES if fused else ()))}
     result: dict[str, Any] = {
         "benchmark": "paper",
         "requests": requests,
         "rate_hz": rate,
         "rounds": len(runs),
-        "order": [*MODES, *(FUSED_MODES if fused else ()), *FLOORS],
+        "order": [*MODES, *track_modes, *(FUSED_MODES if fused else ()), *FLOORS, *((TRACK_FLOOR,) if track else ())],
         "cameras": cameras,
         "frame": "640x480 BGR, 20 fps",
         "bytes": "bytes: wire bytes, both directions of the robot's sockets, every TCP segment (ACK-only, SYN, "
@@ -591,6 +652,8 @@ def summarise(
             }
     if fused:
         summarise_fused(result, runs, requests, ratio)
+    if track:
+        summarise_track(result, runs, ratio)
     result["machine"] = machine()
     return result
 
@@ -632,6 +695,48 @@ def summarise_fused(
         }
 
 
+def summarise_track(
+    result: dict[str, Any],
+    runs: list[dict[str, dict[str, Any]]],
+    ratio: Callable[[str, str, str, Callable[[dict[str, Any]], float]], None],
+) -> None:
+    """The track's ratios (within each round) and targets: its wire bytes against the streams', the
+    robot's CPU against the floor of receiving the same snapshot messages on a bare stream, and per
+    snapshot what the track and its floor carry."""
+    track, floor = TRACK_MODE, TRACK_FLOOR
+    for name, num in (("bandwidth_ratio_raw_track", "raw"), ("bandwidth_ratio_jpeg_track", "jpeg")):
+        ratio(name, num, track, _figure("bytes_per_s"))
+        ratio(f"{name}_payload", num, track, _figure("payload_bytes_per_s"))
+    ratio("robot_cpu_track_over_receive_floor", track, floor, _cpu_rate)
+    ratio("robot_cpu_ratio_track", "raw", track, _cpu_rate)
+    ratio("robot_cpu_ratio_jpeg_track", "jpeg", track, _cpu_rate)
+    ratio("robot_cpu_track_over_single_shots", track, "drvs_boxes", _cpu_rate)
+    ratio("bytes_track_over_receive_floor", track, floor, _figure("bytes"))
+    ratio("payload_bytes_track_over_receive_floor", track, floor, _figure("payload_bytes"))
+    for mode, key in ((track, "track"), (floor, "receive_floor")):
+        for fig in ("bytes", "payload_bytes", "segments"):
+            name = f"{'wire_bytes' if fig == 'bytes' else fig}_per_snapshot_{key}"
+            publish(result, name, [run[mode][fig] / max(1, run[mode]["snapshots"]) for run in runs])
+    figures: dict[str, Any] = {}
+    for fig in ("cpu_s", "wall_s", "snapshots", "bytes", "bytes_per_s", "payload_bytes", "segments"):
+        publish(figures, fig, [run[floor][fig] for run in runs])
+    figures["definition"] = (
+        "a bare grpc.aio robot: one request on one DetectStream, then only receiving (the stub parses each "
+        "message, nothing more) the snapshot replies a bare server pushes at the same rate, as many as the "
+        "track's; the replies are the DRVS server's own, captured from a track over the same region, boxes "
+        "only, each with its sequence and final flag set; through a counting relay like the track; no DRVS code"
+    )
+    result["robot_cpu_receive_floor"] = figures
+    for name, (target, higher) in TRACK_TARGETS.items():
+        result["targets"][name] = {
+            "target": target,
+            "higher_is_better": higher,
+            "median": result[name],
+            "spread": result[f"{name}_spread"],
+            "verdict": verdict(result[f"{name}_runs"], target, higher_is_better=higher),
+        }
+
+
 async def start_bare_path(procs: list[ManagedProcess], cameras: int) -> str:
     """The bare path's cameras and server (drvs_bench.bare), kept for every round; returns the server's address."""
 
@@ -644,6 +749,19 @@ async def start_bare_path(procs: list[ManagedProcess], cameras: int) -> str:
     for k in range(cameras):
         camera_args += ["--camera", await listening(f"bare-camera{k}", "bare-camera", "--id", f"bare{k}")]
     return await listening("bare-server", "bare-server", *camera_args)
+
+
+async def start_track_floor(procs: list[ManagedProcess], server: str, rate: float, cameras: int) -> str:
+    """The track floor's server (drvs_bench.bare), kept for every round: it captures real snapshot
+    replies from the DRVS server (a one-second track, boxes only, over the region the track mode
+    asks for) and pushes them; returns its address."""
+    region = ",".join(f"{v:g}" for v in BOTH_REGION)
+    proc = await bench_process(
+        "track-floor-server", "track-floor-server", "--drvs-server", server, "--filter", YELLOW, f"--region={region}",
+        "--rate", f"{rate:g}", "--cameras", str(cameras),
+    ).start()  # fmt: skip
+    procs.append(proc)
+    return (await proc.wait_for_line(r"^LISTENING (\S+)", timeout=60)).group(1)
 
 
 def write_outputs(result: dict[str, Any], out: Path) -> None:
@@ -660,6 +778,7 @@ def plot(result: dict[str, Any], out: Path) -> None:
         "raw": "raw frame stream",
         "jpeg": "JPEG q80 frame stream",
         "drvs_boxes_fused": "DRVS, boxes, fused delivery",
+        "drvs_track": "DRVS, boxes, one fused track (continuous)",
     }
     fig, ax = plt.subplots(figsize=(9, 4.5), dpi=100)
     for mode, data in result["modes"].items():
@@ -689,7 +808,10 @@ def plot(result: dict[str, Any], out: Path) -> None:
         ("robot_cpu_bare_path", "--", "bare grpc.aio, same messages"),
         ("robot_cpu_floor", "-.", "one bare round trip per request"),
         ("robot_cpu_idle", ":", "idle asyncio loop at the same rate"),
+        ("robot_cpu_receive_floor", (0, (3, 1, 1, 1, 1, 1)), "snapshots received on one bare stream"),
     ):
+        if key not in result:
+            continue
         floor = result[key]
         ax.axhline(100 * floor["cpu_s"] / floor["wall_s"], color="black", ls=style, lw=1, label=f"floor: {name}")
     ax.set_xlabel("time (s)")

@@ -1,8 +1,10 @@
 """The robot's side of the paper benchmark, run as its own process so its CPU is its own.
 
 drvs: single-shot requests at 30 Hz through DRVS (with --moving, the region slides and the filter
-alternates every request). raw / jpeg: both cameras stream every frame to the robot over a plain
-grpc.aio channel (gRPC's defaults), and the robot runs the same HSV detection on each frame itself.
+alternates every request; with --fuse, fused single shots; with --track, one continuous fused
+track at the same rate, the counterpart of a video stream). raw / jpeg: both cameras stream every
+frame to the robot over a plain grpc.aio channel (gRPC's defaults), and the robot runs the same HSV
+detection on each frame itself.
 With --filter people, the same with OpenCV's HOG people detector (drvs.detectors.people) instead:
 the DRVS robot asks for `people`, the streaming robot asks each camera for frames at the request
 rate (--max-fps) and runs the detector the cameras run on every frame it gets.
@@ -234,6 +236,72 @@ async def fused_mode(args: argparse.Namespace) -> dict[str, object]:
         }
 
 
+async def track_mode(args: argparse.Namespace) -> dict[str, object]:
+    """A continuous fused request (DrvsClient.track), the counterpart of a video stream: one request,
+    then one snapshot a period at `args.rate` on the robot's own stream, `args.requests` snapshots
+    in all, each only consumed (counted). A short track first (`args.warmup_snapshots`) warms the
+    connection and the track path, as the single-shot modes' warm-up requests do."""
+    loop = asyncio.get_running_loop()
+    outlines = not args.no_outlines
+    async with DrvsClient(args.server, robot_id="bench") as client:
+        print("READY 0", flush=True)
+        warm = client.track(
+            args.filter, args.region, rate_hz=args.rate, duration_s=_track_duration(args.warmup_snapshots, args.rate),
+            outlines=outlines,
+        )  # fmt: skip
+        async for _ in warm:
+            pass
+        snapshots = objects = missing = missing_a_camera = finals = every_camera = objects_every_camera = 0
+        objects_per_snapshot: dict[str, int] = {}
+        failures: list[str] = []
+        print("START", flush=True)
+        start_cpu = time.process_time()
+        t0 = loop.time()
+        track = client.track(
+            args.filter, args.region, rate_hz=args.rate, duration_s=_track_duration(args.requests, args.rate),
+            outlines=outlines,
+        )  # fmt: skip
+        async with track as opened:
+            async for snapshot in opened:
+                snapshots += 1
+                objects += len(snapshot.objects)
+                missing += len(snapshot.missing_cameras)
+                missing_a_camera += bool(snapshot.missing_cameras)
+                finals += snapshot.final
+                if len(snapshot.camera_ids) == args.cameras:
+                    every_camera += 1
+                    objects_every_camera += len(snapshot.objects)
+                _bump(objects_per_snapshot, len(snapshot.objects))
+                if snapshot.missing_cameras and len(failures) < 10:
+                    named = [(e.camera_id, e.code) for e in snapshot.missing_cameras]
+                    failures.append(f"snapshot {snapshot.sequence}: missing {named}")
+            dropped = opened.dropped
+        cpu = time.process_time() - start_cpu
+        wall = loop.time() - t0
+    return {
+        "cpu_s": cpu,
+        "wall_s": wall,
+        "requests": args.requests,
+        "snapshots": snapshots,
+        "final_snapshots": finals,
+        "dropped_snapshots": dropped,
+        "objects": objects,
+        "missing_cameras": missing,
+        "snapshots_missing_a_camera": missing_a_camera,
+        # Snapshots that merged a fresh report from every camera (a report later than half a period
+        # is merged into the next; the tracker keeps its objects meanwhile).
+        "snapshots_every_camera": every_camera,
+        "objects_every_camera": objects_every_camera,
+        "objects_per_snapshot": objects_per_snapshot,
+        "failures": failures,
+    }
+
+
+def _track_duration(snapshots: int, rate: float) -> float:
+    """The duration of a track of `snapshots` snapshots at `rate` (it sends one at 0, 1/rate, ...)."""
+    return max(1, snapshots - 1) / rate
+
+
 async def stream_mode(args: argparse.Namespace) -> dict[str, object]:
     encoding = stream_pb2.FRAME_ENCODING_RAW_BGR if args.mode == "raw" else stream_pb2.FRAME_ENCODING_JPEG
     detectors: list[Detector] = []
@@ -329,7 +397,7 @@ async def stream_mode(args: argparse.Namespace) -> dict[str, object]:
 
 
 def workload_main(args: argparse.Namespace) -> int:
-    run = drvs_mode if args.mode == "drvs" else stream_mode
+    run = (track_mode if args.track else drvs_mode) if args.mode == "drvs" else stream_mode
     result = asyncio.run(run(args))
     print("DONE " + json.dumps(result), flush=True)
     return 0
@@ -354,6 +422,10 @@ def add_workload_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--no-outlines", action="store_true", help="drvs mode: ask for boxes only, as the paper's DRVS")
     p.add_argument("--moving", action="store_true", help="drvs mode: the region slides and the filter alternates")
     p.add_argument("--fuse", action="store_true", help="drvs mode: fused delivery (one snapshot per request)")
+    p.add_argument(
+        "--track", action="store_true", help="drvs mode: one continuous fused track, --requests snapshots at --rate"
+    )
+    p.add_argument("--warmup-snapshots", type=int, default=10, help="--track: a short track of these first")
     p.add_argument("--cameras", type=int, default=2, help="drvs mode: cameras every request needs a report from")
     p.add_argument("--warmup", type=int, default=50, help="drvs mode: requests back to back before measuring")
     p.add_argument("--warmup-frames", type=int, default=10, help="raw/jpeg: frames per camera before measuring")
