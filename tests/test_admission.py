@@ -17,12 +17,14 @@ import pytest
 from drvs.errors import InvalidArgument, ResourceExhausted
 from drvs.launch import ManagedProcess, start_server
 from drvs.robot import DrvsClient
-from drvs.robot.throttle import AdaptiveThrottle
+from drvs.robot.throttle import MIN_EXCESS, AdaptiveThrottle
 from drvs.server.admission import (
     ADMIT_CUT,
     ADMIT_STEP,
     BASE_WINDOW_S,
     INTERVAL_S,
+    LINK_MIN_SAMPLES,
+    LINK_MIN_WAITING,
     MIN_ADMIT,
     Door,
     LinkDelay,
@@ -86,29 +88,30 @@ def test_a_link_measures_its_queue_above_its_fastest_round_trip() -> None:
     clock = Clock()
     link = LinkDelay(0.01, clock=clock)
     # A far camera: 80 ms every time is its distance, not a queue.
+    queue = LINK_MIN_WAITING
     for _ in range(50):
-        link.observe(0.080, 5)
+        link.observe(0.080, queue)
     clock.now += INTERVAL_S
     assert link.shedder.share() == 1.0
-    for _ in range(3):  # 30 ms more for three requests caught behind one stall: no queue
-        link.observe(0.110, 5)
+    for _ in range(LINK_MIN_SAMPLES - 1):  # 30 ms more for a few requests behind one stall: no queue
+        link.observe(0.110, queue)
     clock.now += INTERVAL_S
     assert link.shedder.share() == 1.0
-    for _ in range(5):  # then 30 ms more, all the time: a queue
-        link.observe(0.110, 5)
+    for _ in range(LINK_MIN_SAMPLES):  # then 30 ms more, all the time: a queue
+        link.observe(0.110, queue)
     clock.now += INTERVAL_S
     assert link.shedder.share() == pytest.approx(ADMIT_CUT)
-    # Slow but alone on the link (the host is busy, not the camera's queue): no queue.
-    for _ in range(5):
-        link.observe(0.300, 0)
+    # Slow but with few others on the link (the host is busy, not the camera's queue): no queue.
+    for _ in range(LINK_MIN_SAMPLES):
+        link.observe(0.300, LINK_MIN_WAITING - 1)
     clock.now += INTERVAL_S
     assert link.shedder.share() == pytest.approx(ADMIT_CUT + ADMIT_STEP)
     # A link that got slower for good: after two base windows its new round trip is its base.
     for _ in range(3):
         clock.now += BASE_WINDOW_S
-        link.observe(0.110, 5)
+        link.observe(0.110, queue)
     clock.now += 100 * INTERVAL_S
-    link.observe(0.110, 5)
+    link.observe(0.110, queue)
     clock.now += INTERVAL_S
     assert link.shedder.share() == 1.0
 
@@ -142,6 +145,11 @@ def test_the_client_throttles_in_proportion_to_refusals_and_recovers() -> None:
         throttle.check("r")
         throttle.accepted()
     assert throttle.reject_probability() == 0.0
+    # A robot's first answer late or refused is no overload: nothing held back for a few refusals.
+    fresh = AdaptiveThrottle(2.0, 10.0, clock=clock, draw=lambda: 0.0)
+    for _ in range(MIN_EXCESS - 1):
+        fresh.check("r")
+    assert fresh.reject_probability() == 0.0 and fresh.refused_locally == 0
     # The server now takes 1 in 4: the client sends at most about twice what is accepted.
     sent = accepted = 0
     for i in range(400):
@@ -226,7 +234,7 @@ async def test_past_a_cameras_capacity_the_server_refuses_at_once_before_asking_
     try:
         camera = await start_queueing_camera(address)
         async with DrvsClient(address, robot_id="flood", listen="127.0.0.1:0", throttle_k=math.inf) as robot:
-            dispatched, refused, other = await flood(robot, 3.0, 8)
+            dispatched, refused, other = await flood(robot, 3.0, 16)
             assert other == 0
             assert len(refused) > len(dispatched) / 2, (len(refused), len(dispatched))
             # At once: far below the forward timeout (5 s), whatever this machine is doing.
@@ -260,7 +268,7 @@ async def test_a_robot_refused_for_overload_holds_back_its_own_requests() -> Non
     try:
         camera = await start_queueing_camera(address)
         async with DrvsClient(address, robot_id="polite", listen="127.0.0.1:0") as robot:
-            _, refused, other = await flood(robot, 3.0, 8)
+            _, refused, other = await flood(robot, 3.0, 16)
             assert other == 0
             local = robot.throttle.refused_locally
             assert 0 < local <= len(refused), (local, len(refused))

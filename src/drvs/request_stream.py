@@ -382,7 +382,8 @@ class BatchSender:
                         return
                     forward = state.sent.popleft()
                     if reply.HasField("error"):
-                        self._settle(forward, _grpc.error_from_code(reply.error.code, reply.error.message))
+                        error = _grpc.error_from_code(reply.error.code, reply.error.message, reply.error.retry_after_s)
+                        self._settle(forward, error)
                     else:
                         self._settle(forward, reply)
         except grpc.RpcError as exc:

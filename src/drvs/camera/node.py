@@ -444,7 +444,10 @@ class CameraNode(Lifecycle):
             )
         runner.check(wanted)
         if len(self._jobs) >= MAX_ACTIVE_REQUESTS:
-            raise ResourceExhausted(f"camera {self.camera_id}: {len(self._jobs)} requests active; try later")
+            # Out of room: a hint, which also tells the server this is its load, not a caller's cap.
+            raise ResourceExhausted(
+                f"camera {self.camera_id}: {len(self._jobs)} requests active; try later", retry_after_s=0.1
+            )
         robot: str | tuple[str, str] = request.callback_address
         if request.report_to_server:
             if not self.registration.registered.is_set():

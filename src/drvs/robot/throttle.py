@@ -24,6 +24,10 @@ DEFAULT_K = 2.0
 DEFAULT_WINDOW_S = 10.0
 #: The window is kept as this many buckets.
 BUCKETS = 10
+#: Nothing is held back until the server has refused at least this many more requests than k times
+#: those it accepted: at a robot's first requests one slow answer would otherwise hold back half of
+#: the next ((1 - 0) / (1 + 1)), which is no sign of overload.
+MIN_EXCESS = 10
 
 
 class AdaptiveThrottle:
@@ -70,7 +74,8 @@ class AdaptiveThrottle:
             return 0.0  # off: a tool that measures the server itself sends everything
         self._advance()
         requests = sum(self._requests)
-        return max(0.0, (requests - self.k * sum(self._accepts)) / (requests + 1))
+        excess = requests - self.k * sum(self._accepts)
+        return excess / (requests + 1) if excess >= MIN_EXCESS else 0.0
 
     def check(self, what: str) -> None:
         """Count a request `what` about to be sent; ResourceExhausted if it is refused here."""

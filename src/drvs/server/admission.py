@@ -44,11 +44,12 @@ BASE_WINDOW_S = 10.0
 #: and the loop's lag only while at least LOOP_MIN_ARRIVALS requests came in the last interval:
 #: a lone request delayed because the host is busy with other work is no queue of requests, and
 #: shedding it would not shorten anything.
-LINK_MIN_WAITING = 2
-LOOP_MIN_ARRIVALS = 5
+LINK_MIN_WAITING = 8
+LOOP_MIN_ARRIVALS = 10
 #: A link's interval stands only on at least this many samples: a few requests caught behind one
-#: stall of a camera are no standing queue (a camera that refuses for room counts regardless).
-LINK_MIN_SAMPLES = 4
+#: stall of a camera (a heavy detector holding its loop, a busy host) are no standing queue (a
+#: camera that refuses for room counts regardless).
+LINK_MIN_SAMPLES = 8
 
 
 class Shedder:

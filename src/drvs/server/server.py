@@ -1136,8 +1136,10 @@ class DrvsServer(Lifecycle):
         waiting = link.requests.in_flight
 
         def done(result: detection_pb2.DetectionReply | DrvsError) -> None:
-            if isinstance(result, (ResourceExhausted, DeadlineExceeded)):
-                link.delay.shedder.congested()  # the camera had no room, or no time: its queue stands
+            if isinstance(result, DeadlineExceeded) or (isinstance(result, ResourceExhausted) and result.retry_after_s):
+                # The camera had no room (a refusal with a hint; a cap on one robot's requests has
+                # none), or no time: its queue stands.
+                link.delay.shedder.congested()
             if isinstance(result, DrvsError):
                 # A link the camera has replaced since (it registered again, at another address)
                 # says nothing of the camera now: closing it fails what was still in flight on it.
