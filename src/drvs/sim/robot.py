@@ -17,13 +17,14 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import dataclasses
+import functools
 import json
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Awaitable, Callable, Sequence
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, TypeVar
 
 import grpc
 import shapely
@@ -31,7 +32,7 @@ from shapely.geometry import LineString, Point, Polygon, box
 
 from drvs import _grpc
 from drvs.convert import polygon_from_pb
-from drvs.errors import DrvsError
+from drvs.errors import DrvsError, ResourceExhausted
 from drvs.meter import MeteredClient
 from drvs.model import Detection, PixelBox, Snapshot, WorldObject
 from drvs.robot import DetectionResult, DrvsClient, Subscription, Track
@@ -80,6 +81,11 @@ SELF_SLIVER_M2 = 0.01
 DELIVERIES = ("fused", "per-camera")
 #: Snapshots a second of the obstacle tracks the robot follows while it drives.
 TRACK_RATE_HZ = 2.0
+#: A request refused for overload is asked again after the refusal's hint (this long without one),
+#: for at most OVERLOAD_PATIENCE_S in all.
+OVERLOAD_WAIT_S = 0.1
+OVERLOAD_PATIENCE_S = 10.0
+_T = TypeVar("_T")
 #: A re-plan's new track request numbers its tracks anew, and a new track has no velocity until its
 #: second look: a new track this close to where a moving track of an earlier request was last seen,
 #: this recently, is that obstacle, and keeps its motion until the new track has its own.
@@ -134,6 +140,8 @@ class SimRobot:
         self.plans: list[list[tuple[float, float]]] = []
         self.replans = 0
         self.collisions = 0
+        #: Requests the server (or this robot's throttle) refused for overload, asked again later.
+        self.overload_refusals = 0
         self.detections_used: list[Detection] = []
         self.known_obstacles: list[Polygon] = []
         self.contacts: list[Polygon] = []
@@ -254,11 +262,14 @@ class SimRobot:
 
     async def watch_tracks(self, region: Polygon) -> None:
         """Fused Algorithm 1: the server tracks the obstacles along the way while the robot drives."""
-        assert self.drvs is not None
+        drvs = self.drvs
+        assert drvs is not None
         async with contextlib.AsyncExitStack() as stack:
             tracks = [
                 await stack.enter_async_context(
-                    self.drvs.track(f, region, rate_hz=TRACK_RATE_HZ, duration_s=self.max_time_s)
+                    await self.admitted(
+                        functools.partial(drvs.track, f, region, rate_hz=TRACK_RATE_HZ, duration_s=self.max_time_s)
+                    )
                 )
                 for f in self.obstacle_filters
             ]
@@ -315,21 +326,47 @@ class SimRobot:
 
     # --- DRVS -------------------------------------------------------------------------------
 
+    async def admitted(self, ask: Callable[[], Awaitable[_T]]) -> _T:
+        """`ask()`, asked again after a refusal for overload (RESOURCE_EXHAUSTED: the server's door,
+        or this robot's own throttle), after the wait the refusal hints at: the robot goes on
+        with what it knows meanwhile, as it does where a camera is missing. A server that refuses
+        for OVERLOAD_PATIENCE_S ends the mission."""
+        waited = 0.0
+        while True:
+            try:
+                return await ask()
+            except ResourceExhausted as exc:
+                if waited >= OVERLOAD_PATIENCE_S:
+                    raise
+                wait = exc.retry_after_s or OVERLOAD_WAIT_S
+                self.overload_refusals += 1
+                log.info("overloaded: %s; asking again in %.0f ms", exc, wait * 1000)
+                await asyncio.sleep(wait)
+                waited += wait
+
     async def look(self, filters: Sequence[str], region: Polygon) -> list[Detection]:
         assert self.drvs is not None
         if self.delivery == "fused":
             return await self.look_fused(filters, region)
-        results = await asyncio.gather(*(self.drvs.detect(f, region, timeout_s=5.0) for f in filters))
+        drvs = self.drvs
+        results = await asyncio.gather(
+            *(self.admitted(functools.partial(drvs.detect, f, region, timeout_s=5.0)) for f in filters)
+        )
         found: list[Detection] = []
         for result in results:
             self.check_coverage(result)
             found.extend(result.detections)
         return found
 
+    async def _fused_shot(self, filter_def: str, region: Polygon) -> Snapshot:
+        assert self.drvs is not None
+        return await self.drvs.detect(filter_def, region, fuse=True, timeout_s=5.0)
+
     async def look_fused(self, filters: Sequence[str], region: Polygon) -> list[Detection]:
         """One fused single shot per filter: each physical object once, whatever camera saw it."""
-        assert self.drvs is not None
-        snapshots = await asyncio.gather(*(self.drvs.detect(f, region, fuse=True, timeout_s=5.0) for f in filters))
+        snapshots = await asyncio.gather(
+            *(self.admitted(functools.partial(self._fused_shot, f, region)) for f in filters)
+        )
         found: list[Detection] = []
         for f, snapshot in zip(filters, snapshots, strict=True):
             for missing in snapshot.missing_cameras:
@@ -412,8 +449,11 @@ class SimRobot:
     async def watch_obstacles(self, region: Polygon) -> None:
         """Algorithm 1's callback: obstacles stream in while the robot drives."""
         assert self.drvs is not None
+        drvs = self.drvs
         subs = [
-            await self.drvs.subscribe(f, region, rate_hz=OBSTACLE_RATE_HZ, duration_s=self.max_time_s)
+            await self.admitted(
+                functools.partial(drvs.subscribe, f, region, rate_hz=OBSTACLE_RATE_HZ, duration_s=self.max_time_s)
+            )
             for f in self.obstacle_filters
         ]
         now = asyncio.get_running_loop().time()
@@ -446,11 +486,11 @@ class SimRobot:
     async def watch_self(self) -> None:
         """Localise: the cameras that see the robot's own marker report where it is."""
         assert self.drvs is not None
-        sub = await self.drvs.subscribe(
-            self.self_filter,
-            box(*self.scenario.bounds),
-            rate_hz=SELF_RATE_HZ,
-            duration_s=self.max_time_s,
+        drvs = self.drvs
+        sub = await self.admitted(
+            lambda: drvs.subscribe(
+                self.self_filter, box(*self.scenario.bounds), rate_hz=SELF_RATE_HZ, duration_s=self.max_time_s
+            )
         )
         try:
             async for report in sub:
@@ -775,6 +815,7 @@ async def run_robot(
         "predict": predict,
         **outcome,
         "collisions": robot.collisions,
+        "overload_refusals": robot.overload_refusals,
         "replans": robot.replans,
         "path": [[round(x, 4), round(y, 4)] for x, y in robot.path_driven],
         "planned_paths": [[[round(x, 3), round(y, 3)] for x, y in p] for p in robot.plans],
