@@ -130,7 +130,7 @@ async def test_camera_with_bad_homography_file_exits_with_an_error(tmp_path: obj
         ("drvs-office", ["--scenario", "/nonexistent.yaml"], "drvs-office: scenario /nonexistent.yaml: No such file"),
         ("drvs-sim", ["world", "--no-such-flag"], "drvs-sim: error: unrecognized arguments: --no-such-flag"),
         ("drvs-bench", ["paper", "--requests", "-5"], "drvs-bench paper: --requests, --rounds, --people-requests"),
-        ("drvs-bench", ["load", "--robots", "-1"], "drvs-bench load: --robots, --workers, --seconds, --rate and"),
+        ("drvs-bench", ["load", "--robots", "-1"], "drvs-bench load: --robots, --workers, --repeat"),
         ("drvs-certs", ["--days", "0"], "drvs-certs: days: 0 must be from 1 to 3650"),
         ("drvs-certs", ["--role", "boss"], "drvs-certs: role: 'boss' must be server, camera, robot"),
     ],
