@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
+import math
 import threading
 from collections import OrderedDict
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
@@ -285,10 +287,26 @@ def _seconds(msg: Any, name: str) -> float:
     return getattr(msg, name).ToNanoseconds() / 1e9 if msg.HasField(name) else 0.0
 
 
+#: The oldest `last_seen` (seconds before the snapshot's time) written as `last_seen_age_s`: a
+#: float32 is within 2 us up to here; older (never in a track, dropped after 60 s at most) is a
+#: Timestamp.
+MAX_LAST_SEEN_AGE_S = 64.0
+
+
 def world_object_to_pb(
-    o: WorldObject, outline: bool = True, into: detection_pb2.WorldObject | None = None
+    o: WorldObject,
+    outline: bool = True,
+    into: detection_pb2.WorldObject | None = None,
+    *,
+    time: float = 0.0,
+    cameras: Mapping[str, int] | None = None,
 ) -> detection_pb2.WorldObject:
     """`into`: a message to fill in place (a snapshot's `objects.add()`), instead of a new one.
+    `time`: the snapshot's time as its message carries it, which `last_seen` is said relative to;
+    `cameras`: the position of each camera in the snapshot's `camera_ids`, by which the object
+    names its cameras (`camera_index`) when it names none outside it. Both are what make a snapshot
+    small: 8-9 B an object less than an absolute Timestamp, 2 B (one camera) to 7 B (two) less
+    than the cameras' names.
 
     Filled field by field rather than through the constructor: the constructor copies each
     sub-message it is given, and a snapshot's objects were copied again into the snapshot and the
@@ -302,7 +320,10 @@ def world_object_to_pb(
     v = msg.velocity
     v.x, v.y = o.velocity_xy
     msg.uncertainty_m = o.uncertainty_m
-    msg.camera_ids.extend(o.camera_ids)
+    if cameras is not None and all(c in cameras for c in o.camera_ids):
+        msg.camera_index.extend([cameras[c] for c in o.camera_ids])
+    else:  # alone, or naming a camera its snapshot does not list: by name
+        msg.camera_ids.extend(o.camera_ids)
     msg.label = o.label
     msg.score = o.score
     msg.area_m2 = o.area_m2
@@ -315,13 +336,55 @@ def world_object_to_pb(
         msg.marker_id = o.marker_id
     if o.marker_heading_deg is not None:
         msg.marker_heading_deg = o.marker_heading_deg
-    _timestamp(msg.last_seen, o.last_seen)
+    age = time - o.last_seen
+    if o.last_seen and 0.0 <= age <= MAX_LAST_SEEN_AGE_S:
+        msg.last_seen_age_s = age  # 0: nothing on the wire
+    else:
+        # Not an age (seen after the snapshot's time, long before it, the time is not known, or
+        # last_seen is not): set, even when empty (0, not known), so that it is not read as an age.
+        msg.last_seen.SetInParent()
+        _timestamp(msg.last_seen, o.last_seen)
     return msg
 
 
-def world_object_from_pb(msg: detection_pb2.WorldObject) -> WorldObject:
+def world_object_from_pb(
+    msg: detection_pb2.WorldObject, snapshot: detection_pb2.WorldSnapshot | None = None, name: str = "object"
+) -> WorldObject:
+    """`snapshot`: the message `msg` came in. A current server's objects need it: their
+    `last_seen_age_s` counts back from its `time`, their `camera_index` points into its
+    `camera_ids`; without it only an object that carries `last_seen` and `camera_ids` itself (an
+    older server's) is read, and any other is refused (InvalidArgument). `name` names the object in
+    errors."""
+    if snapshot is None:
+        if not msg.HasField("last_seen") or msg.camera_index:
+            raise InvalidArgument(
+                f"{name}: its last_seen_age_s and camera_index refer to its snapshot's time and camera_ids; "
+                "read it with its snapshot (snapshot_from_pb)"
+            )
+        return _world_object(msg, 0.0, (), name)
+    return _world_object(msg, _seconds(snapshot, "time"), snapshot.camera_ids, name)
+
+
+def _world_object(msg: detection_pb2.WorldObject, time: float, cameras: Sequence[str], name: str) -> WorldObject:
     b = msg.bounds
     xy = msg.outline_xy
+    if msg.HasField("last_seen"):  # an older server's, or one the age cannot say
+        last_seen = _seconds(msg, "last_seen")
+    else:
+        age = msg.last_seen_age_s
+        if not (math.isfinite(age) and age >= 0.0):
+            raise InvalidArgument(f"{name}.last_seen_age_s: {age!r} must be a finite number of seconds >= 0")
+        last_seen = time - age
+    if msg.camera_ids:  # an older server's names
+        camera_ids = tuple(msg.camera_ids)
+    else:
+        n = len(cameras)
+        for j, k in enumerate(msg.camera_index):
+            if k >= n:
+                raise InvalidArgument(
+                    f"{name}.camera_index[{j}]: {k} is out of range: the snapshot's camera_ids lists {n} camera(s)"
+                )
+        camera_ids = tuple(cameras[k] for k in msg.camera_index)
     return WorldObject(
         track_id=msg.track_id,
         outline=Polygon(np.asarray(xy, dtype=float).reshape(-1, 2)) if len(xy) >= 6 else _NO_OUTLINE,
@@ -330,8 +393,8 @@ def world_object_from_pb(msg: detection_pb2.WorldObject) -> WorldObject:
         velocity_xy=(msg.velocity.x, msg.velocity.y),
         heading_deg=msg.heading_deg if msg.HasField("heading_deg") else None,
         uncertainty_m=msg.uncertainty_m,
-        camera_ids=tuple(msg.camera_ids),
-        last_seen=_seconds(msg, "last_seen"),
+        camera_ids=camera_ids,
+        last_seen=last_seen,
         marker_id=msg.marker_id if msg.HasField("marker_id") else None,
         marker_heading_deg=msg.marker_heading_deg if msg.HasField("marker_heading_deg") else None,
         label=msg.label,
@@ -351,19 +414,25 @@ def snapshot_to_pb(
         msg.Clear()
     msg.sequence = s.sequence
     msg.final = s.final
+    _timestamp(msg.time, s.time)
+    time = _seconds(msg, "time")  # as a reader will see it: ages count back from this
+    cameras = {c: i for i, c in enumerate(s.camera_ids)}
     for o in s.objects:
-        world_object_to_pb(o, outlines, msg.objects.add())
+        world_object_to_pb(o, outlines, msg.objects.add(), time=time, cameras=cameras)
     for m in s.missing_cameras:
         msg.missing_cameras.add(camera_id=m.camera_id, code=m.code, message=m.message)
     msg.camera_ids.extend(s.camera_ids)
-    _timestamp(msg.time, s.time)
     return msg
 
 
 def snapshot_from_pb(msg: detection_pb2.WorldSnapshot, request_id: str = "") -> Snapshot:
+    """Reads a current server's objects (`last_seen_age_s`, `camera_index`) and an older one's
+    (`last_seen`, `camera_ids`) alike; a malformed one is InvalidArgument naming the field."""
+    time = _seconds(msg, "time")
+    cameras = msg.camera_ids
     return Snapshot(
-        time=_seconds(msg, "time"),
-        objects=tuple(world_object_from_pb(o) for o in msg.objects),
+        time=time,
+        objects=tuple(_world_object(o, time, cameras, f"snapshot.objects[{i}]") for i, o in enumerate(msg.objects)),
         missing_cameras=tuple(CameraError(m.code, m.message, m.camera_id) for m in msg.missing_cameras),
         camera_ids=tuple(msg.camera_ids),
         sequence=msg.sequence,

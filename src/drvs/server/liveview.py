@@ -38,7 +38,7 @@ from shapely.geometry import Polygon, box
 
 from drvs import liveview as lv
 from drvs._files import read_yaml
-from drvs.convert import detection_from_pb, region_from_pb, world_object_from_pb
+from drvs.convert import detection_from_pb, region_from_pb, snapshot_from_pb
 from drvs.errors import InvalidArgument
 from drvs.v1 import detection_pb2, registry_pb2
 
@@ -302,7 +302,7 @@ class ServerView:
         if not message.HasField("snapshot"):
             return
         entities = []
-        for o in map(world_object_from_pb, message.snapshot.objects):
+        for o in snapshot_from_pb(message.snapshot).objects:
             key = f"{message.request_id}/{o.track_id}"
             geometry = _drawn(o.outline, o.bounds)
             name = o.label or (f"marker {o.marker_id}" if o.marker_id is not None else "object")
