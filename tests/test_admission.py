@@ -131,6 +131,12 @@ def test_the_door_draws_once_against_the_busiest_camera_and_hints_a_wait() -> No
     with pytest.raises(ResourceExhausted, match="the server is past its capacity"):
         door.check_server()
     assert retry_after_s(1.0) == INTERVAL_S and retry_after_s(MIN_ADMIT) <= 0.5
+    # A fused request also waits for fused answers' queue (the cameras' reports to the server).
+    slow = Door(draw=lambda: 0.5)
+    slow.fused.shedder.admit = 0.2
+    slow.check_cameras([("cam-a", idle)])  # not fused: that queue is not its
+    with pytest.raises(ResourceExhausted, match=r"overloaded: fused delivery is past what it can take now"):
+        slow.check_cameras([("cam-a", idle)], fused=True)
     # --admission-target 0: the door is off, whatever the queues say.
     off = Door(0.0, draw=lambda: 0.99)
     off.loop.shedder.admit = MIN_ADMIT

@@ -77,6 +77,7 @@ REFUSAL_REASONS = (
     ("client-side throttling", "client_throttle"),
     ("overloaded: the server", "server_loop"),
     ("overloaded: camera", "camera_link"),
+    ("overloaded: fused delivery", "fused_delivery"),
     ("busy: camera", "camera_queue"),
 )
 #: How often the coordinator samples RSS and CPU of the server and cameras.

@@ -71,7 +71,7 @@ FUSION_SESSIONS = Gauge("drvs_fusion_sessions", "Fused requests in flight in the
 ADMISSION_REFUSED = Counter(
     "drvs_admission_refused_total",
     "Requests the server refused at its door, RESOURCE_EXHAUSTED before forwarding anything, by whose "
-    "queue stood: the server's own loop, a camera link's, or a camera link already at its bound",
+    "queue stood: the server's own loop, a camera link's, fused delivery's, or a camera link already at its bound",
     ["by"],
 ).labels
 STAGE = Histogram(

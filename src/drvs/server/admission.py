@@ -185,6 +185,9 @@ class Door:
         #: 0: admission off (every request passes; the fixed bounds, such as a link's queue, stay).
         self.target_s = target_s
         self.loop = LoopLag(target_s)
+        #: Fused single shots' answers (dispatch to snapshot) beyond the fastest: the queue of the
+        #: cameras' reports to the server, which no forward's acknowledgement shows.
+        self.fused = LinkDelay(target_s)
         self._draw = draw
 
     def start(self) -> None:
@@ -211,22 +214,25 @@ class Door:
                 retry_after_s=hint,
             )
 
-    def check_cameras(self, links: Iterable[tuple[str, Shedder]]) -> None:
-        """Then, once routed: ResourceExhausted if a camera the request needs sheds it; `links` are
-        (camera id, its link's shedder) for the cameras it would be forwarded to. One draw for all
-        of them, against the smallest share: a request is as admissible as its busiest camera."""
+    def check_cameras(self, links: Iterable[tuple[str, Shedder]], fused: bool = False) -> None:
+        """Then, once routed: ResourceExhausted if a camera the request needs sheds it (or, for a
+        fused request, fused delivery does); `links` are (camera id, its link's shedder) for the
+        cameras it would be forwarded to. One draw for all of them, against the smallest share: a
+        request is as admissible as its busiest camera."""
         if not self.target_s:
             return
-        admit, who = 1.0, ""
+        admit, who, by = 1.0, "", "camera"
         for camera_id, shedder in links:
             share = shedder.share()
             if share < admit:
-                admit, who = share, camera_id
+                admit, who = share, f"camera {camera_id}"
+        if fused and (share := self.fused.shedder.share()) < admit:
+            admit, who, by = share, "fused delivery", "fused"
         if admit < 1.0 and self._draw() >= admit:
-            refused("camera").inc()
+            refused(by).inc()
             hint = retry_after_s(admit)
             raise ResourceExhausted(
-                f"overloaded: camera {who} is past what it can take now (admitting {admit:.0%} of its requests); "
+                f"overloaded: {who} is past what it can take now (admitting {admit:.0%} of its requests); "
                 f"retry in {hint * 1000:.0f} ms",
                 retry_after_s=hint,
             )

@@ -1029,17 +1029,21 @@ class DrvsServer(Lifecycle):
         message.request_id = forward_id
         size = message.ByteSize()
         slot = limits.admit(robot, request.continuous.duration_s, size * len(cameras))
+        single_shot = request.continuous.single_shot
         try:
-            self.admit(cameras)
+            self.admit(cameras, fused=single_shot)
         except BaseException:
             limits.release(robot, slot)
             raise
+        started, waiting = time.perf_counter(), self.fusion.count
         if slot is not None and slots is not None:
             slots.hold(request.request_id, slot)
         secret = new_secret()
         keys = {c.camera_id: report_key(secret, c.camera_id) for c in cameras}
 
         def ended(session: FusionSession) -> None:
+            if single_shot and cameras:  # how long the answer took: fused delivery's queue
+                self.door.fused.observe(time.perf_counter() - started, waiting)
             self.fusion.remove(session)
             if slots is not None:
                 slots.release(request.request_id)
@@ -1048,7 +1052,6 @@ class DrvsServer(Lifecycle):
             if on_end is not None:
                 on_end(session)
 
-        single_shot = request.continuous.single_shot
         kind: type[FusionSession] = SingleShot if single_shot else Continuous
         session = kind(
             request,
@@ -1069,7 +1072,7 @@ class DrvsServer(Lifecycle):
         metrics.FORWARDED_BYTES.inc(size * len(cameras))
         return reply, session
 
-    def admit(self, cameras: list[CameraEntry]) -> None:
+    def admit(self, cameras: list[CameraEntry], fused: bool = False) -> None:
         """The door, once a request is routed: ResourceExhausted, before anything is forwarded, if a
         camera it needs has as many forwards waiting as it may, or its link is shedding this one."""
         links = [(c.camera_id, self._link(c)) for c in cameras]
@@ -1083,7 +1086,7 @@ class DrvsServer(Lifecycle):
                     f"(limit {self.max_queued_forwards}); retry in 100 ms",
                     retry_after_s=0.1,
                 )
-        self.door.check_cameras((camera_id, link.delay.shedder) for camera_id, link in links)
+        self.door.check_cameras(((camera_id, link.delay.shedder) for camera_id, link in links), fused)
 
     def _homography_of(self, camera_id: str) -> Homography | None:
         if camera_id not in self.registry:
