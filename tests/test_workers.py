@@ -6,10 +6,8 @@ from __future__ import annotations
 
 import asyncio
 import os
-import re
 import shutil
 import signal
-from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -31,20 +29,6 @@ pytestmark = [
 #: them all landing on one of two workers is a chance of one in 32 768.
 ROBOTS = 16
 DISPATCHED = 'drvs_requests_total{outcome="dispatched"}'
-
-
-def nth(pattern: str | re.Pattern[str], n: int) -> Callable[[str], list[re.Match[str]] | None]:
-    """A ManagedProcess.wait_for check: the first `n` lines matching `pattern`, once there are `n`."""
-    regex = re.compile(pattern)
-    found: list[re.Match[str]] = []
-
-    def check(line: str) -> list[re.Match[str]] | None:
-        match = regex.search(line)
-        if match is not None:
-            found.append(match)
-        return found if len(found) >= n else None
-
-    return check
 
 
 async def ask(robot: DrvsClient) -> None:
@@ -75,9 +59,9 @@ async def test_workers_share_one_port_and_the_registry(tmp_path: Path, recorded:
         )
         procs.append(server)
         # Two workers, one address; each its own metrics port and its own port for fused reports.
-        listening = await server.wait_for(nth(SERVER_READY, 2), "two workers listening", 30)
+        listening = await server.wait_for_lines(SERVER_READY, 2, 30)
         assert {m.group(1) for m in listening} == {address}
-        metrics = await server.wait_for(nth(r"metrics on http://127\.0\.0\.1:(\d+)/", 2), "two metrics ports", 30)
+        metrics = await server.wait_for_lines(r"metrics on http://127\.0\.0\.1:(\d+)/", 2, 30)
         ports = sorted({int(m.group(1)) for m in metrics})
         assert len(ports) == 2
         rec = recorded["cam1"]
@@ -92,7 +76,7 @@ async def test_workers_share_one_port_and_the_registry(tmp_path: Path, recorded:
             assert all(count > 0 for count in counts), counts
             assert sum(counts) >= 2 * ROBOTS, counts
             # A worker killed: it is started again, and the robots carry on through the port.
-            (first,) = await server.wait_for(nth(r"worker 0 started \(pid (\d+)\)", 1), "worker 0's pid", 5)
+            (first,) = await server.wait_for_lines(r"worker 0 started \(pid (\d+)\)", 1, 5)
             start = len(server.lines)
             os.kill(int(first.group(1)), signal.SIGKILL)
             await server.wait_for_line(r"worker 0 \(pid \d+\) exited with -9; starting it again", 10, start)

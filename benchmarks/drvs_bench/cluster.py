@@ -285,20 +285,6 @@ def harness_size(cores: int) -> tuple[int, int]:
     return max(2, cores // 4), max(2, cores // 2)
 
 
-def count_lines(pattern: str, n: int) -> Any:
-    """A ManagedProcess.wait_for check: the first `n` matches of `pattern`, once there are `n`."""
-    regex = re.compile(pattern)
-    found: list[re.Match[str]] = []
-
-    def check(line: str) -> list[re.Match[str]] | None:
-        match = regex.search(line)
-        if match is not None:
-            found.append(match)
-        return found if len(found) >= n else None
-
-    return check
-
-
 class WorkerGroup:
     """One drvs-server --workers N: its supervisor, its address and its workers' pids."""
 
@@ -309,12 +295,12 @@ class WorkerGroup:
 async def start_group(n: int, flags: tuple[str, ...]) -> tuple[ManagedProcess, WorkerGroup]:
     proc, address = await start_server("--workers", str(n), *flags)
     try:
-        ready = await proc.wait_for(count_lines(SERVER_READY.pattern, n), f"{n} workers listening", 60)
+        ready = await proc.wait_for_lines(SERVER_READY, n, 60)
         if {m.group(1) for m in ready} != {address}:
             raise RuntimeError(f"workers listen on {sorted({m.group(1) for m in ready})}, not only {address}")
         pids = [proc.pid]  # --workers 1 is the plain server: one process, no supervisor
         if n > 1:
-            started = await proc.wait_for(count_lines(r"worker (\d+) started \(pid (\d+)\)", n), "workers' pids", 10)
+            started = await proc.wait_for_lines(r"worker (\d+) started \(pid (\d+)\)", n, 10)
             pids = [int(m.group(2)) for m in started]
     except BaseException:
         await proc.stop()
@@ -350,7 +336,7 @@ async def register_all(groups: list[WorkerGroup], acks: list[str]) -> None:
         await one(last)
     pattern = rf"camera fake{last} registered at \S+ through"
     for g in groups:
-        await g.proc.wait_for(count_lines(pattern, g.n), f"{g.n} workers with every camera", 120, seen[g.n])
+        await g.proc.wait_for_lines(pattern, g.n, 120, seen[g.n])
 
 
 async def load_window(

@@ -685,14 +685,7 @@ def summarise_fused(
         publish(result, f"segments_per_request_{key}", [run[mode]["segments"] / requests for run in runs])
         server_ms = [1000 * run[mode]["server_cpu_s"] / requests for run in runs]
         publish(result, f"server_cpu_ms_per_request_{key}", server_ms)
-    for name, (target, higher) in FUSED_TARGETS.items():
-        result["targets"][name] = {
-            "target": target,
-            "higher_is_better": higher,
-            "median": result[name],
-            "spread": result[f"{name}_spread"],
-            "verdict": verdict(result[f"{name}_runs"], target, higher_is_better=higher),
-        }
+    add_targets(result, FUSED_TARGETS)
 
 
 def summarise_track(
@@ -727,7 +720,12 @@ def summarise_track(
         "only, each with its sequence and final flag set; through a counting relay like the track; no DRVS code"
     )
     result["robot_cpu_receive_floor"] = figures
-    for name, (target, higher) in TRACK_TARGETS.items():
+    add_targets(result, TRACK_TARGETS)
+
+
+def add_targets(result: dict[str, Any], targets: dict[str, tuple[float, bool]]) -> None:
+    """Each target's figure (median, spread) and whether every round met it, into result["targets"]."""
+    for name, (target, higher) in targets.items():
         result["targets"][name] = {
             "target": target,
             "higher_is_better": higher,

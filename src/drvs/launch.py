@@ -144,6 +144,22 @@ class ManagedProcess:
                     print(f"[{self.name}] {line}", file=self.echo, flush=True)
                 self._changed.notify_all()
 
+    async def wait_for_lines(
+        self, pattern: str | re.Pattern[str], count: int, timeout: float = 30.0, start: int = 0
+    ) -> list[re.Match[str]]:
+        """The first `count` lines (from index `start`) matching `pattern`, once there are that many
+        (the N workers of `drvs-server --workers N` each log their start)."""
+        regex = re.compile(pattern) if isinstance(pattern, str) else pattern
+        found: list[re.Match[str]] = []
+
+        def check(line: str) -> list[re.Match[str]] | None:
+            match = regex.search(line)
+            if match is not None:
+                found.append(match)
+            return found if len(found) >= count else None
+
+        return await self.wait_for(check, f"{count} lines logging {regex.pattern!r}", timeout, start)
+
     async def wait_for_line(
         self, pattern: str | re.Pattern[str], timeout: float = 30.0, start: int = 0
     ) -> re.Match[str]:
