@@ -282,3 +282,31 @@ async def test_a_robot_refused_for_overload_holds_back_its_own_requests() -> Non
         if camera is not None:
             await camera.stop()
         await server.stop()
+
+
+@pytest.mark.slow
+async def test_a_refused_fused_request_on_a_stream_is_told_so_at_once() -> None:
+    """Fused single shots over the robot's rate budget on its request stream: each is refused at
+    once with RESOURCE_EXHAUSTED naming it, the rest answered; none waits out its deadline. (The
+    server renamed a fused request for the cameras before its last checks, and its refusal went
+    out under that name: the robot never heard of it and timed out.)"""
+    server, address = await start_server("--rate-limit", "2")
+    camera: ManagedProcess | None = None
+    try:
+        camera = await start_queueing_camera(address)
+        async with DrvsClient(address, robot_id="eager", throttle_k=math.inf) as robot:
+
+            async def ask() -> str:
+                try:
+                    await robot.detect(YELLOW, QUEUED_REGION, fuse=True, deadline_s=0.3, timeout_s=2)
+                except ResourceExhausted as exc:
+                    assert "rate" in str(exc), exc
+                    return "refused"
+                return "answered"
+
+            outcomes = await asyncio.gather(*(ask() for _ in range(12)))  # a DeadlineExceeded fails here
+            assert outcomes.count("refused") >= 6 and "answered" in outcomes, outcomes
+    finally:
+        if camera is not None:
+            await camera.stop()
+        await server.stop()
