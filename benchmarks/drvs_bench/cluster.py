@@ -67,7 +67,7 @@ from drvs import _grpc
 from drvs.camera import CameraNode, PushSource
 from drvs.filters import HsvRange
 from drvs.geometry import homography_from_pose
-from drvs.launch import SERVER_READY, ManagedProcess, cpu_seconds, start_etcd, start_server
+from drvs.launch import SERVER_READY, ManagedProcess, cpu_seconds, running_etcd, start_etcd, start_server
 from drvs.robot import DrvsClient
 from drvs.server import DrvsServer
 from drvs.server.config import ServerConfig
@@ -102,50 +102,45 @@ WARM_TRIES = 50
 
 
 async def propagation(registrations: int) -> dict[str, Any]:
-    with tempfile.TemporaryDirectory(prefix="drvs-bench-etcd-") as data:
-        members = await start_etcd(Path(data))
+    async with running_etcd() as members:
+        registry = "etcd://" + members[0].address
+        a = DrvsServer(config=ServerConfig(listen="127.0.0.1:0", registry=registry, lease_ttl_s=60))
+        b = DrvsServer(config=ServerConfig(listen="127.0.0.1:0", registry=registry, lease_ttl_s=60))
+        await a.start()
+        await b.start()
+        arrived: dict[str, float] = {}
+        applied = asyncio.Event()
+        original = b._apply_shared
+
+        def timed(record: Any) -> Any:
+            entry = original(record)
+            arrived[record.camera_id] = time.perf_counter()
+            applied.set()
+            return entry
+
+        b._apply_shared = timed  # type: ignore[method-assign]
+        b.shared._apply = timed  # type: ignore[union-attr]
+        assert members[0].proc is not None
+        etcd_cpu0, own_cpu0 = cpu_seconds(members[0].proc.pid), time.process_time()
+        delays: list[float] = []
+        replies: list[float] = []
         try:
-            registry = "etcd://" + members[0].address
-            a = DrvsServer(config=ServerConfig(listen="127.0.0.1:0", registry=registry, lease_ttl_s=60))
-            b = DrvsServer(config=ServerConfig(listen="127.0.0.1:0", registry=registry, lease_ttl_s=60))
-            await a.start()
-            await b.start()
-            arrived: dict[str, float] = {}
-            applied = asyncio.Event()
-            original = b._apply_shared
-
-            def timed(record: Any) -> Any:
-                entry = original(record)
-                arrived[record.camera_id] = time.perf_counter()
-                applied.set()
-                return entry
-
-            b._apply_shared = timed  # type: ignore[method-assign]
-            b.shared._apply = timed  # type: ignore[union-attr]
-            assert members[0].proc is not None
-            etcd_cpu0, own_cpu0 = cpu_seconds(members[0].proc.pid), time.process_time()
-            delays: list[float] = []
-            replies: list[float] = []
-            try:
-                async with aio.insecure_channel(a.address) as channel:
-                    stub = registry_pb2_grpc.RegisterVisionServiceStub(channel)
-                    for k in range(registrations):
-                        camera_id = f"cam-{k:04d}"
+            async with aio.insecure_channel(a.address) as channel:
+                stub = registry_pb2_grpc.RegisterVisionServiceStub(channel)
+                for k in range(registrations):
+                    camera_id = f"cam-{k:04d}"
+                    applied.clear()
+                    sent = time.perf_counter()
+                    await stub.Register(register_message(camera_id, x=10.0 * k))
+                    replies.append(time.perf_counter() - sent)
+                    while camera_id not in arrived:
+                        await asyncio.wait_for(applied.wait(), 10)
                         applied.clear()
-                        sent = time.perf_counter()
-                        await stub.Register(register_message(camera_id, x=10.0 * k))
-                        replies.append(time.perf_counter() - sent)
-                        while camera_id not in arrived:
-                            await asyncio.wait_for(applied.wait(), 10)
-                            applied.clear()
-                        delays.append(arrived[camera_id] - sent)
-                etcd_cpu, own_cpu = cpu_seconds(members[0].proc.pid) - etcd_cpu0, time.process_time() - own_cpu0
-            finally:
-                await a.stop()
-                await b.stop()
+                    delays.append(arrived[camera_id] - sent)
+            etcd_cpu, own_cpu = cpu_seconds(members[0].proc.pid) - etcd_cpu0, time.process_time() - own_cpu0
         finally:
-            for m in members:
-                await m.stop()
+            await a.stop()
+            await b.stop()
     ms = [1000 * d for d in delays]
     reply_ms = [1000 * d for d in replies]
     return {
@@ -233,8 +228,7 @@ async def throughput(quick: bool) -> dict[str, Any]:
     seconds = 2.0 if quick else 8.0
     n_rounds = QUICK_ROUNDS if quick else FULL_ROUNDS
     procs: list[Any] = []
-    with tempfile.TemporaryDirectory(prefix="drvs-bench-etcd-") as data:
-        members = await start_etcd(Path(data))
+    async with running_etcd() as members:
         try:
             registry = "etcd://" + members[0].address
             ack, ack_address = await ack_server()
@@ -268,8 +262,6 @@ async def throughput(quick: bool) -> dict[str, Any]:
         finally:
             for proc in reversed(procs):
                 await proc.stop()
-            for m in members:
-                await m.stop()
     result: dict[str, Any] = {"cameras": THROUGHPUT_CAMERAS, "rounds": n_rounds, "seconds_per_run": seconds}
     publish(result, "rps_one_server", [p["one"]["rps"] for p in per_round])
     publish(result, "rps_two_servers", [p["two"]["rps"] for p in per_round])
@@ -402,8 +394,7 @@ async def workers_scaling(quick: bool, workers_list: list[int]) -> dict[str, Any
     seconds = 2.0 if quick else 8.0
     n_rounds = QUICK_ROUNDS if quick else FULL_ROUNDS
     procs: list[Any] = []
-    with tempfile.TemporaryDirectory(prefix="drvs-bench-etcd-") as data:
-        members = await start_etcd(Path(data))
+    async with running_etcd() as members:
         try:
             assert members[0].proc is not None
             flags = ("--registry", "etcd://" + members[0].address, "--lease-ttl", "3600", *CAPACITY_NOT_POLICY)
@@ -429,8 +420,6 @@ async def workers_scaling(quick: bool, workers_list: list[int]) -> dict[str, Any
         finally:
             for proc in reversed(procs):
                 await proc.stop()
-            for m in members:
-                await m.stop()
     base = workers_list[0]
     by_workers: dict[str, Any] = {}
     for n in workers_list:

@@ -543,3 +543,18 @@ async def start_etcd(
             await asyncio.shield(m.stop())
         raise
     return cluster
+
+
+@contextlib.asynccontextmanager
+async def running_etcd(members: int = 1) -> AsyncIterator[list[EtcdMember]]:
+    """`async with running_etcd() as members:` start_etcd with its data in a temporary folder;
+    every member stopped and reaped, and the folder removed, on exit."""
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="drvs-etcd-") as data:
+        cluster = await start_etcd(Path(data), members)
+        try:
+            yield cluster
+        finally:
+            for m in cluster:
+                await m.stop()
