@@ -6,10 +6,12 @@ server and a camera that takes 10 ms a request, one at a time (a real queue), fl
 from __future__ import annotations
 
 import asyncio
+import contextlib
 import math
 import re
 import sys
 import time
+from collections.abc import AsyncIterator
 from pathlib import Path
 
 import pytest
@@ -198,6 +200,21 @@ async def start_queueing_camera(server: str) -> ManagedProcess:
     return camera
 
 
+@contextlib.asynccontextmanager
+async def beside_a_queueing_camera(*server_args: str) -> AsyncIterator[tuple[str, ManagedProcess]]:
+    """A server (with `server_args`) and the queueing camera registered with it: the server's
+    address and the camera; both stopped and reaped on exit."""
+    server, address = await start_server(*server_args)
+    try:
+        camera = await start_queueing_camera(address)
+        try:
+            yield address, camera
+        finally:
+            await camera.stop()
+    finally:
+        await server.stop()
+
+
 async def flood(robot: DrvsClient, seconds: float, tasks: int) -> tuple[list[str], list[tuple[str, float]], int]:
     """`tasks` loops asking about the queueing camera's region as fast as the answers come back, for
     `seconds`: the ids dispatched, the ids refused with how long their refusal took, the others."""
@@ -235,53 +252,43 @@ async def test_past_a_cameras_capacity_the_server_refuses_at_once_before_asking_
     server refuses what the camera's standing queue cannot take: RESOURCE_EXHAUSTED with a retry
     hint, at once, and the camera never hears of a refused request. Once the flood ends the camera
     is asked again. Without the door every request would be queued for the camera, and none refused."""
-    server, address = await start_server("--rate-limit", "5000", "--max-forward-bytes", "1e10")
-    camera: ManagedProcess | None = None
-    try:
-        camera = await start_queueing_camera(address)
-        async with DrvsClient(address, robot_id="flood", listen="127.0.0.1:0", throttle_k=math.inf) as robot:
-            dispatched, refused, other = await flood(robot, 3.0, 16)
-            assert other == 0
-            assert len(refused) > len(dispatched) / 2, (len(refused), len(dispatched))
-            # At once: far below the forward timeout (5 s), whatever this machine is doing.
-            assert max(took for _, took in refused) < 1.0, max(took for _, took in refused)
-            # Nothing refused was forwarded: the camera logs every request it is asked.
-            asked = {m.group(1) for line in camera.lines if (m := re.match(r"^REQUEST (\S+)", line))}
-            assert asked <= set(dispatched) and not asked & {r for r, _ in refused}
-            # The flood is over: the queue drains and the camera is asked again.
-            for _ in range(50):
-                try:
-                    result = await robot.detect(YELLOW, QUEUED_REGION, timeout_s=5)
-                except ResourceExhausted as exc:
-                    await asyncio.sleep(exc.retry_after_s)  # as the hint says
-                    continue
-                assert result.finished_cameras == {"queueing"}
-                break
-            else:
-                raise AssertionError("the camera was never asked again after the flood")
-    finally:
-        if camera is not None:
-            await camera.stop()
-        await server.stop()
+    async with (
+        beside_a_queueing_camera("--rate-limit", "5000", "--max-forward-bytes", "1e10") as (address, camera),
+        DrvsClient(address, robot_id="flood", listen="127.0.0.1:0", throttle_k=math.inf) as robot,
+    ):
+        dispatched, refused, other = await flood(robot, 3.0, 16)
+        assert other == 0
+        assert len(refused) > len(dispatched) / 2, (len(refused), len(dispatched))
+        # At once: far below the forward timeout (5 s), whatever this machine is doing.
+        assert max(took for _, took in refused) < 1.0, max(took for _, took in refused)
+        # Nothing refused was forwarded: the camera logs every request it is asked.
+        asked = {m.group(1) for line in camera.lines if (m := re.match(r"^REQUEST (\S+)", line))}
+        assert asked <= set(dispatched) and not asked & {r for r, _ in refused}
+        # The flood is over: the queue drains and the camera is asked again.
+        for _ in range(50):
+            try:
+                result = await robot.detect(YELLOW, QUEUED_REGION, timeout_s=5)
+            except ResourceExhausted as exc:
+                await asyncio.sleep(exc.retry_after_s)  # as the hint says
+                continue
+            assert result.finished_cameras == {"queueing"}
+            break
+        else:
+            raise AssertionError("the camera was never asked again after the flood")
 
 
 @pytest.mark.slow
 async def test_a_robot_refused_for_overload_holds_back_its_own_requests() -> None:
     """The same flood from a robot with its default throttling: it refuses part of its own
     requests without sending them, so the server sees fewer than the robot's code made."""
-    server, address = await start_server("--rate-limit", "5000", "--max-forward-bytes", "1e10")
-    camera: ManagedProcess | None = None
-    try:
-        camera = await start_queueing_camera(address)
-        async with DrvsClient(address, robot_id="polite", listen="127.0.0.1:0") as robot:
-            _, refused, other = await flood(robot, 3.0, 16)
-            assert other == 0
-            local = robot.throttle.refused_locally
-            assert 0 < local <= len(refused), (local, len(refused))
-    finally:
-        if camera is not None:
-            await camera.stop()
-        await server.stop()
+    async with (
+        beside_a_queueing_camera("--rate-limit", "5000", "--max-forward-bytes", "1e10") as (address, _),
+        DrvsClient(address, robot_id="polite", listen="127.0.0.1:0") as robot,
+    ):
+        _, refused, other = await flood(robot, 3.0, 16)
+        assert other == 0
+        local = robot.throttle.refused_locally
+        assert 0 < local <= len(refused), (local, len(refused))
 
 
 @pytest.mark.slow
@@ -290,23 +297,18 @@ async def test_a_refused_fused_request_on_a_stream_is_told_so_at_once() -> None:
     once with RESOURCE_EXHAUSTED naming it, the rest answered; none waits out its deadline. (The
     server renamed a fused request for the cameras before its last checks, and its refusal went
     out under that name: the robot never heard of it and timed out.)"""
-    server, address = await start_server("--rate-limit", "2")
-    camera: ManagedProcess | None = None
-    try:
-        camera = await start_queueing_camera(address)
-        async with DrvsClient(address, robot_id="eager", throttle_k=math.inf) as robot:
+    async with (
+        beside_a_queueing_camera("--rate-limit", "2") as (address, _),
+        DrvsClient(address, robot_id="eager", throttle_k=math.inf) as robot,
+    ):
 
-            async def ask() -> str:
-                try:
-                    await robot.detect(YELLOW, QUEUED_REGION, fuse=True, deadline_s=0.3, timeout_s=2)
-                except ResourceExhausted as exc:
-                    assert "rate" in str(exc), exc
-                    return "refused"
-                return "answered"
+        async def ask() -> str:
+            try:
+                await robot.detect(YELLOW, QUEUED_REGION, fuse=True, deadline_s=0.3, timeout_s=2)
+            except ResourceExhausted as exc:
+                assert "rate" in str(exc), exc
+                return "refused"
+            return "answered"
 
-            outcomes = await asyncio.gather(*(ask() for _ in range(12)))  # a DeadlineExceeded fails here
-            assert outcomes.count("refused") >= 6 and "answered" in outcomes, outcomes
-    finally:
-        if camera is not None:
-            await camera.stop()
-        await server.stop()
+        outcomes = await asyncio.gather(*(ask() for _ in range(12)))  # a DeadlineExceeded fails here
+        assert outcomes.count("refused") >= 6 and "answered" in outcomes, outcomes
