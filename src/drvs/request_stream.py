@@ -507,10 +507,11 @@ async def serve_request_stream(
     context = StreamContext()
     async for message in requests:
         context.fill(message)
+        request_id = message.request_id
         try:
             reply = await answer(message)
         except Exception as exc:
-            reply = _refused(message, exc, where)
+            reply = _refused(request_id, exc, where)
         await asyncio.sleep(0)  # see serve_request_batches
         yield reply
 
@@ -608,10 +609,11 @@ async def serve_request_stream_queued(
         try:
             async for message in requests:
                 context.fill(message)
+                request_id = message.request_id
                 try:
                     reply = await answer(message, out)
                 except Exception as exc:
-                    reply = _refused(message, exc, where)
+                    reply = _refused(request_id, exc, where)
                 if reply is not None:
                     await out.put(reply)
         except Exception as exc:  # the call broke: it ends here too
@@ -641,10 +643,11 @@ async def serve_request_batches(
     async for batch in batches:
         replies = Replies()
         for message in batch.requests:
+            request_id = message.request_id
             try:
                 reply = answer(message)
             except Exception as exc:
-                reply = _refused(message, exc, where)
+                reply = _refused(request_id, exc, where)
             replies.replies.append(reply)
         # One turn of the loop before the acknowledgement is written: the work the requests just
         # started (the server's forwards, a camera's detections and reports) starts its writes
@@ -653,16 +656,17 @@ async def serve_request_batches(
         yield replies
 
 
-def _refused(message: Request, exc: Exception, where: str) -> Reply:
-    """The reply to a request whose answer raised: a DrvsError is the peer's to read; anything
-    unexpected is logged here and answered as INTERNAL."""
+def _refused(request_id: str, exc: Exception, where: str) -> Reply:
+    """The reply to the request `request_id` (as it came: an answer may rename the message it
+    forwards, as the server does a fused request's for its cameras) whose answer raised: a
+    DrvsError is the peer's to read; anything unexpected is logged here and answered as INTERNAL."""
     if isinstance(exc, errors.DrvsError):
-        reply = refusal(message.request_id, _grpc.status_of(exc), str(exc))
+        reply = refusal(request_id, _grpc.status_of(exc), str(exc))
         if isinstance(exc, errors.ResourceExhausted) and exc.retry_after_s > 0:
             reply.error.retry_after_s = exc.retry_after_s
         return reply
-    log.error("%s: request %s failed", where, message.request_id, exc_info=exc)
-    return refusal(message.request_id, grpc.StatusCode.INTERNAL, f"{where}: internal error")
+    log.error("%s: request %s failed", where, request_id, exc_info=exc)
+    return refusal(request_id, grpc.StatusCode.INTERNAL, f"{where}: internal error")
 
 
 def refusal(request_id: str, code: grpc.StatusCode, text: str) -> Reply:

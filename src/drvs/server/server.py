@@ -1331,10 +1331,6 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
                 request, message, robot, _QueueDelivery(out), slots, on_end=stream.ended
             )
         except BaseException:
-            # submit_fused renames the message for the cameras before its last checks (the robot's
-            # budget, the door): the refusal must name the robot's request, or the robot never
-            # hears of it and waits out its deadline.
-            message.request_id = request.request_id
             out.settle()
             raise
         stream.sessions[request.request_id] = session
