@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
+import contextlib
 import functools
 import hmac
 import logging
@@ -639,7 +640,7 @@ class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         request_iterator: AsyncIterator[detection_pb2.DetectionRequests],
         context: aio.ServicerContext[Any, Any],
     ) -> AsyncIterator[detection_pb2.DetectionReplies]:
-        await check_caller(self._node, context, "requests")
+        await check_caller(self._node, context, "requests", request_iterator)
         async for replies in serve_request_batches(request_iterator, self._accept, f"camera {self._node.camera_id}"):
             yield replies
 
@@ -653,10 +654,17 @@ def presents_secret(node: CameraNode, metadata: list[tuple[str, Any]]) -> bool:
     return ok | (bool(token) and hmac.compare_digest(given, token.encode()))
 
 
-async def check_caller(node: CameraNode, context: aio.ServicerContext[Any, Any], what: str) -> None:
+async def check_caller(
+    node: CameraNode, context: aio.ServicerContext[Any, Any], what: str, requests: AsyncIterator[Any] | None = None
+) -> None:
     """The camera takes requests only from the server it registered with (which presents the
     secret back), not from any host or process that finds its port."""
     if not presents_secret(node, list(context.invocation_metadata() or ())):
+        if requests is not None:
+            # Take the first message before refusing a stream (as security._refusal does): an abort
+            # racing the caller's first write reaches the caller as INTERNAL, not UNAUTHENTICATED.
+            with contextlib.suppress(Exception):
+                await asyncio.wait_for(anext(aiter(requests)), 1.0)
         await context.abort(
             grpc.StatusCode.UNAUTHENTICATED,
             f"{what} need the secret this camera gave its server, or its token: send them via the server",
