@@ -333,6 +333,10 @@ async def test_load_abuse_smoke(tmp_path: Path) -> None:
     assert result["abuse_reports_lost"] == abused["reports_lost"] and "abuse_p99_ms" in result
     abuser = result["abuser"]
     assert abuser["registrations_sent"] > 0 and abuser["oversized_sent"] > 0 and abuser["stalled_streams"] == 8
+    # ... and issue 28's: teleporting poses, report-id floods, live-view floods, registry churn
+    assert abuser["teleports_sent"] + abuser["teleport_registrations_refused"] > 0
+    assert abuser["flood_reports_sent"] > 0 and abuser["churn_cycles_sent"] > 0
+    assert abuser["view_messages_sent"] + abuser["view_clients_refused"] > 0
     assert (tmp_path / "load-abuse.png").exists()
 
 

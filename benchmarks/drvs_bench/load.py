@@ -33,6 +33,7 @@ from __future__ import annotations
 
 import argparse
 import asyncio
+import contextlib
 import json
 import math
 import os
@@ -46,7 +47,7 @@ from pathlib import Path
 from typing import Any
 
 from drvs.errors import DrvsError, ResourceExhausted
-from drvs.launch import ManagedProcess, start_camera, start_server
+from drvs.launch import LIVE_READY, ManagedProcess, running_etcd, start_camera, start_server
 from drvs.robot import DetectionResult, DrvsClient, Snapshot
 from drvs.robot.throttle import DEFAULT_K
 
@@ -317,77 +318,89 @@ async def run_load(
     name: str = "load",
     delivery: str = "per-camera",
     throttle: bool = True,
+    deployed: bool = False,
 ) -> dict[str, Any]:
     """One run: fresh server and cameras, the robots, and with `abuse` (the abuser's extra
     arguments) the abuse mix beside them from the start to the end of the robots' schedule.
     `delivery`: per-camera reports or fused snapshots; `throttle` False: the robots' client-side
-    throttling off (throttle_k=inf), so only the server's door refuses."""
+    throttling off (throttle_k=inf), so only the server's door refuses. `deployed`: the server on an
+    etcd registry (a real etcd, started here) with its live view on, as a building runs it: what
+    the abuse mix's etcd churn and live-view floods need to reach."""
     workers = max(1, min(workers, robots))
     procs: list[ManagedProcess] = []
     abuser: ManagedProcess | None = None
     abuse_done: dict[str, Any] = {}
+    live_view = ""
     with tempfile.TemporaryDirectory(prefix="drvs-bench-load-") as tmp:
         scene = record_scene(Path(tmp), cameras=CAMERAS)
-        try:
-            server, address = await start_server()
-            procs.append(server)
-            cameras = []
-            for camera_id, rec in scene.items():
-                cameras.append(
-                    await start_camera(camera_id, rec.video, rec.homography_file, address, "--max-range", "6")
-                )
-            procs.extend(cameras)
-            go = Path(tmp) / "go"
-            crew = []
-            offset = 0
-            for w in range(workers):
-                count = robots // workers + (1 if w < robots % workers else 0)
-                worker_args = [
-                    "--server", address, "--name", f"w{w}", "--robots", str(count), "--index-offset", str(offset),
-                    "--total-robots", str(robots), "--rate", str(rate), "--warmup", str(warmup),
-                    "--seconds", str(seconds), "--timeout", str(timeout), "--go-file", str(go),
-                    "--delivery", delivery, "--throttle-k", str(DEFAULT_K if throttle else math.inf),
-                ]  # fmt: skip
-                crew.append(bench_process(f"robots-{w}", "load-robots", *worker_args))
-                offset += count
-            for proc in crew:
-                await proc.start()
-                procs.append(proc)
-            for proc in crew:
-                await proc.wait_for_line(r"^READY$", timeout=120)
-            pids = {"server": server.pid, **{c.name: c.pid for c in cameras}}
-            sampler = Sampler(pids)
-            t0 = time.time() + 0.5
-            if abuse is not None:
-                abuser = bench_process("abuser", "load-abuse", "--server", address,
-                                       "--seconds", str(warmup + seconds + 0.5), *abuse)  # fmt: skip
-                await abuser.start()
-                procs.append(abuser)
-                await abuser.wait_for_line(r"^READY$", timeout=60)
-            go.write_text(repr(t0))
-            for proc in crew:
-                os.kill(proc.pid, signal.SIGUSR1)
-            sampler.start(t0)
+        async with contextlib.AsyncExitStack() as stack:
             try:
-                await asyncio.sleep(max(0.0, t0 + warmup - time.time()))
-                after_warmup = sampler.sample(warmup)
-                done = [
-                    json.loads(
-                        (await p.wait_for_line(r"^DONE (.*)", timeout=warmup + seconds + timeout + 600)).group(1)
+                server_args: list[str] = []
+                if deployed:
+                    members = await stack.enter_async_context(running_etcd())
+                    server_args = ["--registry", "etcd://" + members[0].address, "--foxglove", "127.0.0.1:0"]
+                server, address = await start_server(*server_args)
+                procs.append(server)
+                if deployed:
+                    live_view = next(m.group(1) for line in server.lines if (m := LIVE_READY.search(line)))
+                cameras = []
+                for camera_id, rec in scene.items():
+                    cameras.append(
+                        await start_camera(camera_id, rec.video, rec.homography_file, address, "--max-range", "6")
                     )
-                    for p in crew
-                ]
-                at_end = sampler.sample(time.time() - t0)
+                procs.extend(cameras)
+                go = Path(tmp) / "go"
+                crew = []
+                offset = 0
+                for w in range(workers):
+                    count = robots // workers + (1 if w < robots % workers else 0)
+                    worker_args = [
+                        "--server", address, "--name", f"w{w}", "--robots", str(count), "--index-offset", str(offset),
+                        "--total-robots", str(robots), "--rate", str(rate), "--warmup", str(warmup),
+                        "--seconds", str(seconds), "--timeout", str(timeout), "--go-file", str(go),
+                        "--delivery", delivery, "--throttle-k", str(DEFAULT_K if throttle else math.inf),
+                    ]  # fmt: skip
+                    crew.append(bench_process(f"robots-{w}", "load-robots", *worker_args))
+                    offset += count
+                for proc in crew:
+                    await proc.start()
+                    procs.append(proc)
+                for proc in crew:
+                    await proc.wait_for_line(r"^READY$", timeout=120)
+                pids = {"server": server.pid, **{c.name: c.pid for c in cameras}}
+                sampler = Sampler(pids)
+                t0 = time.time() + 0.5
+                if abuse is not None:
+                    view = ["--live-view", live_view] if live_view else []
+                    abuser = bench_process("abuser", "load-abuse", "--server", address,
+                                           "--seconds", str(warmup + seconds + 0.5), *abuse, *view)  # fmt: skip
+                    await abuser.start()
+                    procs.append(abuser)
+                    await abuser.wait_for_line(r"^READY$", timeout=60)
+                go.write_text(repr(t0))
+                for proc in crew:
+                    os.kill(proc.pid, signal.SIGUSR1)
+                sampler.start(t0)
+                try:
+                    await asyncio.sleep(max(0.0, t0 + warmup - time.time()))
+                    after_warmup = sampler.sample(warmup)
+                    done = [
+                        json.loads(
+                            (await p.wait_for_line(r"^DONE (.*)", timeout=warmup + seconds + timeout + 600)).group(1)
+                        )
+                        for p in crew
+                    ]
+                    at_end = sampler.sample(time.time() - t0)
+                finally:
+                    await sampler.stop()
+                if abuser is not None:
+                    line = await abuser.wait_for_line(r"^DONE (.*)", timeout=120)
+                    abuse_done = json.loads(line.group(1))
+                for proc in crew:
+                    await proc.wait(timeout=60)
             finally:
-                await sampler.stop()
-            if abuser is not None:
-                line = await abuser.wait_for_line(r"^DONE (.*)", timeout=120)
-                abuse_done = json.loads(line.group(1))
-            for proc in crew:
-                await proc.wait(timeout=60)
-        finally:
-            for proc in reversed(procs):
-                await proc.stop()
+                for proc in reversed(procs):
+                    await proc.stop()
     records = [r for d in done for r in d["records"]]
     warnings = {p.name: log_warnings(p) for p in (server, *cameras)}
     logs = out_dir / "logs" / name
@@ -922,23 +935,29 @@ def load_main(args: argparse.Namespace) -> int:
                    ", ×".join(f"{m:g}" for m in multiples))  # fmt: skip
         extra_keys = ["overload", "capacity"]
     else:
-        result = asyncio.run(run_load(out, **settings, robots=robots, name=base))
+        result = asyncio.run(run_load(out, **settings, robots=robots, name=base, deployed=bool(args.abuse)))
     if args.quick and not args.robots:
         result["quick_robots_source"] = (
             f"{QUICK_ROBOTS} robots: 80 % of {KNEE_ROBOTS}, the capacity (knee) the last full sweep found on a "
             "2-core machine (docs/benchmarks.md, 'Where the limit is'), so CI runs below capacity"
         )
     if args.abuse:
-        abused = asyncio.run(run_load(out, **settings, robots=robots, abuse=ABUSE_ARGS, name=f"{base}-abuse"))
+        abused = asyncio.run(
+            run_load(out, **settings, robots=robots, abuse=ABUSE_ARGS, name=f"{base}-abuse", deployed=True)
+        )
         for short_key, full_key in ABUSE_KEYS.items():
             result[f"baseline_{short_key}"] = result[full_key]
             result[f"abuse_{short_key}"] = abused[full_key]
         result["abuser"] = abused["abuser"]
         result["abuse_definition"] = (
-            "the same robots, schedule and checks on fresh processes, with drvs-bench load-abuse beside them "
-            "for the whole run: " + " ".join(ABUSE_ARGS) + " (a registration flood far from the robots' region, "
+            "the same robots, schedule and checks on fresh processes, the server on an etcd registry with its "
+            "live view on in both runs, with drvs-bench load-abuse beside them for the whole run: "
+            + " ".join(ABUSE_ARGS)
+            + " (a registration flood far from the robots' region, "
             "oversized-region requests and continuous requests whose reports go to a listener that never reads, "
-            "DetectStream calls that are never read); baseline_*: the run without it"
+            "DetectStream calls that are never read, mobile cameras teleporting into the robots' region, forged "
+            "reports with 1 MB request ids into the server's report intake, live-view publishers and subscribers "
+            "that never read, register/deregister churn); baseline_*: the run without it"
         )
         write_outputs(abused, out, f"{base}-abuse")
     write_outputs(result, out, base)
@@ -980,7 +999,9 @@ def brief(section: Any) -> Any:
 #: The abuse mix, bounded: at most 2000 registrations (200 a second), 5 oversized (20 000-point)
 #: requests a second, 8 continuous requests and 8 never-read DetectStream calls of 500 requests each.
 ABUSE_ARGS = ["--registrations", "2000", "--registration-rate", "200", "--vertices", "20000",
-              "--oversized-rate", "5", "--continuous", "8", "--stalled", "8", "--stalled-requests", "500"]  # fmt: skip
+              "--oversized-rate", "5", "--continuous", "8", "--stalled", "8", "--stalled-requests", "500",
+              "--teleports", "4", "--report-floods", "2", "--flood-reports", "300", "--flood-id-bytes", "1000000",
+              "--view-floods", "2", "--view-message-bytes", "65536", "--churn", "4", "--churn-rate", "20"]  # fmt: skip
 
 
 def add_load_parser(sub: Any) -> None:
