@@ -369,9 +369,11 @@ def test_import_drvs_is_light_and_re_exports_the_robot_api() -> None:
 
 
 def _readme_robot_examples() -> list[str]:
-    text = (Path(__file__).parents[1] / "README.md").read_text()
-    section = text.split("## Use DRVS from robot code", 1)[1].split("\n## ", 1)[0]
-    return re.findall(r"```python\n(.*?)```", section, flags=re.S)
+    """The examples people copy: the README's five lines, then docs/robot-api.md's fuller and fused ones."""
+    root = Path(__file__).parents[1]
+    readme = (root / "README.md").read_text().split("## Use DRVS from robot code", 1)[1].split("\n## ", 1)[0]
+    api = (root / "docs" / "robot-api.md").read_text().split("\n## Make a robot a vision source", 1)[0]
+    return [code for text in (readme, api) for code in re.findall(r"```python\n(.*?)```", text, flags=re.S)]
 
 
 async def test_the_readme_robot_examples_run_against_real_processes(office: Office) -> None:
