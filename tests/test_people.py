@@ -1,7 +1,7 @@
 """The `people` detector on real footage: OpenCV's vtest.avi (Debian's opencv-doc), against feet
 marked by hand in tests/data/vtest_feet.json; and through real server and camera processes.
 
-Thresholds come from what was measured on the 57 hand-marked people (README, object types):
+Thresholds come from what was measured on the 57 hand-marked people (docs/object-types.md):
 with min_height_px 85, precision 0.96 and recall 0.84, feet within 3 px (median) of the marks.
 A detection matches a marked person when its feet pixel is within MATCH_FRACTION of its box
 height of the marks (about 15 px for these ~125 px boxes; the measured errors of the true
@@ -198,7 +198,7 @@ def test_eye_level_picture_finds_the_whole_man_not_the_one_cut_by_the_edge() -> 
     """basketball1.png (same package): a robot's-eye view at 640x480 with the default settings. The
     man on the left, head to feet in the frame, is found; the one cut by the right edge is not. His
     feet come out about 75 px high (he fills the frame, so HOG's box has less margin below him: see
-    the README); the assertion allows that and no more, so a worse placement fails."""
+    docs/object-types.md); the assertion allows that and no more, so a worse placement fails."""
     footage()
     image = cv2.imread(str(VTEST.parent / "basketball1.png"))
     assert image is not None and image.shape[1::-1] == (640, 480)

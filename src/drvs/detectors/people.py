@@ -11,7 +11,7 @@ with the square of the factor).
 Measured on real footage (OpenCV's vtest.avi, hand-marked feet in tests/data/vtest_feet.json):
 it misses people much smaller than `min_height_px`, people partly hidden (behind another person,
 a post, a sign) and people standing close side by side; a person who fills the frame's height gets
-feet placed too high. See the README's object types for the figures.
+feet placed too high. See docs/object-types.md for the figures.
 """
 
 from __future__ import annotations
