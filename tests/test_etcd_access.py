@@ -34,10 +34,11 @@ def credentials(ca: Path, cert: Path, key: Path) -> grpc.ChannelCredentials:
 async def test_only_server_certificates_read_or_write_the_registry_in_etcd(tmp_path: Path) -> None:
     made = make_all(tmp_path / "certs", ["server", "camera", "robot"], [], cameras=["lobby"], etcd_hosts=[])
     ca = tmp_path / "certs" / "ca.pem"
+    # Two members, both given: under TLS the client holds a channel per member (finding 7).
     etcd = await start_etcd(
-        tmp_path / "etcd", tls=(ca, *made["etcd"]), client_tls=made["server"], auth_users=["server"]
+        tmp_path / "etcd", 2, tls=(ca, *made["etcd"]), client_tls=made["server"], auth_users=["server"]
     )
-    endpoints = Endpoints.parse("etcd://" + etcd[0].address)
+    endpoints = Endpoints.parse("etcd://" + ",".join(m.address for m in etcd))
     try:
         async with EtcdClient(endpoints, credentials=credentials(ca, *made["server"])) as server:
             await server.put(PREFIX + b"cam1", b"{}")
