@@ -116,3 +116,25 @@ async def test_robot_and_camera_refuse_a_server_with_another_roles_certificate(
     finally:
         for p in reversed(procs):
             await p.stop()
+
+
+def test_drvs_certs_gives_each_role_its_own_host_names(tmp_path: Path) -> None:
+    from cryptography import x509
+
+    from drvs import certs as drvs_certs
+
+    roles = ["--role", "server", "--role", "camera", "--role", "robot"]
+    assert drvs_certs.main([*roles, "--out", str(tmp_path), "--server-host", "drvs.test", "--camera-host", "cams.test",
+                            "--host", "all.test", "--etcd", "--etcd-host", "etcd.test"]) == 0  # fmt: skip
+
+    def names(stem: str) -> set[str]:
+        cert = x509.load_pem_x509_certificate((tmp_path / f"{stem}.pem").read_bytes())
+        return set(cert.extensions.get_extension_for_class(x509.SubjectAlternativeName).value.get_values_for_type(
+            x509.DNSName))  # fmt: skip
+
+    assert names("server") == {"localhost", "all.test", "drvs.test"}
+    assert names("camera") == {"localhost", "all.test", "cams.test"}
+    assert names("robot") == {"localhost", "all.test"}
+    assert names("etcd") == {"localhost", "etcd.test"}
+    root = x509.load_pem_x509_certificate((tmp_path / "etcd-root.pem").read_bytes())
+    assert root.subject.rfc4514_string().startswith("CN=root")

@@ -250,8 +250,14 @@ def main(argv: list[str] | None = None) -> int:
         print(f"drvs-certs: {exc}", file=sys.stderr)
         return 2
     print(f"CA: {args.out / 'ca.pem'} (key {args.out / 'ca-key.pem'}: keep it private)")
+    ca = args.out / "ca.pem"
     for role, (cert, key) in made.items():
-        print(f"{role}: --tls-cert {cert} --tls-key {key} --tls-ca {args.out / 'ca.pem'}")
+        if role == "etcd":
+            print(f"etcd (each member): --cert-file {cert} --key-file {key} --trusted-ca-file {ca} --client-cert-auth")
+        elif role == "etcd-root":
+            print(f"etcd's root (python -m drvs.etcd_auth): --cert {cert} --key {key} --ca {ca}")
+        else:
+            print(f"{role}: --tls-cert {cert} --tls-key {key} --tls-ca {ca}")
     return 0
 
 
