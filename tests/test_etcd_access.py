@@ -5,6 +5,7 @@ and for writes; and etcd never holds a registration's secret, only its digest.""
 
 from __future__ import annotations
 
+import asyncio
 import shutil
 from pathlib import Path
 
@@ -12,10 +13,11 @@ import grpc
 import pytest
 from grpc import aio
 
+from drvs import etcd_auth
 from drvs.certs import make_all
 from drvs.errors import InvalidArgument, Unavailable
 from drvs.etcd import Endpoints, EtcdClient
-from drvs.launch import ManagedProcess, start_etcd, start_server
+from drvs.launch import ManagedProcess, running_etcd, start_etcd, start_server
 from drvs.server.config import ServerConfig
 from drvs.server.shared import PREFIX, secret_digest
 from drvs.v1 import registry_pb2, registry_pb2_grpc
@@ -34,12 +36,16 @@ def credentials(ca: Path, cert: Path, key: Path) -> grpc.ChannelCredentials:
 async def test_only_server_certificates_read_or_write_the_registry_in_etcd(tmp_path: Path) -> None:
     made = make_all(tmp_path / "certs", ["server", "camera", "robot"], [], cameras=["lobby"], etcd_hosts=[])
     ca = tmp_path / "certs" / "ca.pem"
+
+    def setup(who: str, *users: str) -> int:
+        cert, key = made[who]
+        args = ["--endpoints", str(endpoints), "--ca", str(ca), "--cert", str(cert), "--key", str(key)]
+        return etcd_auth.main([*args, *(a for u in users for a in ("--user", u))])
+
     # Two members, both given: under TLS the client holds a channel per member (finding 7).
-    etcd = await start_etcd(
-        tmp_path / "etcd", 2, tls=(ca, *made["etcd"]), client_tls=made["server"], auth_users=["server"]
-    )
-    endpoints = Endpoints.parse("etcd://" + ",".join(m.address for m in etcd))
-    try:
+    async with running_etcd(2, tls=(ca, *made["etcd"]), client_tls=made["server"]) as etcd:
+        endpoints = Endpoints.parse("etcd://" + ",".join(m.address for m in etcd))
+        assert await asyncio.to_thread(setup, "etcd-root", "server") == 0  # the documented command
         async with EtcdClient(endpoints, credentials=credentials(ca, *made["server"])) as server:
             await server.put(PREFIX + b"cam1", b"{}")
             assert (await server.get(PREFIX + b"cam1")) == (b"{}", 0)
@@ -50,14 +56,14 @@ async def test_only_server_certificates_read_or_write_the_registry_in_etcd(tmp_p
                 with pytest.raises(Unavailable, match=r"user name not found|permission denied"):
                     await stranger.put(PREFIX + b"cam1", b'{"address": "127.0.0.1:1"}')
                 assert "cam1" not in str(read.value)
+        # Nor may they give themselves a user; root may add one, again and again.
+        assert await asyncio.to_thread(setup, "robot", "robot") == 2
+        assert await asyncio.to_thread(setup, "etcd-root", "server", "server-b") == 0
         # A server's user may use DRVS's keys only.
         async with EtcdClient(endpoints, credentials=credentials(ca, *made["server"])) as server:
             with pytest.raises(Unavailable, match="permission denied"):
                 await server.put(b"/elsewhere", b"x")
             assert (await server.get(PREFIX + b"cam1")) == (b"{}", 0)  # unchanged
-    finally:
-        for m in etcd:
-            await m.stop()
 
 
 async def test_a_real_server_registers_through_etcd_with_access_control(tmp_path: Path) -> None:

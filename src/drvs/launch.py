@@ -555,13 +555,20 @@ async def start_etcd(
 
 
 @contextlib.asynccontextmanager
-async def running_etcd(members: int = 1) -> AsyncIterator[list[EtcdMember]]:
-    """`async with running_etcd() as members:` start_etcd with its data in a temporary folder;
-    every member stopped and reaped, and the folder removed, on exit."""
+async def running_etcd(
+    members: int = 1,
+    *,
+    tls: tuple[Path, Path, Path] | None = None,
+    client_tls: tuple[Path, Path] | None = None,
+    auth_users: Sequence[str] = (),
+) -> AsyncIterator[list[EtcdMember]]:
+    """`async with running_etcd() as members:` start_etcd (TLS, client certificates and access
+    control as it takes them) with its data in a temporary folder; every member stopped and
+    reaped, and the folder removed, on exit."""
     import tempfile
 
     with tempfile.TemporaryDirectory(prefix="drvs-etcd-") as data:
-        cluster = await start_etcd(Path(data), members)
+        cluster = await start_etcd(Path(data), members, tls=tls, client_tls=client_tls, auth_users=auth_users)
         try:
             yield cluster
         finally:
