@@ -3,14 +3,23 @@
     drvs-certs --out certs                       # ca.pem, server.pem/-key.pem, camera.pem/…, robot.pem/…
     drvs-certs --out certs --camera lobby --camera hall-1   # camera-lobby.pem, camera-hall-1.pem (+ keys)
     drvs-certs --out certs --host cams.lan --host 10.0.0.7 --role camera-3
+    drvs-certs --out certs --server-host drvs.lan --camera-host cams.lan   # names per role
+    drvs-certs --out certs --etcd --etcd-host 10.0.0.5   # etcd.pem (its members), etcd-root.pem (CN root)
 
-Every certificate names localhost, 127.0.0.1 and ::1 plus each --host, and serves both as a server
+Every certificate names localhost, 127.0.0.1 and ::1 plus each --host; a server's also each
+--server-host, a camera's each --camera-host (a robot's names none of them, so it cannot pass for a
+server or a camera at those names). Each serves both as a server
 certificate (its own listener: every role listens) and as a client certificate (mutual TLS). It
 says its role in its subject's organizational unit (OU=server, camera or robot): under mutual TLS
 the server lets only camera certificates register cameras. Its common name is the server's name
 for the caller, so give each camera its own (--camera NAME): cameras that share one certificate
 share one identity, and may take over each other's ids. For development and tests: keep
 ca-key.pem private, and use your organisation's CA in production.
+
+For etcd (drvs.etcd_auth): etcd takes a client certificate's common name as its user. A server
+certificate's common name (server, server-NAME) is that server's etcd user; etcd-root.pem's is
+root. So that no camera or robot certificate can name one of those users, --camera and --robot
+names may not be root, etcd, server or server-….
 """
 
 from __future__ import annotations
@@ -33,6 +42,8 @@ from drvs.security import ROLES
 
 DEFAULT_ROLES = ("server", "camera", "robot")
 DEFAULT_DAYS = 365
+#: Common names a camera's or robot's certificate may not take: etcd users (drvs.etcd_auth).
+RESERVED_NAMES = ("root", "etcd", "server")
 
 
 def _name(common_name: str, role: str | None = None) -> x509.Name:
@@ -125,14 +136,16 @@ def make_certificate(
     ca_key: ec.EllipticCurvePrivateKey,
     days: int,
     common_name: str | None = None,
+    *,
+    unit: str | None = "",
 ) -> tuple[Path, Path]:
     """`role`.pem and `role`-key.pem; the role is `role` or its prefix (camera-3: camera), the
-    common name `common_name` (default: `role`)."""
+    common name `common_name` (default: `role`). `unit` None: no DRVS role (etcd's certificates)."""
     key = ec.generate_private_key(ec.SECP256R1())
     now = datetime.datetime.now(datetime.timezone.utc)
     cert = (
         x509.CertificateBuilder()
-        .subject_name(_name(common_name or role, role_of(role)))
+        .subject_name(_name(common_name or role, role_of(role) if unit == "" else unit))
         .issuer_name(ca.subject)
         .public_key(key.public_key())
         .serial_number(x509.random_serial_number())
@@ -159,25 +172,41 @@ def make_all(
     *,
     cameras: list[str] | tuple[str, ...] = (),
     robots: list[str] | tuple[str, ...] = (),
+    role_hosts: dict[str, list[str]] | None = None,
+    etcd_hosts: list[str] | None = None,
 ) -> dict[str, tuple[Path, Path]]:
     """The CA (kept if `out` has one) and one certificate per role, and one per named camera and
-    robot (file camera-NAME.pem, common name NAME); returns file stem -> (cert, key)."""
+    robot (file camera-NAME.pem, common name NAME); returns file stem -> (cert, key).
+    `role_hosts`: more names for one role's certificates only (server: the servers' names).
+    `etcd_hosts` (not None): also etcd.pem for etcd's members (these names) and etcd-root.pem."""
+    role_hosts = role_hosts or {}
     for role in roles:
         check_id(role, "role")
         role_of(role)
     for name in (*cameras, *robots):
         check_id(name, "name")
-    for host in hosts:
+        if name in RESERVED_NAMES or name.startswith("server-"):
+            raise InvalidArgument(
+                f"name: {name!r} is an etcd user's name (root, etcd, server, server-…); a camera or robot "
+                "certificate may not carry it"
+            )
+    for host in [*hosts, *(etcd_hosts or []), *(h for v in role_hosts.values() for h in v)]:
         if not host or any(c.isspace() for c in host):
             raise InvalidArgument(f"host: {host!r} is not a host name or IP address")
     if not 1 <= days <= 3650:
         raise InvalidArgument(f"days: {days} must be from 1 to 3650")
     out.mkdir(parents=True, exist_ok=True)
     ca, ca_key = make_ca(out, days)
-    made = {role: make_certificate(out, role, hosts, ca, ca_key, days) for role in roles}
+    made = {
+        role: make_certificate(out, role, hosts + role_hosts.get(role_of(role), []), ca, ca_key, days) for role in roles
+    }
     for role, names in (("camera", cameras), ("robot", robots)):
         for name in names:
-            made[f"{role}-{name}"] = make_certificate(out, f"{role}-{name}", hosts, ca, ca_key, days, name)
+            named = hosts + role_hosts.get(role, [])
+            made[f"{role}-{name}"] = make_certificate(out, f"{role}-{name}", named, ca, ca_key, days, name)
+    if etcd_hosts is not None:
+        made["etcd"] = make_certificate(out, "etcd", etcd_hosts, ca, ca_key, days, unit=None)
+        made["etcd-root"] = make_certificate(out, "etcd-root", [], ca, ca_key, days, "root", unit=None)
     return made
 
 
@@ -197,18 +226,38 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument(
         "--robot", action="append", default=[], metavar="NAME", help="a robot certificate of its own (repeatable)"
     )
-    p.add_argument("--host", action="append", default=[], help="another name or IP the certificates answer for")
+    p.add_argument("--host", action="append", default=[], help="another name or IP every certificate answers for")
+    for role in ("server", "camera", "robot"):
+        p.add_argument(
+            f"--{role}-host", action="append", default=[], metavar="HOST",
+            help=f"another name or IP only the {role} certificates answer for (repeatable)",
+        )  # fmt: skip
+    p.add_argument(
+        "--etcd", action="store_true", help="also etcd.pem (etcd's members) and etcd-root.pem (etcd's root user)"
+    )
+    p.add_argument("--etcd-host", action="append", default=[], metavar="HOST", help="a name or IP of etcd's members")
     p.add_argument("--days", type=int, default=DEFAULT_DAYS, help="validity (default %(default)s)")
     args = p.parse_args(argv)
     try:
-        roles = args.role or ([] if args.camera or args.robot else list(DEFAULT_ROLES))
-        made = make_all(args.out, roles, args.host, args.days, cameras=args.camera, robots=args.robot)
+        roles = args.role or ([] if args.camera or args.robot or args.etcd else list(DEFAULT_ROLES))
+        role_hosts = {"server": args.server_host, "camera": args.camera_host, "robot": args.robot_host}
+        etcd_hosts = args.etcd_host if args.etcd or args.etcd_host else None
+        made = make_all(
+            args.out, roles, args.host, args.days, cameras=args.camera, robots=args.robot,
+            role_hosts=role_hosts, etcd_hosts=etcd_hosts,
+        )  # fmt: skip
     except (InvalidArgument, OSError) as exc:
         print(f"drvs-certs: {exc}", file=sys.stderr)
         return 2
     print(f"CA: {args.out / 'ca.pem'} (key {args.out / 'ca-key.pem'}: keep it private)")
+    ca = args.out / "ca.pem"
     for role, (cert, key) in made.items():
-        print(f"{role}: --tls-cert {cert} --tls-key {key} --tls-ca {args.out / 'ca.pem'}")
+        if role == "etcd":
+            print(f"etcd (each member): --cert-file {cert} --key-file {key} --trusted-ca-file {ca} --client-cert-auth")
+        elif role == "etcd-root":
+            print(f"etcd's root (python -m drvs.etcd_auth): --cert {cert} --key {key} --ca {ca}")
+        else:
+            print(f"{role}: --tls-cert {cert} --tls-key {key} --tls-ca {ca}")
     return 0
 
 

@@ -95,7 +95,16 @@ class EtcdClient:
     async def start(self) -> None:
         options = [("grpc.lb_policy_name", "round_robin"), ("grpc.enable_retries", 1)]
         target = self.endpoints.target()
-        if self._credentials is not None:
+        if self._credentials is not None and len(self.endpoints.addresses) > 1:
+            # One channel per member under TLS: a list's authority is the whole list, which no
+            # member's certificate names (drvs.channels).
+            from drvs.channels import ListChannel
+
+            self._channel = ListChannel(
+                [aio.secure_channel(format_address(h, p), self._credentials, options=options)
+                 for h, p in self.endpoints.addresses]
+            )  # fmt: skip
+        elif self._credentials is not None:
             self._channel = aio.secure_channel(target, self._credentials, options=options)
         else:
             self._channel = aio.insecure_channel(target, options=options)

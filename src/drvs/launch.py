@@ -515,11 +515,13 @@ async def start_etcd(
     echo: TextIO | None = None,
     tls: tuple[Path, Path, Path] | None = None,
     client_tls: tuple[Path, Path] | None = None,
+    auth_users: Sequence[str] = (),
 ) -> list[EtcdMember]:
     """A real etcd cluster of `members` on loopback ports, its data under `data_dir`, returned once
     it answers; on failure every member is stopped and reaped. `tls`: (CA, certificate, key) for
     its client port, which then asks clients for a certificate: `client_tls` (certificate, key) is
-    the one the readiness check presents."""
+    the one the readiness check presents. `auth_users` (with `tls`): etcd's access control on
+    (drvs.etcd_auth), only these certificates' common names may use DRVS's keys."""
     import grpc
 
     from drvs.etcd import Endpoints, wait_ready
@@ -538,6 +540,13 @@ async def start_etcd(
             await m.start(initial, echo=echo)
         endpoints = Endpoints(tuple(("127.0.0.1", m.client_port) for m in cluster))
         await wait_ready(endpoints, READY_TIMEOUT_S, credentials=credentials)
+        if auth_users:
+            from drvs import etcd_auth
+            from drvs.etcd import EtcdClient
+
+            assert credentials is not None, "auth_users: etcd's users are certificates' names: needs tls"
+            async with EtcdClient(endpoints, credentials=credentials) as client:
+                await etcd_auth.enable(client, auth_users)
     except BaseException:
         for m in cluster:
             await asyncio.shield(m.stop())
@@ -546,13 +555,20 @@ async def start_etcd(
 
 
 @contextlib.asynccontextmanager
-async def running_etcd(members: int = 1) -> AsyncIterator[list[EtcdMember]]:
-    """`async with running_etcd() as members:` start_etcd with its data in a temporary folder;
-    every member stopped and reaped, and the folder removed, on exit."""
+async def running_etcd(
+    members: int = 1,
+    *,
+    tls: tuple[Path, Path, Path] | None = None,
+    client_tls: tuple[Path, Path] | None = None,
+    auth_users: Sequence[str] = (),
+) -> AsyncIterator[list[EtcdMember]]:
+    """`async with running_etcd() as members:` start_etcd (TLS, client certificates and access
+    control as it takes them) with its data in a temporary folder; every member stopped and
+    reaped, and the folder removed, on exit."""
     import tempfile
 
     with tempfile.TemporaryDirectory(prefix="drvs-etcd-") as data:
-        cluster = await start_etcd(Path(data), members)
+        cluster = await start_etcd(Path(data), members, tls=tls, client_tls=client_tls, auth_users=auth_users)
         try:
             yield cluster
         finally:

@@ -15,11 +15,13 @@ import time
 import grpc
 from grpc import aio
 
+from drvs.channels import check_role, open_channel
 from drvs.convert import pose_to_pb
+from drvs.errors import PermissionDenied
 from drvs.mobile import PoseBuffer
 from drvs.model import Pose2
-from drvs.net import grpc_target, parse_address_list
-from drvs.security import Security
+from drvs.net import parse_address_list
+from drvs.security import SERVER, Security
 from drvs.v1 import registry_pb2, registry_pb2_grpc
 
 log = logging.getLogger("drvs.camera")
@@ -76,8 +78,8 @@ class Registration:
 
     def start(self, request: registry_pb2.RegisterRequest, fov_m2: float = 0.0) -> None:
         """Open the channel to the server and keep `request` registered (`fov_m2`: for the log)."""
-        # One channel for every server given (a,b,...): gRPC moves on from one that fails.
-        self._channel = self.security.channel(grpc_target(parse_address_list(self.server_address, "server")))
+        # Every server given (a,b,...) on one channel (under TLS, one per server): it moves on from one that fails.
+        self._channel = open_channel(self.security, parse_address_list(self.server_address, "server"))
         self._stub = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
         self._task = asyncio.get_running_loop().create_task(self.run(request, fov_m2))
 
@@ -97,6 +99,8 @@ class Registration:
         assert self._stub is not None
         # The previous registration's secret proves this is the same camera coming back.
         request.registration_secret = self.secret
+        # Under TLS: no registration (nor its forward secret) for a certificate of another role.
+        await check_role(self.security, parse_address_list(self.server_address, "server"), SERVER, "server")
         reply = await self._stub.Register(request, timeout=REGISTER_TIMEOUT_S, metadata=self.security.metadata())
         self.secret = reply.registration_secret
         self.reply = reply
@@ -176,6 +180,10 @@ class Registration:
                 await asyncio.sleep(backoff)
                 conflict = code == grpc.StatusCode.PERMISSION_DENIED
                 backoff = min(backoff * 2, max(interval, CONFLICT_BACKOFF_S) if conflict else interval)
+            except PermissionDenied as exc:  # the server's certificate is not a server's (check_role)
+                log.error("camera %s: %s; retrying in %.1f s", self.camera_id, exc, backoff)
+                await asyncio.sleep(backoff)
+                backoff = min(backoff * 2, max(interval, CONFLICT_BACKOFF_S))
 
     async def update_pose(self, pose: Pose2, pose_time_unix: float, timeout_s: float) -> registry_pb2.UpdatePoseReply:
         """A mobile camera's pose, to the server (grpc.RpcError when it refuses or cannot be reached)."""

@@ -39,6 +39,7 @@ from grpc import aio
 from shapely.geometry import Polygon
 
 from drvs import _grpc
+from drvs.channels import check_role, open_channel
 from drvs.convert import polygon_from_pb, pose_from_pb, region_to_pb, report_from_pb, request_to_pb, snapshot_from_pb
 from drvs.errors import (
     DeadlineExceeded,
@@ -64,7 +65,6 @@ from drvs.model import (
 from drvs.net import (
     dialable_address,
     format_address,
-    grpc_target,
     host_of,
     local_ip_towards,
     parse_address,
@@ -73,7 +73,7 @@ from drvs.net import (
 from drvs.report_auth import key_matches, new_secret
 from drvs.request_stream import RequestStream
 from drvs.robot.throttle import DEFAULT_K, AdaptiveThrottle
-from drvs.security import Security
+from drvs.security import SERVER, Security
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 log = logging.getLogger("drvs.robot")
@@ -982,7 +982,7 @@ class DrvsClient:
         """Open the channel to the server (no check of the server: DrvsClient.connect does that),
         and the report listener when `listen` or `advertise` was given (otherwise it starts with the
         first per-camera request)."""
-        self._channel = self.security.channel(grpc_target(self.servers))
+        self._channel = open_channel(self.security, self.servers)  # TLS: a channel per server
         self._detect = detection_pb2_grpc.DetectObjectBoundaryStub(self._channel)
         self._requests = RequestStream(self._detect, f"server {self.server}", metadata=self.security.metadata())
         self._registry = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
@@ -1012,6 +1012,7 @@ class DrvsClient:
         `timeout_s` seconds, retried as `retry` allows. Raises Unavailable naming the server when it
         is not there, not serving, or silent; other refusals (Unauthenticated ...) as they come."""
         self._require_started()
+        await check_role(self.security, self.servers, SERVER, "server")  # under TLS: a server's certificate
         from grpc_health.v1 import health_pb2, health_pb2_grpc
 
         assert self._channel is not None

@@ -258,6 +258,16 @@ class ServerConfig:
             path = getattr(self, name)
             if path and not os.path.isfile(path):
                 raise InvalidArgument(f"{setting(name)}: {path!r} is not a file")
+        if self.etcd_cert:
+            from drvs.security import SERVER, certificate_fields
+
+            with open(self.etcd_cert, "rb") as f:
+                common_name, role = certificate_fields(f.read())
+            if role and role != SERVER:  # etcd's users are servers (drvs.etcd_auth)
+                raise InvalidArgument(
+                    f"{setting('etcd_cert')}: {common_name!r} is a {role} certificate (OU={role}); "
+                    "etcd is for servers' certificates (OU=server)"
+                )
 
     def etcd_credentials(self) -> Any:
         """grpc.ChannelCredentials for etcd over TLS, or None (plain TCP)."""

@@ -79,7 +79,7 @@ from drvs.server.config import (
 )
 from drvs.server.fusion_session import Continuous, FusionSession, FusionSessions, ReportIntake, SingleShot
 from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits, peer_ip
-from drvs.server.shared import PoseRecord, Record, SharedRegistry
+from drvs.server.shared import PoseRecord, Record, SharedRegistry, secret_digest
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 if TYPE_CHECKING:
@@ -588,7 +588,7 @@ class DrvsServer(Lifecycle):
         previous = await shared.get(camera_id)
         self.claims.adopt(camera_id, previous.claim() if previous is not None else None)
         self.claims.check_register(
-            camera_id, owner, registration.registration_secret, quota, registration.forward_secret
+            camera_id, owner, secret_digest(registration.registration_secret), quota, registration.forward_secret
         )
         max_range_m = registration.max_range_m or self.default_max_range_m
         _, state = self.registry.check(
@@ -605,7 +605,7 @@ class DrvsServer(Lifecycle):
             max_range_m=max_range_m,
             owner=owner,
             quota=quota,
-            secret=secrets.token_urlsafe(24),
+            secret=secret_digest(secret := secrets.token_urlsafe(24)),  # etcd keeps its digest only
             forward_secret=registration.forward_secret or presented_token,
             server=self.address,
             registered_at=time.time(),
@@ -616,7 +616,7 @@ class DrvsServer(Lifecycle):
         stored = await shared.put(record, previous, self.registry.lease_ttl_s)
         shared.records[camera_id] = stored
         entry = self._apply_shared(stored)
-        return entry, stored.secret
+        return entry, secret
 
     async def _held_record(self, camera_id: str, who: str, registration_secret: str, method: str) -> Record:
         """The id's record in etcd, once the caller is shown to hold it (as etcd records the holder)."""
@@ -626,7 +626,7 @@ class DrvsServer(Lifecycle):
         if record is None:
             raise NotFound(f"camera_id: {camera_id!r} is not registered")
         self.claims.adopt(camera_id, record.claim())
-        self.claims.check(camera_id, owner, registration_secret)
+        self.claims.check(camera_id, owner, secret_digest(registration_secret))
         return record
 
     async def renew_camera_shared(self, camera_id: str, who: str, registration_secret: str) -> None:
@@ -718,7 +718,7 @@ class DrvsServer(Lifecycle):
         and the robot asked the cameras the dispatch named."""
         check_id(camera_id, "camera_id")
         owner = self._camera_owner(who, "UpdatePose")
-        self.claims.check(camera_id, owner, registration_secret)
+        self.claims.check(camera_id, owner, secret_digest(registration_secret) if self.shared else registration_secret)
         try:
             entry = self.registry.update_pose(camera_id, pose, pose_time_unix)
         except DrvsError as exc:

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import hashlib
 import json
 import logging
 import math
@@ -52,7 +53,8 @@ class Record:
     image_size: tuple[int, int]
     detector_kinds: tuple[str, ...]
     max_range_m: float
-    #: Who holds the id ("" anonymous), whose quota it counts against, the registration's secret.
+    #: Who holds the id ("" anonymous), whose quota it counts against, the registration's secret
+    #: as secret_digest keeps it (never the secret: whoever reads etcd cannot heartbeat for it).
     owner: str
     quota: str
     secret: str
@@ -86,6 +88,12 @@ class Record:
     def claim(self) -> Claim:
         """The id's hold as this record gives it: until the key goes (its lease decides)."""
         return Claim(self.owner, self.quota, self.secret, math.inf, self.forward_secret)
+
+
+def secret_digest(secret: str) -> str:
+    """What etcd keeps of a registration secret, and what a presented one is compared as: its
+    SHA-256 (the secret is 24 random bytes: nothing to guess); "" for none."""
+    return "sha256:" + hashlib.sha256(secret.encode()).hexdigest() if secret else ""
 
 
 def key_of(camera_id: str) -> bytes:
