@@ -96,7 +96,7 @@ async def test_poison_in_etcd_is_skipped_and_the_watch_goes_on(etcd: EtcdMember)
             await server.wait_for_line(re.compile(r"camera cam-new registered at \S+ through"), timeout=10)
             await client.delete(PREFIX + b"cam-gone")
             await server.wait_for_line(re.compile(r"camera cam-gone left routing: "), timeout=10)
-        for key, why in (
+        for name, why in (
             ("garbage", "not UTF-8|Expecting"),
             ("wrong-type", "max_range_m: '15' is not a finite number"),
             ("bad-homography", "homography: 'abc' is not a list"),
@@ -105,7 +105,7 @@ async def test_poison_in_etcd_is_skipped_and_the_watch_goes_on(etcd: EtcdMember)
             ("not-an-object", "JSON list, not an object"),
             ("cam-old", "image_size: \\[640\\] is not a list of 2"),
         ):
-            assert any(skipped_line(f"/drvs/v1/cameras/{key}", why).search(line) for line in server.lines), key
+            assert any(skipped_line(f"/drvs/v1/cameras/{name}", why).search(line) for line in server.lines), name
         assert any(
             skipped_line("/drvs/v1/poses/cam-gone", "x: '1' is not a finite number").search(x) for x in server.lines
         )

@@ -104,8 +104,8 @@ WARM_TRIES = 50
 async def propagation(registrations: int) -> dict[str, Any]:
     async with running_etcd() as members:
         registry = "etcd://" + members[0].address
-        a = DrvsServer(config=ServerConfig(listen="127.0.0.1:0", registry=registry, lease_ttl_s=60))
-        b = DrvsServer(config=ServerConfig(listen="127.0.0.1:0", registry=registry, lease_ttl_s=60))
+        config = ServerConfig(listen="127.0.0.1:0", registry=registry, lease_ttl_s=60, registration_rate=1e9)
+        a, b = DrvsServer(config=config), DrvsServer(config=config)
         await a.start()
         await b.start()
         arrived: dict[str, float] = {}
