@@ -8,6 +8,7 @@ from __future__ import annotations
 import asyncio
 import shutil
 import time
+import urllib.request
 from pathlib import Path
 
 import grpc
@@ -15,7 +16,7 @@ import pytest
 from grpc import aio
 
 from drvs.etcd import Endpoints, EtcdClient
-from drvs.launch import start_etcd, start_server
+from drvs.launch import ETCD_QUOTA_BYTES, start_etcd, start_server
 from drvs.mobile import Mount
 from drvs.v1 import geometry_pb2, registry_pb2, registry_pb2_grpc
 
@@ -151,11 +152,19 @@ async def test_pose_updates_are_rate_limited_per_identity(tmp_path: Path) -> Non
         await members[0].stop()
 
 
+def etcd_metrics(address: str) -> str:
+    with urllib.request.urlopen(f"http://{address}/metrics", timeout=5) as reply:
+        return str(reply.read().decode())
+
+
 async def test_etcd_as_drvs_runs_it_compacts_its_history(tmp_path: Path) -> None:
-    """start_etcd runs etcd with periodic auto-compaction (here of history older than 1 s): old
-    revisions go, so the registrations and poses written do not pile up until the quota."""
+    """start_etcd runs etcd with its quota (ETCD_QUOTA_BYTES unless told) and periodic auto-compaction
+    (here of history older than 1 s): old revisions go, so the registrations and poses written do
+    not pile up until the quota."""
     members = await start_etcd(tmp_path, compaction_retention="1s")
     try:
+        text = await asyncio.to_thread(etcd_metrics, members[0].address)
+        assert f"etcd_server_quota_backend_bytes {float(ETCD_QUOTA_BYTES):.8e}" in text
         async with EtcdClient(Endpoints.parse(f"etcd://{members[0].address}")) as client:
             first = await client.put(b"/drvs/v1/test", b"one")
             await client.put(b"/drvs/v1/test", b"two")
