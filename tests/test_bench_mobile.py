@@ -85,6 +85,19 @@ def test_cluster_propagation_smoke(tmp_path: Path) -> None:
         assert main(["cluster", "--parts", "throughput", "--workers-list", bad]) == 2
 
 
+@NEEDS_ETCD
+def test_cluster_writes_smoke(tmp_path: Path) -> None:
+    """drvs-bench cluster --parts writes: what a fleet writes to etcd, per operation and per camera
+    and second, in its JSON; heartbeats write no history, registrations and poses do."""
+    assert main(["cluster", "--quick", "--parts", "writes", "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "cluster.json").read_text())["writes"]
+    ops = result["per_operation"]
+    assert ops["registration"]["history_bytes"] > 300 and ops["pose_update"]["history_bytes"] > 50
+    assert ops["heartbeat"]["history_bytes"] == 0 < ops["heartbeat"]["bytes_sent_to_etcd"]
+    per_s = result["per_camera_per_s"]
+    assert 0 < per_s["static"]["bytes_sent_to_etcd"] < per_s["mobile"]["bytes_sent_to_etcd"]
+
+
 @pytest.mark.slow
 @NEEDS_ETCD
 def test_cluster_failover_smoke(tmp_path: Path) -> None:

@@ -75,6 +75,7 @@ from drvs.sim.scene import FloorPatch, render_view
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2_grpc
 
 from .common import YELLOW, bench_process, machine, pyplot, write_result
+from .etcd_writes import fleet_writes
 from .fakes import register_message
 from .helpers import grid_position, one_camera_request, percentile, with_request_id
 from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, interleaved, publish
@@ -83,7 +84,7 @@ from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, interleaved, publish
 HOMOGRAPHY = homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
 FULL_REGISTRATIONS = 300
 QUICK_REGISTRATIONS = 40
-PARTS = ("propagation", "failover", "throughput")
+PARTS = ("propagation", "failover", "throughput", "writes")
 THROUGHPUT_CAMERAS = 1000
 FULL_FAILOVERS = 5
 QUICK_FAILOVERS = 2
@@ -104,8 +105,8 @@ WARM_TRIES = 50
 async def propagation(registrations: int) -> dict[str, Any]:
     async with running_etcd() as members:
         registry = "etcd://" + members[0].address
-        a = DrvsServer(config=ServerConfig(listen="127.0.0.1:0", registry=registry, lease_ttl_s=60))
-        b = DrvsServer(config=ServerConfig(listen="127.0.0.1:0", registry=registry, lease_ttl_s=60))
+        config = ServerConfig(listen="127.0.0.1:0", registry=registry, lease_ttl_s=60, registration_rate=1e9)
+        a, b = DrvsServer(config=config), DrvsServer(config=config)
         await a.start()
         await b.start()
         arrived: dict[str, float] = {}
@@ -571,6 +572,8 @@ def run_cluster(
         result["throughput"] = asyncio.run(throughput(quick))
         listed = workers_list or list(QUICK_WORKERS_LIST if quick else WORKERS_LIST)
         result["workers"] = asyncio.run(workers_scaling(quick, listed))
+    if "writes" in parts:  # what a fleet writes to etcd (etcd_writes.py)
+        result["writes"] = asyncio.run(fleet_writes(quick))
     return result
 
 
@@ -653,9 +656,7 @@ def cluster_main(args: argparse.Namespace) -> int:
     shown: dict[str, Any] = {"machine": result["machine"]}
     if "propagation" in result:
         shown["propagation"] = {k: v for k, v in result["propagation"].items() if k != "delays_ms"}
-    for part in ("failover", "throughput"):
-        if part in result:
-            shown[part] = result[part]
+    shown.update({part: result[part] for part in ("failover", "throughput", "writes") if part in result})
     if "workers" in result:
         shown["workers"] = {k: v for k, v in result["workers"].items() if k != "by_workers"}
         shown["workers"]["by_workers"] = {

@@ -437,6 +437,13 @@ async def camera_ready(
 # --- etcd ----------------------------------------------------------------------------------------
 
 ETCD = "etcd"  # Debian's etcd-server package (./run installs it)
+#: How DRVS runs etcd (docs/operations.md, "Running etcd for DRVS"): history older than this is
+#: compacted (etcd's --auto-compaction-mode periodic --auto-compaction-retention), and the store may
+#: grow to this many bytes (--quota-backend-bytes) before etcd refuses writes. Every registration
+#: and pose update is a revision etcd keeps until compacted; without compaction any steady writer
+#: fills any quota.
+ETCD_COMPACTION_RETENTION = "5m"
+ETCD_QUOTA_BYTES = 256 * 1024 * 1024
 
 
 def free_ports(count: int) -> list[int]:
@@ -464,6 +471,9 @@ class EtcdMember:
     proc: ManagedProcess | None = None
     #: TLS for clients: (CA, certificate, key) PEM files; clients must present a certificate too.
     tls: tuple[Path, Path, Path] | None = None
+    #: History kept before compaction (etcd's duration syntax: "5m", "1h"), and the store's quota.
+    compaction_retention: str = ETCD_COMPACTION_RETENTION
+    quota_bytes: int = ETCD_QUOTA_BYTES
 
     @property
     def client_url(self) -> str:
@@ -489,7 +499,8 @@ class EtcdMember:
                 "--listen-peer-urls", self.peer_url, "--initial-advertise-peer-urls", self.peer_url,
                 "--initial-cluster", cluster, "--initial-cluster-state", state,
                 "--initial-cluster-token", "drvs", "--heartbeat-interval", "50", "--election-timeout", "500",
-                "--log-level", "warn",
+                "--log-level", "warn", "--quota-backend-bytes", str(self.quota_bytes),
+                "--auto-compaction-mode", "periodic", "--auto-compaction-retention", self.compaction_retention,
                 *(
                     ("--trusted-ca-file", str(self.tls[0]), "--cert-file", str(self.tls[1]),
                      "--key-file", str(self.tls[2]), "--client-cert-auth")
@@ -516,18 +527,32 @@ async def start_etcd(
     tls: tuple[Path, Path, Path] | None = None,
     client_tls: tuple[Path, Path] | None = None,
     auth_users: Sequence[str] = (),
+    compaction_retention: str = ETCD_COMPACTION_RETENTION,
+    quota_bytes: int = ETCD_QUOTA_BYTES,
 ) -> list[EtcdMember]:
     """A real etcd cluster of `members` on loopback ports, its data under `data_dir`, returned once
     it answers; on failure every member is stopped and reaped. `tls`: (CA, certificate, key) for
     its client port, which then asks clients for a certificate: `client_tls` (certificate, key) is
     the one the readiness check presents. `auth_users` (with `tls`): etcd's access control on
-    (drvs.etcd_auth), only these certificates' common names may use DRVS's keys."""
+    (drvs.etcd_auth), only these certificates' common names may use DRVS's keys. Compaction and
+    quota as DRVS runs etcd (ETCD_*)."""
     import grpc
 
     from drvs.etcd import Endpoints, wait_ready
 
     ports = free_ports(2 * members)
-    cluster = [EtcdMember(f"m{i}", ports[2 * i], ports[2 * i + 1], data_dir / f"m{i}", tls=tls) for i in range(members)]
+    cluster = [
+        EtcdMember(
+            f"m{i}",
+            ports[2 * i],
+            ports[2 * i + 1],
+            data_dir / f"m{i}",
+            tls=tls,
+            compaction_retention=compaction_retention,
+            quota_bytes=quota_bytes,
+        )
+        for i in range(members)
+    ]
     credentials = None
     if tls is not None:
         assert client_tls is not None, "client_tls: the readiness check needs a client certificate"

@@ -74,6 +74,23 @@ ADMISSION_REFUSED = Counter(
     "queue stood: the server's own loop, a camera link's, fused delivery's, or a camera link already at its bound",
     ["by"],
 ).labels
+REGISTRY_SKIPPED = Counter(
+    "drvs_registry_records_skipped_total",
+    "Values under DRVS's prefix in the shared registry (etcd) that the server skipped, by kind (camera or pose): "
+    "not JSON, too large, nested too deeply, a field of the wrong type, or not applicable here",
+    ["kind"],
+)
+REGISTRY_WATCH_RESTARTS = Counter(
+    "drvs_registry_watch_restarts_total",
+    "Times the server's watch of the shared registry failed for a reason other than etcd being unreachable "
+    "and was restarted (registrations refused, health NOT_SERVING for them, until it was back)",
+)
+REGISTRY_WRITES_REFUSED = Counter(
+    "drvs_registry_writes_refused_total",
+    "Registrations and pose updates refused RESOURCE_EXHAUSTED because their identity wrote to the shared "
+    "registry faster than --registration-rate or --pose-write-rate allow, by kind (registration or pose)",
+    ["kind"],
+)
 STAGE = Histogram(
     "drvs_stage_seconds",
     "Time per stage: route (server: validate, check, route, dispatch), forward (server: until the camera "

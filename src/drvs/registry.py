@@ -638,6 +638,8 @@ class Claims:
         self._wall_clock = wall_clock
         self._claims: dict[str, Claim] = {}
         self._held: dict[str, set[str]] = {}
+        #: Ids whose registration is on its way (a registry shared in etcd), by quota: they count.
+        self._reserved: dict[str, set[str]] = {}
 
     def __contains__(self, camera_id: object) -> bool:
         return camera_id in self._claims
@@ -649,8 +651,23 @@ class Claims:
             return None
         return claim
 
-    def held_by(self, quota: str) -> int:
-        return len(self._held.get(quota, ()))
+    def held_by(self, quota: str, besides: str = "") -> int:
+        """Ids `quota` holds or has reserved, `besides` left out."""
+        ids = self._held.get(quota, set()) | self._reserved.get(quota, set())
+        return len(ids - {besides})
+
+    def reserve(self, camera_id: str, quota: str) -> None:
+        """Count `camera_id` against `quota` while its registration is on its way (check_register,
+        then this, with no await between: concurrent registrations cannot all pass the cap);
+        `unreserve` once it is granted or failed."""
+        self._reserved.setdefault(quota, set()).add(camera_id)
+
+    def unreserve(self, camera_id: str, quota: str) -> None:
+        reserved = self._reserved.get(quota)
+        if reserved is not None:
+            reserved.discard(camera_id)
+            if not reserved:
+                del self._reserved[quota]
 
     def _until(self, claim: Claim) -> str:
         if math.isinf(claim.until):  # a registry shared in etcd: its lease there decides
@@ -675,9 +692,9 @@ class Claims:
                     f"camera_id: {camera_id!r} belongs to another credential (an anonymous registration; "
                     f"this request does not carry its registration_secret) {self._until(claim)}"
                 )
-        if (claim is None or claim.quota != quota) and self.held_by(quota) >= self.max_per_identity:
+        if (claim is None or claim.quota != quota) and self.held_by(quota, camera_id) >= self.max_per_identity:
             raise ResourceExhausted(
-                f"registrations: {quota} already holds {self.held_by(quota)} camera ids "
+                f"registrations: {quota} already holds {self.held_by(quota, camera_id)} camera ids "
                 f"(limit {self.max_per_identity} per identity, --max-cameras-per-identity)"
             )
 

@@ -226,6 +226,22 @@ def build_parser() -> argparse.ArgumentParser:
         "every server given the same etcd (DRVS_REGISTRY)",
     )
     p.add_argument(
+        "--registration-rate",
+        type=float,
+        default=None,
+        metavar="N",
+        help="on a registry in etcd: registrations one identity may make a minute, in bursts of N; more are "
+        "refused RESOURCE_EXHAUSTED with a retry hint (default 60)",
+    )
+    p.add_argument(
+        "--pose-write-rate",
+        type=float,
+        default=None,
+        metavar="HZ",
+        help="on a registry in etcd: pose updates one identity's mobile cameras may send a second, in bursts "
+        "of HZ (default 50)",
+    )
+    p.add_argument(
         "--admission-target",
         type=float,
         default=None,
@@ -330,6 +346,8 @@ def config_from(args: argparse.Namespace) -> ServerConfig:
             "max_pose_lease_s": args.max_pose_lease,
             "min_pose_interval_s": args.min_pose_interval,
             "registry": args.registry,
+            "registration_rate": args.registration_rate,
+            "pose_write_rate": args.pose_write_rate,
             "advertise": args.advertise,
             "etcd_ca": args.etcd_ca,
             "etcd_cert": args.etcd_cert,

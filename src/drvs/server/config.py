@@ -40,6 +40,7 @@ from drvs.server.policy import (
     CallbackPolicy,
     RequestLimits,
 )
+from drvs.server.shared import DEFAULT_POSE_WRITE_RATE, DEFAULT_REGISTRATION_RATE
 
 DEFAULT_LISTEN = "127.0.0.1:50051"
 #: Hosts that bind every interface: no address a camera can dial.
@@ -87,6 +88,8 @@ FLAGS = {
     "max_pose_lease_s": "--max-pose-lease",
     "min_pose_interval_s": "--min-pose-interval",
     "registry": "--registry",
+    "registration_rate": "--registration-rate",
+    "pose_write_rate": "--pose-write-rate",
     "advertise": "--advertise",
     "etcd_ca": "--etcd-ca",
     "etcd_cert": "--etcd-cert",
@@ -116,6 +119,8 @@ _RANGES: dict[str, tuple[float, float, bool, str]] = {
     "max_pose_lease_s": (0, 3600, False, " seconds"),
     "min_pose_interval_s": (0, 3600, True, " seconds"),
     "workers": (1, 256, True, " processes"),
+    "registration_rate": (0, 1e9, False, " registrations a minute"),
+    "pose_write_rate": (0, 1e9, False, " pose updates a second"),
     "admission_target_s": (0, 10, True, " seconds (0: admission off)"),
 }
 _INTEGERS = (
@@ -187,6 +192,10 @@ class ServerConfig:
     #: Where the registry lives: "memory" (this server alone) or etcd://HOST:PORT[,HOST:PORT...],
     #: shared by every server given the same etcd (drvs.server.shared).
     registry: str = "memory"
+    #: On a registry in etcd, per identity: registrations a minute, and pose updates a second, each
+    #: in bursts of as many (every one is a write etcd keeps until it is compacted).
+    registration_rate: float = DEFAULT_REGISTRATION_RATE
+    pose_write_rate: float = DEFAULT_POSE_WRITE_RATE
     #: HOST:PORT cameras dial to send this server a fused request's reports ("": the bound address,
     #: unless it is a wildcard). Needed when cameras know several servers (they must report to the
     #: one that asked) and this one listens on 0.0.0.0.

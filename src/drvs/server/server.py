@@ -350,6 +350,8 @@ class DrvsServer(Lifecycle):
                 on_reachable=self._registry_reachable,
                 apply_pose=self._apply_shared_pose,
                 client=EtcdClient(endpoints, credentials=config.etcd_credentials()),
+                registration_rate=config.registration_rate,
+                pose_write_rate=config.pose_write_rate,
             )
 
     @classmethod
@@ -613,7 +615,12 @@ class DrvsServer(Lifecycle):
             mobile=registration.mobile,
             pose_lease_s=state.pose_lease_s if state is not None else 0.0,
         )
-        stored = await shared.put(record, previous, self.registry.lease_ttl_s)
+        shared.registrations.take(quota)  # each one a write etcd keeps until it is compacted
+        self.claims.reserve(camera_id, quota)  # no await since check_register: concurrent ones count
+        try:
+            stored = await shared.put(record, previous, self.registry.lease_ttl_s)
+        finally:
+            self.claims.unreserve(camera_id, quota)  # held from here on (_apply_shared), or failed
         shared.records[camera_id] = stored
         entry = self._apply_shared(stored)
         return entry, secret
@@ -720,6 +727,8 @@ class DrvsServer(Lifecycle):
         owner = self._camera_owner(who, "UpdatePose")
         self.claims.check(camera_id, owner, secret_digest(registration_secret) if self.shared else registration_secret)
         try:
+            if self.shared is not None:  # each one a write etcd keeps until compacted
+                self.shared.admit_pose(camera_id)
             entry = self.registry.update_pose(camera_id, pose, pose_time_unix)
         except DrvsError as exc:
             metrics.POSE_UPDATES.labels(outcome=exc.code.lower()).inc()

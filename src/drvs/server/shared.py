@@ -23,11 +23,14 @@ import json
 import logging
 import math
 import secrets
+import time
+from collections import OrderedDict
 from collections.abc import Awaitable, Callable
-from dataclasses import asdict, dataclass, replace
+from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
-from drvs.errors import DrvsError, FailedPrecondition, Unavailable
+from drvs import metrics
+from drvs.errors import DrvsError, FailedPrecondition, ResourceExhausted, Unavailable
 from drvs.etcd import Endpoints, EtcdClient, Event
 from drvs.model import DEFAULT_FRAME
 from drvs.registry import Claim
@@ -41,6 +44,82 @@ POSES = ROOT + b"poses/"
 #: Reconnect backoff when etcd cannot be reached, seconds: first wait and the most.
 INITIAL_BACKOFF_S = 0.2
 MAX_BACKOFF_S = 5.0
+#: Registrations one identity may make a minute, and pose updates it may send a second, on a registry
+#: shared in etcd (--registration-rate, --pose-write-rate): each is a write etcd keeps until it is
+#: compacted (about 800 B a registration, 170 B a pose), so one caller must not fill its quota.
+#: Bursts of as many (a minute's registrations, a second's poses).
+DEFAULT_REGISTRATION_RATE = 60.0
+DEFAULT_POSE_WRITE_RATE = 50.0
+#: Identities whose write buckets are kept; the longest idle is dropped past this.
+MAX_TRACKED_WRITERS = 10_000
+#: The largest value a record or pose DRVS writes may have, bytes (a record is about 1 KB): a
+#: larger one is not read at all.
+MAX_VALUE_BYTES = 16 * 1024
+
+
+def _number(value: object, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, int | float) or not math.isfinite(value):
+        raise ValueError(f"{name}: {_shown(value)} is not a finite number")
+    return float(value)
+
+
+def _integer(value: object, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise ValueError(f"{name}: {_shown(value)} is not a whole number")
+    return value
+
+
+def _list(value: object, name: str, length: int | None = None) -> list[object]:
+    if not isinstance(value, list) or (length is not None and len(value) != length):
+        raise ValueError(f"{name}: {_shown(value)} is not a list{f' of {length}' if length is not None else ''}")
+    return value
+
+
+def _shown(value: object) -> str:
+    text = repr(value)
+    return text if len(text) <= 40 else text[:37] + "..."
+
+
+#: How each kind of field is read from JSON (by its annotation); fields of other kinds as they are.
+_READERS: dict[str, Callable[[object, str], object]] = {
+    "str": lambda v, n: v if isinstance(v, str) else _fail(n, v, "a string"),
+    "float": _number,
+    "int": _integer,
+    "bool": lambda v, n: v if isinstance(v, bool) else _fail(n, v, "true or false"),
+    "tuple[float, ...]": lambda v, n: tuple(_number(x, n) for x in _list(v, n)),
+    "tuple[int, int]": lambda v, n: tuple(_integer(x, n) for x in _list(v, n, 2)),
+    "tuple[str, ...]": lambda v, n: tuple(x if isinstance(x, str) else _fail(n, x, "a string") for x in _list(v, n)),
+}
+
+
+def _fail(name: str, value: object, what: str) -> Any:
+    raise ValueError(f"{name}: {_shown(value)} is not {what}")
+
+
+def _object(data: bytes) -> dict[str, Any]:
+    """A JSON object of at most MAX_VALUE_BYTES; ValueError saying why not."""
+    if len(data) > MAX_VALUE_BYTES:
+        raise ValueError(f"{len(data)} bytes, more than the {MAX_VALUE_BYTES} a DRVS record may have")
+    try:
+        raw = json.loads(data)
+    except RecursionError:
+        raise ValueError("JSON nested too deeply") from None
+    except UnicodeDecodeError as exc:
+        raise ValueError(f"not UTF-8: {exc.reason}") from None
+    if not isinstance(raw, dict):
+        raise ValueError(f"JSON {type(raw).__name__}, not an object")
+    return raw
+
+
+def _fields(cls: Any, raw: dict[str, Any]) -> dict[str, Any]:
+    """`raw`'s values for `cls`'s fields, each checked against its annotation; fields it does not
+    know are left out (a newer server's), fields it lacks take their defaults (an older one's)."""
+    out: dict[str, Any] = {}
+    for f in fields(cls):
+        if f.name in raw:
+            read = _READERS.get(str(f.type))
+            out[f.name] = read(raw[f.name], f.name) if read is not None else raw[f.name]
+    return out
 
 
 @dataclass(frozen=True)
@@ -76,14 +155,9 @@ class Record:
 
     @classmethod
     def decode(cls, data: bytes) -> Record:
-        """A record from etcd; ValueError when it is not one."""
-        raw = json.loads(data)
-        if not isinstance(raw, dict):
-            raise ValueError("not an object")
-        raw["homography"] = tuple(float(v) for v in raw["homography"])
-        raw["image_size"] = (int(raw["image_size"][0]), int(raw["image_size"][1]))
-        raw["detector_kinds"] = tuple(str(k) for k in raw["detector_kinds"])
-        return cls(**raw)
+        """A record from etcd; ValueError (or TypeError: a field missing) when it is not one: too
+        large, not JSON, nested too deeply, or a field of the wrong type."""
+        return cls(**_fields(cls, _object(data)))
 
     def claim(self) -> Claim:
         """The id's hold as this record gives it: until the key goes (its lease decides)."""
@@ -116,8 +190,43 @@ class PoseRecord:
 
     @classmethod
     def decode(cls, data: bytes) -> PoseRecord:
-        raw = json.loads(data)
-        return cls(float(raw["x"]), float(raw["y"]), float(raw["yaw"]), float(raw["time_unix"]), str(raw["origin"]))
+        """A pose from etcd; ValueError or TypeError when it is not one (as Record.decode)."""
+        return cls(**_fields(cls, _object(data)))
+
+
+class WriteRate:
+    """A token bucket per identity on the writes it causes in etcd: `rate` a `per_s` seconds, in
+    bursts of as many. `take` counts one, or raises ResourceExhausted naming the limit, its flag
+    and when to retry (nothing is counted then)."""
+
+    def __init__(self, what: str, rate: float, per_s: float, flag: str, clock: Callable[[], float] = time.monotonic):
+        if not rate > 0:
+            raise ValueError(f"{flag}: must be > 0")
+        self.what, self.flag, self._clock = what, flag, clock
+        self.rate, self.burst, self.per_s = rate, max(1.0, rate), per_s
+        self.rate_hz = rate / per_s
+        self._buckets: OrderedDict[str, tuple[float, float]] = OrderedDict()
+
+    def take(self, identity: str) -> None:
+        now = self._clock()
+        tokens, last = self._buckets.pop(identity, (self.burst, now))
+        tokens = min(self.burst, tokens + (now - last) * self.rate_hz)
+        try:
+            if tokens < 1.0:
+                metrics.REGISTRY_WRITES_REFUSED.labels(self.what).inc()
+                wait = round((1.0 - tokens) / self.rate_hz, 3)
+                unit = "a minute" if self.per_s == 60 else "a second"
+                raise ResourceExhausted(
+                    f"{self.what}s: {identity} made more than {self.rate:g} "
+                    f"{unit} (bursts of {self.burst:g}; {self.flag}) on the registry shared in etcd; "
+                    f"retry in {wait:g} s",
+                    retry_after_s=wait,
+                )
+            tokens -= 1.0
+        finally:
+            self._buckets[identity] = (tokens, now)
+            while len(self._buckets) > MAX_TRACKED_WRITERS:
+                self._buckets.popitem(last=False)
 
 
 class SharedRegistry:
@@ -134,8 +243,13 @@ class SharedRegistry:
         apply_pose: Callable[[str, PoseRecord], Any] | None = None,
         client: EtcdClient | None = None,
         on_reachable: Callable[[bool], Awaitable[None]] | None = None,
+        registration_rate: float = DEFAULT_REGISTRATION_RATE,
+        pose_write_rate: float = DEFAULT_POSE_WRITE_RATE,
     ) -> None:
         self.endpoints = endpoints
+        #: Writes to etcd per identity (the quota a registration counts against).
+        self.registrations = WriteRate("registration", registration_rate, 60.0, "--registration-rate")
+        self.pose_writes = WriteRate("pose update", pose_write_rate, 1.0, "--pose-write-rate")
         self.client = client or EtcdClient(endpoints)
         self._apply = apply
         self._drop = drop
@@ -176,7 +290,10 @@ class SharedRegistry:
     async def put(self, record: Record, previous: Record | None, lease_ttl_s: float) -> Record:
         """Store `record` under a new lease of `lease_ttl_s`, only if the id still holds `previous`
         (None: only if it is free); the previous registration's lease is ended. FailedPrecondition
-        when another server changed the id meanwhile."""
+        when another server changed the id meanwhile; Unavailable while the watch is not following
+        etcd (this server could not route what it registers)."""
+        if self.trouble:
+            raise Unavailable(f"registry: {self.trouble}; registrations wait until etcd answers")
         lease = await self._guard(self.client.grant(lease_ttl_s))
         stored = replace(record, lease=lease, lease_ttl_s=lease_ttl_s)
         expected = previous.encode() if previous is not None else None
@@ -198,6 +315,13 @@ class SharedRegistry:
         """Deregistration: the key goes (every server drops the camera) and its lease ends."""
         await self._guard(self.client.delete(key_of(record.camera_id)))
         await self._guard(self.client.revoke(record.lease))
+
+    def admit_pose(self, camera_id: str) -> None:
+        """Before a pose update of `camera_id` is taken: ResourceExhausted when the identity holding
+        it (as its record says) sends them faster than --pose-write-rate allows."""
+        record = self.records.get(camera_id)
+        if record is not None:
+            self.pose_writes.take(record.quota)
 
     def share_pose(self, camera_id: str, pose: PoseRecord) -> None:
         """Write a mobile camera's pose for the other servers, on its lease, without waiting; if a
@@ -227,34 +351,49 @@ class SharedRegistry:
 
     # --- the watch -------------------------------------------------------------------------------
 
-    def _decode(self, data: bytes) -> Record | None:
+    def _decode(self, data: bytes, key: bytes = b"") -> Record | None:
         try:
             return Record.decode(data)
-        except (ValueError, KeyError, TypeError) as exc:
-            log.warning("registry: a record in etcd is not one DRVS wrote (%s); ignored", exc)
+        except (ValueError, TypeError) as exc:
+            _skipped(key or b"a camera record", "camera", exc)
             return None
 
-    def _take(self, event: Event) -> None:
+    def _take(self, event: Event) -> bool:
+        """Apply one change; False when its value is not a record DRVS can use (logged, counted in
+        drvs_registry_records_skipped_total, and skipped: a camera it replaced leaves routing)."""
         if event.key.startswith(POSES):
             self._take_pose(event)
-            return
+            return True
         if not event.key.startswith(PREFIX):
-            return
+            return True
         camera_id = event.key[len(PREFIX) :].decode(errors="replace")
         if event.kind == "delete":
             if self.records.pop(camera_id, None) is not None:
                 self._drop(camera_id, "its registration ended (deregistered, or its lease ran out)")
-            return
-        record = self._decode(event.value)
-        if record is None or record.camera_id != camera_id:
-            return
-        if self.records.get(camera_id) == record:
-            return  # this server's own write, already applied
+            return True
+        record = self._decode(event.value, event.key)
+        if record is not None and record.camera_id != camera_id:
+            _skipped(event.key, "camera", ValueError(f"camera_id: {record.camera_id[:80]!r} is not the key's"))
+            record = None
+        if record is None:
+            if self.records.pop(camera_id, None) is not None:  # what it replaced is no registration now
+                self._drop(camera_id, "its record in the shared registry was replaced by one that is not a record")
+            return False
+        previous = self.records.get(camera_id)
+        if previous == record:
+            return True  # this server's own write, already applied
         self.records[camera_id] = record
         try:
             self._apply(record)
-        except DrvsError as exc:
+        except Exception as exc:  # one record refused here must not stop the watch
+            del self.records[camera_id]
+            if previous is not None:  # the registration it replaced is gone from etcd
+                self._drop(camera_id, f"its new record in the shared registry was refused here: {exc}")
+            if not isinstance(exc, DrvsError):
+                _skipped(event.key, "camera", exc)
+                return False
             log.warning("registry: camera %s's record in etcd was refused here: %s", camera_id, exc)
+        return True
 
     def _take_pose(self, event: Event) -> None:
         if event.kind != "put" or self._apply_pose is None:
@@ -262,8 +401,8 @@ class SharedRegistry:
         camera_id = event.key[len(POSES) :].decode(errors="replace")
         try:
             pose = PoseRecord.decode(event.value)
-        except (ValueError, KeyError, TypeError) as exc:
-            log.warning("registry: a pose in etcd is not one DRVS wrote (%s); ignored", exc)
+        except (ValueError, TypeError) as exc:
+            _skipped(event.key, "pose", exc)
             return
         if pose.origin == self.origin or camera_id not in self.records:
             return
@@ -271,6 +410,8 @@ class SharedRegistry:
             self._apply_pose(camera_id, pose)
         except DrvsError as exc:
             log.debug("registry: camera %s's pose from etcd not applied: %s", camera_id, exc)
+        except Exception as exc:  # as in _take
+            _skipped(event.key, "pose", exc)
 
     async def _resync(self) -> int:
         """Read the whole prefix: apply what is there (cameras, then their poses), drop what is
@@ -279,8 +420,7 @@ class SharedRegistry:
         present: set[str] = set()
         kvs.sort(key=lambda kv: not kv[0].startswith(PREFIX))  # cameras before poses
         for key, value, lease in kvs:
-            self._take(Event("put", key, value, lease, revision))
-            if key.startswith(PREFIX):
+            if self._take(Event("put", key, value, lease, revision)) and key.startswith(PREFIX):
                 present.add(key[len(PREFIX) :].decode(errors="replace"))
         for camera_id in [c for c in self._known() if c not in present]:
             self.records.pop(camera_id, None)
@@ -304,16 +444,38 @@ class SharedRegistry:
                     self._take(event)
                 raise Unavailable(f"etcd {self.endpoints}: the watch ended")
             except Unavailable as exc:
-                if not self.trouble:
-                    log.warning(
-                        "registry: etcd unreachable (%s): routing on the last registry known (%d cameras); "
-                        "registrations are refused until it answers",
-                        exc,
-                        len(self.records),
-                    )
-                    if self._on_reachable is not None:
-                        await self._on_reachable(False)
-                self.trouble = str(exc) or "etcd unreachable"
-                self.synced.clear()
+                await self._lost("etcd unreachable", str(exc) or "etcd unreachable")
+            except Exception as exc:  # the watch must not die: restarted, health says so
+                log.exception("registry: the watch of etcd %s failed; restarting it", self.endpoints)
+                metrics.REGISTRY_WATCH_RESTARTS.inc()
+                await self._lost("the watch failed", f"the watch of etcd {self.endpoints} failed ({exc!r})")
             await asyncio.sleep(backoff)
             backoff = min(backoff * 2, MAX_BACKOFF_S)
+
+    async def _lost(self, what: str, why: str) -> None:
+        """The watch stopped (`why`): route on what is known, refuse registrations (health says
+        NOT_SERVING for them) until it is back."""
+        if not self.trouble:
+            log.warning(
+                "registry: %s (%s): routing on the last registry known (%d cameras); "
+                "registrations are refused until it answers",
+                what,
+                why,
+                len(self.records),
+            )
+            self.trouble = why
+            if self._on_reachable is not None:
+                await self._on_reachable(False)
+        self.trouble = why
+        self.synced.clear()
+
+
+def _skipped(key: bytes, kind: str, exc: BaseException) -> None:
+    """A value under DRVS's prefix that is not one DRVS wrote (or one this server cannot apply):
+    logged, counted, and skipped."""
+    metrics.REGISTRY_SKIPPED.labels(kind).inc()
+    log.warning(
+        "registry: %s in etcd is not one DRVS can read (%s); skipped",
+        key[:120].decode(errors="replace"),
+        str(exc)[:200],
+    )
