@@ -694,12 +694,14 @@ class DrvsServer(Lifecycle):
         log.debug(POSE_APPLIED, camera_id, pose.x, pose.y, pose.yaw, "from the shared registry")
         self._pick_up(entry)
 
-    def _drop_shared(self, camera_id: str, why: str) -> None:
-        """A registration etcd no longer holds: out of routing here, its id free."""
+    def _drop_shared(self, camera_id: str, why: str, lapsed: bool = False) -> None:
+        """A registration etcd no longer holds: out of routing here, its id free; `lapsed` (its
+        lease ran out without it deregistering): remembered as lost, as `_sweep_leases` does."""
         self.claims.release(camera_id)
-        if camera_id in self.registry:
-            self.registry.remove(camera_id)
+        entry = self.registry.remove(camera_id) if camera_id in self.registry else None
         self._forget(camera_id)
+        if lapsed and entry is not None:
+            self._remember_lost(entry, why)
         metrics.CAMERAS.set(len(self.registry))
         log.info("camera %s left routing: %s", camera_id, why)
 
@@ -1217,6 +1219,12 @@ class DrvsServer(Lifecycle):
         if link is not None:
             self._spawn(link.close())
 
+    def _remember_lost(self, entry: CameraEntry, why: str) -> None:
+        """It did not deregister: requests whose region it saw say it is missing (`plan`)."""
+        self._lost[entry.camera_id] = (entry, time.monotonic(), why)
+        while len(self._lost) > MAX_LOST:
+            self._lost.popitem(last=False)
+
     async def _sweep_leases(self) -> None:
         period = min(1.0, self.registry.lease_ttl_s / 4)
         while True:
@@ -1224,10 +1232,7 @@ class DrvsServer(Lifecycle):
             for entry in self.registry.expire():
                 log.info("camera %s left routing: lease expired", entry.camera_id)
                 self._forget(entry.camera_id)
-                # It did not deregister: requests whose region it saw say it is missing.
-                self._lost[entry.camera_id] = (entry, time.monotonic(), "its lease ran out without it deregistering")
-                while len(self._lost) > MAX_LOST:
-                    self._lost.popitem(last=False)
+                self._remember_lost(entry, "its lease ran out without it deregistering")
                 metrics.CAMERAS.set(len(self.registry))
             for camera_id in self.claims.expire():
                 if camera_id not in self.registry:
