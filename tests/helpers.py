@@ -43,6 +43,8 @@ IMAGE_SIZE = (640, 480)
 #: Fields of view: cam1 sees about x -3.8..3.8, y 1.5..7.5; cam2 the same 20 m further along x.
 CAMERA_POSES = {"cam1": (0.0, 0.0, 3.0), "cam2": (20.0, 0.0, 3.0)}
 CAM1_REGION = (-6.0, 0.0, 6.0, 10.0)
+#: Inside cam1's field of view, around cam1's two yellow discs: a region seen whole (nothing uncovered).
+CAM1_SEEN = (-1.5, 2.2, 2.0, 5.0)
 CAM2_REGION = (14.0, 0.0, 26.0, 10.0)
 BOTH_REGION = (-6.0, 0.0, 26.0, 10.0)
 MAX_RANGE = "6"

@@ -341,8 +341,8 @@ async def test_end_to_end_robot_cli_gets_marker_id_and_heading(tmp_path: Path) -
             code, lines = await run_robot(
                 "detect", "--server", address, "--filter", "aruco_4x4_50_7", "--roi", region, "--json"
             )
-            assert code == 0, lines
-            (report,) = [json.loads(line) for line in lines]
+            assert code == 3, lines  # the region reaches past the camera's floor: part of it unseen
+            (report,) = [json.loads(line) for line in lines if '"camera_id"' in line]
             (seven,) = report["detections"]
             assert seven["marker_id"] == 7 and seven["filter_def"] == "aruco_4x4_50_7" and seven["score"] == 1.0
             assert heading_error(seven["heading_deg"], -135.0) < 1.5
@@ -352,8 +352,8 @@ async def test_end_to_end_robot_cli_gets_marker_id_and_heading(tmp_path: Path) -
             code, lines = await run_robot(
                 "detect", "--server", address, "--filter", "aruco_4x4_50", "--roi", region, "--json"
             )
-            assert code == 0, lines
-            (report,) = [json.loads(line) for line in lines]
+            assert code == 3, lines  # the region reaches past the camera's floor: part of it unseen
+            (report,) = [json.loads(line) for line in lines if '"camera_id"' in line]
             truth = {m.marker_id: m for m in SCENE}
             assert sorted(d["marker_id"] for d in report["detections"]) == sorted(truth)
             for d in report["detections"]:

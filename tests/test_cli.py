@@ -10,7 +10,7 @@ import pytest
 
 from drvs.launch import ManagedProcess
 
-from .helpers import CAM1_REGION, OBJECTS, YELLOW, Office, nearest, roi, run_robot
+from .helpers import CAM1_SEEN, OBJECTS, YELLOW, Office, nearest, roi, run_robot
 
 
 def assert_refused(code: int, output: str, message: str, status: int = 2) -> None:
@@ -24,7 +24,7 @@ def assert_refused(code: int, output: str, message: str, status: int = 2) -> Non
 @pytest.mark.office_cameras("cam1")
 async def test_robot_detect_json_prints_one_object_per_report(office: Office) -> None:
     code, lines = await run_robot(
-        "detect", "--server", office.address, "--filter", YELLOW, "--roi", roi(CAM1_REGION), "--json"
+        "detect", "--server", office.address, "--filter", YELLOW, "--roi", roi(CAM1_SEEN), "--json"
     )
     assert code == 0, lines
     reports = [json.loads(line) for line in lines]
@@ -40,7 +40,7 @@ async def test_robot_detect_json_prints_one_object_per_report(office: Office) ->
 @pytest.mark.office_cameras("cam1")
 async def test_robot_detect_continuous_json(office: Office) -> None:
     code, lines = await run_robot(
-        "detect", "--server", office.address, "--filter", YELLOW, "--roi", roi(CAM1_REGION),
+        "detect", "--server", office.address, "--filter", YELLOW, "--roi", roi(CAM1_SEEN),
         "--rate", "10", "--duration", "0.5", "--json",
     )  # fmt: skip
     assert code == 0, lines
@@ -52,7 +52,7 @@ async def test_robot_detect_continuous_json(office: Office) -> None:
 @pytest.mark.slow
 @pytest.mark.timeout(180)  # its own waits (starts, runs, requests) add up to 150 s
 async def test_robot_detect_human_output_and_cameras(office: Office) -> None:
-    code, lines = await run_robot("detect", "--server", office.address, "--filter", YELLOW, "--roi", roi(CAM1_REGION))
+    code, lines = await run_robot("detect", "--server", office.address, "--filter", YELLOW, "--roi", roi(CAM1_SEEN))
     assert code == 0, lines
     assert "dispatched to cam1" in lines[0]
     assert any("centroid" in line for line in lines)

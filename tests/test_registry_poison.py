@@ -169,7 +169,7 @@ async def test_a_watch_that_fails_is_restarted_and_registrations_wait_for_it(etc
 
     restarts = metrics.REGISTRY_WATCH_RESTARTS._value.get()
     shared = SharedRegistry(
-        endpoints, lambda r: applied.append(r.camera_id), lambda c, why: None, known, on_reachable=on_reachable
+        endpoints, lambda r: applied.append(r.camera_id), lambda c, why, lapsed: None, known, on_reachable=on_reachable
     )
     await shared.start()
     try:

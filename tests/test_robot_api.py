@@ -198,8 +198,9 @@ async def test_drvs_robot_retries_flag_waits_for_the_server() -> None:
     try:
         await robot.wait_for_line(r"retrying the connection", timeout=20)
         server, _ = await start_server("--listen", address)
-        assert await robot.wait(timeout=30) == 0, robot.output()
-        assert "dispatched to no camera" in robot.output()
+        # It got its answer: nobody sees the region, so all of it went unseen (exit 3).
+        assert await robot.wait(timeout=30) == 3, robot.output()
+        assert "dispatched to no camera" in robot.output() and "1.0 m² of the region unseen" in robot.output()
     finally:
         await robot.stop()
         if server is not None:

@@ -50,7 +50,7 @@ OBJECT_KEYS = {
     "track_id", "centroid", "bounds", "velocity", "heading_deg", "uncertainty_m", "cameras", "marker_id",
     "label", "last_seen", "score", "area_m2",
 }  # fmt: skip
-SNAPSHOT_KEYS = {"time", "sequence", "final", "objects", "missing_cameras", "cameras"}
+SNAPSHOT_KEYS = {"time", "sequence", "final", "objects", "missing_cameras", "cameras", "uncovered"}
 
 
 def box_object(track_id: int, x: float, y: float, t: float, vx: float = 0.0) -> WorldObject:
@@ -546,7 +546,8 @@ async def test_end_to_end_track_keeps_ids_and_ends_with_a_final_snapshot(fused_o
 
 @pytest.mark.slow
 async def test_end_to_end_drvs_robot_track_json_and_no_listening_port(fused_office: Scene) -> None:
-    args = ("--server", fused_office.address, "--filter", YELLOW, "--roi", ",".join(str(v) for v in REGION))
+    seen = (-1.5, 2.2, 2.0, 5.0)  # around both discs, all of it seen (camA's floor): nothing uncovered
+    args = ("--server", fused_office.address, "--filter", YELLOW, "--roi", ",".join(str(v) for v in seen))
     snapshots = await track_json(*args, "--rate", "5", "--duration", "1")
     assert snapshots[-1]["final"] is True and [s["sequence"] for s in snapshots] == list(range(len(snapshots)))
     for s in snapshots:

@@ -32,7 +32,7 @@ from drvs.net import local_ip_towards
 from drvs.robot.client import RetryPolicy
 from drvs.sim.scene import RecordedCamera, record_camera
 
-from .helpers import CAM1_REGION, MAX_RANGE, MOBILE_SIZE, MOUNT, YELLOW, nearest, roi, run_robot
+from .helpers import CAM1_REGION, CAM1_SEEN, MAX_RANGE, MOBILE_SIZE, MOUNT, YELLOW, nearest, roi, run_robot
 
 needs_etcd = pytest.mark.skipif(
     shutil.which("etcd") is None, reason="etcd is not installed (./run test installs it as root)"
@@ -163,7 +163,7 @@ async def test_drvs_robot_commands_through_the_list(pair: Pair) -> None:
     """`drvs-robot ... --server A,B` with A killed: detect (per camera, the default), detect --fuse,
     track and cameras each exit 0 with what cam1 sees."""
     await pair.kill_a()
-    where = ("--server", pair.both, "--filter", YELLOW, "--roi", roi(CAM1_REGION), "--json")
+    where = ("--server", pair.both, "--filter", YELLOW, "--roi", roi(CAM1_SEEN), "--json")
     code, lines = await run_robot("detect", *where)
     assert code == 0, lines
     (report,) = json_lines(lines)
@@ -208,7 +208,7 @@ async def test_without_etcd_a_dead_first_entry_leads_to_the_live_server(recorded
                 result = await drvs.detect(YELLOW, CAM1_REGION, timeout_s=10)
                 assert result.camera_ids == ("cam1",) and len(result.detections) == CAM1_YELLOW, result
             code, lines = await run_robot(
-                "detect", "--server", servers, "--filter", YELLOW, "--roi", roi(CAM1_REGION), "--json"
+                "detect", "--server", servers, "--filter", YELLOW, "--roi", roi(CAM1_SEEN), "--json"
             )
             assert code == 0, lines
             (report,) = json_lines(lines)

@@ -17,6 +17,8 @@ import pytest
 import pytest_asyncio
 from grpc import aio
 from grpc_health.v1 import health_pb2, health_pb2_grpc
+from shapely.geometry import box as floor_box
+from shapely.ops import unary_union
 
 from drvs import DrvsClient
 from drvs.certs import make_all
@@ -25,7 +27,7 @@ from drvs.mobile import Mount
 from drvs.sim.scene import RecordedCamera
 from drvs.v1 import geometry_pb2, registry_pb2, registry_pb2_grpc
 
-from .helpers import CAM1_REGION, MAX_RANGE, YELLOW, register_message
+from .helpers import BOTH_REGION, CAM1_REGION, CAM2_REGION, MAX_RANGE, YELLOW, register_message
 
 pytestmark = pytest.mark.skipif(
     shutil.which("etcd") is None, reason="etcd is not installed (./run test installs it as root)"
@@ -384,3 +386,47 @@ async def test_a_mobile_camera_on_a_shared_registry_is_routed_by_every_server_wh
 
 def box(x0: float, y0: float, x1: float, y1: float) -> geometry_pb2.Region:
     return geometry_pb2.Region(box=geometry_pb2.Box(x_lower=x0, y_lower=y0, x_upper=x1, y_upper=y1))
+
+
+async def test_a_camera_whose_lease_lapses_is_missing_on_every_server_one_that_deregisters_is_not(
+    site: Site, recorded: dict[str, RecordedCamera]
+) -> None:
+    """Two real cameras registered through A: cam1 is SIGKILLed (its 2 s etcd lease lapses), cam2
+    stops cleanly (SIGTERM: it deregisters through A). On both servers a robot asking about cam1's
+    floor hears it is missing (UNAVAILABLE, its floor uncovered), as with the in-memory registry;
+    nobody names cam2."""
+    (a, a_address), (b, b_address) = site.servers
+    cameras = {}
+    try:
+        for camera_id in ("cam1", "cam2"):
+            rec = recorded[camera_id]
+            cameras[camera_id] = await start_camera(
+                camera_id, rec.video, rec.homography_file, a_address, "--max-range", MAX_RANGE
+            )
+            await b.wait_for_line(registered_line(camera_id), timeout=10)
+        async with DrvsClient(b_address) as robot:
+            cam1_floor = next(c.field_of_view for c in await robot.cameras() if c.camera_id == "cam1")
+        marks = [len(a.lines), len(b.lines)]
+        cameras["cam1"].kill()  # no deregistration: its lease runs out in etcd
+        assert await cameras["cam2"].stop() == 0  # deregisters
+        for server, mark in zip((a, b), marks, strict=True):
+            await server.wait_for_line(r"camera cam2 left routing: deregistered", timeout=10, start=mark)
+            await server.wait_for_line(
+                r"camera cam1 left routing: its lease ran out without it deregistering", timeout=15, start=mark
+            )
+        for address in (a_address, b_address):
+            async with DrvsClient(address) as robot:
+                result = await robot.detect(YELLOW, BOTH_REGION, timeout_s=5)
+                assert result.camera_ids == () and result.missing_cameras == {"cam1"}, (address, result)
+                error = result.camera_errors["cam1"]
+                assert error.code == "UNAVAILABLE" and "lease ran out without it deregistering" in error.message
+                cam1_part = cam1_floor.intersection(floor_box(*BOTH_REGION))
+                assert unary_union(result.uncovered).contains(cam1_part.buffer(-0.01))
+                # Where only cam2 looked, nobody is missing: it left (the floor is uncovered all the same).
+                only_cam2 = await robot.detect(YELLOW, CAM2_REGION, timeout_s=5)
+                assert only_cam2.complete and only_cam2.missing_cameras == set() and only_cam2.uncovered
+                fused = await robot.detect(YELLOW, CAM1_REGION, fuse=True, timeout_s=5)
+                assert [m.camera_id for m in fused.missing_cameras] == ["cam1"] and fused.uncovered
+    finally:
+        for proc in cameras.values():
+            await proc.stop()

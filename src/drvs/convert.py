@@ -425,9 +425,12 @@ def snapshot_to_pb(
     return msg
 
 
-def snapshot_from_pb(msg: detection_pb2.WorldSnapshot, request_id: str = "") -> Snapshot:
+def snapshot_from_pb(
+    msg: detection_pb2.WorldSnapshot, request_id: str = "", uncovered: Sequence[Polygon] = ()
+) -> Snapshot:
     """Reads a current server's objects (`last_seen_age_s`, `camera_index`) and an older one's
-    (`last_seen`, `camera_ids`) alike; a malformed one is InvalidArgument naming the field."""
+    (`last_seen`, `camera_ids`) alike; a malformed one is InvalidArgument naming the field.
+    `uncovered`: what the request's reply said no camera sees."""
     time = _seconds(msg, "time")
     cameras = msg.camera_ids
     return Snapshot(
@@ -438,4 +441,5 @@ def snapshot_from_pb(msg: detection_pb2.WorldSnapshot, request_id: str = "") -> 
         sequence=msg.sequence,
         final=msg.final,
         request_id=request_id,
+        uncovered=tuple(uncovered),
     )

@@ -322,7 +322,9 @@ class Snapshot:
     - `objects`: the world objects;
     - `missing_cameras`: a `CameraError` per camera that should have counted and did not;
     - `camera_ids`: the cameras whose reports were merged; `sequence`: 0, 1, ...; `final`: the last;
-    - `request_id`: the request it answers.
+    - `request_id`: the request it answers;
+    - `uncovered`: the parts of the region (Polygons, metres) no camera asked sees: not known to be
+      clear (the server's reply to the request; the same for each snapshot of a track).
     """
 
     time: float
@@ -332,6 +334,13 @@ class Snapshot:
     sequence: int = 0
     final: bool = True
     request_id: str = ""
+    uncovered: tuple[Polygon, ...] = ()
+
+    @property
+    def all_seen(self) -> bool:
+        """True when the whole region was looked at by every camera it needed: only then does no
+        object mean nothing there."""
+        return not self.missing_cameras and not self.uncovered
 
     def __iter__(self) -> Iterator[object]:
         return iter((self.time, self.objects, self.missing_cameras))

@@ -26,11 +26,12 @@ from drvs.robot.client import (
     DEFAULT_TIMEOUT_S,
     DEFAULT_TRACK_RATE_HZ,
     Connecting,
+    DetectionResult,
     DrvsClient,
     RegionLike,
     RetryPolicy,
 )
-from drvs.robot.snapshots import snapshot_json, snapshot_table
+from drvs.robot.snapshots import polygon_json, snapshot_json, snapshot_table
 
 ENV_SERVER = "DRVS_SERVER"
 
@@ -92,6 +93,23 @@ def report_json(r: DetectionReport) -> dict[str, Any]:
     return out
 
 
+def coverage_json(result: DetectionResult) -> dict[str, Any]:
+    """What a per-camera request did not see, as drvs-robot detect --json prints it last when it
+    did not see it all: `request_id`, `complete` (every camera answered), `missing_cameras`
+    ([{camera_id, code, message}]), `uncovered` (polygons, [[x, y], ...] each, metres) and
+    `uncovered_m2`."""
+    return {
+        "request_id": result.request_id,
+        "complete": result.complete,
+        "missing_cameras": [
+            {"camera_id": e.camera_id, "code": e.code, "message": e.message}
+            for _, e in sorted(result.camera_errors.items())
+        ],
+        "uncovered": [polygon_json(p) for p in result.uncovered],
+        "uncovered_m2": round(sum(p.area for p in result.uncovered), 4),
+    }
+
+
 def print_report(r: DetectionReport) -> None:
     head = f"{r.camera_id} #{r.sequence}{' final' if r.final else ''}: "
     if r.error:
@@ -135,7 +153,8 @@ def check_fused_flags(args: argparse.Namespace, command: str) -> None:
 
 
 def report_missing(snapshots: list[Snapshot]) -> bool:
-    """Print each camera missing from any snapshot once (the latest reason); True if there was one."""
+    """Print each camera missing from any snapshot once (the latest reason), and how much of the
+    region no camera saw; True if a camera was missing or some of the region went unseen."""
     missing: dict[str, tuple[int, str]] = {}
     for s in snapshots:
         for m in s.missing_cameras:
@@ -144,7 +163,10 @@ def report_missing(snapshots: list[Snapshot]) -> bool:
     for camera_id, (count, why) in sorted(missing.items()):
         times = "" if len(snapshots) == 1 else f" in {count} of {len(snapshots)} snapshots"
         print(f"drvs-robot: no answer from {camera_id}{times}: {why}", file=sys.stderr)
-    return bool(missing)
+    unseen = max((sum(p.area for p in s.uncovered) for s in snapshots), default=0.0)
+    if unseen:
+        print(f"drvs-robot: {unseen:.1f} m² of the region unseen (no camera asked sees it)", file=sys.stderr)
+    return bool(missing) or any(s.uncovered for s in snapshots)
 
 
 def print_snapshot(snapshot: Snapshot, as_json: bool) -> None:
@@ -235,14 +257,20 @@ async def detect(args: argparse.Namespace) -> int:
         for camera_id, error in sorted(result.camera_errors.items()):
             print(f"drvs-robot: no answer from {camera_id}: {error.code} {error.message}", file=sys.stderr)
         if result.uncovered:
-            print(f"drvs-robot: {sum(p.area for p in result.uncovered):.1f} m² of the region unseen", file=sys.stderr)
+            print(
+                f"drvs-robot: {sum(p.area for p in result.uncovered):.1f} m² of the region unseen "
+                "(no camera asked sees it)",
+                file=sys.stderr,
+            )
+        if args.json and not result.all_seen:  # what went unseen, after the reports
+            print(json.dumps(coverage_json(result)), flush=True)
         if result.coverage_uncertain_s and not args.json:  # a notice, not a failure: JSON lines stay reports
             print(
                 f"drvs-robot: the server restarted recently; for {result.coverage_uncertain_s:.0f} s more "
                 "it may not know every camera",
                 file=sys.stderr,
             )
-        if result.missing_cameras:
+        if not result.all_seen:  # a camera missing, or floor nobody looked at: not "nothing there"
             return 3
     return 0
 

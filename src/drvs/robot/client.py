@@ -257,7 +257,9 @@ class DetectionResult:
     Absence of detections means "nothing there" only where a camera looked: `complete` is False
     when any camera that sees the region did not answer (`missing_cameras`, each with its
     `camera_errors` entry, a CameraError), and `uncovered` holds the parts of the region (shapely
-    Polygons, metres) nobody looked at because of that. `coverage_uncertain_s` > 0: the server
+    Polygons, metres) that no camera the server asked sees: no camera at all, or only missing
+    ones. `all_seen` is True only when both say nothing: the whole region was looked at. A region
+    (or frame) no camera sees is complete, and all of it uncovered. `coverage_uncertain_s` > 0: the server
     restarted that many seconds ago or less and may not know every camera yet, so parts of the
     region no dispatched camera sees are not known to be clear. `dropped`: reports this request's
     subscription dropped unread (continuous requests keep only the newest; see
@@ -319,6 +321,12 @@ class DetectionResult:
     def complete(self) -> bool:
         """True when every camera that sees the region answered."""
         return not self.missing_cameras
+
+    @property
+    def all_seen(self) -> bool:
+        """True when the whole region was looked at: every camera answered and no part of the
+        region is uncovered. Only then do no detections mean nothing there."""
+        return self.complete and not self.uncovered
 
     @property
     def errors(self) -> list[str]:
@@ -606,7 +614,8 @@ class Track(_Delivery):
     - `request_id`: the request; `camera_ids`: the cameras the server dispatched it to;
     - `missing_cameras`: CameraErrors for the cameras that see the region but were not asked (the
       server's reply; each snapshot names the cameras missing from it too);
-    - `uncovered`: parts of the region (shapely Polygons, metres) nobody looks at because of them;
+    - `uncovered`: parts of the region (shapely Polygons, metres) that no camera asked sees (each
+      snapshot carries them too, `Snapshot.uncovered`);
     - `received`: snapshots that arrived; `dropped`: those dropped unread; `last`: the newest read;
     - `resumes`: times it was sent again through another server; `gaps_s`: for each, the seconds
       the robot went without a snapshot (the last before the stream ended to the first after).
@@ -699,7 +708,7 @@ class Track(_Delivery):
             self.gaps_s.append(now - self._broke_at)
             self._broke_at = None
         self._last_snapshot_at = now
-        snapshot = snapshot_from_pb(item.snapshot, self.request_id)
+        snapshot = snapshot_from_pb(item.snapshot, self.request_id, self.uncovered)
         self.received += 1
         if snapshot.final:
             self.finished = True
@@ -1358,7 +1367,8 @@ class DrvsClient:
                 f"server {self.server}: answered the fused request {message.request_id} without a snapshot "
                 "(a server without fused delivery?)"
             )
-        return snapshot_from_pb(reply.snapshot, message.request_id)
+        uncovered = [polygon_from_pb(p, "uncovered") for p in reply.uncovered]
+        return snapshot_from_pb(reply.snapshot, message.request_id, uncovered)
 
     def track(
         self,

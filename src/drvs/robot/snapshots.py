@@ -5,6 +5,8 @@ from __future__ import annotations
 
 from typing import Any
 
+from shapely.geometry import Polygon
+
 from drvs.model import Snapshot, WorldObject
 
 
@@ -37,8 +39,9 @@ def world_object_json(o: WorldObject) -> dict[str, Any]:
 def snapshot_json(snapshot: Snapshot) -> dict[str, Any]:
     """A Snapshot as the JSON object drvs-robot track --json prints (one per line):
     `time` (seconds since the Unix epoch), `sequence` (0, 1, ...), `final`, `objects` (see
-    world_object_json), `missing_cameras` ([{camera_id, code, message}], code a gRPC status name)
-    and `cameras` (the cameras whose reports were merged)."""
+    world_object_json), `missing_cameras` ([{camera_id, code, message}], code a gRPC status name),
+    `cameras` (the cameras whose reports were merged) and `uncovered` (the parts of the region no
+    camera asked sees: polygons, [[x, y], ...] each, metres)."""
     return {
         "time": snapshot.time,
         "sequence": snapshot.sequence,
@@ -48,7 +51,13 @@ def snapshot_json(snapshot: Snapshot) -> dict[str, Any]:
             {"camera_id": m.camera_id, "code": m.code, "message": m.message} for m in snapshot.missing_cameras
         ],
         "cameras": list(snapshot.camera_ids),
+        "uncovered": [polygon_json(p) for p in snapshot.uncovered],
     }
+
+
+def polygon_json(polygon: Polygon) -> list[list[float]]:
+    """A polygon's outer ring as [[x, y], ...] (metres, 4 decimals; not closed)."""
+    return [[round(x, 4), round(y, 4)] for x, y in list(polygon.exterior.coords)[:-1]]
 
 
 _COLUMNS = ("track", "x m", "y m", "vx m/s", "vy m/s", "± m", "type", "cameras")

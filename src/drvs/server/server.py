@@ -77,6 +77,7 @@ from drvs.server.config import (
     WILDCARDS,
     ServerConfig,
 )
+from drvs.server.coverage import uncovered
 from drvs.server.fusion_session import Continuous, FusionSession, FusionSessions, ReportIntake, SingleShot
 from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits, peer_ip
 from drvs.server.shared import PoseRecord, Record, SharedRegistry, secret_digest
@@ -100,8 +101,6 @@ MAX_SECRET_LENGTH = 256
 #: of them): requests whose region it sees name it as missing until it registers again.
 LOST_MEMORY_S = 3600.0
 MAX_LOST = 1024
-#: Uncovered parts smaller than this (m²) are slivers along field-of-view edges, not reported.
-MIN_UNCOVERED_M2 = 0.01
 UNCOVERED_CACHE_SIZE = 256
 SERVICE_NAMES = (
     detection_pb2.DESCRIPTOR.services_by_name["DetectObjectBoundary"].full_name,
@@ -702,12 +701,14 @@ class DrvsServer(Lifecycle):
         log.debug(POSE_APPLIED, camera_id, pose.x, pose.y, pose.yaw, "from the shared registry")
         self._pick_up(entry)
 
-    def _drop_shared(self, camera_id: str, why: str) -> None:
-        """A registration etcd no longer holds: out of routing here, its id free."""
+    def _drop_shared(self, camera_id: str, why: str, lapsed: bool = False) -> None:
+        """A registration etcd no longer holds: out of routing here, its id free; `lapsed` (its
+        lease ran out without it deregistering): remembered as lost, as `_sweep_leases` does."""
         self.claims.release(camera_id)
-        if camera_id in self.registry:
-            self.registry.remove(camera_id)
+        entry = self.registry.remove(camera_id) if camera_id in self.registry else None
         self._forget(camera_id)
+        if lapsed and entry is not None:
+            self._remember_lost(entry, why)
         metrics.CAMERAS.set(len(self.registry))
         log.info("camera %s left routing: %s", camera_id, why)
 
@@ -899,17 +900,15 @@ class DrvsServer(Lifecycle):
                 f"the cameras serve {', '.join(sorted(served))}"
             )
 
-    def _uncovered(
-        self, region: Polygon, cameras: list[CameraEntry], missing: list[MissingCamera]
-    ) -> list[geometry_pb2.Polygon]:
-        """`_uncovered`, encoded, kept per region object and cameras: while a camera is gone, robots
-        ask about the same regions again and again."""
-        fovs = tuple(c.field_of_view for c in cameras) + tuple(m.field_of_view for m in missing)
+    def _uncovered(self, region: Polygon, cameras: list[CameraEntry]) -> list[geometry_pb2.Polygon]:
+        """`uncovered`, encoded, kept per region object and cameras: robots ask about the same
+        regions again and again (a stream sends a repeated region once)."""
+        fovs = tuple(c.field_of_view for c in cameras)
         key = (id(region), *map(id, fovs))
         hit = self._uncovered_cache.get(key)
         if hit is not None and hit[0] is region and all(a is b for a, b in zip(hit[1], fovs, strict=True)):
             return hit[2]
-        parts = [polygon_to_pb(part) for part in _uncovered(region, cameras, missing)]
+        parts = [polygon_to_pb(part) for part in uncovered(region, [c.field_of_view for c in cameras])]
         if len(self._uncovered_cache) >= UNCOVERED_CACHE_SIZE:
             del self._uncovered_cache[next(iter(self._uncovered_cache))]
         self._uncovered_cache[key] = (region, fovs, parts)  # held: their ids stay theirs
@@ -946,10 +945,10 @@ class DrvsServer(Lifecycle):
             ", ".join(c.camera_id for c in cameras) or "no camera",
         )
         reply = detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=[c.camera_id for c in cameras])
-        if missing:
-            for m in missing:
-                reply.missing_cameras.add(camera_id=m.camera_id, code=m.code, message=m.message)
-            reply.uncovered.extend(self._uncovered(request.region, cameras, missing))
+        for m in missing:
+            reply.missing_cameras.add(camera_id=m.camera_id, code=m.code, message=m.message)
+        # Coverage is part of every answer: what no camera asked sees, whoever is missing.
+        reply.uncovered.extend(self._uncovered(request.region, cameras))
         uncertain = self.coverage_uncertain_s()
         if uncertain:
             reply.coverage_uncertain_s = uncertain
@@ -1229,6 +1228,12 @@ class DrvsServer(Lifecycle):
         if link is not None:
             self._spawn(link.close())
 
+    def _remember_lost(self, entry: CameraEntry, why: str) -> None:
+        """It did not deregister: requests whose region it saw say it is missing (`plan`)."""
+        self._lost[entry.camera_id] = (entry, time.monotonic(), why)
+        while len(self._lost) > MAX_LOST:
+            self._lost.popitem(last=False)
+
     async def _sweep_leases(self) -> None:
         period = min(1.0, self.registry.lease_ttl_s / 4)
         while True:
@@ -1236,10 +1241,7 @@ class DrvsServer(Lifecycle):
             for entry in self.registry.expire():
                 log.info("camera %s left routing: lease expired", entry.camera_id)
                 self._forget(entry.camera_id)
-                # It did not deregister: requests whose region it saw say it is missing.
-                self._lost[entry.camera_id] = (entry, time.monotonic(), "its lease ran out without it deregistering")
-                while len(self._lost) > MAX_LOST:
-                    self._lost.popitem(last=False)
+                self._remember_lost(entry, "its lease ran out without it deregistering")
                 metrics.CAMERAS.set(len(self.registry))
             for camera_id in self.claims.expire():
                 if camera_id not in self.registry:
@@ -1609,16 +1611,3 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
             next_page_token=next_token,
             cameras=[self._s.camera_info(e) for e in entries],
         )
-
-
-def _uncovered(region: Polygon, cameras: list[CameraEntry], missing: list[MissingCamera]) -> list[Polygon]:
-    """The parts of `region` that a missing camera sees and no dispatched camera does, each as its
-    outer ring (a hole, seen by someone, is counted as unseen: the robot errs on the safe side)."""
-    lost = shapely.intersection(shapely.union_all([m.field_of_view for m in missing]), region)
-    if cameras:
-        lost = shapely.difference(lost, shapely.union_all([c.field_of_view for c in cameras]))
-    parts = []
-    for part in shapely.get_parts(lost):
-        if isinstance(part, Polygon) and part.area >= MIN_UNCOVERED_M2:
-            parts.append(Polygon(part.exterior.coords))
-    return parts

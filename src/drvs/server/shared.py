@@ -9,7 +9,11 @@ id's holder in, so two servers cannot both hand one id to different holders.
 
 Every server watches the prefix from the revision it read it at, and keeps its own index (its
 in-memory `Registry`, the STRtree routing reads) current: a put adds or replaces a camera, a delete
-(deregistration, or the lease running out with nobody renewing it) removes it. When etcd cannot be
+(deregistration, or the lease running out with nobody renewing it) removes it. etcd's delete event
+cannot tell those two apart, so a deregistration first writes a marker, `/drvs/v1/leaving/<id>`,
+naming the lease it ends (on a short lease of its own): a camera's delete with no marker for its
+lease before it is a lapse, and every server remembers the camera as lost (missing UNAVAILABLE,
+its floor uncovered), as a server with the in-memory registry does. When etcd cannot be
 reached, the server routes on the last registry it knew, says so in its log, and refuses
 registrations (UNAVAILABLE); when etcd answers again it reads the prefix anew and reconciles.
 """
@@ -41,6 +45,11 @@ ROOT = b"/drvs/v1/"
 PREFIX = ROOT + b"cameras/"
 #: A mobile camera's latest pose, on the camera's lease (it goes with the camera).
 POSES = ROOT + b"poses/"
+#: A deregistration's marker, written before its camera's key is deleted; its value the lease ended.
+LEAVING = ROOT + b"leaving/"
+#: How long a marker stays (its own etcd lease), seconds: a server that reads the registry again
+#: after an etcd outage longer than this takes a camera deregistered meanwhile for one that lapsed.
+LEAVING_TTL_S = 300.0
 #: Reconnect backoff when etcd cannot be reached, seconds: first wait and the most.
 INITIAL_BACKOFF_S = 0.2
 MAX_BACKOFF_S = 5.0
@@ -231,13 +240,14 @@ class WriteRate:
 
 class SharedRegistry:
     """The etcd side of a server's registry: reads, compare-and-puts, lease renewals and deletes,
-    and a watch that hands every change to the server (`apply` a record, `drop` an id)."""
+    and a watch that hands every change to the server (`apply` a record, `drop` an id, saying
+    whether it lapsed: its lease ran out without it deregistering)."""
 
     def __init__(
         self,
         endpoints: Endpoints,
         apply: Callable[[Record], Any],
-        drop: Callable[[str, str], None],
+        drop: Callable[[str, str, bool], None],
         known: Callable[[], list[str]],
         *,
         apply_pose: Callable[[str, PoseRecord], Any] | None = None,
@@ -266,6 +276,8 @@ class SharedRegistry:
         #: Why etcd cannot be reached now ("" when it can).
         self.trouble = ""
         self.records: dict[str, Record] = {}
+        #: Deregistrations' markers seen: camera id -> the lease its deregistration ends.
+        self.leaving: dict[str, int] = {}
 
     async def start(self) -> None:
         await self.client.start()
@@ -312,7 +324,10 @@ class SharedRegistry:
         return left > 0
 
     async def delete(self, record: Record) -> None:
-        """Deregistration: the key goes (every server drops the camera) and its lease ends."""
+        """Deregistration: the marker that says so first (every server then drops the camera as
+        gone, not lost), then the key goes and its lease ends."""
+        marker = await self._guard(self.client.grant(LEAVING_TTL_S))
+        await self._guard(self.client.put(LEAVING + record.camera_id.encode(), str(record.lease).encode(), marker))
         await self._guard(self.client.delete(key_of(record.camera_id)))
         await self._guard(self.client.revoke(record.lease))
 
@@ -364,12 +379,21 @@ class SharedRegistry:
         if event.key.startswith(POSES):
             self._take_pose(event)
             return True
+        if event.key.startswith(LEAVING):
+            if event.kind == "put":  # (its own deletion, when its lease ends, changes nothing)
+                with contextlib.suppress(ValueError):
+                    self.leaving[event.key[len(LEAVING) :].decode(errors="replace")] = int(event.value)
+            return True
         if not event.key.startswith(PREFIX):
             return True
         camera_id = event.key[len(PREFIX) :].decode(errors="replace")
         if event.kind == "delete":
-            if self.records.pop(camera_id, None) is not None:
-                self._drop(camera_id, "its registration ended (deregistered, or its lease ran out)")
+            record = self.records.pop(camera_id, None)
+            if record is not None:
+                if self.leaving.pop(camera_id, None) == record.lease:
+                    self._drop(camera_id, "deregistered (the shared registry says so)", False)
+                else:
+                    self._drop(camera_id, "its lease ran out without it deregistering", True)
             return True
         record = self._decode(event.value, event.key)
         if record is not None and record.camera_id != camera_id:
@@ -377,18 +401,21 @@ class SharedRegistry:
             record = None
         if record is None:
             if self.records.pop(camera_id, None) is not None:  # what it replaced is no registration now
-                self._drop(camera_id, "its record in the shared registry was replaced by one that is not a record")
+                # (not deregistered: the safe side is to report its floor unseen, as a lapse)
+                self._drop(camera_id, "its record in etcd was replaced by one that is not a record", True)
             return False
         previous = self.records.get(camera_id)
         if previous == record:
             return True  # this server's own write, already applied
+        if self.leaving.get(camera_id, record.lease) != record.lease:
+            del self.leaving[camera_id]  # an earlier registration's: this one has not left
         self.records[camera_id] = record
         try:
             self._apply(record)
         except Exception as exc:  # one record refused here must not stop the watch
             del self.records[camera_id]
             if previous is not None:  # the registration it replaced is gone from etcd
-                self._drop(camera_id, f"its new record in the shared registry was refused here: {exc}")
+                self._drop(camera_id, f"its new record in the shared registry was refused here: {exc}", True)
             if not isinstance(exc, DrvsError):
                 _skipped(event.key, "camera", exc)
                 return False
@@ -415,7 +442,7 @@ class SharedRegistry:
 
     async def _resync(self) -> int:
         """Read the whole prefix: apply what is there (cameras, then their poses), drop what is
-        not; the revision read at."""
+        not (as lost, unless a marker says it deregistered); the revision read at."""
         kvs, revision = await self.client.get_prefix(ROOT)
         present: set[str] = set()
         kvs.sort(key=lambda kv: not kv[0].startswith(PREFIX))  # cameras before poses
@@ -423,8 +450,12 @@ class SharedRegistry:
             if self._take(Event("put", key, value, lease, revision)) and key.startswith(PREFIX):
                 present.add(key[len(PREFIX) :].decode(errors="replace"))
         for camera_id in [c for c in self._known() if c not in present]:
-            self.records.pop(camera_id, None)
-            self._drop(camera_id, "not in the shared registry when it was read again")
+            record = self.records.pop(camera_id, None)
+            left = record is not None and self.leaving.pop(camera_id, None) == record.lease
+            if left:
+                self._drop(camera_id, "deregistered while etcd could not be reached", False)
+            else:
+                self._drop(camera_id, "gone from the shared registry, not deregistered, when it was read again", True)
         return revision
 
     async def _follow(self) -> None:

@@ -156,6 +156,8 @@ class SimRobot:
         # (by the camera that stopped), and the continuous requests whose cameras are watched.
         self.fields_of_view: dict[str, Polygon] = {}
         self.blind: dict[str, Polygon] = {}
+        #: Floor the latest answers said no camera sees (by source: see set_unseen).
+        self.unseen: dict[str, Polygon] = {}
         self._blind_area: Polygon | None = None
         self._watching: list[tuple[Subscription, float]] = []
         self.coverage_events: list[dict[str, Any]] = []
@@ -277,8 +279,10 @@ class SimRobot:
                 for track in tracks:
                     for missing in track.missing_cameras:  # whom the server could not ask
                         self.lose(missing.camera_id, f"{missing.code} {missing.message}")
+                self.set_unseen("watch", [p for t in tracks for p in t.uncovered])
                 await asyncio.gather(*(self._follow(f, t) for f, t in zip(self.obstacle_filters, tracks, strict=True)))
             finally:
+                self.set_unseen("watch", [])
                 for track in tracks:
                     for key in [k for k in self.moving if k.startswith(track.request_id + "/")]:
                         del self.moving[key]
@@ -356,6 +360,7 @@ class SimRobot:
         for result in results:
             self.check_coverage(result)
             found.extend(result.detections)
+        self.set_unseen("look", [p for r in results for p in r.uncovered])
         return found
 
     async def _fused_shot(self, filter_def: str, region: Polygon) -> Snapshot:
@@ -374,6 +379,7 @@ class SimRobot:
             for camera_id in snapshot.camera_ids:
                 self.regain(camera_id)
             found.extend(object_detection(f, o) for o in snapshot.objects)
+        self.set_unseen("look", [p for s in snapshots for p in s.uncovered])
         return found
 
     # --- coverage: where nobody looks, the way is not known to be clear ---------------------
@@ -419,15 +425,30 @@ class SimRobot:
             "why": why,
         }
 
+    def set_unseen(self, source: str, parts: Sequence[Polygon]) -> None:
+        """The floor the latest answers of `source` ("look": the single shots along the plan;
+        "watch": the requests watching it while the robot drives) said no camera sees: unknown,
+        not clear, as a blind camera's floor is."""
+        area = shapely.union_all(list(parts)) if parts else None
+        if area is None or area.is_empty:
+            if self.unseen.pop(source, None) is not None:
+                self._blind_area = None
+            return
+        self.unseen[source] = area
+        self._blind_area = None
+
     def blind_area(self) -> Polygon | None:
-        """Floor that a camera which stopped looking saw and no camera still looking sees."""
-        if not self.blind:
+        """Floor that a camera which stopped looking saw and no camera still looking sees, and
+        floor the answers said no camera sees."""
+        if not self.blind and not self.unseen:
             return None
         if self._blind_area is None:
+            area = shapely.union_all(list(self.blind.values())) if self.blind else Polygon()
             seen = [fov for cid, fov in self.fields_of_view.items() if cid not in self.blind]
-            area = shapely.union_all(list(self.blind.values()))
-            if seen:
+            if seen and self.blind:
                 area = area.difference(shapely.union_all(seen))
+            if self.unseen:
+                area = shapely.union_all([area, *self.unseen.values()])
             shapely.prepare(area)
             self._blind_area = area
         return self._blind_area
@@ -462,8 +483,10 @@ class SimRobot:
         try:
             for sub in subs:
                 self.check_coverage(sub.result, running=True)  # whom the server could not ask
+            self.set_unseen("watch", [p for s in subs for p in s.result.uncovered])
             await asyncio.gather(*(self._consume(s) for s in subs))
         finally:
+            self.set_unseen("watch", [])
             for item in watched:
                 self._watching.remove(item)
             for s in subs:
