@@ -79,6 +79,7 @@ from drvs.server.config import (
 )
 from drvs.server.fusion_session import Continuous, FusionSession, FusionSessions, ReportIntake, SingleShot
 from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits, peer_ip
+from drvs.server.routing_errors import KEPT, RoutingErrors
 from drvs.server.shared import PoseRecord, Record, SharedRegistry
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
@@ -320,6 +321,7 @@ class DrvsServer(Lifecycle):
         # Cameras whose last forward failed: skipped until their next heartbeat proves them alive.
         self._unreachable: set[str] = set()
         self._unreachable_why: dict[str, str] = {}
+        self._routing_errors = RoutingErrors()
         # Cameras whose lease ran out without deregistering: id -> (entry, when, why).
         self._lost: OrderedDict[str, tuple[CameraEntry, float, str]] = OrderedDict()
         # ids of (region, fields of view asked and missing) -> (region, fields of view, unseen parts)
@@ -1181,14 +1183,16 @@ class DrvsServer(Lifecycle):
         if self._stopped:
             return  # the server's own shutdown closed the links: nobody is waiting to hear
         metrics.ROUTED_FAILED.inc()
-        code = _grpc.status_of(exc).name
-        reason = f"camera {camera.camera_id} did not accept the request: {code} {exc}"
         token = logs.request_id.set(request.request_id)
         try:
-            log.warning("request %s: %s", request.request_id, reason)
+            # What failed on the hop itself stays in the log (routing_errors): the robot hears UNAVAILABLE.
+            code, said = self._routing_errors.for_robot(camera.camera_id, exc, request.request_id)
+            reason = f"camera {camera.camera_id} did not accept the request: {code} {said}"
+            if code in KEPT:
+                log.warning("request %s: %s", request.request_id, reason)
             if mark_unreachable and isinstance(exc, (Unavailable, DeadlineExceeded)):
                 self._unreachable.add(camera.camera_id)
-                self._unreachable_why[camera.camera_id] = f"{code} {exc}"
+                self._unreachable_why[camera.camera_id] = f"{code} {said}"
             if session is not None:
                 session.failed(camera.camera_id, CameraError(code, reason, camera.camera_id))
                 return
@@ -1214,6 +1218,7 @@ class DrvsServer(Lifecycle):
     def _forget(self, camera_id: str) -> None:
         self._unreachable.discard(camera_id)
         self._unreachable_why.pop(camera_id, None)
+        self._routing_errors.forget(camera_id)
         self._lost.pop(camera_id, None)
         self._camera_tokens.pop(camera_id, None)
         link = self._links.pop(camera_id, None)
