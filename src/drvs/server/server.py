@@ -371,16 +371,27 @@ class DrvsServer(Lifecycle):
         listen: tuple[str, int] | None = None,
         record: Path | None = None,
         floor_plan: Path | None = None,
+        *,
+        token: str | None = None,
+        bytes_per_s: float | None = None,
     ) -> None:
         """Before start(): a Foxglove live view on `listen` (host, port; port 0 picks one) and/or a
-        recording to the MCAP file `record`, drawing `floor_plan` (see drvs.server.liveview).
+        recording to the MCAP file `record`, drawing `floor_plan` (see drvs.server.liveview); the
+        view needs `token` if given; both take in at most `bytes_per_s` (drvs.liveview.LiveHub).
         Needs the live extra (FailedPrecondition names it)."""
         from drvs import liveview
         from drvs.server.liveview import ServerView, load_floor_plan
 
         liveview.require("--foxglove" if listen is not None else "--record")
         plan = load_floor_plan(floor_plan) if floor_plan is not None else None
-        hub = liveview.LiveHub("drvs-server", listen=listen, record=record, accept_clients=True)
+        hub = liveview.LiveHub(
+            "drvs-server",
+            listen=listen,
+            record=record,
+            accept_clients=True,
+            token=token,
+            bytes_per_s=bytes_per_s or liveview.BYTES_PER_S,
+        )
         self.view = ServerView(hub, self, plan)
 
     @property
@@ -1346,13 +1357,12 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         self, message: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
     ) -> detection_pb2.DetectionReply:
         view = self._s.view
-        if view is not None:
-            view.request(message)
         if message.cancel:
             raise InvalidArgument("cancel: only a request stream (DetectStream) can cancel its continuous requests")
         reply = await self._answer(message, peer_ip(context.peer()), {}, self._robot(context))
         assert reply is not None  # only a fused single shot on a stream answers later
-        if view is not None:
+        if view is not None:  # recorded once taken: a refused request is not (it raised)
+            view.request(message)
             view.reply(reply)
         return reply
 
@@ -1372,8 +1382,6 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         async def answer(
             message: detection_pb2.DetectionRequest, out: ReplyQueue
         ) -> detection_pb2.DetectionReply | None:
-            if view is not None:
-                view.request(message)
             if not message.request_id:
                 raise InvalidArgument("request_id: empty; a streamed request needs its own id")
             if message.cancel:
@@ -1381,8 +1389,12 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
                 session = fused.sessions.get(message.request_id)
                 if session is not None:
                     session.end("cancelled by the robot")
-                return detection_pb2.DetectionReply(request_id=message.request_id)
-            return await self._answer(message, peer, allowed, robot, slots, fused)
+                reply: detection_pb2.DetectionReply | None = detection_pb2.DetectionReply(request_id=message.request_id)
+            else:
+                reply = await self._answer(message, peer, allowed, robot, slots, fused)
+            if view is not None:  # recorded once taken: a refused request is not (it raised)
+                view.request(message)
+            return reply
 
         try:
             async for reply in serve_request_stream_queued(request_iterator, answer, "drvs-server", out):
@@ -1490,9 +1502,8 @@ class _CameraReports(detection_pb2_grpc.CallbackCoordinatesServicer):
         async def read() -> None:
             try:
                 async for message in request_iterator:
-                    if view is not None:
+                    if intake.receive(message) and view is not None:  # recorded only once it passed
                         view.report(message)
-                    intake.receive(message)
             finally:
                 intake.input_ended()
 
