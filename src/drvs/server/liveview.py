@@ -157,17 +157,25 @@ class ServerView:
         self.dropped += 1
         return False
 
-    def request(self, message: detection_pb2.DetectionRequest) -> None:
-        """A robot's request the server took; its report secret and key are not recorded."""
-        if not self._admit(message):
-            return
+    def copy(self, message: detection_pb2.DetectionRequest) -> bytes | None:
+        """A robot's request as it came in, before the server looks at it (answering may change the
+        message), without its report secret and key; None when it is too large to show. Hand it
+        to `request` once the server took the request."""
+        if message.ByteSize() > lv.MAX_MESSAGE_BYTES:
+            return None
         if message.report_secret or message.report_key:
             copy = detection_pb2.DetectionRequest()
             copy.CopyFrom(message)
             copy.ClearField("report_secret")
             copy.ClearField("report_key")
             message = copy
-        data = message.SerializeToString()
+        return message.SerializeToString()
+
+    def request(self, data: bytes | None) -> None:
+        """A robot's request the server took, as `copy` made it."""
+        if data is None or not self.hub.admit(len(data)):
+            self.dropped += 1
+            return
         self._put("request", data, len(data))
 
     def reply(self, message: detection_pb2.DetectionReply) -> None:

@@ -1359,10 +1359,11 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         view = self._s.view
         if message.cancel:
             raise InvalidArgument("cancel: only a request stream (DetectStream) can cancel its continuous requests")
+        seen = view.copy(message) if view is not None else None  # as it came: answering may change it
         reply = await self._answer(message, peer_ip(context.peer()), {}, self._robot(context))
         assert reply is not None  # only a fused single shot on a stream answers later
         if view is not None:  # recorded once taken: a refused request is not (it raised)
-            view.request(message)
+            view.request(seen)
             view.reply(reply)
         return reply
 
@@ -1384,6 +1385,7 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         ) -> detection_pb2.DetectionReply | None:
             if not message.request_id:
                 raise InvalidArgument("request_id: empty; a streamed request needs its own id")
+            seen = view.copy(message) if view is not None else None  # as it came: answering may change it
             if message.cancel:
                 slots.release(message.request_id)
                 session = fused.sessions.get(message.request_id)
@@ -1393,7 +1395,7 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
             else:
                 reply = await self._answer(message, peer, allowed, robot, slots, fused)
             if view is not None:  # recorded once taken: a refused request is not (it raised)
-                view.request(message)
+                view.request(seen)
             return reply
 
         try:
