@@ -72,7 +72,8 @@ async def test_a_forged_report_is_not_recorded(tmp_path: Path) -> None:
 
 async def test_refused_requests_are_not_recorded_and_do_not_grow_the_file(tmp_path: Path) -> None:
     """Twenty 3 MB requests the server refuses (a region of 150 000 points, over its limit of
-    1 000): before, each was recorded whole; now none is, and the file stays small."""
+    1 000), and five small ones (an inverted box): before, each was recorded whole; now none is,
+    and the file stays small."""
     rng = random.Random(5)
     region = geometry_pb2.Region(
         polygon=geometry_pb2.Polygon(
@@ -85,6 +86,11 @@ async def test_refused_requests_are_not_recorded_and_do_not_grow_the_file(tmp_pa
             with pytest.raises(aio.AioRpcError) as refused:
                 await stub.DetectObjects(detect_message(request_id=f"huge-{i}", region=region))
             assert refused.value.code() in (grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.RESOURCE_EXHAUSTED)
+        inverted = geometry_pb2.Region(box=geometry_pb2.Box(x_lower=1, y_lower=0, x_upper=0, y_upper=1))
+        for i in range(5):  # small ones too: refused, not recorded
+            with pytest.raises(aio.AioRpcError) as refused:
+                await stub.DetectObjects(detect_message(request_id=f"bad-{i}", region=inverted))
+            assert refused.value.code() == grpc.StatusCode.INVALID_ARGUMENT
         # One the server takes is recorded.
         await stub.DetectObjects(detect_message(request_id="fine"))
     requests = recorded(path)["/drvs/rpc/requests"]
@@ -114,6 +120,8 @@ async def test_a_client_publishes_only_on_its_own_channels_within_the_budget_and
             mine = await publisher.advertise("/robot/flood", "json", "Flood", b"{}", "jsonschema")
             seen = await watcher.wait_for_topics(["/robot/flood"])
             await watcher.subscribe(seen.values())
+            # One over the size limit (1 MiB), first, while the budget is full: dropped all the same.
+            await publisher.publish(mine, json.dumps(random.Random(-1).randbytes(3 * chunk // 2).hex()).encode())
             for i in range(flood):
                 text = random.Random(i).randbytes(chunk // 2).hex()
                 await publisher.publish(mine, json.dumps(text).encode())
@@ -129,6 +137,7 @@ async def test_a_client_publishes_only_on_its_own_channels_within_the_budget_and
     by_topic = recorded(path)
     assert not [m for m in by_topic.get("/drvs/rpc/replies", []) if b"forged" in m]
     got = sum(len(m) for m in by_topic["/robot/flood"])
+    assert max(len(m) for m in by_topic["/robot/flood"]) <= 1 << 20
     assert 0 < got <= (2 + 1 * elapsed) * (1 << 20) + chunk, (got, elapsed)
     with path.open("rb") as f:
         summary = make_reader(f).get_summary()

@@ -4,6 +4,7 @@ hop must not tell a robot whether a port is open or what listens there (drvs.ser
 from __future__ import annotations
 
 import asyncio
+import logging
 import re
 import socket
 from collections.abc import AsyncIterator
@@ -11,8 +12,10 @@ from collections.abc import AsyncIterator
 import pytest
 from grpc import aio
 
+from drvs.errors import DeadlineExceeded, InvalidArgument, Unavailable
 from drvs.launch import start_server
 from drvs.robot import DrvsClient
+from drvs.server.routing_errors import RoutingErrors
 from drvs.v1 import registry_pb2_grpc
 
 from .helpers import YELLOW, register_message
@@ -82,3 +85,18 @@ async def test_a_robot_hears_one_opaque_unavailable_whatever_listens_at_a_camera
     finally:
         await server.stop()
     assert not [line for line in server.lines if re.search(r"Traceback", line)]
+
+
+def test_the_details_are_logged_once_per_camera_per_interval(caplog: pytest.LogCaptureFixture) -> None:
+    """A camera that keeps failing costs the log one line per interval (and the count of the rest);
+    what the camera itself said about the request reaches the robot unchanged."""
+    errors = RoutingErrors(every_s=3600)
+    with caplog.at_level(logging.WARNING, logger="drvs.server"):
+        for i in range(5):
+            said = errors.for_robot("cam", Unavailable(f"camera at 10.0.0.9:22: Connection refused ({i})"), "r")
+            assert said == ("UNAVAILABLE", "the server could not reach it")
+        errors.for_robot("other", DeadlineExceeded("camera at 10.0.0.8:80: no reply within 2 s"), "r")
+        kept = errors.for_robot("cam", InvalidArgument("filter_def: camera cam does not serve 'x'"), "r")
+    assert kept == ("INVALID_ARGUMENT", "filter_def: camera cam does not serve 'x'")
+    lines = [r.getMessage() for r in caplog.records]
+    assert len(lines) == 2 and "Connection refused (0)" in lines[0] and "no reply within 2 s" in lines[1], lines
