@@ -134,6 +134,7 @@ async def test_a_client_publishes_only_on_its_own_channels_within_the_budget_and
                 timeout=10,
             )
         elapsed = loop.time() - started
+    assert any("messages dropped (too large, too fast, or behind)" in line for line in server.lines)
     by_topic = recorded(path)
     assert not [m for m in by_topic.get("/drvs/rpc/replies", []) if b"forged" in m]
     got = sum(len(m) for m in by_topic["/robot/flood"])

@@ -339,8 +339,8 @@ def _warn_beyond_loopback(name: str, host: str, url: str, token: bool) -> None:
     else:
         log.warning(
             "%s: THE LIVE VIEW ON %s IS OPEN TO ANYONE WHO REACHES IT: they see the building, every request and "
-            "detection, and may publish into the view and the recording. Give it a token (drvs-server "
-            "--foxglove-token) or listen on 127.0.0.1",
+            "detection, and may publish into the view and the recording. Listen on 127.0.0.1 (and reach it "
+            "through an SSH tunnel), or give drvs-server's view a token (--foxglove-token)",
             name,
             url,
         )

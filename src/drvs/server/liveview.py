@@ -105,7 +105,7 @@ class ServerView:
         self.hub = hub
         self.server = server
         self.floor_plan = floor_plan
-        self.dropped = 0
+        self._dropped = 0  # by the view itself (too large to copy, its queue full); the hub counts its own
         self._queue: queue.SimpleQueue[tuple[str, Any, float, int] | None] = queue.SimpleQueue()
         self._backlog = 0
         self._thread = threading.Thread(target=self._run, name="drvs-liveview", daemon=True)
@@ -144,18 +144,20 @@ class ServerView:
         await asyncio.to_thread(self._thread.join, 10)
         self.hub.close()
 
+    @property
+    def dropped(self) -> int:
+        """Messages neither shown nor recorded: too large, beyond the hub's rate, or its queue full."""
+        return self._dropped + self.hub.dropped
+
     def _put(self, kind: str, item: Any, nbytes: int) -> None:
         if self._backlog + nbytes > MAX_BACKLOG_BYTES:
-            self.dropped += 1
+            self._dropped += 1
             return
         self._backlog += nbytes
         self._queue.put((kind, item, time.time(), nbytes))
 
     def _admit(self, message: Any) -> bool:
-        if self.hub.admit(message.ByteSize()):
-            return True
-        self.dropped += 1
-        return False
+        return bool(self.hub.admit(message.ByteSize()))
 
     def copy(self, message: detection_pb2.DetectionRequest) -> bytes | None:
         """A robot's request as it came in, before the server looks at it (answering may change the
@@ -173,8 +175,10 @@ class ServerView:
 
     def request(self, data: bytes | None) -> None:
         """A robot's request the server took, as `copy` made it."""
-        if data is None or not self.hub.admit(len(data)):
-            self.dropped += 1
+        if data is None:
+            self._dropped += 1
+            return
+        if not self.hub.admit(len(data)):
             return
         self._put("request", data, len(data))
 

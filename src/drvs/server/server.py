@@ -509,7 +509,7 @@ class DrvsServer(Lifecycle):
         if self.view is not None:
             await self.view.stop()
             if self.view.dropped:
-                log.warning("live view: %d messages dropped (its thread fell behind)", self.view.dropped)
+                log.warning("live view: %d messages dropped (too large, too fast, or behind)", self.view.dropped)
         log.info("drvs-server stopped")
 
     async def wait_for_termination(self) -> None:
