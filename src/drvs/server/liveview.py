@@ -127,6 +127,30 @@ class ServerView:
         self.rpc_replies = hub.proto_channel("/drvs/rpc/replies", detection_pb2.DetectionReply)
         self.rpc_reports = hub.proto_channel("/drvs/rpc/reports", detection_pb2.DetectionReport)
 
+    @classmethod
+    def open(
+        cls,
+        server: DrvsServer,
+        listen: tuple[str, int] | None,
+        record: Path | None,
+        floor_plan: Path | None,
+        *,
+        token: str | None = None,
+        bytes_per_s: float | None = None,
+    ) -> ServerView:
+        """The view DrvsServer.show describes (its hub: clientPublish on, `token` and `bytes_per_s`)."""
+        lv.require("--foxglove" if listen is not None else "--record")
+        plan = load_floor_plan(floor_plan) if floor_plan is not None else None
+        hub = lv.LiveHub(
+            "drvs-server",
+            listen=listen,
+            record=record,
+            accept_clients=True,
+            token=token,
+            bytes_per_s=bytes_per_s or lv.BYTES_PER_S,
+        )
+        return cls(hub, server, plan)
+
     # --- from the server's event loop --------------------------------------------------------
 
     def start(self) -> None:

@@ -379,20 +379,9 @@ class DrvsServer(Lifecycle):
         recording to the MCAP file `record`, drawing `floor_plan` (see drvs.server.liveview); the
         view needs `token` if given; both take in at most `bytes_per_s` (drvs.liveview.LiveHub).
         Needs the live extra (FailedPrecondition names it)."""
-        from drvs import liveview
-        from drvs.server.liveview import ServerView, load_floor_plan
+        from drvs.server.liveview import ServerView
 
-        liveview.require("--foxglove" if listen is not None else "--record")
-        plan = load_floor_plan(floor_plan) if floor_plan is not None else None
-        hub = liveview.LiveHub(
-            "drvs-server",
-            listen=listen,
-            record=record,
-            accept_clients=True,
-            token=token,
-            bytes_per_s=bytes_per_s or liveview.BYTES_PER_S,
-        )
-        self.view = ServerView(hub, self, plan)
+        self.view = ServerView.open(self, listen, record, floor_plan, token=token, bytes_per_s=bytes_per_s)
 
     @property
     def port(self) -> int:
