@@ -18,11 +18,12 @@ Topics (docs/operations.md, "Live view and recordings"):
   /drvs/detections        foxglove.SceneUpdate    the detections cameras report to the server
   /drvs/tracks            foxglove.SceneUpdate    fused world objects, as delivered to robots
   /drvs/rpc/cameras       drvs.v1.ListCamerasReply  the registry, whenever it changes
-  /drvs/rpc/requests      drvs.v1.DetectionRequest  every request a robot sends (secrets cleared)
+  /drvs/rpc/requests      drvs.v1.DetectionRequest  every request the server took (secrets cleared)
   /drvs/rpc/replies       drvs.v1.DetectionReply    every reply the server sends a robot
-  /drvs/rpc/reports       drvs.v1.DetectionReport   every report a camera sends the server (keys cleared)
+  /drvs/rpc/reports       drvs.v1.DetectionReport   every report the server accepted (keys cleared)
 
-and what robots publish into the view (the office robot: /robot/pose, /robot/paths).
+and what robots publish into the view (the office robot: /robot/pose, /robot/paths), each client on
+channels of its own, never under /drvs/ (drvs.liveview).
 """
 
 from __future__ import annotations
