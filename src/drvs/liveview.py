@@ -34,7 +34,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from drvs.errors import FailedPrecondition, InvalidArgument
-from drvs.net import parse_address
+from drvs.net import is_loopback_host, parse_address
 
 if TYPE_CHECKING:
     import foxglove
@@ -60,8 +60,6 @@ MAX_CLIENT_CHANNELS = 16
 MAX_MESSAGE_BYTES = 1 << 20
 #: What may enter the hub a second, on average (bytes, before compression); bursts of twice that.
 BYTES_PER_S = 8 << 20
-#: Hosts the live view may listen on without a warning.
-LOOPBACK = ("127.0.0.1", "::1", "localhost")
 
 
 class ByteBudget:
@@ -198,7 +196,8 @@ class LiveHub:
     hub), `capabilities` more of Foxglove's (e.g. `time`), `listener` a foxglove ServerListener of
     one's own instead of the relay, `backlog` messages per client before the oldest are dropped,
     `token` one a WebSocket must present (drvs.liveview_gate). Listening beyond loopback is warned
-    about at start, loudest without a token. `bytes_per_s`: what `admit` lets in (see the module)."""
+    about at start (unless `warn` is False), loudest without a token. `bytes_per_s`: what `admit`
+    lets in (see the module)."""
 
     def __init__(
         self,
@@ -213,6 +212,7 @@ class LiveHub:
         backlog: int = CLIENT_BACKLOG,
         token: str | None = None,
         bytes_per_s: float = BYTES_PER_S,
+        warn: bool = True,
     ) -> None:
         import foxglove
         from foxglove.mcap import MCAPCompression, MCAPWriteOptions
@@ -264,7 +264,8 @@ class LiveHub:
                 self.close()
                 raise InvalidArgument(f"--foxglove: cannot listen on {host}:{port}: {exc}") from exc
             self.url = f"{'wss' if tls else 'ws'}://{host}:{self.port}"
-            _warn_beyond_loopback(name, host, self.url, bool(token))
+            if warn:  # (drvs-camera says it in its own words)
+                _warn_beyond_loopback(name, host, self.url, bool(token))
 
     @property
     def port(self) -> int:
@@ -321,13 +322,7 @@ class LiveHub:
 
 
 def _warn_beyond_loopback(name: str, host: str, url: str, token: bool) -> None:
-    import ipaddress
-
-    try:
-        loopback = host in LOOPBACK or ipaddress.ip_address(host.strip("[]")).is_loopback
-    except ValueError:
-        loopback = False
-    if loopback:
+    if is_loopback_host(host):
         return
     if token:
         log.warning(
