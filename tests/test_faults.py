@@ -422,9 +422,10 @@ async def test_a_camera_slow_to_accept_is_answered_for_and_delays_nobody_else(of
         async for report in sub:
             arrivals[report.camera_id] = loop.time() - t_sub
         by_camera = {r.camera_id: r for r in sub.result.reports}
-        assert not sub.result.complete and sub.result.camera_errors["slow"].code == "DEADLINE_EXCEEDED"
+        assert not sub.result.complete and sub.result.camera_errors["slow"].code == "UNAVAILABLE"
         assert not by_camera["cam1"].error and not by_camera["cam2"].error
-        assert "slow did not accept the request: DEADLINE_EXCEEDED" in by_camera["slow"].error
+        # A timeout is not told apart from a closed port (drvs.server.routing_errors): one opaque UNAVAILABLE.
+        assert "slow did not accept the request: UNAVAILABLE the server could not reach it" in by_camera["slow"].error
         assert 1.8 <= arrivals["slow"] <= 3.0, arrivals
         await slow.wait_for_line(rf"^REQUEST {sub.request_id}$", timeout=5)
     assert statistics.median(during) <= 1.5 * statistics.median(baseline) + 5, (baseline, during)

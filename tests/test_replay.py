@@ -8,6 +8,7 @@ from __future__ import annotations
 import json
 import random
 import re
+import struct
 import subprocess
 import sys
 from collections import Counter
@@ -23,7 +24,7 @@ from shapely.geometry import box
 from drvs import liveview as lv
 from drvs.foxglove_client import FoxgloveClient
 from drvs.launch import LIVE_READY, ManagedProcess
-from drvs.replay import utc
+from drvs.replay import MAGIC, MAX_CHUNK_BYTES, MAX_EXPANSION, utc
 from drvs.robot import DrvsClient
 from drvs.server.server import DrvsServer
 from drvs.v1 import detection_pb2, geometry_pb2
@@ -354,3 +355,88 @@ async def test_loop_plays_again_and_sigterm_stops_it_cleanly_at_any_point(record
     assert len(passes) >= 2 and set(passes) == {len(recording.messages)}
     assert looping.lines[-1] == "drvs-replay: stopped"
     assert not any("Traceback" in line for line in looping.lines)
+
+
+def write_bomb(path: Path, compression: str, size: int, claimed: int, chunks: int = 1) -> None:
+    """A small MCAP file of `chunks` chunks that each decompress to `size` bytes and claim `claimed`:
+    one record of an opcode readers skip (0x80), its length, then zeros."""
+    import lz4.frame  # type: ignore[import-untyped]
+    import zstandard
+    from mcap.data_stream import RecordBuilder
+    from mcap.records import Chunk, DataEnd, Footer, Header
+
+    block = bytes(1 << 20)
+    head = struct.pack("<BQ", 0x80, size - 9)
+    if compression == "zstd":
+        zstd = zstandard.ZstdCompressor(level=3).compressobj()
+        data = zstd.compress(head + block[9:]) + b"".join(zstd.compress(block) for _ in range(1, size >> 20))
+        data += zstd.flush()
+    else:
+        lz4c = lz4.frame.LZ4FrameCompressor()
+        data = lz4c.begin() + lz4c.compress(head + block[9:])
+        data += b"".join(lz4c.compress(block) for _ in range(1, size >> 20)) + lz4c.flush()
+    out = RecordBuilder()
+    out.write(MAGIC)
+    Header(profile="", library="a bomb").write(out)
+    for _ in range(chunks):
+        Chunk(
+            compression=compression,
+            data=data,
+            message_start_time=T0_NS,
+            message_end_time=T0_NS,
+            uncompressed_crc=0,
+            uncompressed_size=claimed,
+        ).write(out)
+    DataEnd(data_section_crc=0).write(out)
+    Footer(summary_start=0, summary_offset_start=0, summary_crc=0).write(out)
+    out.write(MAGIC)
+    path.write_bytes(out.end())  # type: ignore[no-untyped-call]
+
+
+@pytest.mark.parametrize(
+    ("compression", "size", "claimed"),
+    [
+        ("zstd", 1 << 30, (1 << 30) - 1),  # claims (under the old 1 GiB limit) what it holds: 1 GiB of zeros
+        ("zstd", 1 << 30, 1000),  # claims 1000 bytes, holds 1 GiB
+        ("lz4", 256 << 20, 1000),
+    ],
+)
+def test_a_compression_bomb_is_refused_naming_the_file_and_the_limit_in_bounded_memory(
+    tmp_path: Path, compression: str, size: int, claimed: int
+) -> None:
+    path = tmp_path / f"bomb-{compression}.mcap"
+    write_bomb(path, compression, size, claimed)
+    assert path.stat().st_size < 2 << 20  # a small file
+    # drvs-replay in a process of its own, whose peak memory its parent reads when it ends.
+    measure = (
+        "import resource, subprocess, sys; "
+        "done = subprocess.run(sys.argv[1:], capture_output=True, text=True); "
+        "sys.stdout.write(f'{done.returncode}\\n{resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss}\\n'); "
+        "sys.stdout.write(done.stderr)"
+    )
+    done = subprocess.run(
+        [sys.executable, "-c", measure, *replay_argv("--summary", str(path))],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    code, peak_kib, *stderr = done.stdout.splitlines()
+    assert int(peak_kib) < 128 * 1024, f"drvs-replay took {int(peak_kib) >> 10} MiB on a {path.stat().st_size} B file"
+    assert int(code) == 1 and len(stderr) == 1, done.stdout
+    assert stderr[0].startswith(f"drvs-replay: {path}: truncated or corrupt after byte "), stderr
+    assert f"(no message read): a {compression} chunk " in stderr[0], stderr
+    assert f"over the limit of {MAX_CHUNK_BYTES} bytes a chunk may decompress to" in stderr[0], stderr
+
+
+def test_chunks_that_together_decompress_past_the_files_budget_are_refused(tmp_path: Path) -> None:
+    """Each chunk within its own limit (20 MiB, as claimed), but a 3 KB file may decompress to at most
+    MAX_CHUNK_BYTES in all (1000 times its size is less): the second chunk is refused, naming what
+    was left of that budget."""
+    path = tmp_path / "many.mcap"
+    write_bomb(path, "zstd", 20 << 20, 20 << 20, chunks=3)
+    assert path.stat().st_size * MAX_EXPANSION < MAX_CHUNK_BYTES
+    done = replay("--summary", str(path))
+    assert done.returncode == 1 and "Traceback" not in done.stderr, done.stderr
+    left = MAX_CHUNK_BYTES - (20 << 20)
+    assert done.stderr.startswith(f"drvs-replay: {path}: truncated or corrupt after byte "), done.stderr
+    assert f"claims {20 << 20} bytes uncompressed: over the limit of {left} bytes" in done.stderr, done.stderr

@@ -60,11 +60,21 @@ class FoxgloveClient:
     dropped: int = 0
 
     @classmethod
-    async def connect(cls, url: str, *, timeout: float = 10.0, ssl: Any = None) -> FoxgloveClient:
+    async def connect(
+        cls, url: str, *, timeout: float = 10.0, ssl: Any = None, token: str | None = None
+    ) -> FoxgloveClient:
+        """`token`: the view's (drvs-server --foxglove-token), sent as `Authorization: Bearer`."""
         import websockets
 
+        headers = {"Authorization": f"Bearer {token}"} if token else None
         ws = await asyncio.wait_for(
-            websockets.connect(url, subprotocols=list(SUBPROTOCOLS), max_size=None, ssl=ssl),  # type: ignore[arg-type]
+            websockets.connect(
+                url,
+                subprotocols=list(SUBPROTOCOLS),  # type: ignore[arg-type]
+                max_size=None,
+                ssl=ssl,
+                additional_headers=headers,
+            ),
             timeout,
         )
         client = cls(ws)

@@ -9,7 +9,14 @@ frame: the floor's own metres, x east and y north, z up.
 
 The hub also takes channels that WebSocket clients advertise (Foxglove's clientPublish): a robot
 publishes its pose and paths into the same view and recording (drvs.foxglove_client). What it takes
-is shown and recorded, nothing more: DRVS never acts on it.
+is shown and recorded, nothing more: DRVS never acts on it. Each client channel is a channel of its
+own (metadata `published_by: client N`, never one of the hub's, whatever its topic), closed when the
+client unadvertises it or leaves; topics under `/drvs/` are the hub's alone (`RESERVED`), a client
+has at most `MAX_CLIENT_CHANNELS`, and its messages count against the hub's budget like any other.
+
+What enters the hub is bounded (`admit`): no message over `MAX_MESSAGE_BYTES`, and at most
+`bytes_per_s` a second on average (bursts of two seconds' worth): beyond that it is dropped and
+counted, so a flood grows neither the recording nor the memory behind it faster than that.
 
 Topic names and schemas are listed in docs/operations.md ("Live view and recordings")."""
 
@@ -27,7 +34,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
 from drvs.errors import FailedPrecondition, InvalidArgument
-from drvs.net import parse_address
+from drvs.net import is_loopback_host, parse_address
 
 if TYPE_CHECKING:
     import foxglove
@@ -45,6 +52,36 @@ CHUNK_BYTES = 256 * 1024
 CLIENT_BACKLOG = 1024
 #: What a client may publish into the view (clientPublish): the encodings Foxglove itself sends.
 CLIENT_ENCODINGS = ["protobuf", "json"]
+#: Topics under this prefix are the hub's own: no client may publish on them.
+RESERVED = "/drvs/"
+#: Channels one client may have advertised at once.
+MAX_CLIENT_CHANNELS = 16
+#: No message larger than this is shown or recorded (a client's schema neither).
+MAX_MESSAGE_BYTES = 1 << 20
+#: What may enter the hub a second, on average (bytes, before compression); bursts of twice that.
+BYTES_PER_S = 8 << 20
+
+
+class ByteBudget:
+    """A token bucket of bytes (thread-safe): `take(n)` is True while the average stays under
+    `rate` a second, with bursts up to `burst`."""
+
+    def __init__(self, rate: float, burst: float) -> None:
+        self.rate = rate
+        self.burst = burst
+        self._level = burst
+        self._at = time.monotonic()
+        self._lock = threading.Lock()
+
+    def take(self, n: int) -> bool:
+        with self._lock:
+            now = time.monotonic()
+            self._level = min(self.burst, self._level + (now - self._at) * self.rate)
+            self._at = now
+            if n > self._level:
+                return False
+            self._level -= n
+            return True
 
 
 def require(flag: str) -> None:
@@ -78,8 +115,10 @@ def proto_schema(message_class: Any) -> foxglove.Schema:
 
 
 class _Relay:
-    """Takes the channels WebSocket clients advertise and logs what they publish on a hub channel
-    of the same topic, encoding and schema (so it is seen by every client and recorded)."""
+    """Takes the channels WebSocket clients advertise and logs what they publish on a channel of
+    their own with the same topic, encoding and schema (so it is seen by every client and recorded),
+    tagged with the client's id; refuses the hub's own topics (`RESERVED`) and more than
+    `MAX_CLIENT_CHANNELS` a client, and closes a client's channels when it unadvertises or leaves."""
 
     def __init__(self, hub: LiveHub) -> None:
         self._hub = hub
@@ -90,31 +129,56 @@ class _Relay:
     def on_client_advertise(self, client: Any, channel: Any) -> None:
         import foxglove
 
+        refused = self._refusal(client, channel)
+        if refused:
+            log.warning("live view: client %s may not publish %r: %s", client.id, channel.topic[:80], refused)
+            return
         schema = None
         if channel.schema_name:
             schema = foxglove.Schema(
                 name=channel.schema_name, encoding=channel.schema_encoding or "", data=bytes(channel.schema or b"")
             )
+        own = foxglove.Channel(
+            channel.topic,
+            message_encoding=channel.encoding,
+            schema=schema,
+            metadata={"published_by": f"client {client.id}"},
+            context=self._hub.context,
+        )
         with self._lock:
-            self._channels[(client.id, channel.id)] = self._hub.channel_for(
-                channel.topic, channel.encoding, schema, {"published_by": f"client {client.id}"}
-            )
+            old = self._channels.pop((client.id, channel.id), None)
+            self._channels[(client.id, channel.id)] = own
+        if old is not None:
+            old.close()
         log.info("live view: client %s publishes %s (%s)", client.id, channel.topic, channel.schema_name)
+
+    def _refusal(self, client: Any, channel: Any) -> str:
+        if channel.topic.startswith(RESERVED) or not channel.topic.startswith("/"):
+            return f"topics under {RESERVED} are the server's own, and a topic starts with '/'"
+        if len(channel.schema or b"") > MAX_MESSAGE_BYTES:
+            return f"its schema is over {MAX_MESSAGE_BYTES} bytes"
+        with self._lock:
+            if sum(1 for k in self._channels if k[0] == client.id) >= MAX_CLIENT_CHANNELS:
+                return f"it already publishes {MAX_CLIENT_CHANNELS} channels"
+        return ""
 
     def on_client_unadvertise(self, client: Any, client_channel_id: int) -> None:
         with self._lock:
-            self._channels.pop((client.id, client_channel_id), None)
+            channel = self._channels.pop((client.id, client_channel_id), None)
+        if channel is not None:
+            channel.close()
 
     def on_message_data(self, client: Any, client_channel_id: int, data: bytes) -> None:
         with self._lock:
             channel = self._channels.get((client.id, client_channel_id))
-        if channel is not None:
+        if channel is not None and self._hub.admit(len(data)):
             channel.log(data)
 
     def on_client_disconnect(self, client: Any) -> None:
         with self._lock:
-            for key in [k for k in self._channels if k[0] == client.id]:
-                del self._channels[key]
+            gone = [self._channels.pop(k) for k in [k for k in self._channels if k[0] == client.id]]
+        for channel in gone:
+            channel.close()
 
     def __getattr__(self, name: str) -> Any:
         # The SDK's listener protocol grows (parameters, services, playback...): none of them here.
@@ -130,7 +194,10 @@ class LiveHub:
 
     The server: `accept_clients` offers clientPublish (what clients publish is relayed onto the
     hub), `capabilities` more of Foxglove's (e.g. `time`), `listener` a foxglove ServerListener of
-    one's own instead of the relay, `backlog` messages per client before the oldest are dropped."""
+    one's own instead of the relay, `backlog` messages per client before the oldest are dropped,
+    `token` one a WebSocket must present (drvs.liveview_gate). Listening beyond loopback is warned
+    about at start (unless `warn` is False), loudest without a token. `bytes_per_s`: what `admit`
+    lets in (see the module)."""
 
     def __init__(
         self,
@@ -143,6 +210,9 @@ class LiveHub:
         capabilities: Sequence[Any] = (),
         listener: Any = None,
         backlog: int = CLIENT_BACKLOG,
+        token: str | None = None,
+        bytes_per_s: float = BYTES_PER_S,
+        warn: bool = True,
     ) -> None:
         import foxglove
         from foxglove.mcap import MCAPCompression, MCAPWriteOptions
@@ -152,8 +222,12 @@ class LiveHub:
         self._channels: dict[str, Any] = {}
         self._lock = threading.Lock()
         self.server: Any = None
+        self.gate: Any = None
         self.writer: Any = None
         self.record = record
+        self.budget = ByteBudget(bytes_per_s, 2 * bytes_per_s)
+        #: Messages `admit` turned away (over MAX_MESSAGE_BYTES, or beyond the budget).
+        self.dropped = 0
         if record is not None:
             record.parent.mkdir(parents=True, exist_ok=True)
             try:
@@ -172,8 +246,8 @@ class LiveHub:
             try:
                 self.server = foxglove.start_server(
                     name=name,
-                    host=host,
-                    port=port,
+                    host="127.0.0.1" if token else host,
+                    port=0 if token else port,
                     context=self.context,
                     capabilities=[*([Capability.ClientPublish] if accept_clients else []), *capabilities],
                     supported_encodings=CLIENT_ENCODINGS if accept_clients else None,
@@ -182,14 +256,31 @@ class LiveHub:
                     tls_cert=tls[0] if tls else None,
                     tls_key=tls[1] if tls else None,
                 )
+                if token:
+                    from drvs.liveview_gate import TokenGate
+
+                    self.gate = TokenGate(host, port, self.server.port, token)
             except Exception as exc:
                 self.close()
                 raise InvalidArgument(f"--foxglove: cannot listen on {host}:{port}: {exc}") from exc
-            self.url = f"{'wss' if tls else 'ws'}://{host}:{self.server.port}"
+            self.url = f"{'wss' if tls else 'ws'}://{host}:{self.port}"
+            if warn:  # (drvs-camera says it in its own words)
+                _warn_beyond_loopback(name, host, self.url, bool(token))
 
     @property
     def port(self) -> int:
+        if self.gate is not None:
+            return int(self.gate.port)
         return int(self.server.port) if self.server is not None else 0
+
+    def admit(self, nbytes: int) -> bool:
+        """Whether a message of `nbytes` may enter the hub (shown and recorded): at most
+        MAX_MESSAGE_BYTES, within the hub's bytes a second. Turned away: counted in `dropped`."""
+        if nbytes <= MAX_MESSAGE_BYTES and self.budget.take(nbytes):
+            return True
+        with self._lock:
+            self.dropped += 1
+        return False
 
     def channel_for(self, topic: str, encoding: str, schema: Any, metadata: dict[str, str] | None = None) -> Any:
         """The hub's channel for `topic` (made on first use; a topic keeps its first schema)."""
@@ -219,12 +310,35 @@ class LiveHub:
             return channel
 
     def close(self) -> None:
+        if self.gate is not None:
+            self.gate.close()
+            self.gate = None
         if self.server is not None:
             self.server.stop()
             self.server = None
         if self.writer is not None:
             self.writer.close()
             self.writer = None
+
+
+def _warn_beyond_loopback(name: str, host: str, url: str, token: bool) -> None:
+    if is_loopback_host(host):
+        return
+    if token:
+        log.warning(
+            "%s: the live view on %s is reachable beyond this host; it takes only connections with its token, "
+            "but ws:// is plain text: keep it on a network nobody else reads",
+            name,
+            url,
+        )
+    else:
+        log.warning(
+            "%s: THE LIVE VIEW ON %s IS OPEN TO ANYONE WHO REACHES IT: they see the building, every request and "
+            "detection, and may publish into the view and the recording. Listen on 127.0.0.1 (and reach it "
+            "through an SSH tunnel), or give drvs-server's view a token (--foxglove-token)",
+            name,
+            url,
+        )
 
 
 # --- scene entities (foxglove.SceneUpdate) ---------------------------------------------------------

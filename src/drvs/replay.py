@@ -45,7 +45,10 @@ overwritten) is read up to the break: what was read is summarised (or played), t
     drvs-replay: FILE: truncated or corrupt after byte N of SIZE (M messages read, up to TIME): REASON
 
 N is the offset where the last record read whole ends: everything before it was read and checked;
-the break is in the record that starts there or later (REASON says which and why). Chunks are
+the break is in the record that starts there or later (REASON says which and why). A chunk that
+decompresses past what it claims, or past `MAX_CHUNK_BYTES`, or all chunks past `MAX_EXPANSION`
+times the file's size, is such a break: decompression stops there, so a compression bomb costs no
+memory, and REASON names the limit. Chunks are
 checked whole, by their CRC, so a damaged chunk's messages are all left out, and M counts only
 messages that passed. TIME is the latest log time among them. After the data section, the summary
 section must match its CRC and its message count the data section's, or that is reported the same
@@ -58,6 +61,7 @@ summarised or played); 2 a bad flag, a missing or unreadable file, or a file tha
 from __future__ import annotations
 
 import argparse
+import io
 import json
 import math
 import os
@@ -94,8 +98,12 @@ SETTLE_S = 0.5
 POLL_S = 0.2
 #: Messages a slow client may fall behind by before the oldest are dropped for it.
 BACKLOG = 10_000
-#: A chunk claiming more than this uncompressed is taken as corrupt (DRVS writes ~256 KiB chunks).
-MAX_CHUNK_BYTES = 1 << 30
+#: A chunk claiming or decompressing to more than this is refused (DRVS writes ~256 KiB chunks,
+#: and records no message over drvs.liveview.MAX_RECORDED_BYTES): a compression bomb stops here.
+MAX_CHUNK_BYTES = 32 << 20
+#: All of a file's chunks together may decompress to at most this many times the file's size (or
+#: MAX_CHUNK_BYTES, whichever is more): many small bombs stop too. DRVS's recordings compress ~5-20x.
+MAX_EXPANSION = 1000
 EXIT_OK, EXIT_BROKEN, EXIT_UNREADABLE = 0, 1, 2
 
 
@@ -256,11 +264,12 @@ def messages(rec: Recording) -> Iterator[tuple[Topic, Message]]:
         return topic
 
     rec.read_bytes = len(MAGIC)  # open_recording read it
+    budget = [max(MAX_CHUNK_BYTES, rec.size * MAX_EXPANSION)]  # bytes all chunks may still decompress to
     with rec.path.open("rb") as f:
         reader = StreamReader(f, emit_chunks=True, validate_crcs=True, record_size_limit=rec.size)
         try:
             for record in reader.records:
-                for inner in _chunk_records(record) if isinstance(record, Chunk) else (record,):
+                for inner in _chunk_records(record, budget) if isinstance(record, Chunk) else (record,):
                     message = take(inner)
                     if message is not None:
                         yield count(message), message
@@ -299,20 +308,31 @@ def _check_summary(
     return None
 
 
-def _chunk_records(chunk: Any) -> Iterator[McapRecord]:
-    """A chunk's records, decompressed and CRC-checked whole first (mcap's own decompression)."""
+def _chunk_records(chunk: Any, budget: list[int]) -> Iterator[McapRecord]:
+    """A chunk's records, decompressed (never past what it claims, nor past MAX_CHUNK_BYTES or what is
+    left of the file's `budget` [bytes], which it spends) and CRC-checked whole first."""
+    from mcap.data_stream import ReadDataStream
     from mcap.opcode import Opcode
     from mcap.records import Channel, Message, Schema
-    from mcap.stream_reader import CRCValidationError, get_chunk_data_stream
 
-    if chunk.uncompressed_size > MAX_CHUNK_BYTES:
-        raise Corrupt(f"a chunk claims {chunk.uncompressed_size} bytes uncompressed")
+    limit = min(MAX_CHUNK_BYTES, budget[0])
+    if chunk.uncompressed_size > limit:
+        raise Corrupt(_too_big(chunk, f"claims {chunk.uncompressed_size} bytes uncompressed", limit))
     try:
-        stream, length = get_chunk_data_stream(chunk, validate_crc=True)
-    except CRCValidationError as exc:
-        raise Corrupt(f"a chunk's CRC does not match its contents ({exc})") from exc
+        data = _decompress(chunk, chunk.uncompressed_size)
+    except Corrupt:
+        raise
     except Exception as exc:
         raise Corrupt(f"a {chunk.compression or 'plain'} chunk does not decompress ({exc})") from exc
+    if len(data) > chunk.uncompressed_size:
+        what = f"decompresses to more than the {chunk.uncompressed_size} bytes it claims"
+        raise Corrupt(_too_big(chunk, what, limit))
+    if len(data) != chunk.uncompressed_size:
+        raise Corrupt(f"a chunk decompresses to {len(data)} bytes, not the {chunk.uncompressed_size} it claims")
+    budget[0] -= len(data)
+    if chunk.uncompressed_crc and zlib.crc32(data) != chunk.uncompressed_crc:
+        raise Corrupt(f"a chunk's CRC does not match its contents (expected {chunk.uncompressed_crc})")
+    stream, length = ReadDataStream(io.BytesIO(data)), len(data)
     while stream.count < length:
         opcode = stream.read1()
         size = stream.read8()
@@ -336,6 +356,33 @@ def _chunk_records(chunk: Any) -> Iterator[McapRecord]:
         stream.read(rest)
         if record is not None:
             yield record
+
+
+def _too_big(chunk: Any, what: str, limit: int) -> str:
+    return (
+        f"a {chunk.compression or 'plain'} chunk {what}: over the limit of {limit} bytes a chunk may "
+        f"decompress to (at most {MAX_CHUNK_BYTES} each, {MAX_EXPANSION} times the file's size in all)"
+    )
+
+
+def _decompress(chunk: Any, claimed: int) -> bytes:
+    """The chunk's data decompressed, stopping one byte past `claimed` (so a chunk that lies about its
+    size, as a compression bomb does, never takes more memory than it claimed)."""
+    if chunk.compression == "zstd":
+        import zstandard
+
+        out = bytearray()
+        with zstandard.ZstdDecompressor().stream_reader(io.BytesIO(chunk.data), read_across_frames=True) as reader:
+            while len(out) <= claimed and (piece := reader.read(min(claimed + 1 - len(out), 1 << 20))):
+                out += piece
+        return bytes(out)
+    if chunk.compression == "lz4":
+        import lz4.frame  # type: ignore[import-untyped]
+
+        return bytes(lz4.frame.LZ4FrameDecompressor().decompress(chunk.data, max_length=claimed + 1))
+    if chunk.compression:
+        raise Corrupt(f"a chunk compressed with {chunk.compression!r}, which MCAP readers do not know")
+    return bytes(chunk.data)
 
 
 def _reason(exc: Exception, f: IO[bytes], rec: Recording, footer: bool) -> str:

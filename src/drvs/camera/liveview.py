@@ -150,7 +150,7 @@ class CameraLiveView:
         self.frames_skipped_unwatched = 0
         self.frames_skipped_unchanged = 0
         self.bytes_published = 0
-        self.hub = LiveHub(f"drvs-camera {camera_id}", listen=listen)
+        self.hub = LiveHub(f"drvs-camera {camera_id}", listen=listen, warn=False)
         self.channel = CompressedImageChannel(self.topic, context=self.hub.context)
         self._pool = concurrent.futures.ThreadPoolExecutor(1, f"liveview:{camera_id}")
         self._task: asyncio.Task[None] | None = None

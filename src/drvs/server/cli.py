@@ -14,6 +14,7 @@ from drvs._cli import (
     add_observability_arguments,
     add_security_arguments,
     env,
+    env_number,
     security_from,
     setup_logging,
     shutdown_event,
@@ -277,7 +278,22 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="HOST:PORT",
         help="serve a Foxglove live view (WebSocket) here: cameras' fields of view, requests' regions, detections, "
         "tracks, and what robots publish to it; PORT alone listens on 127.0.0.1. Anyone who reaches it sees "
-        "the building: keep it on loopback or a trusted network (DRVS_FOXGLOVE)",
+        "the building: keep it on loopback or a trusted network, or give it --foxglove-token (DRVS_FOXGLOVE)",
+    )
+    v.add_argument(
+        "--foxglove-token",
+        default=None,
+        metavar="TOKEN",
+        help="the live view takes only WebSockets that present this token (open ws://HOST:PORT/?token=TOKEN, "
+        "or send 'Authorization: Bearer TOKEN'); others get 401. Prefer the variable: DRVS_FOXGLOVE_TOKEN",
+    )
+    v.add_argument(
+        "--record-max-rate",
+        default=None,
+        type=float,
+        metavar="MIB_PER_S",
+        help="the most the live view and the recording take in a second, on average (MiB, before compression; "
+        "bursts of twice that); beyond it messages are dropped and counted (default 8; DRVS_RECORD_MAX_RATE)",
     )
     v.add_argument(
         "--record",
@@ -308,7 +324,7 @@ async def serve(args: argparse.Namespace) -> None:
         robot_tokens=args.robot_token_table,
     )
     if args.live is not None or args.record is not None:
-        server.show(args.live, args.record, args.floor_plan)
+        server.show(args.live, args.record, args.floor_plan, token=args.live_token, bytes_per_s=args.live_rate)
     await server.start()
     if args.metrics is not None:
         serve_metrics(args.metrics[1], args.metrics[0])
@@ -385,6 +401,15 @@ def main(argv: list[str] | None = None) -> int:
         args.live = parse_listen(live, "--foxglove") if live else None
         args.record = args.record or (Path(r) if (r := env("DRVS_RECORD")) else None)
         args.floor_plan = args.floor_plan or (Path(f) if (f := env("DRVS_FLOOR_PLAN")) else None)
+        args.live_token = args.foxglove_token or env("DRVS_FOXGLOVE_TOKEN")
+        if args.live_token is not None and (len(args.live_token) < 16 or not args.live_token.isprintable()):
+            raise InvalidArgument("--foxglove-token: at least 16 printable characters (e.g. `openssl rand -hex 16`)")
+        if args.live_token is not None and args.live is None:
+            raise InvalidArgument("--foxglove-token: only with a live view (--foxglove)")
+        rate = args.record_max_rate if args.record_max_rate is not None else env_number("DRVS_RECORD_MAX_RATE", 8.0)
+        if not 0 < rate < 1 << 20:
+            raise InvalidArgument(f"--record-max-rate: {rate:g} is not a rate above 0 (MiB a second)")
+        args.live_rate = rate * (1 << 20)
         if args.live is not None or args.record is not None:
             require("--foxglove" if args.live is not None else "--record")
             if args.floor_plan is not None:

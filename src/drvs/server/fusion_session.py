@@ -543,7 +543,8 @@ class ReportIntake:
         self._warned = False
         self.rejected = 0
 
-    def receive(self, message: detection_pb2.DetectionReport) -> None:
+    def receive(self, message: detection_pb2.DetectionReport) -> bool:
+        """Whether the report counted (False: dropped, and the camera told to cancel)."""
         pair = (message.request_id, message.camera_id)
         session: FusionSession | None = None
         if message.report_key:
@@ -559,7 +560,7 @@ class ReportIntake:
         if session is None or session.ended:
             self._verified.pop(pair, None)
             self._reject(message, known=session is not None)
-            return
+            return False
         metrics.FUSION_REPORTS_ACCEPTED.inc()
         if len(message.detections) > MAX_DETECTIONS_PER_REPORT:
             log.warning(
@@ -571,6 +572,7 @@ class ReportIntake:
             )
             del message.detections[MAX_DETECTIONS_PER_REPORT:]
         session.report(report_from_pb(message, session.request.filter_def), self)
+        return True
 
     def _reject(self, message: detection_pb2.DetectionReport, known: bool) -> None:
         if known:

@@ -1,9 +1,12 @@
 """What a server shows live (`drvs-server --foxglove HOST:PORT`) and records (`--record FILE.mcap`).
 
 The server's request path only hands messages over (`request`, `reply`, `report`: a copy of the
-bytes, without secrets, onto a queue); one thread of its own logs them and draws the scene from them,
-so a slow viewer or a large scene never holds a robot's request up. The registry is read on the
-event loop (it is not thread-safe) five times a second, and only what changed is sent on; every
+bytes, without secrets, onto a queue), and only those that passed its checks: a refused request
+or a rejected report is neither shown nor recorded. Each must also pass the hub's `admit` (at most
+drvs.liveview.MAX_MESSAGE_BYTES, within its bytes a second), and the queue holds at most
+`MAX_BACKLOG_BYTES`; what does not fit is dropped and counted. One thread of its own logs them and
+draws the scene from them, so a slow viewer or a large scene never holds a robot's request up. The
+registry is read on the event loop (it is not thread-safe) five times a second, and only what changed is sent on; every
 `REFRESH_S` the whole scene again, for viewers that joined late and for a recording's readers who
 seek into the middle of it.
 
@@ -15,11 +18,12 @@ Topics (docs/operations.md, "Live view and recordings"):
   /drvs/detections        foxglove.SceneUpdate    the detections cameras report to the server
   /drvs/tracks            foxglove.SceneUpdate    fused world objects, as delivered to robots
   /drvs/rpc/cameras       drvs.v1.ListCamerasReply  the registry, whenever it changes
-  /drvs/rpc/requests      drvs.v1.DetectionRequest  every request a robot sends (secrets cleared)
+  /drvs/rpc/requests      drvs.v1.DetectionRequest  every request the server took (secrets cleared)
   /drvs/rpc/replies       drvs.v1.DetectionReply    every reply the server sends a robot
-  /drvs/rpc/reports       drvs.v1.DetectionReport   every report a camera sends the server (keys cleared)
+  /drvs/rpc/reports       drvs.v1.DetectionReport   every report the server accepted (keys cleared)
 
-and what robots publish into the view (the office robot: /robot/pose, /robot/paths).
+and what robots publish into the view (the office robot: /robot/pose, /robot/paths), each client on
+channels of its own, never under /drvs/ (drvs.liveview).
 """
 
 from __future__ import annotations
@@ -55,8 +59,8 @@ REFRESH_S = 2.0
 SHORT_LIFETIME_S = 1.0
 #: A track stays drawn this long after its last snapshot (snapshots refresh it).
 TRACK_LIFETIME_S = 1.0
-#: Messages waiting for the view's thread beyond this are dropped (and counted), never queued.
-MAX_BACKLOG = 10_000
+#: Bytes of messages waiting for the view's thread beyond this are dropped (and counted), never queued.
+MAX_BACKLOG_BYTES = 64 << 20
 
 
 @dataclass(frozen=True)
@@ -102,8 +106,8 @@ class ServerView:
         self.hub = hub
         self.server = server
         self.floor_plan = floor_plan
-        self.dropped = 0
-        self._queue: queue.SimpleQueue[tuple[str, Any, float] | None] = queue.SimpleQueue()
+        self._dropped = 0  # by the view itself (too large to copy, its queue full); the hub counts its own
+        self._queue: queue.SimpleQueue[tuple[str, Any, float, int] | None] = queue.SimpleQueue()
         self._backlog = 0
         self._thread = threading.Thread(target=self._run, name="drvs-liveview", daemon=True)
         self._poller: asyncio.Task[None] | None = None
@@ -124,6 +128,30 @@ class ServerView:
         self.rpc_replies = hub.proto_channel("/drvs/rpc/replies", detection_pb2.DetectionReply)
         self.rpc_reports = hub.proto_channel("/drvs/rpc/reports", detection_pb2.DetectionReport)
 
+    @classmethod
+    def open(
+        cls,
+        server: DrvsServer,
+        listen: tuple[str, int] | None,
+        record: Path | None,
+        floor_plan: Path | None,
+        *,
+        token: str | None = None,
+        bytes_per_s: float | None = None,
+    ) -> ServerView:
+        """The view DrvsServer.show describes (its hub: clientPublish on, `token` and `bytes_per_s`)."""
+        lv.require("--foxglove" if listen is not None else "--record")
+        plan = load_floor_plan(floor_plan) if floor_plan is not None else None
+        hub = lv.LiveHub(
+            "drvs-server",
+            listen=listen,
+            record=record,
+            accept_clients=True,
+            token=token,
+            bytes_per_s=bytes_per_s or lv.BYTES_PER_S,
+        )
+        return cls(hub, server, plan)
+
     # --- from the server's event loop --------------------------------------------------------
 
     def start(self) -> None:
@@ -141,35 +169,60 @@ class ServerView:
         await asyncio.to_thread(self._thread.join, 10)
         self.hub.close()
 
-    def _put(self, kind: str, item: Any) -> None:
-        if self._backlog >= MAX_BACKLOG:
-            self.dropped += 1
-            return
-        self._backlog += 1
-        self._queue.put((kind, item, time.time()))
+    @property
+    def dropped(self) -> int:
+        """Messages neither shown nor recorded: too large, beyond the hub's rate, or its queue full."""
+        return self._dropped + self.hub.dropped
 
-    def request(self, message: detection_pb2.DetectionRequest) -> None:
-        """A robot's request as it came in; its report secret and key are not recorded."""
+    def _put(self, kind: str, item: Any, nbytes: int) -> None:
+        if self._backlog + nbytes > MAX_BACKLOG_BYTES:
+            self._dropped += 1
+            return
+        self._backlog += nbytes
+        self._queue.put((kind, item, time.time(), nbytes))
+
+    def _admit(self, message: Any) -> bool:
+        return bool(self.hub.admit(message.ByteSize()))
+
+    def copy(self, message: detection_pb2.DetectionRequest) -> bytes | None:
+        """A robot's request as it came in, before the server looks at it (answering may change the
+        message), without its report secret and key; None when it is too large to show. Hand it
+        to `request` once the server took the request."""
+        if message.ByteSize() > lv.MAX_MESSAGE_BYTES:
+            return None
         if message.report_secret or message.report_key:
             copy = detection_pb2.DetectionRequest()
             copy.CopyFrom(message)
             copy.ClearField("report_secret")
             copy.ClearField("report_key")
             message = copy
-        self._put("request", message.SerializeToString())
+        return message.SerializeToString()
+
+    def request(self, data: bytes | None) -> None:
+        """A robot's request the server took, as `copy` made it."""
+        if data is None:
+            self._dropped += 1
+            return
+        if not self.hub.admit(len(data)):
+            return
+        self._put("request", data, len(data))
 
     def reply(self, message: detection_pb2.DetectionReply) -> None:
-        self._put("reply", message.SerializeToString())
+        if self._admit(message):
+            data = message.SerializeToString()
+            self._put("reply", data, len(data))
 
     def report(self, message: detection_pb2.DetectionReport) -> None:
-        """A camera's report to the server; its report key is not recorded."""
+        """A camera's report the server accepted; its report key is not recorded."""
+        if not self._admit(message):
+            return
         data = message.SerializeToString()
         if message.report_key:
             copy = detection_pb2.DetectionReport()
             copy.ParseFromString(data)
             copy.ClearField("report_key")
             data = copy.SerializeToString()
-        self._put("report", data)
+        self._put("report", data, len(data))
 
     async def _poll(self) -> None:
         while True:
@@ -200,7 +253,7 @@ class ServerView:
                 cameras=[self.server.camera_info(registry.get(i)) for i in sorted(now)]
             ).SerializeToString()
         self._drawn = now
-        self._put("cameras", (cameras, gone, infos, refresh))
+        self._put("cameras", (cameras, gone, infos, refresh), 1024 * len(cameras) + len(infos or b""))
 
     # --- the view's own thread ----------------------------------------------------------------
 
@@ -210,8 +263,8 @@ class ServerView:
             item = self._queue.get()
             if item is None:
                 return
-            self._backlog -= 1
-            kind, payload, t = item
+            kind, payload, t, nbytes = item
+            self._backlog -= nbytes
             try:
                 getattr(self, f"_on_{kind}")(payload, t)
             except Exception:

@@ -80,6 +80,7 @@ from drvs.server.config import (
 from drvs.server.coverage import uncovered
 from drvs.server.fusion_session import Continuous, FusionSession, FusionSessions, ReportIntake, SingleShot
 from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits, peer_ip
+from drvs.server.routing_errors import KEPT, RoutingErrors
 from drvs.server.shared import PoseRecord, Record, SharedRegistry, secret_digest
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
@@ -319,6 +320,7 @@ class DrvsServer(Lifecycle):
         # Cameras whose last forward failed: skipped until their next heartbeat proves them alive.
         self._unreachable: set[str] = set()
         self._unreachable_why: dict[str, str] = {}
+        self._routing_errors = RoutingErrors()
         # Cameras whose lease ran out without deregistering: id -> (entry, when, why).
         self._lost: OrderedDict[str, tuple[CameraEntry, float, str]] = OrderedDict()
         # ids of (region, fields of view asked and missing) -> (region, fields of view, unseen parts)
@@ -370,17 +372,17 @@ class DrvsServer(Lifecycle):
         listen: tuple[str, int] | None = None,
         record: Path | None = None,
         floor_plan: Path | None = None,
+        *,
+        token: str | None = None,
+        bytes_per_s: float | None = None,
     ) -> None:
         """Before start(): a Foxglove live view on `listen` (host, port; port 0 picks one) and/or a
-        recording to the MCAP file `record`, drawing `floor_plan` (see drvs.server.liveview).
+        recording to the MCAP file `record`, drawing `floor_plan` (see drvs.server.liveview); the
+        view needs `token` if given; both take in at most `bytes_per_s` (drvs.liveview.LiveHub).
         Needs the live extra (FailedPrecondition names it)."""
-        from drvs import liveview
-        from drvs.server.liveview import ServerView, load_floor_plan
+        from drvs.server.liveview import ServerView
 
-        liveview.require("--foxglove" if listen is not None else "--record")
-        plan = load_floor_plan(floor_plan) if floor_plan is not None else None
-        hub = liveview.LiveHub("drvs-server", listen=listen, record=record, accept_clients=True)
-        self.view = ServerView(hub, self, plan)
+        self.view = ServerView.open(self, listen, record, floor_plan, token=token, bytes_per_s=bytes_per_s)
 
     @property
     def port(self) -> int:
@@ -497,7 +499,7 @@ class DrvsServer(Lifecycle):
         if self.view is not None:
             await self.view.stop()
             if self.view.dropped:
-                log.warning("live view: %d messages dropped (its thread fell behind)", self.view.dropped)
+                log.warning("live view: %d messages dropped (too large, too fast, or behind)", self.view.dropped)
         log.info("drvs-server stopped")
 
     async def wait_for_termination(self) -> None:
@@ -1189,14 +1191,16 @@ class DrvsServer(Lifecycle):
         if self._stopped:
             return  # the server's own shutdown closed the links: nobody is waiting to hear
         metrics.ROUTED_FAILED.inc()
-        code = _grpc.status_of(exc).name
-        reason = f"camera {camera.camera_id} did not accept the request: {code} {exc}"
         token = logs.request_id.set(request.request_id)
         try:
-            log.warning("request %s: %s", request.request_id, reason)
+            # What failed on the hop itself stays in the log (routing_errors): the robot hears UNAVAILABLE.
+            code, said = self._routing_errors.for_robot(camera.camera_id, exc, request.request_id)
+            reason = f"camera {camera.camera_id} did not accept the request: {code} {said}"
+            if code in KEPT:
+                log.warning("request %s: %s", request.request_id, reason)
             if mark_unreachable and isinstance(exc, (Unavailable, DeadlineExceeded)):
                 self._unreachable.add(camera.camera_id)
-                self._unreachable_why[camera.camera_id] = f"{code} {exc}"
+                self._unreachable_why[camera.camera_id] = f"{code} {said}"
             if session is not None:
                 session.failed(camera.camera_id, CameraError(code, reason, camera.camera_id))
                 return
@@ -1222,6 +1226,7 @@ class DrvsServer(Lifecycle):
     def _forget(self, camera_id: str) -> None:
         self._unreachable.discard(camera_id)
         self._unreachable_why.pop(camera_id, None)
+        self._routing_errors.forget(camera_id)
         self._lost.pop(camera_id, None)
         self._camera_tokens.pop(camera_id, None)
         link = self._links.pop(camera_id, None)
@@ -1352,13 +1357,13 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         self, message: detection_pb2.DetectionRequest, context: aio.ServicerContext[Any, Any]
     ) -> detection_pb2.DetectionReply:
         view = self._s.view
-        if view is not None:
-            view.request(message)
         if message.cancel:
             raise InvalidArgument("cancel: only a request stream (DetectStream) can cancel its continuous requests")
+        seen = view.copy(message) if view is not None else None  # as it came: answering may change it
         reply = await self._answer(message, peer_ip(context.peer()), {}, self._robot(context))
         assert reply is not None  # only a fused single shot on a stream answers later
-        if view is not None:
+        if view is not None:  # recorded once taken: a refused request is not (it raised)
+            view.request(seen)
             view.reply(reply)
         return reply
 
@@ -1378,17 +1383,20 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         async def answer(
             message: detection_pb2.DetectionRequest, out: ReplyQueue
         ) -> detection_pb2.DetectionReply | None:
-            if view is not None:
-                view.request(message)
             if not message.request_id:
                 raise InvalidArgument("request_id: empty; a streamed request needs its own id")
+            seen = view.copy(message) if view is not None else None  # as it came: answering may change it
             if message.cancel:
                 slots.release(message.request_id)
                 session = fused.sessions.get(message.request_id)
                 if session is not None:
                     session.end("cancelled by the robot")
-                return detection_pb2.DetectionReply(request_id=message.request_id)
-            return await self._answer(message, peer, allowed, robot, slots, fused)
+                reply: detection_pb2.DetectionReply | None = detection_pb2.DetectionReply(request_id=message.request_id)
+            else:
+                reply = await self._answer(message, peer, allowed, robot, slots, fused)
+            if view is not None:  # recorded once taken: a refused request is not (it raised)
+                view.request(seen)
+            return reply
 
         try:
             async for reply in serve_request_stream_queued(request_iterator, answer, "drvs-server", out):
@@ -1496,9 +1504,8 @@ class _CameraReports(detection_pb2_grpc.CallbackCoordinatesServicer):
         async def read() -> None:
             try:
                 async for message in request_iterator:
-                    if view is not None:
+                    if intake.receive(message) and view is not None:  # recorded only once it passed
                         view.report(message)
-                    intake.receive(message)
             finally:
                 intake.input_ended()
 
