@@ -58,6 +58,7 @@ from drvs.registry import (
     Registry,
 )
 from drvs.report_auth import MAX_SECRET_BYTES, new_secret, report_key
+from drvs.report_bounds import NOT_READING, oversized_id, write_control
 from drvs.request_stream import BatchSender, ReplyQueue, serve_request_stream_queued
 from drvs.security import (
     CAMERA,
@@ -1372,6 +1373,7 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
             if not message.request_id:
                 raise InvalidArgument("request_id: empty; a streamed request needs its own id")
             if message.cancel:
+                check_id(message.request_id, "request_id")  # echoed back: no longer than an id may be
                 slots.release(message.request_id)
                 session = fused.sessions.get(message.request_id)
                 if session is not None:
@@ -1482,23 +1484,35 @@ class _CameraReports(detection_pb2_grpc.CallbackCoordinatesServicer):
         intake = ReportIntake(server.fusion, context.peer())
         view = server.view
 
-        async def read() -> None:
+        async def read() -> str:
             try:
                 async for message in request_iterator:
+                    if refusal := oversized_id(message):
+                        return refusal  # the stream ends: nothing holds the report
                     if view is not None:
                         view.report(message)
                     intake.receive(message)
+                return ""
             finally:
                 intake.input_ended()
 
         reader = asyncio.get_running_loop().create_task(read())
+        refusal = (grpc.StatusCode.OK, "")
         try:
             while (control := await intake.next_control()) is not None:
-                await context.write(control)
+                if not await write_control(context, control):
+                    refusal = (grpc.StatusCode.RESOURCE_EXHAUSTED, NOT_READING)
+                    break
+            else:
+                [ended] = await asyncio.gather(reader, return_exceptions=True)
+                if isinstance(ended, str) and ended:
+                    refusal = (grpc.StatusCode.INVALID_ARGUMENT, ended)
         finally:
             reader.cancel()
             await asyncio.gather(reader, return_exceptions=True)
             intake.end()
+        if refusal[1]:
+            await context.abort(*refusal)
 
 
 class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):

@@ -1,0 +1,47 @@
+"""Bounds on what a report stream's sender can make its receiver (the server's fused-report intake,
+a robot's listener) hold: ids no longer than any id the receiver hands out, and a stream whose
+sender stops reading its controls (the cancels the receiver answers with) is dropped instead of
+queueing them. Pure logic, plus one awaitable write."""
+
+from __future__ import annotations
+
+import asyncio
+from typing import Any
+
+from grpc import aio
+
+from drvs.model import MAX_ID_LENGTH
+from drvs.v1 import detection_pb2
+
+#: How long a receiver waits for a report stream's sender to take one control message (a cancel)
+#: before it drops the stream: a sender that writes reports but reads nothing would otherwise
+#: make the receiver hold every cancel it owes.
+CONTROL_WRITE_TIMEOUT_S = 5.0
+
+
+def oversized_id(message: detection_pb2.DetectionReport) -> str:
+    """Why a report is refused (INVALID_ARGUMENT), "" when it is not: a request or camera id longer
+    than any id a request or a camera may have. Nothing the receiver holds is keyed by such an id,
+    and an answer would echo it. (A message, not an exception: an exception's traceback would keep
+    the report, and its megabytes, alive until the garbage collector finds the cycle.)"""
+    for name, value in (("request_id", message.request_id), ("camera_id", message.camera_id)):
+        if len(value) > MAX_ID_LENGTH:
+            return f"{name}: {len(value)} characters, longer than {MAX_ID_LENGTH}; this report stream is closed"
+    return ""
+
+
+#: Why a stream whose sender does not read is dropped (RESOURCE_EXHAUSTED).
+NOT_READING = (
+    f"ReportDetections: the sender has not read this stream's controls for {CONTROL_WRITE_TIMEOUT_S:g} s; "
+    "the stream is dropped"
+)
+
+
+async def write_control(context: aio.ServicerContext[Any, Any], control: detection_pb2.ReportControl) -> bool:
+    """Write one control to a report stream's sender: False when it has not taken it within
+    CONTROL_WRITE_TIMEOUT_S (it does not read; drop the stream with NOT_READING)."""
+    try:
+        await asyncio.wait_for(context.write(control), CONTROL_WRITE_TIMEOUT_S)
+    except TimeoutError:
+        return False
+    return True
