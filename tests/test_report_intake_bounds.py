@@ -32,9 +32,10 @@ async def _refusal(address: str, field: str) -> tuple[str, str]:
     """One report stream with one report whose `field` is 1 MB, then done: the (code, details) it ends with."""
     async with aio.insecure_channel(address) as channel:
         call = detection_pb2_grpc.CallbackCoordinatesStub(channel).ReportDetections()
-        ids = {"request_id": "r1", "camera_id": "cam1", field: "x" * HUGE}
+        report = detection_pb2.DetectionReport(request_id="r1", camera_id="cam1", sequence=0, final=True)
+        setattr(report, field, "x" * HUGE)
         with contextlib.suppress(aio.AioRpcError, asyncio.InvalidStateError):
-            await call.write(detection_pb2.DetectionReport(**ids, sequence=0, final=True))
+            await call.write(report)
             await call.done_writing()
             async for _control in call:
                 pass  # a stream that reads (its status comes after what was written to it)
@@ -51,9 +52,9 @@ async def _flood(address: str, pid: int | None = None) -> tuple[int, int]:
         call = detection_pb2_grpc.CallbackCoordinatesStub(channel).ReportDetections()
         with contextlib.suppress(aio.AioRpcError, asyncio.InvalidStateError):
             for index in range(REPORTS):
-                ids = {"request_id": f"r{index}", "camera_id": "cam1"}
-                ids["request_id" if index % 2 == 0 else "camera_id"] = f"{index:08d}".ljust(HUGE, "x")
-                await call.write(detection_pb2.DetectionReport(**ids, sequence=0, final=True))
+                report = detection_pb2.DetectionReport(request_id=f"r{index}", camera_id="cam1", sequence=0)
+                setattr(report, "request_id" if index % 2 == 0 else "camera_id", f"{index:08d}".ljust(HUGE, "x"))
+                await call.write(report)
                 written += 1
         grown = _rss_bytes(pid) - before if pid is not None else 0
         call.cancel()
