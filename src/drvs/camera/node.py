@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
-import contextlib
 import functools
-import hmac
 import logging
 import math
 import secrets
@@ -42,7 +40,7 @@ from drvs.mobile import DEFAULT_MAX_POSE_GAP_S, Mount, PoseBuffer, move_detectio
 from drvs.model import DEFAULT_FRAME, Detection, DetectionReport, DetectionRequest, Pose2, check_frame, check_id
 from drvs.net import dialable_address, parse_address, parse_address_list
 from drvs.request_stream import serve_request_batches
-from drvs.security import Security, bearer_token
+from drvs.security import Security
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, stream_pb2, stream_pb2_grpc
 
 from .config import (
@@ -57,6 +55,7 @@ from .poses import open_pose_source
 from .prefetch import Analyses
 from .registration import PoseUpdates, Registration
 from .source import FrameSource
+from .trust import FRAME_STREAMS, ReportTargets, check_caller
 
 log = logging.getLogger("drvs.camera")
 
@@ -160,6 +159,8 @@ class CameraNode(Lifecycle):
         #: The server, or several (a,b,...: servers sharing one registry in etcd) tried in turn.
         self.server_address = server
         self.servers = parse_address_list(server, "server")
+        #: Where a fused request's reports (and this node's token) may go: its servers' hosts only.
+        self.report_targets = ReportTargets(self.camera_id, self.servers)
         self.listen = listen
         parse_address(listen, "listen", allow_port_zero=True)
         self.advertise = advertise
@@ -277,6 +278,7 @@ class CameraNode(Lifecycle):
             *image_size,
             self.field_of_view.floor.area,
         )
+        await self.report_targets.resolve()
         await self._endpoint.start()
         log.info("camera %s listening on %s (advertised as %s)", self.camera_id, self._endpoint.address, self.address)
         if self.serve_frames and not self.security.token:
@@ -456,6 +458,8 @@ class CameraNode(Lifecycle):
                     f"report_to_server: camera {self.camera_id} is not registered with its server "
                     f"({self.server_address}), so it has nowhere to report"
                 )
+            if request.report_address:
+                self.report_targets.check(request.report_address)
             robot = ("server", request.robot_id)
         continuous = not request.continuous.single_shot
         if continuous and self._continuous.get(robot, 0) >= self.max_continuous:
@@ -645,32 +649,6 @@ class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
             yield replies
 
 
-def presents_secret(node: CameraNode, metadata: list[tuple[str, Any]]) -> bool:
-    """Does a call present what only this node's server knows: the secret the node handed it at
-    registration, or the node's own token? Both compared in constant time."""
-    given = bearer_token(metadata).encode()
-    ok = hmac.compare_digest(given, node.forward_secret.encode())
-    token = node.security.token
-    return ok | (bool(token) and hmac.compare_digest(given, token.encode()))
-
-
-async def check_caller(
-    node: CameraNode, context: aio.ServicerContext[Any, Any], what: str, requests: AsyncIterator[Any] | None = None
-) -> None:
-    """The camera takes requests only from the server it registered with (which presents the
-    secret back), not from any host or process that finds its port."""
-    if not presents_secret(node, list(context.invocation_metadata() or ())):
-        if requests is not None:
-            # Take the first message before refusing a stream (as security._refusal does): an abort
-            # racing the caller's first write reaches the caller as INTERNAL, not UNAUTHENTICATED.
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(anext(aiter(requests)), 1.0)
-        await context.abort(
-            grpc.StatusCode.UNAUTHENTICATED,
-            f"{what} need the secret this camera gave its server, or its token: send them via the server",
-        )
-
-
 def encode_frame(image: NDArray[np.uint8], encoding: int, quality: int) -> bytes:
     if encoding == stream_pb2.FRAME_ENCODING_RAW_BGR:
         return image.tobytes()
@@ -686,8 +664,8 @@ class _FrameStreaming(stream_pb2_grpc.FrameStreamServicer):
     async def StreamFrames(
         self, request: stream_pb2.StreamFramesRequest, context: aio.ServicerContext[Any, Any]
     ) -> AsyncIterator[stream_pb2.VideoFrame]:
-        # Frames obey the same rule as requests: only for whoever holds this camera's token.
-        await check_caller(self._node, context, "frame streams")
+        # Only for whoever holds this camera's token: never the forward secret, which the server holds.
+        await check_caller(self._node, context, FRAME_STREAMS)
         encodings = (stream_pb2.FRAME_ENCODING_RAW_BGR, stream_pb2.FRAME_ENCODING_JPEG)
         if request.encoding not in encodings:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "encoding: must be RAW_BGR or JPEG")
