@@ -129,10 +129,10 @@ class CameraNode(Lifecycle):
         self.security = security or Security()
         #: The floor plan its field of view is in; the server routes to it only in this frame.
         self.frame = check_frame(frame)
-        #: Continuous requests one robot (callback address) may have running here at once.
+        #: Continuous requests one robot (as the server knows it) may have running here at once.
         self.max_continuous = max_continuous
-        # callback address, or ("server", robot id) for a fused request's -> continuous requests of
-        # that robot running here
+        # ("robot", requester), or ("server", requester) for a fused request's (without a requester:
+        # the callback address, or ("server", robot id)) -> continuous requests of that robot running here
         self._continuous: dict[str | tuple[str, str], int] = {}
         self.resolution = resolution
         #: Detector prefixes to run (default: every built-in); options per prefix from the config.
@@ -433,9 +433,10 @@ class CameraNode(Lifecycle):
 
     # --- serving requests --------------------------------------------------------------------
 
-    def accept(self, request: DetectionRequest) -> None:
+    def accept(self, request: DetectionRequest, requester: str = "") -> None:
         """Take a request: check it against this camera (its detectors, its load, the robot's
-        continuous requests here) and start serving it; its reports go to its callback address."""
+        continuous requests here, counted by `requester`: whom the server knows the robot as)
+        and start serving it; its reports go to its callback address."""
         if self.view is None:
             raise FailedPrecondition(f"camera {self.camera_id} is not started")
         wanted = object_type(request.filter_def)
@@ -451,7 +452,7 @@ class CameraNode(Lifecycle):
             raise ResourceExhausted(
                 f"camera {self.camera_id}: {len(self._jobs)} requests active; try later", retry_after_s=0.1
             )
-        robot: str | tuple[str, str] = request.callback_address
+        robot: str | tuple[str, str] = ("robot", requester) if requester else request.callback_address
         if request.report_to_server:
             if not self.registration.registered.is_set():
                 raise FailedPrecondition(
@@ -460,7 +461,7 @@ class CameraNode(Lifecycle):
                 )
             if request.report_address:
                 self.report_targets.check(request.report_address)
-            robot = ("server", request.robot_id)
+            robot = ("server", requester or request.robot_id)
         continuous = not request.continuous.single_shot
         if continuous and self._continuous.get(robot, 0) >= self.max_continuous:
             raise ResourceExhausted(
@@ -499,8 +500,8 @@ class CameraNode(Lifecycle):
             self._continuous.pop(robot, None)
 
     def continuous_running(self, robot: str | tuple[str, str]) -> int:
-        """Continuous requests running here whose reports go to `robot` (a callback address, or
-        ("server", robot id) for fused requests)."""
+        """Continuous requests running here for `robot`: ("robot", requester), or ("server", requester)
+        for fused requests (from a server that names no requester: a callback address, ("server", robot id))."""
         return self._continuous.get(robot, 0)
 
     async def _serve(self, request: DetectionRequest) -> None:
@@ -589,7 +590,7 @@ class CameraNode(Lifecycle):
 def _robot_name(robot: str | tuple[str, str]) -> str:
     """Whom a continuous request's slot counts for, for a message."""
     if isinstance(robot, tuple):
-        return f"robot {robot[1]!r} (fused, via the server)"
+        return f"robot {robot[1]!r}" + (" (fused, via the server)" if robot[0] == "server" else "")
     return robot
 
 
@@ -622,7 +623,7 @@ class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
 
     def _accept(self, message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
         request = request_from_pb(message, require_request_id=True)
-        self._node.accept(request)
+        self._node.accept(request, message.requester)
         return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=[self._node.camera_id])
 
     async def DetectObjects(

@@ -1293,6 +1293,7 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         # The robot's secret stays here; keys are the server's to make, one per camera.
         message.ClearField("report_secret")
         message.ClearField("report_key")
+        message.requester = robot  # cameras count a robot's requests by whom it proved to be, not by robot_id
         if not request.request_id:
             request = dataclasses.replace(request, request_id=uuid.uuid4().hex)
             message.request_id = request.request_id
