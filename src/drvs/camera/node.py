@@ -112,6 +112,7 @@ class CameraNode(Lifecycle):
         pose_update_angle_deg: float = 5.0,
         max_pose_rate_hz: float = 5.0,
         pose_source: str | None = None,
+        max_speed_mps: float = 0.0,
         frame: str = DEFAULT_FRAME,
         foxglove: tuple[str, int] | None = None,
         foxglove_fps: float = DEFAULT_FOXGLOVE_FPS,
@@ -188,6 +189,8 @@ class CameraNode(Lifecycle):
         if not (math.isfinite(max_pose_rate_hz) and max_pose_rate_hz > 0):
             raise InvalidArgument(f"max_pose_rate_hz: {max_pose_rate_hz} must be > 0")
         self.pose_lease_s = pose_lease_s
+        #: Mobile: the fastest its robot moves, m/s, as told to the server (0: the server's default).
+        self.max_speed_mps = max_speed_mps
         if pose_source is not None and mount is None:
             raise InvalidArgument("pose_source: only a mobile camera (one with a mount) reads poses")
         self.pose_source = open_pose_source(pose_source) if pose_source is not None else None
@@ -299,6 +302,7 @@ class CameraNode(Lifecycle):
                 forward_secret=self.forward_secret,
                 mobile=self.mount is not None,
                 pose_lease_s=self.pose_lease_s,
+                max_speed_mps=self.max_speed_mps,
                 frame="" if self.frame == DEFAULT_FRAME else self.frame,
             ),
             self.field_of_view.floor.area,

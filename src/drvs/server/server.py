@@ -200,6 +200,8 @@ class CameraRegistration:
     pose_lease_s: float = 0.0
     #: The floor plan its homography maps to ("" or "map": the default).
     frame: str = DEFAULT_FRAME
+    #: Mobile: the fastest its robot moves, m/s (0: the server's default).
+    max_speed_mps: float = 0.0
 
 
 class _CameraLink:
@@ -548,6 +550,7 @@ class DrvsServer(Lifecycle):
             mobile=registration.mobile,
             pose_lease_s=registration.pose_lease_s,
             frame=registration.frame,
+            max_speed_mps=registration.max_speed_mps,
         )
         expires = self.registry.expires_at(entry.camera_id)
         secret = self.claims.grant(entry.camera_id, owner, quota, expires, registration.forward_secret)
@@ -596,6 +599,7 @@ class DrvsServer(Lifecycle):
             camera_id, registration.address, Homography.from_values(registration.homography, "homography"),
             registration.image_size, set(registration.detector_kinds), max_range_m, frame=registration.frame,
             mobile=registration.mobile, pose_lease_s=registration.pose_lease_s,
+            max_speed_mps=registration.max_speed_mps,
         )  # fmt: skip
         record = Record(
             camera_id=camera_id,
@@ -617,6 +621,8 @@ class DrvsServer(Lifecycle):
         stored = await shared.put(record, previous, self.registry.lease_ttl_s)
         shared.records[camera_id] = stored
         entry = self._apply_shared(stored)
+        if state is not None and (applied := self.registry.mobile_state(camera_id)) is not None:
+            applied.max_speed_mps = state.max_speed_mps  # the speed its updates here are held to
         return entry, stored.secret
 
     async def _held_record(self, camera_id: str, who: str, registration_secret: str, method: str) -> Record:
@@ -738,11 +744,13 @@ class DrvsServer(Lifecycle):
         request's object type, its field of view meeting the region with positive area (as
         Registry.cameras_seeing tests), and at least one period of the request left."""
         fov = camera.field_of_view
+        for left in self.fusion.leave(camera.camera_id, fov):
+            log.info("fused request %s: mobile camera %s left its region", left.request_id, camera.camera_id)
         if fov.is_empty or camera.camera_id in self._unreachable or self.registry.unroutable(camera.camera_id):
             return
         fx0, fy0, fx1, fy1 = fov.bounds
         for session in self.fusion.continuous():
-            if session.ended or camera.camera_id in session.keys:
+            if session.ended or camera.camera_id in session.keys or camera.camera_id in session.left:
                 continue
             region = session.request.region
             x0, y0, x1, y1 = region.bounds  # cheap test first: most requests are elsewhere
@@ -1546,6 +1554,7 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
             mobile=message.mobile,
             pose_lease_s=message.pose_lease_s,
             frame=message.frame,
+            max_speed_mps=message.max_speed_mps,
         )
         peer = str(peer_ip(context.peer()) or context.peer())
         token = bearer_token(list(context.invocation_metadata() or ()))
