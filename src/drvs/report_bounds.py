@@ -6,6 +6,7 @@ queueing them. Pure logic, plus one awaitable write."""
 from __future__ import annotations
 
 import asyncio
+import sys
 from typing import Any
 
 from grpc import aio
@@ -41,7 +42,11 @@ async def write_control(context: aio.ServicerContext[Any, Any], control: detecti
     """Write one control to a report stream's sender: False when it has not taken it within
     CONTROL_WRITE_TIMEOUT_S (it does not read; drop the stream with NOT_READING)."""
     try:
-        await asyncio.wait_for(context.write(control), CONTROL_WRITE_TIMEOUT_S)
-    except TimeoutError:
+        if sys.version_info >= (3, 11):
+            async with asyncio.timeout(CONTROL_WRITE_TIMEOUT_S):  # the write stays in this task, in order
+                await context.write(control)
+        else:
+            await asyncio.wait_for(context.write(control), CONTROL_WRITE_TIMEOUT_S)
+    except (TimeoutError, asyncio.TimeoutError):  # one class from 3.11 on
         return False
     return True

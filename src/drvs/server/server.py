@@ -1521,6 +1521,7 @@ class _CameraReports(detection_pb2_grpc.CallbackCoordinatesServicer):
             await asyncio.gather(reader, return_exceptions=True)
             intake.end()
         if refusal[1]:
+            log.warning("report stream from %s closed: %s", context.peer(), refusal[1])
             await context.abort(*refusal)
 
 
