@@ -181,6 +181,7 @@ class CameraNode(Lifecycle):
         self.poses = PoseBuffer(max_pose_gap_s)
         for name, value in (
             ("pose_lease_s", pose_lease_s),
+            ("max_speed_mps", max_speed_mps),
             ("pose_update_distance_m", pose_update_distance_m),
             ("pose_update_angle_deg", pose_update_angle_deg),
         ):
