@@ -58,7 +58,7 @@ from drvs.registry import (
     Registry,
 )
 from drvs.report_auth import MAX_SECRET_BYTES, new_secret, report_key
-from drvs.report_bounds import NOT_READING, oversized_id, write_control
+from drvs.report_bounds import serve_report_stream
 from drvs.request_stream import BatchSender, ReplyQueue, serve_request_stream_queued
 from drvs.security import (
     CAMERA,
@@ -1490,39 +1490,9 @@ class _CameraReports(detection_pb2_grpc.CallbackCoordinatesServicer):
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(anext(aiter(request_iterator)), 1.0)
             await context.abort(_grpc.status_of(exc), str(exc))
-        intake = ReportIntake(server.fusion, context.peer())
         view = server.view
-
-        async def read() -> str:
-            try:
-                async for message in request_iterator:
-                    if refusal := oversized_id(message):
-                        return refusal  # the stream ends: nothing holds the report
-                    if view is not None:
-                        view.report(message)
-                    intake.receive(message)
-                return ""
-            finally:
-                intake.input_ended()
-
-        reader = asyncio.get_running_loop().create_task(read())
-        refusal = (grpc.StatusCode.OK, "")
-        try:
-            while (control := await intake.next_control()) is not None:
-                if not await write_control(context, control):
-                    refusal = (grpc.StatusCode.RESOURCE_EXHAUSTED, NOT_READING)
-                    break
-            else:
-                [ended] = await asyncio.gather(reader, return_exceptions=True)
-                if isinstance(ended, str) and ended:
-                    refusal = (grpc.StatusCode.INVALID_ARGUMENT, ended)
-        finally:
-            reader.cancel()
-            await asyncio.gather(reader, return_exceptions=True)
-            intake.end()
-        if refusal[1]:
-            log.warning("report stream from %s closed: %s", context.peer(), refusal[1])
-            await context.abort(*refusal)
+        seen = view.report if view is not None else None
+        await serve_report_stream(request_iterator, context, ReportIntake(server.fusion, context.peer()), seen)
 
 
 class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
