@@ -113,10 +113,11 @@ async def test_the_forward_secret_opens_no_frames_the_token_does() -> None:
         await server.stop()
 
 
-async def test_reports_go_only_to_a_server_the_camera_knows() -> None:
+async def test_reports_go_only_to_a_server_the_camera_knows(caplog: pytest.LogCaptureFixture) -> None:
     """A forward naming a third party's report address is refused (PERMISSION_DENIED, logged): no
-    report and no token reach it. Another port on the server's host (where a `--workers` worker
-    takes its reports) gets them, with the token."""
+    report and no token reach it. A name that does not resolve to the servers' addresses is
+    refused once resolved, before anything is sent. Another port on the server's host (where a
+    `--workers` worker takes its reports) gets them, with the token."""
     server, address = await start_server()
     stranger, stranger_reports, stranger_address = await _listening("127.0.0.2")
     worker, worker_reports, worker_address = await _listening("127.0.0.1")
@@ -127,6 +128,12 @@ async def test_reports_go_only_to_a_server_the_camera_knows() -> None:
             reply = await _forward(node, _fused_forward("stolen", stranger_address))
             assert reply.error.code == "PERMISSION_DENIED", reply
             assert reply.error.message.startswith(f"report_address: {stranger_address!r} is not one of this camera's")
+            reply = await _forward(node, _fused_forward("unresolved", "elsewhere.invalid:50051"))
+            assert not reply.HasField("error"), reply  # a name: decided once resolved, off the event loop
+            deadline = asyncio.get_running_loop().time() + 10
+            while "reports were to go to elsewhere.invalid:50051" not in caplog.text:
+                assert asyncio.get_running_loop().time() < deadline, "the unresolved name was not refused"
+                await asyncio.sleep(0.02)
             reply = await _forward(node, _fused_forward("worker", worker_address))
             assert not reply.HasField("error"), reply
             request_id, authorization = await asyncio.wait_for(worker_reports.reports.get(), 10)

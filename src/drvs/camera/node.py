@@ -517,6 +517,8 @@ class CameraNode(Lifecycle):
         if request.report_to_server:
             # The server that forwarded the request says where (several servers share a registry).
             sender, address = self._server_reports, request.report_address or self.servers[0]
+            if not await self.report_targets.allowed(address):
+                return  # (a name that resolved elsewhere: logged)
         else:
             sender, address = self._callbacks, request.callback_address
         try:

@@ -68,38 +68,85 @@ def _host(address: str) -> str:
     return host_of(address).strip("[]").lower()
 
 
+#: Report hosts named (not IP literals) whose resolution a camera remembers; more start afresh.
+MAX_NAMES = 256
+
+
+def _ips(infos: Sequence[Any]) -> set[str]:
+    return {str(ipaddress.ip_address(str(info[4][0]).split("%")[0])) for info in infos}
+
+
+def _is_ip(host: str) -> bool:
+    try:
+        ipaddress.ip_address(host)
+    except ValueError:
+        return False
+    return True
+
+
 class ReportTargets:
     """Where this camera sends a fused request's reports: its servers (`servers`, the --server
-    list) and other ports on their hosts, named as given or by an address a name resolved to at
-    start (`resolve`). `check` refuses any other report address."""
+    list) and other ports on their hosts, named as given, or by an address a server's name resolved
+    to at start (`resolve`), or by another name all of whose addresses are among those (resolved
+    when first named: `allowed`). `check` refuses any other report address at once, where it can
+    tell without resolving a name."""
 
     def __init__(self, camera_id: str, servers: Sequence[str]) -> None:
         self.camera_id = camera_id
         self.servers = tuple(servers)
         self.hosts = {_host(s) for s in self.servers}
+        #: Other names a report address gave: whether all their addresses are the servers'.
+        self._names: dict[str, bool] = {}
 
     async def resolve(self) -> None:
         """Add the addresses the servers' names resolve to (a name that does not resolve adds none)."""
         loop = asyncio.get_running_loop()
         for host in list(self.hosts):
             with contextlib.suppress(OSError, UnicodeError):
-                infos = await loop.getaddrinfo(host, None, type=socket.SOCK_STREAM)
-                self.hosts |= {str(ipaddress.ip_address(str(info[4][0]).split("%")[0])) for info in infos}
+                self.hosts |= _ips(await loop.getaddrinfo(host, None, type=socket.SOCK_STREAM))
 
-    def check(self, address: str) -> str:
-        """`address` if reports (and this camera's token) may go there; PERMISSION_DENIED, logged, if not."""
+    def _verdict(self, address: str) -> bool | None:
+        """True: a server's; False: not; None: a name not resolved yet."""
         try:
             host = _host(address)
         except InvalidArgument:
-            host = ""
+            return False
         if address in self.servers or host in self.hosts:
-            return address
+            return True
+        return False if _is_ip(host) else self._names.get(host)
+
+    def _refuse(self, address: str) -> PermissionDenied:
         log.warning(
             "camera %s: refused a fused request whose reports were to go to %s: not a server this camera knows",
             self.camera_id,
             address[:100],
         )
-        raise PermissionDenied(
+        return PermissionDenied(
             f"report_address: {address[:100]!r} is not one of this camera's servers ({', '.join(self.servers)}) "
             "nor on one's host; the camera sends its reports, and its token, nowhere else"
         )
+
+    def check(self, address: str) -> str:
+        """`address` unless it is known not to be a server's (PERMISSION_DENIED, logged); a name not
+        resolved yet passes here, and `allowed` decides before anything is sent."""
+        if self._verdict(address) is False:
+            raise self._refuse(address)
+        return address
+
+    async def allowed(self, address: str) -> bool:
+        """May reports (and this camera's token) go to `address`? A new name is resolved (off the
+        event loop) and allowed when all its addresses are the servers'. A refusal is logged."""
+        verdict = self._verdict(address)
+        if verdict is None:
+            host = _host(address)
+            try:
+                ips = _ips(await asyncio.get_running_loop().getaddrinfo(host, None, type=socket.SOCK_STREAM))
+            except (OSError, UnicodeError):
+                ips = set()
+            verdict = bool(ips) and ips <= self.hosts
+            if len(self._names) >= MAX_NAMES:
+                self._names.clear()
+            self._names[host] = verdict
+        if not verdict:
+            self._refuse(address)  # (logged; the caller stops)
+        return verdict
