@@ -139,8 +139,8 @@ async def test_a_mobile_camera_that_drives_into_a_tracked_region_joins_the_track
         asked: asyncio.Queue[DetectionRequest] = asyncio.Queue()
         accept = node.accept
 
-        def accepting(request: DetectionRequest) -> None:
-            accept(request)
+        def accepting(request: DetectionRequest, requester: str = "") -> None:
+            accept(request, requester)
             asked.put_nowait(request)
 
         monkeypatch.setattr(node, "accept", accepting)

@@ -64,7 +64,7 @@ def test_the_routed_field_of_view_follows_the_pose() -> None:
     state = reg.mobile_state("scout")
     assert state is not None and state.base_fov is not None
     assert entry.field_of_view.equals_exact(move_polygon(state.base_fov, here), 1e-9)
-    clock.advance(0.2)
+    clock.advance(7.0)  # 19.7 m away: at the default 3 m/s (and a 1 m jump) that takes 6.2 s
     reg.update_pose("scout", there)
     assert seeing(reg, ahead(there)) == ["scout"] and seeing(reg, ahead(here)) == []
     # Behind the robot is not in view: the field of view turned with it.

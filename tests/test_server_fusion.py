@@ -514,37 +514,55 @@ async def _report_as(channel: aio.Channel, metadata: tuple[tuple[str, str], ...]
     return await call.code(), await call.details() or ""
 
 
+async def _first_snapshot(call: Any, request_id: str) -> detection_pb2.WorldSnapshot:
+    while (reply := await read(call)).request_id != request_id or not reply.HasField("snapshot"):
+        pass
+    return reply.snapshot
+
+
 async def test_a_camera_counts_fused_continuous_requests_per_robot(overlap: dict[str, RecordedCamera]) -> None:
-    """A camera's per-robot cap on continuous requests counts fused ones by the robot's id (they
-    all report to the server): with a cap of one, robot r's second is refused there, and the
-    refusal is in that request's snapshot; robot q's is taken."""
+    """A camera's per-robot cap on continuous requests counts fused ones by whom the server knows
+    the robot as (here its connection), not by the robot_id it names: with a cap of one, a robot's
+    second is refused there, naming another robot's id gets it no fresh slot, and the refusal is in
+    that request's snapshot; another robot's is taken even when it names the first one's id (one
+    robot cannot use up another's slots by naming it)."""
     rec = overlap["left"]
     async with DrvsServer("127.0.0.1:0") as server:
         node = CameraNode(
             "left", VideoSource(str(rec.video)), rec.homography, server.address, max_range_m=6.0, max_continuous=1
         )
-        async with node, aio.insecure_channel(server.address) as channel:
+        async with (
+            node,
+            aio.insecure_channel(server.address) as channel,
+            # Another robot: its own connection (channels to one address otherwise share one).
+            aio.insecure_channel(server.address, options=[("grpc.use_local_subchannel_pool", 1)]) as other_channel,
+        ):
             await asyncio.wait_for(node.registered.wait(), 10)
             call = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
             await call.write(fused("a", LEFT_ONLY, rate_hz=2, duration_s=5))
             assert list((await read(call)).camera_ids) == ["left"]
             await call.write(fused("b", LEFT_ONLY, rate_hz=2, duration_s=5))
             assert list((await read(call)).camera_ids) == ["left"]
-            other = fused("c", LEFT_ONLY, rate_hz=2, duration_s=5)
-            other.robot_id = "q"
-            await call.write(other)
+            refused = await _first_snapshot(call, "b")
+            posing = fused("c", LEFT_ONLY, rate_hz=2, duration_s=5)
+            posing.robot_id = "q"
+            posing.requester = "q"  # the server overwrites it
+            await call.write(posing)
             assert list((await read(call)).camera_ids) == ["left"]
-            refused = None
-            while refused is None:
-                reply = await read(call)
-                if reply.request_id == "b":
-                    refused = reply.snapshot
-            assert node.continuous_running(("server", "r")) == 1
-            assert node.continuous_running(("server", "q")) == 1
+            posed = await _first_snapshot(call, "c")
+            assert [m.code for m in posed.missing_cameras] == ["RESOURCE_EXHAUSTED"], posed
+            other = detection_pb2_grpc.DetectObjectBoundaryStub(other_channel).DetectStream()
+            await other.write(fused("d", LEFT_ONLY, rate_hz=2, duration_s=5))  # robot_id "r", as the first's
+            assert list((await read(other)).camera_ids) == ["left"]
+            taken = await _first_snapshot(other, "d")
+            assert sorted(node._continuous.values()) == [1, 1], node._continuous
             call.cancel()
+            other.cancel()
     [why] = refused.missing_cameras
     assert why.camera_id == "left" and why.code == "RESOURCE_EXHAUSTED"
-    assert "running for robot 'r' (fused, via the server)" in why.message, why.message
+    assert "continuous requests already running for robot 'ipv4:127.0.0.1:" in why.message, why.message
+    assert "(fused, via the server)" in why.message, why.message
+    assert list(taken.missing_cameras) == [], taken
 
 
 async def test_a_camera_without_its_server_refuses_to_report_to_it(overlap: dict[str, RecordedCamera]) -> None:

@@ -6,6 +6,7 @@ they knew and refuse registrations, then resynchronise when it is back."""
 from __future__ import annotations
 
 import asyncio
+import math
 import re
 import shutil
 from collections.abc import AsyncIterator
@@ -359,29 +360,34 @@ async def test_a_mobile_camera_on_a_shared_registry_is_routed_by_every_server_wh
     reply = await call(a_address, "Register", message)
     assert isinstance(reply, registry_pb2.RegisterReply)
     await b.wait_for_line(registered_line("scout"), timeout=10)
-    ahead_of = {  # 2.5 m ahead of a robot at (x, 1) facing +x
-        5.0: registry_pb2.ListCamerasRequest(region=box(7.2, 0.7, 7.8, 1.3)),
-        20.0: registry_pb2.ListCamerasRequest(region=box(22.2, 0.7, 22.8, 1.3)),
+    ahead_of = {  # 2.5 m ahead of a robot at (5, 1) facing +x (yaw 0), then turned round (yaw pi)
+        0.0: registry_pb2.ListCamerasRequest(region=box(7.2, 0.7, 7.8, 1.3)),
+        math.pi: registry_pb2.ListCamerasRequest(region=box(2.2, 0.7, 2.8, 1.3)),
     }
 
-    async def seen_by_b(x: float) -> list[str]:
-        found = await call(b_address, "ListCameras", ahead_of[x])
+    async def seen_by_b(yaw: float) -> list[str]:
+        found = await call(b_address, "ListCameras", ahead_of[yaw])
         assert isinstance(found, registry_pb2.ListCamerasReply)
         return [c.camera_id for c in found.cameras]
 
-    assert await seen_by_b(5.0) == []  # no pose yet: not routed anywhere
-    for x in (5.0, 20.0):
+    assert await seen_by_b(0.0) == []  # no pose yet: not routed anywhere
+    # (It turns rather than jumps: a pose farther than its robot moves is refused.)
+    for yaw in (0.0, math.pi):
         await call(
             a_address,
             "UpdatePose",
             registry_pb2.UpdatePoseRequest(
-                camera_id="scout", registration_secret=reply.registration_secret, pose=geometry_pb2.Pose2(x=x, y=1.0)
+                camera_id="scout",
+                registration_secret=reply.registration_secret,
+                pose=geometry_pb2.Pose2(x=5.0, y=1.0, yaw=yaw),
             ),
         )
         # B logs (DEBUG) each pose it moves the camera to from etcd: then it routes it there.
-        await b.wait_for_line(rf"camera scout at pose x={x:.3f} y=1\.000 .*from the shared registry", timeout=10)
-        assert await seen_by_b(x) == ["scout"], f"B does not route the scout at x={x}"
-    assert await seen_by_b(5.0) == []  # it has moved on
+        await b.wait_for_line(
+            rf"camera scout at pose x=5\.000 y=1\.000 yaw={yaw:.4f} .*from the shared registry", timeout=10
+        )
+        assert await seen_by_b(yaw) == ["scout"], f"B does not route the scout at yaw={yaw}"
+    assert await seen_by_b(0.0) == []  # it has turned away
 
 
 def box(x0: float, y0: float, x1: float, y1: float) -> geometry_pb2.Region:

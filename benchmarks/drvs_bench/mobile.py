@@ -71,11 +71,17 @@ def build(clock: _Clock, mobile: int) -> tuple[Registry, list[str]]:
         x, y = GRID_M * (i % 100), GRID_M * (i // 100)
         h = homography_from_pose((x, y, 3.0), 90.0, 40.0, 60.0, SIZE)
         reg.register(f"fixed-{i:05d}", "127.0.0.1:9", h, SIZE, {"hsv"}, 8.0)
-    base = Mount(0.1, 0.0, 0.8, 0.0, 30.0, hfov_deg=70.0).base_homography(SIZE)
     ids = [f"mobile-{k:03d}" for k in range(mobile)]
+    _register_mobile(reg, ids)
+    return reg, ids
+
+
+def _register_mobile(reg: Registry, ids: list[str]) -> None:
+    """(Again:) each mobile camera with no pose yet, so its next drive may start anywhere (a pose
+    farther from the last than its robot moves would be refused)."""
+    base = Mount(0.1, 0.0, 0.8, 0.0, 30.0, hfov_deg=70.0).base_homography(SIZE)
     for cid in ids:
         reg.register(cid, "127.0.0.1:9", base, SIZE, {"hsv"}, 6.0, mobile=True)
-    return reg, ids
 
 
 def run_mode(reg: Registry, clock: _Clock, ids: list[str], lookups: int, seed: int) -> dict[str, Any]:
@@ -83,6 +89,7 @@ def run_mode(reg: Registry, clock: _Clock, ids: list[str], lookups: int, seed: i
     extent = GRID_M * 100
     # Each mobile camera drives a straight line at 1 m/s from a random start; updates spread evenly.
     starts = [(rng.uniform(0, extent), rng.uniform(0, extent), rng.uniform(-math.pi, math.pi)) for _ in ids]
+    _register_mobile(reg, ids)  # a new drive for each, from its new start
     period = 1.0 / POSE_RATE_HZ
     next_update = [period * k / max(1, len(ids)) for k in range(len(ids))]
     lookup_us: list[float] = []

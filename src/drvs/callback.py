@@ -19,7 +19,7 @@ from grpc import aio
 from drvs import metrics
 from drvs.convert import report_to_pb
 from drvs.errors import Unavailable
-from drvs.model import DetectionReport
+from drvs.model import MAX_ID_LENGTH, DetectionReport
 from drvs.security import Security
 from drvs.v1 import detection_pb2, detection_pb2_grpc
 
@@ -62,6 +62,8 @@ class RobotLink:
         try:
             async for control in self._call:
                 for request_id in control.cancelled_request_ids:
+                    if len(request_id) > MAX_ID_LENGTH:
+                        continue  # no request of ours has such an id: nothing to hold
                     self._cancelled[request_id] = None
                     while len(self._cancelled) > MAX_CANCELLED:
                         self._cancelled.popitem(last=False)

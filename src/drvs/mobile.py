@@ -33,6 +33,12 @@ from drvs.model import Detection, Pose2
 POSE_HISTORY = 500
 #: Default for how far from a frame's capture time the poses around it may be, seconds.
 DEFAULT_MAX_POSE_GAP_S = 0.25
+#: A mobile camera's robot moves at most this fast (m/s) unless its registration declares otherwise
+#: (up to MAX_SPEED_MPS), and one pose may jump this far beyond what that speed allows (metres: a
+#: localiser's correction); an UpdatePose that implies more is refused.
+DEFAULT_MAX_SPEED_MPS = 3.0
+MAX_SPEED_MPS = 50.0
+POSE_JUMP_M = 1.0
 #: A pose feed that drops is reopened after this long, doubling up to the most, seconds.
 INITIAL_BACKOFF_S = 0.1
 MAX_BACKOFF_S = 5.0
@@ -111,6 +117,21 @@ def check_pose_on_floor(pose: Pose2, name: str = "pose") -> Pose2:
     if max(abs(pose.x), abs(pose.y)) > MAX_COORDINATE_M:
         raise InvalidArgument(f"{name}: ({pose.x:g}, {pose.y:g}) is beyond ±{MAX_COORDINATE_M:g} m")
     return pose
+
+
+def check_speed(camera_id: str, previous: Pose2 | None, pose: Pose2, elapsed_s: float, max_speed_mps: float) -> None:
+    """INVALID_ARGUMENT when going from `previous` to `pose` in `elapsed_s` seconds needs more than
+    `max_speed_mps` (plus POSE_JUMP_M, for a relocalisation's correction): a robot does not jump."""
+    if previous is None:
+        return
+    distance = math.hypot(pose.x - previous.x, pose.y - previous.y)
+    elapsed_s = max(elapsed_s, 0.0)
+    if distance > max_speed_mps * elapsed_s + POSE_JUMP_M:
+        speed = distance / elapsed_s if elapsed_s > 0 else math.inf
+        raise InvalidArgument(
+            f"pose: camera {camera_id!r} would have moved {distance:.1f} m in {elapsed_s:.2f} s ({speed:.1f} m/s); "
+            f"its robot moves at most {max_speed_mps:g} m/s (and jumps at most {POSE_JUMP_M:g} m)"
+        )
 
 
 def move_polygon(poly: Polygon, pose: Pose2) -> Polygon:

@@ -16,7 +16,7 @@ from shapely.geometry import Polygon
 
 from drvs.errors import FailedPrecondition, InvalidArgument, NotFound, PermissionDenied, ResourceExhausted
 from drvs.geometry import FieldOfView, Homography
-from drvs.mobile import check_pose_on_floor, move_polygon
+from drvs.mobile import DEFAULT_MAX_SPEED_MPS, MAX_SPEED_MPS, check_pose_on_floor, check_speed, move_polygon
 from drvs.model import DEFAULT_FRAME, Pose2, check_frame, check_id
 from drvs.net import parse_address
 
@@ -80,6 +80,8 @@ class MobileState:
     #: Why it is never routed ("" when it can be): its mount sees no floor.
     no_floor: str
     pose_lease_s: float
+    #: The fastest its robot moves (m/s): a pose update that implies more is refused.
+    max_speed_mps: float = DEFAULT_MAX_SPEED_MPS
     pose: Pose2 | None = None
     pose_time_unix: float = 0.0
     #: Registry clock: when the last pose arrived (-inf: never), and until when it routes.
@@ -291,6 +293,7 @@ class Registry:
         mobile: bool = False,
         pose_lease_s: float = 0.0,
         frame: str = DEFAULT_FRAME,
+        max_speed_mps: float = 0.0,
     ) -> CameraEntry:
         """Validate everything first, then add or replace the entry (replacing renews the lease).
 
@@ -300,7 +303,7 @@ class Registry:
         return self.store(
             *self.check(
                 camera_id, address, homography, image_size, detector_kinds, max_range_m,
-                mobile=mobile, pose_lease_s=pose_lease_s, frame=frame,
+                mobile=mobile, pose_lease_s=pose_lease_s, frame=frame, max_speed_mps=max_speed_mps,
             )
         )  # fmt: skip
 
@@ -316,6 +319,7 @@ class Registry:
         mobile: bool = False,
         pose_lease_s: float = 0.0,
         frame: str = DEFAULT_FRAME,
+        max_speed_mps: float = 0.0,
     ) -> tuple[CameraEntry, MobileState | None]:
         """Every check of a registration, and the entry (and a mobile camera's state) it would
         make, with nothing stored (InvalidArgument naming the field)."""
@@ -337,6 +341,8 @@ class Registry:
             if not (math.isfinite(pose_lease_s) and pose_lease_s >= 0):
                 raise InvalidArgument(f"pose_lease_s: {pose_lease_s} must be >= 0 seconds (0: the server's default)")
             lease = min(pose_lease_s or self.pose_lease_s, self.max_pose_lease_s)
+            if not (math.isfinite(max_speed_mps) and 0 <= max_speed_mps <= MAX_SPEED_MPS):
+                raise InvalidArgument(f"max_speed_mps: {max_speed_mps} must be 0 (the default) to {MAX_SPEED_MPS:g}")
             try:
                 base: Polygon | None = self.field_of_view(homography, image_size, max_range_m).floor
                 no_floor = ""
@@ -345,6 +351,7 @@ class Registry:
                     raise
                 base, no_floor = None, str(exc)
             state = MobileState(base_fov=base, no_floor=no_floor, pose_lease_s=lease)
+            state.max_speed_mps = max_speed_mps or DEFAULT_MAX_SPEED_MPS
             fov_floor = _EMPTY
         else:
             fov_floor = self.field_of_view(homography, image_size, max_range_m).floor
@@ -432,6 +439,8 @@ class Registry:
                 f"pose: camera {camera_id!r} updated {now - state.received:.3f} s ago; at most one update "
                 f"every {self.min_pose_interval_s:g} s"
             )
+        if check_rate:  # (a pose another server took was checked there)
+            check_speed(camera_id, state.pose, pose, now - state.received, state.max_speed_mps)
         state.pose, state.pose_time_unix, state.received = pose, pose_time_unix, now
         state.routed_until = now + state.pose_lease_s
         fov = move_polygon(state.base_fov, pose) if state.base_fov is not None else _EMPTY

@@ -43,6 +43,7 @@ METHOD_ROLES = {
     f"{_PREFIX}RegisterVisionService/Register": CAMERA,
     f"{_PREFIX}RegisterVisionService/Heartbeat": CAMERA,
     f"{_PREFIX}RegisterVisionService/Deregister": CAMERA,
+    f"{_PREFIX}RegisterVisionService/UpdatePose": CAMERA,
     f"{_PREFIX}RegisterVisionService/ListCameras": ROBOT,
     f"{_PREFIX}DetectObjectBoundary/DetectObjects": ROBOT,
     f"{_PREFIX}DetectObjectBoundary/DetectStream": ROBOT,

@@ -124,6 +124,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a frame with no pose this close to its capture is not used (default 0.25)")  # fmt: skip
     m.add_argument("--pose-lease", dest="pose_lease_s", type=float, metavar="S",
                    help="seconds one pose keeps the camera routed (default 0: the server's)")  # fmt: skip
+    m.add_argument("--max-speed", dest="max_speed_mps", type=float, metavar="M/S",
+                   help="the fastest the robot moves; the server refuses faster poses (default 0: its 3)")  # fmt: skip
     m.add_argument("--pose-update-distance", dest="pose_update_distance_m", type=float, metavar="M",
                    help="send a pose when the robot moved this far (default 0.1)")  # fmt: skip
     m.add_argument("--pose-update-angle", dest="pose_update_angle_deg", type=float, metavar="DEG",
@@ -442,6 +444,7 @@ def main(argv: list[str] | None = None) -> int:
             pose_source=config.pose_source,
             max_pose_gap_s=config.max_pose_gap_s,
             pose_lease_s=config.pose_lease_s,
+            max_speed_mps=config.max_speed_mps,
             pose_update_distance_m=config.pose_update_distance_m,
             pose_update_angle_deg=config.pose_update_angle_deg,
             max_pose_rate_hz=config.max_pose_rate_hz,

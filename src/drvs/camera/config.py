@@ -134,6 +134,8 @@ class CameraConfig:
     max_pose_gap_s: float = DEFAULT_MAX_POSE_GAP_S
     #: Seconds a pose update keeps the camera routed (0: the server's default).
     pose_lease_s: float = 0.0
+    #: The fastest the robot moves, m/s (0: the server's default, 3): faster poses are refused.
+    max_speed_mps: float = 0.0
     #: Send the server a pose when the robot moved this far (metres) or turned this much (degrees),
     #: at most max_pose_rate_hz times a second.
     pose_update_distance_m: float = 0.1
@@ -206,7 +208,8 @@ _FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max
           "detect_workers": "--detect-workers", "background": "--background",
           "people_min_height_px": "--people-min-height", "mount": "--mount", "hfov_deg": "--hfov",
           "camera_matrix": "--camera-matrix", "pose_source": "--pose-source", "max_pose_gap_s": "--max-pose-gap",
-          "pose_lease_s": "--pose-lease", "pose_update_distance_m": "--pose-update-distance",
+          "pose_lease_s": "--pose-lease", "max_speed_mps": "--max-speed",
+          "pose_update_distance_m": "--pose-update-distance",
           "pose_update_angle_deg": "--pose-update-angle", "max_pose_rate_hz": "--max-pose-rate",
           "frame": "--frame", "foxglove": "--foxglove", "foxglove_fps": "--foxglove-fps"}  # fmt: skip
 
@@ -225,6 +228,7 @@ LIMITS: dict[str, tuple[float, float, bool]] = {
     "hfov_deg": (1.0, 179.0, False),
     "max_pose_gap_s": (0.001, 60.0, False),
     "pose_lease_s": (0.0, 3600.0, False),
+    "max_speed_mps": (0.0, 50.0, False),
     "pose_update_distance_m": (0.0, 1000.0, False),
     "pose_update_angle_deg": (0.0, 180.0, False),
     "max_pose_rate_hz": (0.01, 100.0, False),

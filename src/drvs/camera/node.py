@@ -4,9 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import concurrent.futures
-import contextlib
 import functools
-import hmac
 import logging
 import math
 import secrets
@@ -42,7 +40,7 @@ from drvs.mobile import DEFAULT_MAX_POSE_GAP_S, Mount, PoseBuffer, move_detectio
 from drvs.model import DEFAULT_FRAME, Detection, DetectionReport, DetectionRequest, Pose2, check_frame, check_id
 from drvs.net import dialable_address, parse_address, parse_address_list
 from drvs.request_stream import serve_request_batches
-from drvs.security import Security, bearer_token
+from drvs.security import Security
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, stream_pb2, stream_pb2_grpc
 
 from .config import (
@@ -57,6 +55,7 @@ from .poses import open_pose_source
 from .prefetch import Analyses
 from .registration import PoseUpdates, Registration
 from .source import FrameSource
+from .trust import FRAME_STREAMS, ReportTargets, check_caller
 
 log = logging.getLogger("drvs.camera")
 
@@ -113,6 +112,7 @@ class CameraNode(Lifecycle):
         pose_update_angle_deg: float = 5.0,
         max_pose_rate_hz: float = 5.0,
         pose_source: str | None = None,
+        max_speed_mps: float = 0.0,
         frame: str = DEFAULT_FRAME,
         foxglove: tuple[str, int] | None = None,
         foxglove_fps: float = DEFAULT_FOXGLOVE_FPS,
@@ -130,10 +130,10 @@ class CameraNode(Lifecycle):
         self.security = security or Security()
         #: The floor plan its field of view is in; the server routes to it only in this frame.
         self.frame = check_frame(frame)
-        #: Continuous requests one robot (callback address) may have running here at once.
+        #: Continuous requests one robot (as the server knows it) may have running here at once.
         self.max_continuous = max_continuous
-        # callback address, or ("server", robot id) for a fused request's -> continuous requests of
-        # that robot running here
+        # ("robot", requester), or ("server", requester) for a fused request's (without a requester:
+        # the callback address, or ("server", robot id)) -> continuous requests of that robot running here
         self._continuous: dict[str | tuple[str, str], int] = {}
         self.resolution = resolution
         #: Detector prefixes to run (default: every built-in); options per prefix from the config.
@@ -160,6 +160,8 @@ class CameraNode(Lifecycle):
         #: The server, or several (a,b,...: servers sharing one registry in etcd) tried in turn.
         self.server_address = server
         self.servers = parse_address_list(server, "server")
+        #: Where a fused request's reports (and this node's token) may go: its servers' hosts only.
+        self.report_targets = ReportTargets(self.camera_id, self.servers)
         self.listen = listen
         parse_address(listen, "listen", allow_port_zero=True)
         self.advertise = advertise
@@ -179,6 +181,7 @@ class CameraNode(Lifecycle):
         self.poses = PoseBuffer(max_pose_gap_s)
         for name, value in (
             ("pose_lease_s", pose_lease_s),
+            ("max_speed_mps", max_speed_mps),
             ("pose_update_distance_m", pose_update_distance_m),
             ("pose_update_angle_deg", pose_update_angle_deg),
         ):
@@ -187,6 +190,8 @@ class CameraNode(Lifecycle):
         if not (math.isfinite(max_pose_rate_hz) and max_pose_rate_hz > 0):
             raise InvalidArgument(f"max_pose_rate_hz: {max_pose_rate_hz} must be > 0")
         self.pose_lease_s = pose_lease_s
+        #: Mobile: the fastest its robot moves, m/s, as told to the server (0: the server's default).
+        self.max_speed_mps = max_speed_mps
         if pose_source is not None and mount is None:
             raise InvalidArgument("pose_source: only a mobile camera (one with a mount) reads poses")
         self.pose_source = open_pose_source(pose_source) if pose_source is not None else None
@@ -277,6 +282,7 @@ class CameraNode(Lifecycle):
             *image_size,
             self.field_of_view.floor.area,
         )
+        await self.report_targets.resolve()
         await self._endpoint.start()
         log.info("camera %s listening on %s (advertised as %s)", self.camera_id, self._endpoint.address, self.address)
         if self.serve_frames and not self.security.token:
@@ -297,6 +303,7 @@ class CameraNode(Lifecycle):
                 forward_secret=self.forward_secret,
                 mobile=self.mount is not None,
                 pose_lease_s=self.pose_lease_s,
+                max_speed_mps=self.max_speed_mps,
                 frame="" if self.frame == DEFAULT_FRAME else self.frame,
             ),
             self.field_of_view.floor.area,
@@ -431,9 +438,10 @@ class CameraNode(Lifecycle):
 
     # --- serving requests --------------------------------------------------------------------
 
-    def accept(self, request: DetectionRequest) -> None:
+    def accept(self, request: DetectionRequest, requester: str = "") -> None:
         """Take a request: check it against this camera (its detectors, its load, the robot's
-        continuous requests here) and start serving it; its reports go to its callback address."""
+        continuous requests here, counted by `requester`: whom the server knows the robot as)
+        and start serving it; its reports go to its callback address."""
         if self.view is None:
             raise FailedPrecondition(f"camera {self.camera_id} is not started")
         wanted = object_type(request.filter_def)
@@ -449,14 +457,16 @@ class CameraNode(Lifecycle):
             raise ResourceExhausted(
                 f"camera {self.camera_id}: {len(self._jobs)} requests active; try later", retry_after_s=0.1
             )
-        robot: str | tuple[str, str] = request.callback_address
+        robot: str | tuple[str, str] = ("robot", requester) if requester else request.callback_address
         if request.report_to_server:
             if not self.registration.registered.is_set():
                 raise FailedPrecondition(
                     f"report_to_server: camera {self.camera_id} is not registered with its server "
                     f"({self.server_address}), so it has nowhere to report"
                 )
-            robot = ("server", request.robot_id)
+            if request.report_address:
+                self.report_targets.check(request.report_address)
+            robot = ("server", requester or request.robot_id)
         continuous = not request.continuous.single_shot
         if continuous and self._continuous.get(robot, 0) >= self.max_continuous:
             raise ResourceExhausted(
@@ -495,8 +505,8 @@ class CameraNode(Lifecycle):
             self._continuous.pop(robot, None)
 
     def continuous_running(self, robot: str | tuple[str, str]) -> int:
-        """Continuous requests running here whose reports go to `robot` (a callback address, or
-        ("server", robot id) for fused requests)."""
+        """Continuous requests running here for `robot`: ("robot", requester), or ("server", requester)
+        for fused requests (from a server that names no requester: a callback address, ("server", robot id))."""
         return self._continuous.get(robot, 0)
 
     async def _serve(self, request: DetectionRequest) -> None:
@@ -507,6 +517,8 @@ class CameraNode(Lifecycle):
         if request.report_to_server:
             # The server that forwarded the request says where (several servers share a registry).
             sender, address = self._server_reports, request.report_address or self.servers[0]
+            if not await self.report_targets.allowed(address):
+                return  # (a name that resolved elsewhere: logged)
         else:
             sender, address = self._callbacks, request.callback_address
         try:
@@ -585,7 +597,7 @@ class CameraNode(Lifecycle):
 def _robot_name(robot: str | tuple[str, str]) -> str:
     """Whom a continuous request's slot counts for, for a message."""
     if isinstance(robot, tuple):
-        return f"robot {robot[1]!r} (fused, via the server)"
+        return f"robot {robot[1]!r}" + (" (fused, via the server)" if robot[0] == "server" else "")
     return robot
 
 
@@ -618,7 +630,7 @@ class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
 
     def _accept(self, message: detection_pb2.DetectionRequest) -> detection_pb2.DetectionReply:
         request = request_from_pb(message, require_request_id=True)
-        self._node.accept(request)
+        self._node.accept(request, message.requester)
         return detection_pb2.DetectionReply(request_id=request.request_id, camera_ids=[self._node.camera_id])
 
     async def DetectObjects(
@@ -645,32 +657,6 @@ class _ServerFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
             yield replies
 
 
-def presents_secret(node: CameraNode, metadata: list[tuple[str, Any]]) -> bool:
-    """Does a call present what only this node's server knows: the secret the node handed it at
-    registration, or the node's own token? Both compared in constant time."""
-    given = bearer_token(metadata).encode()
-    ok = hmac.compare_digest(given, node.forward_secret.encode())
-    token = node.security.token
-    return ok | (bool(token) and hmac.compare_digest(given, token.encode()))
-
-
-async def check_caller(
-    node: CameraNode, context: aio.ServicerContext[Any, Any], what: str, requests: AsyncIterator[Any] | None = None
-) -> None:
-    """The camera takes requests only from the server it registered with (which presents the
-    secret back), not from any host or process that finds its port."""
-    if not presents_secret(node, list(context.invocation_metadata() or ())):
-        if requests is not None:
-            # Take the first message before refusing a stream (as security._refusal does): an abort
-            # racing the caller's first write reaches the caller as INTERNAL, not UNAUTHENTICATED.
-            with contextlib.suppress(Exception):
-                await asyncio.wait_for(anext(aiter(requests)), 1.0)
-        await context.abort(
-            grpc.StatusCode.UNAUTHENTICATED,
-            f"{what} need the secret this camera gave its server, or its token: send them via the server",
-        )
-
-
 def encode_frame(image: NDArray[np.uint8], encoding: int, quality: int) -> bytes:
     if encoding == stream_pb2.FRAME_ENCODING_RAW_BGR:
         return image.tobytes()
@@ -686,8 +672,8 @@ class _FrameStreaming(stream_pb2_grpc.FrameStreamServicer):
     async def StreamFrames(
         self, request: stream_pb2.StreamFramesRequest, context: aio.ServicerContext[Any, Any]
     ) -> AsyncIterator[stream_pb2.VideoFrame]:
-        # Frames obey the same rule as requests: only for whoever holds this camera's token.
-        await check_caller(self._node, context, "frame streams")
+        # Only for whoever holds this camera's token: never the forward secret, which the server holds.
+        await check_caller(self._node, context, FRAME_STREAMS)
         encodings = (stream_pb2.FRAME_ENCODING_RAW_BGR, stream_pb2.FRAME_ENCODING_JPEG)
         if request.encoding not in encodings:
             await context.abort(grpc.StatusCode.INVALID_ARGUMENT, "encoding: must be RAW_BGR or JPEG")

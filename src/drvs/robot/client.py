@@ -71,6 +71,7 @@ from drvs.net import (
     parse_address_list,
 )
 from drvs.report_auth import key_matches, new_secret
+from drvs.report_bounds import NOT_READING, oversized_id, write_control
 from drvs.request_stream import RequestStream
 from drvs.robot.throttle import DEFAULT_K, AdaptiveThrottle
 from drvs.security import SERVER, Security
@@ -1590,11 +1591,16 @@ class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):
         normal end) instead of leaving gRPC to cancel it.
         """
         stream = self._client._receive(context.peer())
+        refusal = (grpc.StatusCode.OK, "")
         try:
             async for message in request_iterator:
+                if why := oversized_id(message):  # before anything holds or echoes it
+                    refusal = (grpc.StatusCode.INVALID_ARGUMENT, why)
+                    break
                 control = stream.receive(message)
-                if control is not None:
-                    await context.write(control)
+                if control is not None and not await write_control(context, control):
+                    refusal = (grpc.StatusCode.RESOURCE_EXHAUSTED, NOT_READING)
+                    break
         except asyncio.CancelledError:
             if not stream.closing:
                 raise
@@ -1604,6 +1610,8 @@ class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):
                     await asyncio.wait_for(context.write(control), 0.5)
         finally:
             stream.end()
+        if refusal[1]:
+            await context.abort(*refusal)
 
 
 def _is_ip_literal(address: str) -> bool:

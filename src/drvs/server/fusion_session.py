@@ -34,6 +34,8 @@ from collections.abc import Callable, Sequence
 from typing import Any, Protocol
 
 import grpc
+import shapely
+from shapely.geometry import Polygon
 
 from drvs import metrics
 from drvs.convert import report_from_pb, snapshot_to_pb
@@ -336,6 +338,8 @@ class Continuous(FusionSession):
         self._t0 = 0.0
         self._task: asyncio.Task[None] | None = None
         self._done = asyncio.Event()  # every camera finished or failed
+        #: Mobile cameras that drove off the region: not asked again (they were told to stop).
+        self.left: set[str] = set()
 
     def start(self, reply: detection_pb2.DetectionReply) -> None:
         super().start(reply)
@@ -361,6 +365,23 @@ class Continuous(FusionSession):
         self.keys[camera_id] = key
         self._heard[camera_id] = asyncio.get_running_loop().time()
         self._done.clear()
+
+    def remove_camera(self, camera_id: str) -> bool:
+        """A mobile camera whose field of view left the region: its reports count no more, the
+        stream it reported on is told to stop sending them, and it is not asked again. True when it
+        was one of this request's cameras."""
+        if self.ended or camera_id not in self.keys:
+            return False
+        self.cameras = tuple(c for c in self.cameras if c != camera_id)
+        del self.keys[camera_id]
+        self.left.add(camera_id)
+        self._fresh.pop(camera_id, None)
+        self._heard.pop(camera_id, None)
+        stream = self._streams.pop(camera_id, None)
+        if stream is not None:
+            stream.cancel(self.forward_id)
+        self._changed()
+        return True
 
     def report(self, report: DetectionReport, stream: ReportIntake) -> None:
         camera_id = report.camera_id
@@ -506,6 +527,18 @@ class FusionSessions:
         """The continuous fused requests in flight (a list: the caller may start or end some)."""
         return list(self._continuous)
 
+    def leave(self, camera_id: str, fov: Polygon) -> list[Continuous]:
+        """Take a mobile camera that moved off the continuous requests whose region its field of
+        view `fov` (empty: it sees no floor) no longer meets with positive area; the requests it left."""
+        left = []
+        for session in self.continuous():
+            if camera_id not in session.keys:
+                continue
+            off = fov.is_empty or not shapely.relate_pattern(fov, session.request.region, "T********")
+            if off and session.remove_camera(camera_id):
+                left.append(session)
+        return left
+
     def find(self, request_id: str, camera_id: str, key: bytes) -> FusionSession | None:
         """The session in flight forwarded as `request_id` whose key for `camera_id` is `key`."""
         for session in self._by_id.get(request_id, ()):
@@ -557,7 +590,7 @@ class ReportIntake:
                     self._verified.popitem(last=False)
         else:
             session = self._verified.get(pair)
-        if session is None or session.ended:
+        if session is None or session.ended or message.camera_id not in session.keys:  # (it left)
             self._verified.pop(pair, None)
             self._reject(message, known=session is not None)
             return False

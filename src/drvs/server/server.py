@@ -58,6 +58,7 @@ from drvs.registry import (
     Registry,
 )
 from drvs.report_auth import MAX_SECRET_BYTES, new_secret, report_key
+from drvs.report_bounds import serve_report_stream
 from drvs.request_stream import BatchSender, ReplyQueue, serve_request_stream_queued
 from drvs.security import (
     CAMERA,
@@ -199,6 +200,8 @@ class CameraRegistration:
     pose_lease_s: float = 0.0
     #: The floor plan its homography maps to ("" or "map": the default).
     frame: str = DEFAULT_FRAME
+    #: Mobile: the fastest its robot moves, m/s (0: the server's default).
+    max_speed_mps: float = 0.0
 
 
 class _CameraLink:
@@ -550,6 +553,7 @@ class DrvsServer(Lifecycle):
             mobile=registration.mobile,
             pose_lease_s=registration.pose_lease_s,
             frame=registration.frame,
+            max_speed_mps=registration.max_speed_mps,
         )
         expires = self.registry.expires_at(entry.camera_id)
         secret = self.claims.grant(entry.camera_id, owner, quota, expires, registration.forward_secret)
@@ -598,6 +602,7 @@ class DrvsServer(Lifecycle):
             camera_id, registration.address, Homography.from_values(registration.homography, "homography"),
             registration.image_size, set(registration.detector_kinds), max_range_m, frame=registration.frame,
             mobile=registration.mobile, pose_lease_s=registration.pose_lease_s,
+            max_speed_mps=registration.max_speed_mps,
         )  # fmt: skip
         record = Record(
             camera_id=camera_id,
@@ -624,6 +629,8 @@ class DrvsServer(Lifecycle):
             self.claims.unreserve(camera_id, quota)  # held from here on (_apply_shared), or failed
         shared.records[camera_id] = stored
         entry = self._apply_shared(stored)
+        if state is not None and (applied := self.registry.mobile_state(camera_id)) is not None:
+            applied.max_speed_mps = state.max_speed_mps  # the speed its updates here are held to
         return entry, secret
 
     async def _held_record(self, camera_id: str, who: str, registration_secret: str, method: str) -> Record:
@@ -749,11 +756,13 @@ class DrvsServer(Lifecycle):
         request's object type, its field of view meeting the region with positive area (as
         Registry.cameras_seeing tests), and at least one period of the request left."""
         fov = camera.field_of_view
+        for left in self.fusion.leave(camera.camera_id, fov):
+            log.info("fused request %s: mobile camera %s left its region", left.request_id, camera.camera_id)
         if fov.is_empty or camera.camera_id in self._unreachable or self.registry.unroutable(camera.camera_id):
             return
         fx0, fy0, fx1, fy1 = fov.bounds
         for session in self.fusion.continuous():
-            if session.ended or camera.camera_id in session.keys:
+            if session.ended or camera.camera_id in session.keys or camera.camera_id in session.left:
                 continue
             region = session.request.region
             x0, y0, x1, y1 = region.bounds  # cheap test first: most requests are elsewhere
@@ -1308,6 +1317,7 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         # The robot's secret stays here; keys are the server's to make, one per camera.
         message.ClearField("report_secret")
         message.ClearField("report_key")
+        message.requester = robot  # cameras count a robot's requests by whom it proved to be, not by robot_id
         if not request.request_id:
             request = dataclasses.replace(request, request_id=uuid.uuid4().hex)
             message.request_id = request.request_id
@@ -1387,6 +1397,7 @@ class _RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
                 raise InvalidArgument("request_id: empty; a streamed request needs its own id")
             seen = view.copy(message) if view is not None else None  # as it came: answering may change it
             if message.cancel:
+                check_id(message.request_id, "request_id")  # echoed back: no longer than an id may be
                 slots.release(message.request_id)
                 session = fused.sessions.get(message.request_id)
                 if session is not None:
@@ -1498,25 +1509,9 @@ class _CameraReports(detection_pb2_grpc.CallbackCoordinatesServicer):
             with contextlib.suppress(Exception):
                 await asyncio.wait_for(anext(aiter(request_iterator)), 1.0)
             await context.abort(_grpc.status_of(exc), str(exc))
-        intake = ReportIntake(server.fusion, context.peer())
         view = server.view
-
-        async def read() -> None:
-            try:
-                async for message in request_iterator:
-                    if intake.receive(message) and view is not None:  # recorded only once it passed
-                        view.report(message)
-            finally:
-                intake.input_ended()
-
-        reader = asyncio.get_running_loop().create_task(read())
-        try:
-            while (control := await intake.next_control()) is not None:
-                await context.write(control)
-        finally:
-            reader.cancel()
-            await asyncio.gather(reader, return_exceptions=True)
-            intake.end()
+        seen = view.report if view is not None else None
+        await serve_report_stream(request_iterator, context, ReportIntake(server.fusion, context.peer()), seen)
 
 
 class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
@@ -1549,6 +1544,7 @@ class _Registration(registry_pb2_grpc.RegisterVisionServiceServicer):
             mobile=message.mobile,
             pose_lease_s=message.pose_lease_s,
             frame=message.frame,
+            max_speed_mps=message.max_speed_mps,
         )
         peer = str(peer_ip(context.peer()) or context.peer())
         token = bearer_token(list(context.invocation_metadata() or ()))

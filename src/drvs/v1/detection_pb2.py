@@ -26,7 +26,7 @@ from drvs.v1 import geometry_pb2 as drvs_dot_v1_dot_geometry__pb2
 from google.protobuf import timestamp_pb2 as google_dot_protobuf_dot_timestamp__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x17\x64rvs/v1/detection.proto\x12\x07\x64rvs.v1\x1a\x16\x64rvs/v1/geometry.proto\x1a\x1fgoogle/protobuf/timestamp.proto\"5\n\x0e\x43ontinuousMode\x12\x0f\n\x07rate_hz\x18\x01 \x01(\x01\x12\x12\n\nduration_s\x18\x02 \x01(\x01\"\xef\x02\n\x10\x44\x65tectionRequest\x12\x12\n\nrequest_id\x18\x01 \x01(\t\x12\x10\n\x08robot_id\x18\x02 \x01(\t\x12\x12\n\nfilter_def\x18\x03 \x01(\t\x12\x1f\n\x06region\x18\x04 \x01(\x0b\x32\x0f.drvs.v1.Region\x12\x18\n\x10\x63\x61llback_address\x18\x05 \x01(\t\x12+\n\ncontinuous\x18\x06 \x01(\x0b\x32\x17.drvs.v1.ContinuousMode\x12\x15\n\romit_outlines\x18\x07 \x01(\x08\x12\x15\n\rreport_secret\x18\x08 \x01(\x0c\x12\x12\n\nreport_key\x18\t \x01(\x0c\x12\x0e\n\x06\x63\x61ncel\x18\n \x01(\x08\x12&\n\x06\x66usion\x18\x0b \x01(\x0b\x32\x16.drvs.v1.FusionOptions\x12\x18\n\x10report_to_server\x18\x0c \x01(\x08\x12\r\n\x05\x66rame\x18\r \x01(\t\x12\x16\n\x0ereport_address\x18\x0e \x01(\t\"9\n\rFusionOptions\x12\x12\n\ndeadline_s\x18\x01 \x01(\x01\x12\x14\n\x0c\x64rop_after_s\x18\x02 \x01(\x01\"\xe4\x03\n\x0bWorldObject\x12\x10\n\x08track_id\x18\x01 \x01(\x04\x12\x12\n\noutline_xy\x18\x02 \x03(\x02\x12!\n\x06\x62ounds\x18\x03 \x01(\x0b\x32\x11.drvs.v1.FloorBox\x12%\n\x08\x63\x65ntroid\x18\x04 \x01(\x0b\x32\x13.drvs.v1.FloorPoint\x12%\n\x08velocity\x18\x05 \x01(\x0b\x32\x13.drvs.v1.FloorPoint\x12\x18\n\x0bheading_deg\x18\x06 \x01(\x02H\x00\x88\x01\x01\x12\x15\n\runcertainty_m\x18\x07 \x01(\x02\x12\x12\n\ncamera_ids\x18\x08 \x03(\t\x12\x16\n\tmarker_id\x18\t \x01(\x05H\x01\x88\x01\x01\x12\r\n\x05label\x18\n \x01(\t\x12\r\n\x05score\x18\x0b \x01(\x02\x12\x0f\n\x07\x61rea_m2\x18\x0c \x01(\x02\x12-\n\tlast_seen\x18\r \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x1f\n\x12marker_heading_deg\x18\x0e \x01(\x02H\x02\x88\x01\x01\x12\x17\n\x0flast_seen_age_s\x18\x0f \x01(\x02\x12\x14\n\x0c\x63\x61mera_index\x18\x10 \x03(\rB\x0e\n\x0c_heading_degB\x0c\n\n_marker_idB\x15\n\x13_marker_heading_deg\"\xc6\x01\n\rWorldSnapshot\x12(\n\x04time\x18\x01 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x10\n\x08sequence\x18\x02 \x01(\r\x12\r\n\x05\x66inal\x18\x03 \x01(\x08\x12%\n\x07objects\x18\x04 \x03(\x0b\x32\x14.drvs.v1.WorldObject\x12/\n\x0fmissing_cameras\x18\x05 \x03(\x0b\x32\x16.drvs.v1.MissingCamera\x12\x12\n\ncamera_ids\x18\x06 \x03(\t\"D\n\x0cRequestError\x12\x0c\n\x04\x63ode\x18\x01 \x01(\t\x12\x0f\n\x07message\x18\x02 \x01(\t\x12\x15\n\rretry_after_s\x18\x03 \x01(\x02\"A\n\rMissingCamera\x12\x11\n\tcamera_id\x18\x01 \x01(\t\x12\x0c\n\x04\x63ode\x18\x02 \x01(\t\x12\x0f\n\x07message\x18\x03 \x01(\t\"\xfc\x01\n\x0e\x44\x65tectionReply\x12\x12\n\nrequest_id\x18\x01 \x01(\t\x12\x12\n\ncamera_ids\x18\x02 \x03(\t\x12$\n\x05\x65rror\x18\x03 \x01(\x0b\x32\x15.drvs.v1.RequestError\x12/\n\x0fmissing_cameras\x18\x04 \x03(\x0b\x32\x16.drvs.v1.MissingCamera\x12#\n\tuncovered\x18\x05 \x03(\x0b\x32\x10.drvs.v1.Polygon\x12\x1c\n\x14\x63overage_uncertain_s\x18\x06 \x01(\x02\x12(\n\x08snapshot\x18\x07 \x01(\x0b\x32\x16.drvs.v1.WorldSnapshot\"@\n\x11\x44\x65tectionRequests\x12+\n\x08requests\x18\x01 \x03(\x0b\x32\x19.drvs.v1.DetectionRequest\"<\n\x10\x44\x65tectionReplies\x12(\n\x07replies\x18\x01 \x03(\x0b\x32\x17.drvs.v1.DetectionReply\"\xde\x02\n\tDetection\x12\x12\n\noutline_xy\x18\x01 \x03(\x02\x12!\n\x06\x62ounds\x18\x02 \x01(\x0b\x32\x11.drvs.v1.FloorBox\x12%\n\x08\x63\x65ntroid\x18\x03 \x01(\x0b\x32\x13.drvs.v1.FloorPoint\x12+\n\x0eground_contact\x18\x04 \x01(\x0b\x32\x13.drvs.v1.FloorPoint\x12$\n\tpixel_box\x18\x05 \x01(\x0b\x32\x11.drvs.v1.PixelBox\x12\x0f\n\x07\x61rea_m2\x18\x06 \x01(\x02\x12\x0f\n\x07\x61rea_px\x18\x07 \x01(\x02\x12\r\n\x05score\x18\x08 \x01(\x02\x12\x16\n\tmarker_id\x18\n \x01(\x05H\x00\x88\x01\x01\x12\x18\n\x0bheading_deg\x18\x0b \x01(\x02H\x01\x88\x01\x01\x12\r\n\x05label\x18\x0c \x01(\tB\x0c\n\n_marker_idB\x0e\n\x0c_heading_degJ\x04\x08\t\x10\nR\nfilter_def\"\x8f\x02\n\x0f\x44\x65tectionReport\x12\x12\n\nrequest_id\x18\x01 \x01(\t\x12\x11\n\tcamera_id\x18\x02 \x01(\t\x12\x30\n\x0c\x63\x61pture_time\x18\x03 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x10\n\x08sequence\x18\x04 \x01(\r\x12\r\n\x05\x66inal\x18\x05 \x01(\x08\x12&\n\ndetections\x18\x06 \x03(\x0b\x32\x12.drvs.v1.Detection\x12\r\n\x05\x65rror\x18\x07 \x01(\t\x12\x12\n\nreport_key\x18\x08 \x01(\x0c\x12\x12\n\nerror_code\x18\t \x01(\t\x12#\n\x0b\x63\x61mera_pose\x18\n \x01(\x0b\x32\x0e.drvs.v1.Pose2\".\n\rReportControl\x12\x1d\n\x15\x63\x61ncelled_request_ids\x18\x01 \x03(\t2\xef\x01\n\x14\x44\x65tectObjectBoundary\x12\x43\n\rDetectObjects\x12\x19.drvs.v1.DetectionRequest\x1a\x17.drvs.v1.DetectionReply\x12\x46\n\x0c\x44\x65tectStream\x12\x19.drvs.v1.DetectionRequest\x1a\x17.drvs.v1.DetectionReply(\x01\x30\x01\x12J\n\rDetectBatches\x12\x1a.drvs.v1.DetectionRequests\x1a\x19.drvs.v1.DetectionReplies(\x01\x30\x01\x32_\n\x13\x43\x61llbackCoordinates\x12H\n\x10ReportDetections\x12\x18.drvs.v1.DetectionReport\x1a\x16.drvs.v1.ReportControl(\x01\x30\x01\x62\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x17\x64rvs/v1/detection.proto\x12\x07\x64rvs.v1\x1a\x16\x64rvs/v1/geometry.proto\x1a\x1fgoogle/protobuf/timestamp.proto\"5\n\x0e\x43ontinuousMode\x12\x0f\n\x07rate_hz\x18\x01 \x01(\x01\x12\x12\n\nduration_s\x18\x02 \x01(\x01\"\x82\x03\n\x10\x44\x65tectionRequest\x12\x12\n\nrequest_id\x18\x01 \x01(\t\x12\x10\n\x08robot_id\x18\x02 \x01(\t\x12\x12\n\nfilter_def\x18\x03 \x01(\t\x12\x1f\n\x06region\x18\x04 \x01(\x0b\x32\x0f.drvs.v1.Region\x12\x18\n\x10\x63\x61llback_address\x18\x05 \x01(\t\x12+\n\ncontinuous\x18\x06 \x01(\x0b\x32\x17.drvs.v1.ContinuousMode\x12\x15\n\romit_outlines\x18\x07 \x01(\x08\x12\x15\n\rreport_secret\x18\x08 \x01(\x0c\x12\x12\n\nreport_key\x18\t \x01(\x0c\x12\x0e\n\x06\x63\x61ncel\x18\n \x01(\x08\x12&\n\x06\x66usion\x18\x0b \x01(\x0b\x32\x16.drvs.v1.FusionOptions\x12\x18\n\x10report_to_server\x18\x0c \x01(\x08\x12\r\n\x05\x66rame\x18\r \x01(\t\x12\x16\n\x0ereport_address\x18\x0e \x01(\t\x12\x11\n\trequester\x18( \x01(\t\"9\n\rFusionOptions\x12\x12\n\ndeadline_s\x18\x01 \x01(\x01\x12\x14\n\x0c\x64rop_after_s\x18\x02 \x01(\x01\"\xe4\x03\n\x0bWorldObject\x12\x10\n\x08track_id\x18\x01 \x01(\x04\x12\x12\n\noutline_xy\x18\x02 \x03(\x02\x12!\n\x06\x62ounds\x18\x03 \x01(\x0b\x32\x11.drvs.v1.FloorBox\x12%\n\x08\x63\x65ntroid\x18\x04 \x01(\x0b\x32\x13.drvs.v1.FloorPoint\x12%\n\x08velocity\x18\x05 \x01(\x0b\x32\x13.drvs.v1.FloorPoint\x12\x18\n\x0bheading_deg\x18\x06 \x01(\x02H\x00\x88\x01\x01\x12\x15\n\runcertainty_m\x18\x07 \x01(\x02\x12\x12\n\ncamera_ids\x18\x08 \x03(\t\x12\x16\n\tmarker_id\x18\t \x01(\x05H\x01\x88\x01\x01\x12\r\n\x05label\x18\n \x01(\t\x12\r\n\x05score\x18\x0b \x01(\x02\x12\x0f\n\x07\x61rea_m2\x18\x0c \x01(\x02\x12-\n\tlast_seen\x18\r \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x1f\n\x12marker_heading_deg\x18\x0e \x01(\x02H\x02\x88\x01\x01\x12\x17\n\x0flast_seen_age_s\x18\x0f \x01(\x02\x12\x14\n\x0c\x63\x61mera_index\x18\x10 \x03(\rB\x0e\n\x0c_heading_degB\x0c\n\n_marker_idB\x15\n\x13_marker_heading_deg\"\xc6\x01\n\rWorldSnapshot\x12(\n\x04time\x18\x01 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x10\n\x08sequence\x18\x02 \x01(\r\x12\r\n\x05\x66inal\x18\x03 \x01(\x08\x12%\n\x07objects\x18\x04 \x03(\x0b\x32\x14.drvs.v1.WorldObject\x12/\n\x0fmissing_cameras\x18\x05 \x03(\x0b\x32\x16.drvs.v1.MissingCamera\x12\x12\n\ncamera_ids\x18\x06 \x03(\t\"D\n\x0cRequestError\x12\x0c\n\x04\x63ode\x18\x01 \x01(\t\x12\x0f\n\x07message\x18\x02 \x01(\t\x12\x15\n\rretry_after_s\x18\x03 \x01(\x02\"A\n\rMissingCamera\x12\x11\n\tcamera_id\x18\x01 \x01(\t\x12\x0c\n\x04\x63ode\x18\x02 \x01(\t\x12\x0f\n\x07message\x18\x03 \x01(\t\"\xfc\x01\n\x0e\x44\x65tectionReply\x12\x12\n\nrequest_id\x18\x01 \x01(\t\x12\x12\n\ncamera_ids\x18\x02 \x03(\t\x12$\n\x05\x65rror\x18\x03 \x01(\x0b\x32\x15.drvs.v1.RequestError\x12/\n\x0fmissing_cameras\x18\x04 \x03(\x0b\x32\x16.drvs.v1.MissingCamera\x12#\n\tuncovered\x18\x05 \x03(\x0b\x32\x10.drvs.v1.Polygon\x12\x1c\n\x14\x63overage_uncertain_s\x18\x06 \x01(\x02\x12(\n\x08snapshot\x18\x07 \x01(\x0b\x32\x16.drvs.v1.WorldSnapshot\"@\n\x11\x44\x65tectionRequests\x12+\n\x08requests\x18\x01 \x03(\x0b\x32\x19.drvs.v1.DetectionRequest\"<\n\x10\x44\x65tectionReplies\x12(\n\x07replies\x18\x01 \x03(\x0b\x32\x17.drvs.v1.DetectionReply\"\xde\x02\n\tDetection\x12\x12\n\noutline_xy\x18\x01 \x03(\x02\x12!\n\x06\x62ounds\x18\x02 \x01(\x0b\x32\x11.drvs.v1.FloorBox\x12%\n\x08\x63\x65ntroid\x18\x03 \x01(\x0b\x32\x13.drvs.v1.FloorPoint\x12+\n\x0eground_contact\x18\x04 \x01(\x0b\x32\x13.drvs.v1.FloorPoint\x12$\n\tpixel_box\x18\x05 \x01(\x0b\x32\x11.drvs.v1.PixelBox\x12\x0f\n\x07\x61rea_m2\x18\x06 \x01(\x02\x12\x0f\n\x07\x61rea_px\x18\x07 \x01(\x02\x12\r\n\x05score\x18\x08 \x01(\x02\x12\x16\n\tmarker_id\x18\n \x01(\x05H\x00\x88\x01\x01\x12\x18\n\x0bheading_deg\x18\x0b \x01(\x02H\x01\x88\x01\x01\x12\r\n\x05label\x18\x0c \x01(\tB\x0c\n\n_marker_idB\x0e\n\x0c_heading_degJ\x04\x08\t\x10\nR\nfilter_def\"\x8f\x02\n\x0f\x44\x65tectionReport\x12\x12\n\nrequest_id\x18\x01 \x01(\t\x12\x11\n\tcamera_id\x18\x02 \x01(\t\x12\x30\n\x0c\x63\x61pture_time\x18\x03 \x01(\x0b\x32\x1a.google.protobuf.Timestamp\x12\x10\n\x08sequence\x18\x04 \x01(\r\x12\r\n\x05\x66inal\x18\x05 \x01(\x08\x12&\n\ndetections\x18\x06 \x03(\x0b\x32\x12.drvs.v1.Detection\x12\r\n\x05\x65rror\x18\x07 \x01(\t\x12\x12\n\nreport_key\x18\x08 \x01(\x0c\x12\x12\n\nerror_code\x18\t \x01(\t\x12#\n\x0b\x63\x61mera_pose\x18\n \x01(\x0b\x32\x0e.drvs.v1.Pose2\".\n\rReportControl\x12\x1d\n\x15\x63\x61ncelled_request_ids\x18\x01 \x03(\t2\xef\x01\n\x14\x44\x65tectObjectBoundary\x12\x43\n\rDetectObjects\x12\x19.drvs.v1.DetectionRequest\x1a\x17.drvs.v1.DetectionReply\x12\x46\n\x0c\x44\x65tectStream\x12\x19.drvs.v1.DetectionRequest\x1a\x17.drvs.v1.DetectionReply(\x01\x30\x01\x12J\n\rDetectBatches\x12\x1a.drvs.v1.DetectionRequests\x1a\x19.drvs.v1.DetectionReplies(\x01\x30\x01\x32_\n\x13\x43\x61llbackCoordinates\x12H\n\x10ReportDetections\x12\x18.drvs.v1.DetectionReport\x1a\x16.drvs.v1.ReportControl(\x01\x30\x01\x62\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -36,31 +36,31 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_CONTINUOUSMODE']._serialized_start=93
   _globals['_CONTINUOUSMODE']._serialized_end=146
   _globals['_DETECTIONREQUEST']._serialized_start=149
-  _globals['_DETECTIONREQUEST']._serialized_end=516
-  _globals['_FUSIONOPTIONS']._serialized_start=518
-  _globals['_FUSIONOPTIONS']._serialized_end=575
-  _globals['_WORLDOBJECT']._serialized_start=578
-  _globals['_WORLDOBJECT']._serialized_end=1062
-  _globals['_WORLDSNAPSHOT']._serialized_start=1065
-  _globals['_WORLDSNAPSHOT']._serialized_end=1263
-  _globals['_REQUESTERROR']._serialized_start=1265
-  _globals['_REQUESTERROR']._serialized_end=1333
-  _globals['_MISSINGCAMERA']._serialized_start=1335
-  _globals['_MISSINGCAMERA']._serialized_end=1400
-  _globals['_DETECTIONREPLY']._serialized_start=1403
-  _globals['_DETECTIONREPLY']._serialized_end=1655
-  _globals['_DETECTIONREQUESTS']._serialized_start=1657
-  _globals['_DETECTIONREQUESTS']._serialized_end=1721
-  _globals['_DETECTIONREPLIES']._serialized_start=1723
-  _globals['_DETECTIONREPLIES']._serialized_end=1783
-  _globals['_DETECTION']._serialized_start=1786
-  _globals['_DETECTION']._serialized_end=2136
-  _globals['_DETECTIONREPORT']._serialized_start=2139
-  _globals['_DETECTIONREPORT']._serialized_end=2410
-  _globals['_REPORTCONTROL']._serialized_start=2412
-  _globals['_REPORTCONTROL']._serialized_end=2458
-  _globals['_DETECTOBJECTBOUNDARY']._serialized_start=2461
-  _globals['_DETECTOBJECTBOUNDARY']._serialized_end=2700
-  _globals['_CALLBACKCOORDINATES']._serialized_start=2702
-  _globals['_CALLBACKCOORDINATES']._serialized_end=2797
+  _globals['_DETECTIONREQUEST']._serialized_end=535
+  _globals['_FUSIONOPTIONS']._serialized_start=537
+  _globals['_FUSIONOPTIONS']._serialized_end=594
+  _globals['_WORLDOBJECT']._serialized_start=597
+  _globals['_WORLDOBJECT']._serialized_end=1081
+  _globals['_WORLDSNAPSHOT']._serialized_start=1084
+  _globals['_WORLDSNAPSHOT']._serialized_end=1282
+  _globals['_REQUESTERROR']._serialized_start=1284
+  _globals['_REQUESTERROR']._serialized_end=1352
+  _globals['_MISSINGCAMERA']._serialized_start=1354
+  _globals['_MISSINGCAMERA']._serialized_end=1419
+  _globals['_DETECTIONREPLY']._serialized_start=1422
+  _globals['_DETECTIONREPLY']._serialized_end=1674
+  _globals['_DETECTIONREQUESTS']._serialized_start=1676
+  _globals['_DETECTIONREQUESTS']._serialized_end=1740
+  _globals['_DETECTIONREPLIES']._serialized_start=1742
+  _globals['_DETECTIONREPLIES']._serialized_end=1802
+  _globals['_DETECTION']._serialized_start=1805
+  _globals['_DETECTION']._serialized_end=2155
+  _globals['_DETECTIONREPORT']._serialized_start=2158
+  _globals['_DETECTIONREPORT']._serialized_end=2429
+  _globals['_REPORTCONTROL']._serialized_start=2431
+  _globals['_REPORTCONTROL']._serialized_end=2477
+  _globals['_DETECTOBJECTBOUNDARY']._serialized_start=2480
+  _globals['_DETECTOBJECTBOUNDARY']._serialized_end=2719
+  _globals['_CALLBACKCOORDINATES']._serialized_start=2721
+  _globals['_CALLBACKCOORDINATES']._serialized_end=2816
 # @@protoc_insertion_point(module_scope)

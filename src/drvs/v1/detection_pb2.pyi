@@ -19,7 +19,7 @@ class ContinuousMode(_message.Message):
     def __init__(self, rate_hz: _Optional[float] = ..., duration_s: _Optional[float] = ...) -> None: ...
 
 class DetectionRequest(_message.Message):
-    __slots__ = ("request_id", "robot_id", "filter_def", "region", "callback_address", "continuous", "omit_outlines", "report_secret", "report_key", "cancel", "fusion", "report_to_server", "frame", "report_address")
+    __slots__ = ("request_id", "robot_id", "filter_def", "region", "callback_address", "continuous", "omit_outlines", "report_secret", "report_key", "cancel", "fusion", "report_to_server", "frame", "report_address", "requester")
     REQUEST_ID_FIELD_NUMBER: _ClassVar[int]
     ROBOT_ID_FIELD_NUMBER: _ClassVar[int]
     FILTER_DEF_FIELD_NUMBER: _ClassVar[int]
@@ -34,6 +34,7 @@ class DetectionRequest(_message.Message):
     REPORT_TO_SERVER_FIELD_NUMBER: _ClassVar[int]
     FRAME_FIELD_NUMBER: _ClassVar[int]
     REPORT_ADDRESS_FIELD_NUMBER: _ClassVar[int]
+    REQUESTER_FIELD_NUMBER: _ClassVar[int]
     request_id: str
     robot_id: str
     filter_def: str
@@ -48,7 +49,8 @@ class DetectionRequest(_message.Message):
     report_to_server: bool
     frame: str
     report_address: str
-    def __init__(self, request_id: _Optional[str] = ..., robot_id: _Optional[str] = ..., filter_def: _Optional[str] = ..., region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., callback_address: _Optional[str] = ..., continuous: _Optional[_Union[ContinuousMode, _Mapping]] = ..., omit_outlines: bool = ..., report_secret: _Optional[bytes] = ..., report_key: _Optional[bytes] = ..., cancel: bool = ..., fusion: _Optional[_Union[FusionOptions, _Mapping]] = ..., report_to_server: bool = ..., frame: _Optional[str] = ..., report_address: _Optional[str] = ...) -> None: ...
+    requester: str
+    def __init__(self, request_id: _Optional[str] = ..., robot_id: _Optional[str] = ..., filter_def: _Optional[str] = ..., region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., callback_address: _Optional[str] = ..., continuous: _Optional[_Union[ContinuousMode, _Mapping]] = ..., omit_outlines: bool = ..., report_secret: _Optional[bytes] = ..., report_key: _Optional[bytes] = ..., cancel: bool = ..., fusion: _Optional[_Union[FusionOptions, _Mapping]] = ..., report_to_server: bool = ..., frame: _Optional[str] = ..., report_address: _Optional[str] = ..., requester: _Optional[str] = ...) -> None: ...
 
 class FusionOptions(_message.Message):
     __slots__ = ("deadline_s", "drop_after_s")

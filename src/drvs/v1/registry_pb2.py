@@ -25,7 +25,7 @@ _sym_db = _symbol_database.Default()
 from drvs.v1 import geometry_pb2 as drvs_dot_v1_dot_geometry__pb2
 
 
-DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16\x64rvs/v1/registry.proto\x12\x07\x64rvs.v1\x1a\x16\x64rvs/v1/geometry.proto\"\x17\n\nHomography\x12\t\n\x01m\x18\x01 \x03(\x01\"\xa0\x02\n\x0fRegisterRequest\x12\x11\n\tcamera_id\x18\x01 \x01(\t\x12\x0f\n\x07\x61\x64\x64ress\x18\x02 \x01(\t\x12\'\n\nhomography\x18\x03 \x01(\x0b\x32\x13.drvs.v1.Homography\x12\x13\n\x0bimage_width\x18\x04 \x01(\r\x12\x14\n\x0cimage_height\x18\x05 \x01(\r\x12\x13\n\x0bmax_range_m\x18\x06 \x01(\x01\x12\x16\n\x0e\x64\x65tector_kinds\x18\x07 \x03(\t\x12\x1b\n\x13registration_secret\x18\x08 \x01(\t\x12\x16\n\x0e\x66orward_secret\x18\t \x01(\t\x12\x0e\n\x06mobile\x18\n \x01(\x08\x12\x14\n\x0cpose_lease_s\x18\x0b \x01(\x01\x12\r\n\x05\x66rame\x18\x0c \x01(\t\"\xb1\x01\n\rRegisterReply\x12\x13\n\x0blease_ttl_s\x18\x01 \x01(\x01\x12\'\n\rfield_of_view\x18\x02 \x01(\x0b\x32\x10.drvs.v1.Polygon\x12\x1b\n\x13registration_secret\x18\x03 \x01(\t\x12\x12\n\nunroutable\x18\x04 \x01(\t\x12\x14\n\x0cpose_lease_s\x18\x05 \x01(\x01\x12\x1b\n\x13min_pose_interval_s\x18\x06 \x01(\x01\"y\n\x11UpdatePoseRequest\x12\x11\n\tcamera_id\x18\x01 \x01(\t\x12\x1b\n\x13registration_secret\x18\x02 \x01(\t\x12\x1c\n\x04pose\x18\x03 \x01(\x0b\x32\x0e.drvs.v1.Pose2\x12\x16\n\x0epose_time_unix\x18\x04 \x01(\x01\"P\n\x0fUpdatePoseReply\x12\'\n\rfield_of_view\x18\x01 \x01(\x0b\x32\x10.drvs.v1.Polygon\x12\x14\n\x0cpose_lease_s\x18\x02 \x01(\x01\"B\n\x10HeartbeatRequest\x12\x11\n\tcamera_id\x18\x01 \x01(\t\x12\x1b\n\x13registration_secret\x18\x02 \x01(\t\"%\n\x0eHeartbeatReply\x12\x13\n\x0blease_ttl_s\x18\x01 \x01(\x01\"C\n\x11\x44\x65registerRequest\x12\x11\n\tcamera_id\x18\x01 \x01(\t\x12\x1b\n\x13registration_secret\x18\x02 \x01(\t\"\x11\n\x0f\x44\x65registerReply\"k\n\x12ListCamerasRequest\x12\x1f\n\x06region\x18\x01 \x01(\x0b\x32\x0f.drvs.v1.Region\x12\x11\n\tpage_size\x18\x02 \x01(\r\x12\x12\n\npage_token\x18\x03 \x01(\t\x12\r\n\x05\x66rame\x18\x04 \x01(\t\"\xf1\x01\n\nCameraInfo\x12\x11\n\tcamera_id\x18\x01 \x01(\t\x12\x0f\n\x07\x61\x64\x64ress\x18\x02 \x01(\t\x12\'\n\rfield_of_view\x18\x03 \x01(\x0b\x32\x10.drvs.v1.Polygon\x12\x16\n\x0e\x64\x65tector_kinds\x18\x04 \x03(\t\x12\x19\n\x11lease_remaining_s\x18\x05 \x01(\x01\x12\x0e\n\x06mobile\x18\x06 \x01(\x08\x12\x1c\n\x04pose\x18\x07 \x01(\x0b\x32\x0e.drvs.v1.Pose2\x12\x12\n\npose_age_s\x18\x08 \x01(\x01\x12\x12\n\nunroutable\x18\t \x01(\t\x12\r\n\x05\x66rame\x18\n \x01(\t\"Q\n\x10ListCamerasReply\x12$\n\x07\x63\x61meras\x18\x01 \x03(\x0b\x32\x13.drvs.v1.CameraInfo\x12\x17\n\x0fnext_page_token\x18\x02 \x01(\t2\xe5\x02\n\x15RegisterVisionService\x12<\n\x08Register\x12\x18.drvs.v1.RegisterRequest\x1a\x16.drvs.v1.RegisterReply\x12?\n\tHeartbeat\x12\x19.drvs.v1.HeartbeatRequest\x1a\x17.drvs.v1.HeartbeatReply\x12\x42\n\nDeregister\x12\x1a.drvs.v1.DeregisterRequest\x1a\x18.drvs.v1.DeregisterReply\x12\x42\n\nUpdatePose\x12\x1a.drvs.v1.UpdatePoseRequest\x1a\x18.drvs.v1.UpdatePoseReply\x12\x45\n\x0bListCameras\x12\x1b.drvs.v1.ListCamerasRequest\x1a\x19.drvs.v1.ListCamerasReplyb\x06proto3')
+DESCRIPTOR = _descriptor_pool.Default().AddSerializedFile(b'\n\x16\x64rvs/v1/registry.proto\x12\x07\x64rvs.v1\x1a\x16\x64rvs/v1/geometry.proto\"\x17\n\nHomography\x12\t\n\x01m\x18\x01 \x03(\x01\"\xb7\x02\n\x0fRegisterRequest\x12\x11\n\tcamera_id\x18\x01 \x01(\t\x12\x0f\n\x07\x61\x64\x64ress\x18\x02 \x01(\t\x12\'\n\nhomography\x18\x03 \x01(\x0b\x32\x13.drvs.v1.Homography\x12\x13\n\x0bimage_width\x18\x04 \x01(\r\x12\x14\n\x0cimage_height\x18\x05 \x01(\r\x12\x13\n\x0bmax_range_m\x18\x06 \x01(\x01\x12\x16\n\x0e\x64\x65tector_kinds\x18\x07 \x03(\t\x12\x1b\n\x13registration_secret\x18\x08 \x01(\t\x12\x16\n\x0e\x66orward_secret\x18\t \x01(\t\x12\x0e\n\x06mobile\x18\n \x01(\x08\x12\x14\n\x0cpose_lease_s\x18\x0b \x01(\x01\x12\r\n\x05\x66rame\x18\x0c \x01(\t\x12\x15\n\rmax_speed_mps\x18( \x01(\x01\"\xb1\x01\n\rRegisterReply\x12\x13\n\x0blease_ttl_s\x18\x01 \x01(\x01\x12\'\n\rfield_of_view\x18\x02 \x01(\x0b\x32\x10.drvs.v1.Polygon\x12\x1b\n\x13registration_secret\x18\x03 \x01(\t\x12\x12\n\nunroutable\x18\x04 \x01(\t\x12\x14\n\x0cpose_lease_s\x18\x05 \x01(\x01\x12\x1b\n\x13min_pose_interval_s\x18\x06 \x01(\x01\"y\n\x11UpdatePoseRequest\x12\x11\n\tcamera_id\x18\x01 \x01(\t\x12\x1b\n\x13registration_secret\x18\x02 \x01(\t\x12\x1c\n\x04pose\x18\x03 \x01(\x0b\x32\x0e.drvs.v1.Pose2\x12\x16\n\x0epose_time_unix\x18\x04 \x01(\x01\"P\n\x0fUpdatePoseReply\x12\'\n\rfield_of_view\x18\x01 \x01(\x0b\x32\x10.drvs.v1.Polygon\x12\x14\n\x0cpose_lease_s\x18\x02 \x01(\x01\"B\n\x10HeartbeatRequest\x12\x11\n\tcamera_id\x18\x01 \x01(\t\x12\x1b\n\x13registration_secret\x18\x02 \x01(\t\"%\n\x0eHeartbeatReply\x12\x13\n\x0blease_ttl_s\x18\x01 \x01(\x01\"C\n\x11\x44\x65registerRequest\x12\x11\n\tcamera_id\x18\x01 \x01(\t\x12\x1b\n\x13registration_secret\x18\x02 \x01(\t\"\x11\n\x0f\x44\x65registerReply\"k\n\x12ListCamerasRequest\x12\x1f\n\x06region\x18\x01 \x01(\x0b\x32\x0f.drvs.v1.Region\x12\x11\n\tpage_size\x18\x02 \x01(\r\x12\x12\n\npage_token\x18\x03 \x01(\t\x12\r\n\x05\x66rame\x18\x04 \x01(\t\"\xf1\x01\n\nCameraInfo\x12\x11\n\tcamera_id\x18\x01 \x01(\t\x12\x0f\n\x07\x61\x64\x64ress\x18\x02 \x01(\t\x12\'\n\rfield_of_view\x18\x03 \x01(\x0b\x32\x10.drvs.v1.Polygon\x12\x16\n\x0e\x64\x65tector_kinds\x18\x04 \x03(\t\x12\x19\n\x11lease_remaining_s\x18\x05 \x01(\x01\x12\x0e\n\x06mobile\x18\x06 \x01(\x08\x12\x1c\n\x04pose\x18\x07 \x01(\x0b\x32\x0e.drvs.v1.Pose2\x12\x12\n\npose_age_s\x18\x08 \x01(\x01\x12\x12\n\nunroutable\x18\t \x01(\t\x12\r\n\x05\x66rame\x18\n \x01(\t\"Q\n\x10ListCamerasReply\x12$\n\x07\x63\x61meras\x18\x01 \x03(\x0b\x32\x13.drvs.v1.CameraInfo\x12\x17\n\x0fnext_page_token\x18\x02 \x01(\t2\xe5\x02\n\x15RegisterVisionService\x12<\n\x08Register\x12\x18.drvs.v1.RegisterRequest\x1a\x16.drvs.v1.RegisterReply\x12?\n\tHeartbeat\x12\x19.drvs.v1.HeartbeatRequest\x1a\x17.drvs.v1.HeartbeatReply\x12\x42\n\nDeregister\x12\x1a.drvs.v1.DeregisterRequest\x1a\x18.drvs.v1.DeregisterReply\x12\x42\n\nUpdatePose\x12\x1a.drvs.v1.UpdatePoseRequest\x1a\x18.drvs.v1.UpdatePoseReply\x12\x45\n\x0bListCameras\x12\x1b.drvs.v1.ListCamerasRequest\x1a\x19.drvs.v1.ListCamerasReplyb\x06proto3')
 
 _globals = globals()
 _builder.BuildMessageAndEnumDescriptors(DESCRIPTOR, _globals)
@@ -35,27 +35,27 @@ if not _descriptor._USE_C_DESCRIPTORS:
   _globals['_HOMOGRAPHY']._serialized_start=59
   _globals['_HOMOGRAPHY']._serialized_end=82
   _globals['_REGISTERREQUEST']._serialized_start=85
-  _globals['_REGISTERREQUEST']._serialized_end=373
-  _globals['_REGISTERREPLY']._serialized_start=376
-  _globals['_REGISTERREPLY']._serialized_end=553
-  _globals['_UPDATEPOSEREQUEST']._serialized_start=555
-  _globals['_UPDATEPOSEREQUEST']._serialized_end=676
-  _globals['_UPDATEPOSEREPLY']._serialized_start=678
-  _globals['_UPDATEPOSEREPLY']._serialized_end=758
-  _globals['_HEARTBEATREQUEST']._serialized_start=760
-  _globals['_HEARTBEATREQUEST']._serialized_end=826
-  _globals['_HEARTBEATREPLY']._serialized_start=828
-  _globals['_HEARTBEATREPLY']._serialized_end=865
-  _globals['_DEREGISTERREQUEST']._serialized_start=867
-  _globals['_DEREGISTERREQUEST']._serialized_end=934
-  _globals['_DEREGISTERREPLY']._serialized_start=936
-  _globals['_DEREGISTERREPLY']._serialized_end=953
-  _globals['_LISTCAMERASREQUEST']._serialized_start=955
-  _globals['_LISTCAMERASREQUEST']._serialized_end=1062
-  _globals['_CAMERAINFO']._serialized_start=1065
-  _globals['_CAMERAINFO']._serialized_end=1306
-  _globals['_LISTCAMERASREPLY']._serialized_start=1308
-  _globals['_LISTCAMERASREPLY']._serialized_end=1389
-  _globals['_REGISTERVISIONSERVICE']._serialized_start=1392
-  _globals['_REGISTERVISIONSERVICE']._serialized_end=1749
+  _globals['_REGISTERREQUEST']._serialized_end=396
+  _globals['_REGISTERREPLY']._serialized_start=399
+  _globals['_REGISTERREPLY']._serialized_end=576
+  _globals['_UPDATEPOSEREQUEST']._serialized_start=578
+  _globals['_UPDATEPOSEREQUEST']._serialized_end=699
+  _globals['_UPDATEPOSEREPLY']._serialized_start=701
+  _globals['_UPDATEPOSEREPLY']._serialized_end=781
+  _globals['_HEARTBEATREQUEST']._serialized_start=783
+  _globals['_HEARTBEATREQUEST']._serialized_end=849
+  _globals['_HEARTBEATREPLY']._serialized_start=851
+  _globals['_HEARTBEATREPLY']._serialized_end=888
+  _globals['_DEREGISTERREQUEST']._serialized_start=890
+  _globals['_DEREGISTERREQUEST']._serialized_end=957
+  _globals['_DEREGISTERREPLY']._serialized_start=959
+  _globals['_DEREGISTERREPLY']._serialized_end=976
+  _globals['_LISTCAMERASREQUEST']._serialized_start=978
+  _globals['_LISTCAMERASREQUEST']._serialized_end=1085
+  _globals['_CAMERAINFO']._serialized_start=1088
+  _globals['_CAMERAINFO']._serialized_end=1329
+  _globals['_LISTCAMERASREPLY']._serialized_start=1331
+  _globals['_LISTCAMERASREPLY']._serialized_end=1412
+  _globals['_REGISTERVISIONSERVICE']._serialized_start=1415
+  _globals['_REGISTERVISIONSERVICE']._serialized_end=1772
 # @@protoc_insertion_point(module_scope)

@@ -14,7 +14,7 @@ class Homography(_message.Message):
     def __init__(self, m: _Optional[_Iterable[float]] = ...) -> None: ...
 
 class RegisterRequest(_message.Message):
-    __slots__ = ("camera_id", "address", "homography", "image_width", "image_height", "max_range_m", "detector_kinds", "registration_secret", "forward_secret", "mobile", "pose_lease_s", "frame")
+    __slots__ = ("camera_id", "address", "homography", "image_width", "image_height", "max_range_m", "detector_kinds", "registration_secret", "forward_secret", "mobile", "pose_lease_s", "frame", "max_speed_mps")
     CAMERA_ID_FIELD_NUMBER: _ClassVar[int]
     ADDRESS_FIELD_NUMBER: _ClassVar[int]
     HOMOGRAPHY_FIELD_NUMBER: _ClassVar[int]
@@ -27,6 +27,7 @@ class RegisterRequest(_message.Message):
     MOBILE_FIELD_NUMBER: _ClassVar[int]
     POSE_LEASE_S_FIELD_NUMBER: _ClassVar[int]
     FRAME_FIELD_NUMBER: _ClassVar[int]
+    MAX_SPEED_MPS_FIELD_NUMBER: _ClassVar[int]
     camera_id: str
     address: str
     homography: Homography
@@ -39,7 +40,8 @@ class RegisterRequest(_message.Message):
     mobile: bool
     pose_lease_s: float
     frame: str
-    def __init__(self, camera_id: _Optional[str] = ..., address: _Optional[str] = ..., homography: _Optional[_Union[Homography, _Mapping]] = ..., image_width: _Optional[int] = ..., image_height: _Optional[int] = ..., max_range_m: _Optional[float] = ..., detector_kinds: _Optional[_Iterable[str]] = ..., registration_secret: _Optional[str] = ..., forward_secret: _Optional[str] = ..., mobile: bool = ..., pose_lease_s: _Optional[float] = ..., frame: _Optional[str] = ...) -> None: ...
+    max_speed_mps: float
+    def __init__(self, camera_id: _Optional[str] = ..., address: _Optional[str] = ..., homography: _Optional[_Union[Homography, _Mapping]] = ..., image_width: _Optional[int] = ..., image_height: _Optional[int] = ..., max_range_m: _Optional[float] = ..., detector_kinds: _Optional[_Iterable[str]] = ..., registration_secret: _Optional[str] = ..., forward_secret: _Optional[str] = ..., mobile: bool = ..., pose_lease_s: _Optional[float] = ..., frame: _Optional[str] = ..., max_speed_mps: _Optional[float] = ...) -> None: ...
 
 class RegisterReply(_message.Message):
     __slots__ = ("lease_ttl_s", "field_of_view", "registration_secret", "unroutable", "pose_lease_s", "min_pose_interval_s")
