@@ -338,8 +338,9 @@ class Continuous(FusionSession):
         self._t0 = 0.0
         self._task: asyncio.Task[None] | None = None
         self._done = asyncio.Event()  # every camera finished or failed
-        #: Mobile cameras that drove off the region: not asked again (they were told to stop).
-        self.left: set[str] = set()
+        #: Mobile cameras whose field of view is off the region now: their reports count no more
+        #: until a pose brings it back over the region (they keep their forward, so they may).
+        self.away: set[str] = set()
 
     def start(self, reply: detection_pb2.DetectionReply) -> None:
         super().start(reply)
@@ -367,25 +368,37 @@ class Continuous(FusionSession):
         self._done.clear()
 
     def remove_camera(self, camera_id: str) -> bool:
-        """A mobile camera whose field of view left the region: its reports count no more, the
-        stream it reported on is told to stop sending them, and it is not asked again. True when it
-        was one of this request's cameras."""
-        if self.ended or camera_id not in self.keys:
+        """A mobile camera whose field of view left the region: its reports count no more (they are
+        taken and dropped: none is merged, none names it in a snapshot, nothing waits for it) until
+        `rejoin`. True when it was one of this request's cameras."""
+        if self.ended or camera_id not in self.keys or camera_id in self.away:
             return False
         self.cameras = tuple(c for c in self.cameras if c != camera_id)
-        del self.keys[camera_id]
-        self.left.add(camera_id)
+        self.away.add(camera_id)
         self._fresh.pop(camera_id, None)
         self._heard.pop(camera_id, None)
-        stream = self._streams.pop(camera_id, None)
-        if stream is not None:
-            stream.cancel(self.forward_id)
         self._changed()
+        return True
+
+    def rejoin(self, camera_id: str) -> bool:
+        """A camera that was away is over the region again: its reports count from now on, as when
+        it joined. False when it was not away, or its forward has ended meanwhile."""
+        if self.ended or camera_id not in self.away or camera_id in self._finished:
+            return False
+        self.away.discard(camera_id)
+        self.cameras = (*self.cameras, camera_id)
+        self._heard[camera_id] = asyncio.get_running_loop().time()
+        self._done.clear()
         return True
 
     def report(self, report: DetectionReport, stream: ReportIntake) -> None:
         camera_id = report.camera_id
         if self.ended or camera_id in self._finished:
+            return
+        if camera_id in self.away:
+            if report.final:
+                self._finished.add(camera_id)  # its forward ended: it cannot come back to this one
+                self._changed()
             return
         self._streams[camera_id] = stream
         self._failed.pop(camera_id, None)  # its forward timed out, but it reports after all
@@ -396,7 +409,8 @@ class Continuous(FusionSession):
             self._changed()
 
     def _changed(self) -> None:
-        if all(c in self._finished or c in self._failed for c in self.cameras):
+        # (a camera that is away may come back: the request runs its course, snapshots going on)
+        if self.away <= self._finished and all(c in self._finished or c in self._failed for c in self.cameras):
             self._done.set()
 
     async def _run(self) -> None:
@@ -532,7 +546,7 @@ class FusionSessions:
         view `fov` (empty: it sees no floor) no longer meets with positive area; the requests it left."""
         left = []
         for session in self.continuous():
-            if camera_id not in session.keys:
+            if camera_id not in session.keys or camera_id in session.away:
                 continue
             off = fov.is_empty or not shapely.relate_pattern(fov, session.request.region, "T********")
             if off and session.remove_camera(camera_id):
@@ -590,9 +604,14 @@ class ReportIntake:
                     self._verified.popitem(last=False)
         else:
             session = self._verified.get(pair)
-        if session is None or session.ended or message.camera_id not in session.keys:  # (it left)
+        if session is None or session.ended or message.camera_id not in session.keys:
             self._verified.pop(pair, None)
             self._reject(message, known=session is not None)
+            return False
+        # A mobile camera off the region now: its reports are dropped, but it is not told to stop.
+        if isinstance(session, Continuous) and message.camera_id in session.away:
+            if message.final:
+                session.report(report_from_pb(message, session.request.filter_def), self)  # (its forward ended)
             return False
         metrics.FUSION_REPORTS_ACCEPTED.inc()
         if len(message.detections) > MAX_DETECTIONS_PER_REPORT:

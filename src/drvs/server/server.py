@@ -762,7 +762,8 @@ class DrvsServer(Lifecycle):
             return
         fx0, fy0, fx1, fy1 = fov.bounds
         for session in self.fusion.continuous():
-            if session.ended or camera.camera_id in session.keys or camera.camera_id in session.left:
+            away = camera.camera_id in session.away
+            if session.ended or (camera.camera_id in session.keys and not away):
                 continue
             region = session.request.region
             x0, y0, x1, y1 = region.bounds  # cheap test first: most requests are elsewhere
@@ -770,8 +771,13 @@ class DrvsServer(Lifecycle):
                 continue
             if session.request.kind not in camera.detector_kinds:
                 continue
-            if shapely.relate_pattern(fov, region, "T********"):
+            if not shapely.relate_pattern(fov, region, "T********"):
+                continue
+            if not away:
                 self._join(session, camera)
+            elif session.rejoin(camera.camera_id):
+                log.info("fused request %s: mobile camera %s is back over its region", session.request_id,
+                         camera.camera_id)  # fmt: skip
 
     def _join(self, session: Continuous, camera: CameraEntry) -> None:
         """Forward `session`'s request to `camera` for the rest of its duration, the same way as at
