@@ -20,6 +20,7 @@ import math
 import time
 from typing import Protocol
 
+from drvs.backoff import Backoff
 from drvs.errors import DrvsError, InvalidArgument
 from drvs.mobile import INITIAL_BACKOFF_S, MAX_BACKOFF_S, Push
 from drvs.model import Pose2
@@ -68,17 +69,18 @@ class TcpPoseSource:
         self._last_complaint = 0.0
 
     async def run(self, push: Push) -> None:
-        backoff = INITIAL_BACKOFF_S
+        backoff = Backoff(INITIAL_BACKOFF_S, MAX_BACKOFF_S)
         while True:
             try:
                 reader, writer = await asyncio.open_connection(self.host, self.port, limit=MAX_LINE_BYTES)
             except OSError as exc:
-                log.warning("pose source %s: cannot connect (%s); again in %.1f s", self.description, exc, backoff)
-                await asyncio.sleep(backoff)
-                backoff = min(backoff * 2, MAX_BACKOFF_S)
+                log.warning(
+                    "pose source %s: cannot connect (%s); again in %.1f s", self.description, exc, backoff.current
+                )
+                await backoff.sleep()
                 continue
             log.info("pose source %s: connected", self.description)
-            backoff = INITIAL_BACKOFF_S
+            backoff.reset()
             try:
                 while line := await reader.readline():
                     self._take(line, push)
@@ -87,7 +89,7 @@ class TcpPoseSource:
             finally:
                 writer.close()
             log.warning("pose source %s: connection closed; reconnecting", self.description)
-            await asyncio.sleep(backoff)
+            await asyncio.sleep(backoff.current)
 
     def _take(self, line: bytes, push: Push) -> None:
         if not line.strip():

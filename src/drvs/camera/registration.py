@@ -15,6 +15,7 @@ import time
 import grpc
 from grpc import aio
 
+from drvs.backoff import Backoff
 from drvs.channels import check_role, open_channel
 from drvs.convert import pose_to_pb
 from drvs.errors import PermissionDenied
@@ -130,7 +131,7 @@ class Registration:
     async def run(self, request: registry_pb2.RegisterRequest, fov_m2: float = 0.0) -> None:
         """Register with `request`, then heartbeat until cancelled (`fov_m2`: for the log only)."""
         interval = 1.0
-        backoff = INITIAL_BACKOFF_S
+        backoff = Backoff(INITIAL_BACKOFF_S, CONFLICT_BACKOFF_S)
         ever_registered = False
         registered = False
         while True:
@@ -140,9 +141,9 @@ class Registration:
                     registered = ever_registered = True
                 else:
                     interval = await self._heartbeat(interval)
-                    if backoff != INITIAL_BACKOFF_S:  # it had failed: say the lease is kept again
+                    if backoff.failing:  # it had failed: say the lease is kept again
                         log.info("camera %s: heartbeats reach %s again", self.camera_id, self.server_address)
-                backoff = INITIAL_BACKOFF_S
+                backoff.reset()
                 await asyncio.sleep(interval)
             except grpc.RpcError as exc:
                 code = exc.code() if isinstance(exc, aio.AioRpcError) else grpc.StatusCode.UNKNOWN
@@ -168,7 +169,7 @@ class Registration:
                         self.camera_id,
                         self.camera_id,
                         details(exc),
-                        backoff,
+                        backoff.current,
                     )
                 elif code in (grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.UNAUTHENTICATED):
                     registered = False
@@ -177,13 +178,11 @@ class Registration:
                     log.warning(
                         "camera %s: server %s unreachable: %s", self.camera_id, self.server_address, details(exc)
                     )
-                await asyncio.sleep(backoff)
                 conflict = code == grpc.StatusCode.PERMISSION_DENIED
-                backoff = min(backoff * 2, max(interval, CONFLICT_BACKOFF_S) if conflict else interval)
+                await backoff.sleep(max(interval, CONFLICT_BACKOFF_S) if conflict else interval)
             except PermissionDenied as exc:  # the server's certificate is not a server's (check_role)
-                log.error("camera %s: %s; retrying in %.1f s", self.camera_id, exc, backoff)
-                await asyncio.sleep(backoff)
-                backoff = min(backoff * 2, max(interval, CONFLICT_BACKOFF_S))
+                log.error("camera %s: %s; retrying in %.1f s", self.camera_id, exc, backoff.current)
+                await backoff.sleep(max(interval, CONFLICT_BACKOFF_S))
 
     async def update_pose(self, pose: Pose2, pose_time_unix: float, timeout_s: float) -> registry_pb2.UpdatePoseReply:
         """A mobile camera's pose, to the server (grpc.RpcError when it refuses or cannot be reached)."""

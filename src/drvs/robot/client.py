@@ -39,6 +39,7 @@ from grpc import aio
 from shapely.geometry import Polygon
 
 from drvs import _grpc
+from drvs.backoff import Backoff, waits
 from drvs.channels import check_role, open_channel
 from drvs.convert import polygon_from_pb, pose_from_pb, region_to_pb, report_from_pb, request_to_pb, snapshot_from_pb
 from drvs.errors import (
@@ -185,10 +186,7 @@ class RetryPolicy:
 
     def backoffs(self) -> Iterator[float]:
         """The waits (seconds) before the second, third ... attempt: attempts - 1 of them."""
-        wait = self.initial_backoff_s
-        for _ in range(self.attempts - 1):
-            yield wait
-            wait = min(wait * 2, self.max_backoff_s)
+        return waits(self.initial_backoff_s, self.max_backoff_s, self.attempts - 1)
 
 
 class _Regions:
@@ -731,7 +729,7 @@ class Track(_Delivery):
         assert self._message is not None
         loop = asyncio.get_running_loop()
         period = 1.0 / self.request.continuous.rate_hz
-        backoff = 0.05
+        backoff = Backoff(0.05, 1.0)
         try:
             while not (self.closed or self.finished):
                 remaining = self._ends_at - loop.time()
@@ -745,9 +743,10 @@ class Track(_Delivery):
                 try:
                     reply = await requests.request(message, self._rpc_timeout_s, self._take)
                 except Unavailable as exc:
-                    log.info("request %s: no server answers yet (%s); again in %.2f s", self.request_id, exc, backoff)
-                    await asyncio.sleep(backoff)
-                    backoff = min(2 * backoff, 1.0)
+                    log.info(
+                        "request %s: no server answers yet (%s); again in %.2f s", self.request_id, exc, backoff.current
+                    )
+                    await backoff.sleep()
                     continue
                 self.resumes += 1
                 log.info(

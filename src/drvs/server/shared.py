@@ -34,6 +34,7 @@ from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
 from drvs import metrics
+from drvs.backoff import Backoff
 from drvs.errors import DrvsError, FailedPrecondition, ResourceExhausted, Unavailable
 from drvs.etcd import Endpoints, EtcdClient, Event
 from drvs.model import DEFAULT_FRAME
@@ -459,7 +460,7 @@ class SharedRegistry:
         return revision
 
     async def _follow(self) -> None:
-        backoff = INITIAL_BACKOFF_S
+        backoff = Backoff(INITIAL_BACKOFF_S, MAX_BACKOFF_S)
         while True:
             try:
                 revision = await self._resync()
@@ -470,7 +471,7 @@ class SharedRegistry:
                     if self._on_reachable is not None:
                         await self._on_reachable(True)
                 self.synced.set()
-                backoff = INITIAL_BACKOFF_S
+                backoff.reset()
                 async for event in self.client.watch_prefix(ROOT, revision + 1):
                     self._take(event)
                 raise Unavailable(f"etcd {self.endpoints}: the watch ended")
@@ -480,8 +481,7 @@ class SharedRegistry:
                 log.exception("registry: the watch of etcd %s failed; restarting it", self.endpoints)
                 metrics.REGISTRY_WATCH_RESTARTS.inc()
                 await self._lost("the watch failed", f"the watch of etcd {self.endpoints} failed ({exc!r})")
-            await asyncio.sleep(backoff)
-            backoff = min(backoff * 2, MAX_BACKOFF_S)
+            await backoff.sleep()
 
     async def _lost(self, what: str, why: str) -> None:
         """The watch stopped (`why`): route on what is known, refuse registrations (health says

@@ -20,6 +20,7 @@ from grpc import aio
 
 from drvs import _grpc
 from drvs._cli import setup_logging, shutdown_event
+from drvs.backoff import Backoff
 from drvs.errors import DrvsError, InvalidArgument
 from drvs.mobile import INITIAL_BACKOFF_S, MAX_BACKOFF_S, Push
 from drvs.model import Pose2, check_id
@@ -46,7 +47,7 @@ def parse_spec(spec: str) -> tuple[str, str]:
 async def scout_poses(world: str, scout_id: str, rate_hz: float) -> AsyncIterator[tuple[float, Pose2]]:
     """(time, pose) of a scout from the world at `rate_hz`, reconnecting with backoff when the
     world's stream breaks; NOT_FOUND (no such scout) ends it with InvalidArgument."""
-    backoff = INITIAL_BACKOFF_S
+    backoff = Backoff(INITIAL_BACKOFF_S, MAX_BACKOFF_S)
     while True:
         async with _grpc.insecure_channel(world) as channel:
             stub = sim_pb2_grpc.SimulatedWorldStub(channel)
@@ -55,16 +56,16 @@ async def scout_poses(world: str, scout_id: str, rate_hz: float) -> AsyncIterato
                     sim_pb2.WatchScoutRequest(scout_id=scout_id, rate_hz=rate_hz), wait_for_ready=True
                 )
                 async for p in call:
-                    backoff = INITIAL_BACKOFF_S
+                    backoff.reset()
                     yield p.time_unix, Pose2(p.x, p.y, p.theta)
             except aio.AioRpcError as exc:
                 if exc.code() in (grpc.StatusCode.NOT_FOUND, grpc.StatusCode.INVALID_ARGUMENT):
                     raise InvalidArgument(f"world {world}: {exc.details()}") from None
                 log.warning(
-                    "world %s: scout %s's poses: %s; again in %.1f s", world, scout_id, exc.code().name, backoff
-                )
-        await asyncio.sleep(backoff)
-        backoff = min(backoff * 2, MAX_BACKOFF_S)
+                    "world %s: scout %s's poses: %s; again in %.1f s", world, scout_id, exc.code().name,
+                    backoff.current,
+                )  # fmt: skip
+        await backoff.sleep()
 
 
 class SimPoseSource:
