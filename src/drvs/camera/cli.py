@@ -15,8 +15,7 @@ import numpy as np
 from drvs._cli import add_security_arguments, join_negative_values, setup_logging, shutdown_event
 from drvs.camera.aruco import DEFAULT_DICTIONARY, BoardSpec, board_image, find_correspondences
 from drvs.camera.calibration import fit_homography, load_points, save_calibration
-from drvs.camera.config import DEFAULT_FOXGLOVE_FPS, DEFAULT_LISTEN, DEFAULT_SERVER, ENVIRONMENT, load_config
-from drvs.camera.liveview import MAX_FPS
+from drvs.camera.config import DEFAULT_FOXGLOVE_FPS, ENVIRONMENT, add_arguments, load_config
 from drvs.camera.node import CameraNode
 from drvs.camera.source import FrameSource, VideoSource, plugin_source
 from drvs.detection import Frame
@@ -38,123 +37,8 @@ def build_parser() -> argparse.ArgumentParser:
         "are the setting names: " + ", ".join(f"{k} ({v})" for k, v in e.items()) + ".",
     )
     p.add_argument("--config", metavar="FILE", help="YAML file of settings (flags and environment override it)")
-    p.add_argument("--id", help=f"camera id, unique in the building ({e['id']})")
-    p.add_argument("--source", help=f"device index (0), video file, stream URL, or sim://HOST:PORT ({e['source']})")
-    p.add_argument(
-        "--homography",
-        metavar="FILE",
-        help=f"JSON/YAML file whose 'homography' is the 3x3 image->floor matrix ({e['homography']})",
-    )
-    p.add_argument(
-        "--server",
-        help=f"DRVS server HOST:PORT, several sharing a registry (A:PORT,B:PORT: registration moves on from one "
-        f"that dies), or a DNS name for several (default {DEFAULT_SERVER}; {e['server']})",
-    )
-    p.add_argument(
-        "--listen", help=f"HOST:PORT to serve on; port 0 picks a free one (default {DEFAULT_LISTEN}; {e['listen']})"
-    )
-    p.add_argument("--advertise", help=f"HOST:PORT the server should dial, if not --listen ({e['advertise']})")
-    p.add_argument(
-        "--frame",
-        help=f"the floor plan its homography maps to, e.g. building-a/floor-2 (default map; {e['frame']})",
-    )
-    p.add_argument(
-        "--max-range", dest="max_range_m", type=float, metavar="M", help="field-of-view range, metres (default 15)"
-    )
-    p.add_argument("--min-area", dest="min_area_px", type=float, metavar="PX", help="smallest blob, pixels")
-    p.add_argument(
-        "--max-frame-age",
-        dest="max_frame_age_s",
-        type=float,
-        metavar="S",
-        help="older frames are not used; the node reports NOT_SERVING while it has none (default 2)",
-    )
-    p.add_argument(
-        "--no-loop", dest="loop", action="store_const", const=False, help="play a video file once, do not loop it"
-    )
-    p.add_argument(
-        "--serve-frames",
-        action="store_const",
-        const=True,
-        help="also stream whole frames (FrameStream service): the no-DRVS baseline, for benchmarks",
-    )
-    p.add_argument(
-        "--resolution", help=f"W,H to ask of a device or stream; another size is refused ({e['resolution']})"
-    )
-    p.add_argument("--fps", type=float, help=f"frame rate to ask of a device or stream ({e['fps']})")
-    p.add_argument(
-        "--detectors",
-        help=f"detectors to run, comma-separated prefixes (default: every one installed; {e['detectors']})",
-    )
-    p.add_argument(
-        "--detect-workers",
-        metavar="N",
-        help=f"threads for heavy detectors (people, models); requests beyond them queue ({e['detect_workers']})",
-    )
-    p.add_argument(
-        "--background",
-        metavar="FILE",
-        help=f"picture of the empty floor (drvs-camera snapshot) for the foreground detector ({e['background']})",
-    )
-    p.add_argument(
-        "--people-min-height",
-        dest="people_min_height_px",
-        metavar="PX",
-        help=f"people: the smallest person to find, pixels tall, 32-1024; below 128 costs more CPU "
-        f"(default 128; {e['people_min_height_px']})",
-    )
-    p.add_argument(
-        "--heartbeat", dest="heartbeat_s", type=float, metavar="S", help="heartbeat interval (default: lease / 3)"
-    )
-    p.add_argument(
-        "--max-continuous",
-        metavar="N",
-        help=f"continuous requests one robot may have running on this camera at once (default 32; "
-        f"{e['max_continuous']})",
-    )
-    m = p.add_argument_group("a camera on a robot (mobile: its field of view moves with the robot's poses)")
-    m.add_argument("--mount", metavar="X,Y,Z,YAW,PITCH", help="where the camera sits on the robot: metres in the "
-                   "robot's base frame (x forward, y left, z up), yaw from forward and pitch below horizontal in "
-                   "degrees; instead of --homography")  # fmt: skip
-    m.add_argument("--hfov", dest="hfov_deg", type=float, metavar="DEG", help="the camera's horizontal field of view")
-    m.add_argument("--camera-matrix", metavar="FX,FY,CX,CY", help="the camera's intrinsics, pixels (instead of --hfov)")
-    m.add_argument("--pose-source", metavar="SOURCE", help="the robot's poses: tcp://HOST:PORT (newline-delimited "
-                   'JSON {"t", "x", "y", "yaw"}) or sim://HOST:PORT/SCOUT (the simulator)')  # fmt: skip
-    m.add_argument("--max-pose-gap", dest="max_pose_gap_s", type=float, metavar="S",
-                   help="a frame with no pose this close to its capture is not used (default 0.25)")  # fmt: skip
-    m.add_argument("--pose-lease", dest="pose_lease_s", type=float, metavar="S",
-                   help="seconds one pose keeps the camera routed (default 0: the server's)")  # fmt: skip
-    m.add_argument("--max-speed", dest="max_speed_mps", type=float, metavar="M/S",
-                   help="the fastest the robot moves; the server refuses faster poses (default 0: its 3)")  # fmt: skip
-    m.add_argument("--pose-update-distance", dest="pose_update_distance_m", type=float, metavar="M",
-                   help="send a pose when the robot moved this far (default 0.1)")  # fmt: skip
-    m.add_argument("--pose-update-angle", dest="pose_update_angle_deg", type=float, metavar="DEG",
-                   help="... or turned this much (default 5)")  # fmt: skip
-    m.add_argument("--max-pose-rate", dest="max_pose_rate_hz", type=float, metavar="HZ",
-                   help="at most this many pose updates a second (default 5)")  # fmt: skip
-    v = p.add_argument_group("live view (pip install 'drvs[live]'; docs/operations.md)")
-    v.add_argument(
-        "--foxglove",
-        metavar="[HOST:]PORT",
-        help=f"serve a Foxglove live view (WebSocket) of this camera's frames, JPEG, with its latest detections "
-        f"drawn, on topic /camera/ID/image; sent only while someone subscribes. PORT alone listens on 127.0.0.1, "
-        f"0 picks a free port. It has no access control: anyone who reaches it sees the images ({e['foxglove']})",
-    )
-    v.add_argument(
-        "--foxglove-fps",
-        dest="foxglove_fps",
-        metavar="N",
-        help=f"at most N frames a second to the live view, above 0 and at most {MAX_FPS:g} "
-        f"(default {DEFAULT_FOXGLOVE_FPS:g}; {e['foxglove_fps']})",
-    )
+    add_arguments(p)  # every CameraConfig setting but the shared security ones (drvs.camera.config)
     add_security_arguments(p, "file holding this camera's registration token")
-    p.add_argument("--log-level", help=f"DEBUG, INFO, WARNING ({e['log_level']})")
-    p.add_argument("--log-format", help=f"text, or json: one object per line with the request id ({e['log_format']})")
-    p.add_argument("--metrics-port", help=f"Prometheus metrics port; 0 picks one; default off ({e['metrics_port']})")
-    p.add_argument(
-        "--metrics-host",
-        help=f"address the metrics listen on (default 127.0.0.1: this host only; {e['metrics_host']})",
-    )
     return p
 
 

@@ -6,10 +6,12 @@ default. Unknown keys and bad values are errors that name the key and where it c
 
 from __future__ import annotations
 
+import argparse
+import dataclasses
 import math
 import os
 from collections.abc import Mapping
-from dataclasses import dataclass, field, fields
+from dataclasses import MISSING, Field, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
@@ -28,7 +30,7 @@ from drvs.model import DEFAULT_FRAME, check_frame, check_id
 from drvs.net import format_address, parse_address, parse_address_list
 from drvs.security import Security
 
-from .liveview import check_fps
+from .liveview import MAX_FPS, check_fps
 
 DEFAULT_SERVER = "127.0.0.1:50051"
 DEFAULT_LISTEN = "127.0.0.1:0"
@@ -45,109 +47,368 @@ DEFAULT_DETECT_WORKERS = max(1, min(2, (os.cpu_count() or 1) - 1))
 #: Frames a second a live view (--foxglove) sends at most while someone watches, unless told.
 DEFAULT_FOXGLOVE_FPS = 5.0
 
-#: Every environment variable a camera node reads, by setting.
-ENVIRONMENT = {
-    "id": "DRVS_CAMERA_ID",
-    "source": "DRVS_CAMERA_SOURCE",
-    "homography": "DRVS_CAMERA_HOMOGRAPHY",
-    "server": "DRVS_SERVER",
-    "frame": "DRVS_CAMERA_FRAME",
-    "listen": "DRVS_CAMERA_LISTEN",
-    "advertise": "DRVS_CAMERA_ADVERTISE",
-    "max_range_m": "DRVS_CAMERA_MAX_RANGE",
-    "min_area_px": "DRVS_CAMERA_MIN_AREA",
-    "max_frame_age_s": "DRVS_CAMERA_MAX_FRAME_AGE",
-    "loop": "DRVS_CAMERA_LOOP",
-    "serve_frames": "DRVS_CAMERA_SERVE_FRAMES",
-    "resolution": "DRVS_CAMERA_RESOLUTION",
-    "fps": "DRVS_CAMERA_FPS",
-    "detectors": "DRVS_CAMERA_DETECTORS",
-    "background": "DRVS_CAMERA_BACKGROUND",
-    "heartbeat_s": "DRVS_CAMERA_HEARTBEAT",
-    "max_continuous": "DRVS_CAMERA_MAX_CONTINUOUS",
-    "detect_workers": "DRVS_CAMERA_DETECT_WORKERS",
-    "people_min_height_px": "DRVS_CAMERA_PEOPLE_MIN_HEIGHT",
-    "foxglove": "DRVS_CAMERA_FOXGLOVE",
-    "foxglove_fps": "DRVS_CAMERA_FOXGLOVE_FPS",
-    "log_level": "DRVS_LOG_LEVEL",
-    "log_format": "DRVS_LOG_FORMAT",
-    "metrics_port": "DRVS_METRICS_PORT",
-    "metrics_host": "DRVS_METRICS_HOST",
-    **SECURITY_ENV,
-}
+#: drvs-camera's argument groups (--help's sections); a setting without one is in the main list.
+MOBILE = "a camera on a robot (mobile: its field of view moves with the robot's poses)"
+LIVE = "live view (pip install 'drvs[live]'; docs/operations.md)"
+
+
+@dataclass(frozen=True)
+class Setting:
+    """One camera setting's declaration, kept in its CameraConfig field's metadata (see `setting`).
+    `flag`: its drvs-camera flag; `env`: its variable; `limits`: (lowest, highest), inclusive, whole
+    numbers for an int field; `arg_type`: argparse's conversion (None: the text, converted by
+    load_config with its own message); `shared`: the flag is added by drvs._cli's shared helpers
+    (security, logging), not from this declaration. The --config file's key is the field's name."""
+
+    flag: str | None = None
+    env: str | None = None
+    limits: tuple[float, float] | None = None
+    help: str = ""
+    metavar: str | None = None
+    arg_type: type | None = None
+    group: str | None = None
+    shared: bool = False
+    name: str = ""
+    whole: bool = False
+    default: Any = None
+
+    def help_text(self) -> str:
+        """The help with %(env)s filled in (and escaped for argparse)."""
+        return (self.help % {"env": self.env}).replace("%", "%%")
+
+    def add_to(self, parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
+        """This setting's flag; not given, it is None (flag > environment > file > default)."""
+        assert self.flag is not None
+        extra: dict[str, Any] = {"dest": self.name, "help": self.help_text()}
+        if isinstance(self.default, bool):
+            extra |= {"action": "store_const", "const": not self.default}
+        else:
+            extra |= {"metavar": self.metavar, "type": self.arg_type}
+        parser.add_argument(self.flag, **extra)
+
+
+_KEY = "drvs.camera.setting"
+
+
+def setting(
+    default: Any = MISSING,
+    *,
+    flag: str | None = None,
+    env: str | None = None,
+    limits: tuple[float, float] | None = None,
+    help: str = "",
+    metavar: str | None = None,
+    arg_type: type | None = None,
+    group: str | None = None,
+    shared: bool = False,
+    default_factory: Any = MISSING,
+) -> Any:
+    """A CameraConfig field with its whole declaration (see `Setting`). It returns a dataclass
+    field, so ruff's RUF009 (a call as a default), raised where the type is not known immutable,
+    is a false alarm there."""
+    declared = Setting(flag, env, limits, help, metavar, arg_type, group, shared)
+    if default_factory is not MISSING:
+        return field(default_factory=default_factory, metadata={_KEY: declared})
+    return field(default=default, metadata={_KEY: declared})
 
 
 @dataclass(frozen=True)
 class CameraConfig:
-    id: str
-    source: str
+    """A camera node's settings; each field declares its setting whole (see `setting`), and
+    drvs-camera adds the flags in this order."""
+
+    id: str = setting(flag="--id", env="DRVS_CAMERA_ID", help="camera id, unique in the building (%(env)s)")
+    source: str = setting(
+        flag="--source",
+        env="DRVS_CAMERA_SOURCE",
+        help="device index (0), video file, stream URL, or sim://HOST:PORT (%(env)s)",
+    )
     #: A fixed camera's image -> floor homography file; a mobile camera gives `mount` instead.
-    homography: Path | None
-    server: str = DEFAULT_SERVER
-    listen: str = DEFAULT_LISTEN
-    advertise: str | None = None
-    max_range_m: float = DEFAULT_MAX_RANGE_M
-    min_area_px: float = DEFAULT_MIN_AREA_PX
-    max_frame_age_s: float = DEFAULT_MAX_FRAME_AGE_S
-    loop: bool = True
-    serve_frames: bool = False
+    homography: Path | None = setting(  # noqa: RUF009
+        flag="--homography",
+        env="DRVS_CAMERA_HOMOGRAPHY",
+        metavar="FILE",
+        help="JSON/YAML file whose 'homography' is the 3x3 image->floor matrix (%(env)s)",
+    )
+    server: str = setting(
+        DEFAULT_SERVER,
+        flag="--server",
+        env="DRVS_SERVER",
+        help="DRVS server HOST:PORT, several sharing a registry (A:PORT,B:PORT: registration moves on from one "
+        f"that dies), or a DNS name for several (default {DEFAULT_SERVER}; %(env)s)",
+    )
+    listen: str = setting(
+        DEFAULT_LISTEN,
+        flag="--listen",
+        env="DRVS_CAMERA_LISTEN",
+        help=f"HOST:PORT to serve on; port 0 picks a free one (default {DEFAULT_LISTEN}; %(env)s)",
+    )
+    advertise: str | None = setting(
+        None,
+        flag="--advertise",
+        env="DRVS_CAMERA_ADVERTISE",
+        help="HOST:PORT the server should dial, if not --listen (%(env)s)",
+    )
+    #: The floor plan its homography maps to ("building-a/floor-2"; default "map").
+    frame: str = setting(
+        DEFAULT_FRAME,
+        flag="--frame",
+        env="DRVS_CAMERA_FRAME",
+        help="the floor plan its homography maps to, e.g. building-a/floor-2 (default map; %(env)s)",
+    )
+    max_range_m: float = setting(
+        DEFAULT_MAX_RANGE_M,
+        flag="--max-range",
+        env="DRVS_CAMERA_MAX_RANGE",
+        limits=(0.1, 1000.0),
+        arg_type=float,
+        metavar="M",
+        help="field-of-view range, metres (default 15)",
+    )
+    min_area_px: float = setting(
+        DEFAULT_MIN_AREA_PX,
+        flag="--min-area",
+        env="DRVS_CAMERA_MIN_AREA",
+        limits=(1.0, 1e7),
+        arg_type=float,
+        metavar="PX",
+        help="smallest blob, pixels",
+    )
+    max_frame_age_s: float = setting(
+        DEFAULT_MAX_FRAME_AGE_S,
+        flag="--max-frame-age",
+        env="DRVS_CAMERA_MAX_FRAME_AGE",
+        limits=(0.05, 3600.0),
+        arg_type=float,
+        metavar="S",
+        help="older frames are not used; the node reports NOT_SERVING while it has none (default 2)",
+    )
+    loop: bool = setting(True, flag="--no-loop", env="DRVS_CAMERA_LOOP", help="play a video file once, do not loop it")
+    serve_frames: bool = setting(
+        False,
+        flag="--serve-frames",
+        env="DRVS_CAMERA_SERVE_FRAMES",
+        help="also stream whole frames (FrameStream service): the no-DRVS baseline, for benchmarks",
+    )
     #: Asked of a device or stream; a source that gives another size is refused (the homography
     #: belongs to one image size).
-    resolution: tuple[int, int] | None = None
-    fps: float | None = None
-    detectors: tuple[str, ...] = DETECTOR_KINDS
+    resolution: tuple[int, int] | None = setting(
+        None,
+        flag="--resolution",
+        env="DRVS_CAMERA_RESOLUTION",
+        help="W,H to ask of a device or stream; another size is refused (%(env)s)",
+    )
+    fps: float | None = setting(
+        None,
+        flag="--fps",
+        env="DRVS_CAMERA_FPS",
+        limits=(0.1, 1000.0),
+        arg_type=float,
+        help="frame rate to ask of a device or stream (%(env)s)",
+    )
+    detectors: tuple[str, ...] = setting(
+        DETECTOR_KINDS,
+        flag="--detectors",
+        env="DRVS_CAMERA_DETECTORS",
+        help="detectors to run, comma-separated prefixes (default: every one installed; %(env)s)",
+    )
+    #: Threads that run heavy detectors (people, models); requests beyond them queue.
+    detect_workers: int = setting(
+        DEFAULT_DETECT_WORKERS,
+        flag="--detect-workers",
+        env="DRVS_CAMERA_DETECT_WORKERS",
+        limits=(1, 64),
+        metavar="N",
+        help="threads for heavy detectors (people, models); requests beyond them queue (%(env)s)",
+    )
     #: A picture of the empty floor (drvs-camera snapshot) for the foreground detector; relative
     #: to the config file. The detector refuses, at start, a file it cannot read or of another size.
-    background: Path | None = None
-    #: Heartbeat interval; by default a third of the lease the server grants.
-    heartbeat_s: float | None = None
-    #: Continuous requests one robot (callback address) may have running on this camera at once.
-    max_continuous: int = DEFAULT_MAX_CONTINUOUS_PER_ROBOT
-    #: Threads that run heavy detectors (people, models); requests beyond them queue.
-    detect_workers: int = DEFAULT_DETECT_WORKERS
+    background: Path | None = setting(  # noqa: RUF009
+        None,
+        flag="--background",
+        env="DRVS_CAMERA_BACKGROUND",
+        metavar="FILE",
+        help="picture of the empty floor (drvs-camera snapshot) for the foreground detector (%(env)s)",
+    )
     #: The people detector's smallest person, pixels tall (None: its default, 128, HOG's window).
-    people_min_height_px: float | None = None
-    log_level: str | None = None
-    #: text, or json (one object per line, with the request id).
-    log_format: str | None = None
-    #: Serve Prometheus metrics on this port (0: any free port; None: off).
-    metrics_port: int | None = None
-    #: Where the metrics listen: this host only unless the operator says otherwise.
-    metrics_host: str = DEFAULT_METRICS_HOST
-    #: TLS and the registration token (see drvs.security); paths are relative to the config file.
-    tls_cert: Path | None = None
-    tls_key: Path | None = None
-    tls_ca: Path | None = None
-    tls_client_auth: bool = False
-    token_file: Path | None = None
-    #: The operator's object-detection models (config file only): {name: {path, classes, ...}}, see
-    #: drvs.detectors.model; paths are relative to the config file.
-    models: dict[str, ModelSpec] = field(default_factory=dict)
+    people_min_height_px: float | None = setting(
+        None,
+        flag="--people-min-height",
+        env="DRVS_CAMERA_PEOPLE_MIN_HEIGHT",
+        limits=(32.0, 1024.0),
+        metavar="PX",
+        help="people: the smallest person to find, pixels tall, 32-1024; below 128 costs more CPU "
+        "(default 128; %(env)s)",
+    )
+    #: Heartbeat interval; by default a third of the lease the server grants.
+    heartbeat_s: float | None = setting(
+        None,
+        flag="--heartbeat",
+        env="DRVS_CAMERA_HEARTBEAT",
+        limits=(0.05, 3600.0),
+        arg_type=float,
+        metavar="S",
+        help="heartbeat interval (default: lease / 3)",
+    )
+    #: Continuous requests one robot (callback address) may have running on this camera at once.
+    max_continuous: int = setting(
+        DEFAULT_MAX_CONTINUOUS_PER_ROBOT,
+        flag="--max-continuous",
+        env="DRVS_CAMERA_MAX_CONTINUOUS",
+        limits=(1, 1_000_000),
+        metavar="N",
+        help="continuous requests one robot may have running on this camera at once (default 32; %(env)s)",
+    )
     #: A mobile camera (on a robot): "X,Y,Z,YAW,PITCH", where it sits on the robot (metres,
     #: degrees; see drvs.mobile.Mount), with `hfov_deg` or `camera_matrix` ("FX,FY,CX,CY", pixels),
     #: and where its robot's poses come from (`pose_source`, see drvs.camera.poses).
-    mount: str | None = None
-    hfov_deg: float | None = None
-    camera_matrix: str | None = None
-    pose_source: str | None = None
+    mount: str | None = setting(
+        None,
+        flag="--mount",
+        metavar="X,Y,Z,YAW,PITCH",
+        group=MOBILE,
+        help="where the camera sits on the robot: metres in the robot's base frame (x forward, y left, z up), "
+        "yaw from forward and pitch below horizontal in degrees; instead of --homography",
+    )
+    hfov_deg: float | None = setting(
+        None,
+        flag="--hfov",
+        limits=(1.0, 179.0),
+        arg_type=float,
+        metavar="DEG",
+        group=MOBILE,
+        help="the camera's horizontal field of view",
+    )
+    camera_matrix: str | None = setting(
+        None,
+        flag="--camera-matrix",
+        metavar="FX,FY,CX,CY",
+        group=MOBILE,
+        help="the camera's intrinsics, pixels (instead of --hfov)",
+    )
+    pose_source: str | None = setting(
+        None,
+        flag="--pose-source",
+        metavar="SOURCE",
+        group=MOBILE,
+        help="the robot's poses: tcp://HOST:PORT (newline-delimited "
+        'JSON {"t", "x", "y", "yaw"}) or sim://HOST:PORT/SCOUT (the simulator)',
+    )
     #: A frame with no pose within this many seconds of its capture is not used.
-    max_pose_gap_s: float = DEFAULT_MAX_POSE_GAP_S
+    max_pose_gap_s: float = setting(
+        DEFAULT_MAX_POSE_GAP_S,
+        flag="--max-pose-gap",
+        limits=(0.001, 60.0),
+        arg_type=float,
+        metavar="S",
+        group=MOBILE,
+        help="a frame with no pose this close to its capture is not used (default 0.25)",
+    )
     #: Seconds a pose update keeps the camera routed (0: the server's default).
-    pose_lease_s: float = 0.0
+    pose_lease_s: float = setting(
+        0.0,
+        flag="--pose-lease",
+        limits=(0.0, 3600.0),
+        arg_type=float,
+        metavar="S",
+        group=MOBILE,
+        help="seconds one pose keeps the camera routed (default 0: the server's)",
+    )
     #: The fastest the robot moves, m/s (0: the server's default, 3): faster poses are refused.
-    max_speed_mps: float = 0.0
+    max_speed_mps: float = setting(
+        0.0,
+        flag="--max-speed",
+        limits=(0.0, 50.0),
+        arg_type=float,
+        metavar="M/S",
+        group=MOBILE,
+        help="the fastest the robot moves; the server refuses faster poses (default 0: its 3)",
+    )
     #: Send the server a pose when the robot moved this far (metres) or turned this much (degrees),
     #: at most max_pose_rate_hz times a second.
-    pose_update_distance_m: float = 0.1
-    pose_update_angle_deg: float = 5.0
-    max_pose_rate_hz: float = 5.0
-    #: The floor plan its homography maps to ("building-a/floor-2"; default "map").
-    frame: str = DEFAULT_FRAME
+    pose_update_distance_m: float = setting(
+        0.1,
+        flag="--pose-update-distance",
+        limits=(0.0, 1000.0),
+        arg_type=float,
+        metavar="M",
+        group=MOBILE,
+        help="send a pose when the robot moved this far (default 0.1)",
+    )
+    pose_update_angle_deg: float = setting(
+        5.0,
+        flag="--pose-update-angle",
+        limits=(0.0, 180.0),
+        arg_type=float,
+        metavar="DEG",
+        group=MOBILE,
+        help="... or turned this much (default 5)",
+    )
+    max_pose_rate_hz: float = setting(
+        5.0,
+        flag="--max-pose-rate",
+        limits=(0.01, 100.0),
+        arg_type=float,
+        metavar="HZ",
+        group=MOBILE,
+        help="at most this many pose updates a second (default 5)",
+    )
     #: A Foxglove live view of the camera's frames, detections drawn (drvs.camera.liveview): where
     #: it listens (host, port; port 0 picks one; None: no live view), and at most how many frames a
     #: second it sends while someone watches (None: DEFAULT_FOXGLOVE_FPS).
-    foxglove: tuple[str, int] | None = None
-    foxglove_fps: float | None = None
+    foxglove: tuple[str, int] | None = setting(
+        None,
+        flag="--foxglove",
+        env="DRVS_CAMERA_FOXGLOVE",
+        metavar="[HOST:]PORT",
+        group=LIVE,
+        help="serve a Foxglove live view (WebSocket) of this camera's frames, JPEG, with its latest detections "
+        "drawn, on topic /camera/ID/image; sent only while someone subscribes. PORT alone listens on 127.0.0.1, "
+        "0 picks a free port. It has no access control: anyone who reaches it sees the images (%(env)s)",
+    )
+    foxglove_fps: float | None = setting(
+        None,
+        flag="--foxglove-fps",
+        env="DRVS_CAMERA_FOXGLOVE_FPS",
+        metavar="N",
+        group=LIVE,
+        help=f"at most N frames a second to the live view, above 0 and at most {MAX_FPS:g} "
+        f"(default {DEFAULT_FOXGLOVE_FPS:g}; %(env)s)",
+    )
+    #: TLS and the registration token (see drvs.security); paths are relative to the config file.
+    #: Their flags are drvs._cli.add_security_arguments'.
+    tls_cert: Path | None = setting(None, flag="--tls-cert", env=SECURITY_ENV["tls_cert"], shared=True)  # noqa: RUF009
+    tls_key: Path | None = setting(None, flag="--tls-key", env=SECURITY_ENV["tls_key"], shared=True)  # noqa: RUF009
+    tls_ca: Path | None = setting(None, flag="--tls-ca", env=SECURITY_ENV["tls_ca"], shared=True)  # noqa: RUF009
+    tls_client_auth: bool = setting(False, flag="--tls-client-auth", env=SECURITY_ENV["tls_client_auth"], shared=True)
+    token_file: Path | None = setting(None, flag="--token-file", env=SECURITY_ENV["token_file"], shared=True)  # noqa: RUF009
+    log_level: str | None = setting(
+        None, flag="--log-level", env="DRVS_LOG_LEVEL", help="DEBUG, INFO, WARNING (%(env)s)"
+    )
+    #: text, or json (one object per line, with the request id).
+    log_format: str | None = setting(
+        None,
+        flag="--log-format",
+        env="DRVS_LOG_FORMAT",
+        help="text, or json: one object per line with the request id (%(env)s)",
+    )
+    #: Serve Prometheus metrics on this port (0: any free port; None: off).
+    metrics_port: int | None = setting(
+        None,
+        flag="--metrics-port",
+        env="DRVS_METRICS_PORT",
+        help="Prometheus metrics port; 0 picks one; default off (%(env)s)",
+    )
+    #: Where the metrics listen: this host only unless the operator says otherwise.
+    metrics_host: str = setting(
+        DEFAULT_METRICS_HOST,
+        flag="--metrics-host",
+        env="DRVS_METRICS_HOST",
+        help="address the metrics listen on (default 127.0.0.1: this host only; %(env)s)",
+    )
+    #: The operator's object-detection models (config file only): {name: {path, classes, ...}}, see
+    #: drvs.detectors.model; paths are relative to the config file.
+    models: dict[str, ModelSpec] = setting(default_factory=dict)  # noqa: RUF009
 
     def __post_init__(self) -> None:
         check_settings({f.name: getattr(self, f.name) for f in fields(self)})
@@ -197,42 +458,34 @@ class CameraConfig:
         return options
 
 
-_FLAGS = {"id": "--id", "source": "--source", "homography": "--homography", "max_range_m": "--max-range",
-          "min_area_px": "--min-area", "max_frame_age_s": "--max-frame-age", "loop": "--no-loop",
-          "serve_frames": "--serve-frames", "log_level": "--log-level", "server": "--server",
-          "listen": "--listen", "advertise": "--advertise", "resolution": "--resolution", "fps": "--fps",
-          "detectors": "--detectors", "heartbeat_s": "--heartbeat", "tls_cert": "--tls-cert",
-          "tls_key": "--tls-key", "tls_ca": "--tls-ca", "tls_client_auth": "--tls-client-auth",
-          "token_file": "--token-file", "log_format": "--log-format", "metrics_port": "--metrics-port",
-          "metrics_host": "--metrics-host", "max_continuous": "--max-continuous",
-          "detect_workers": "--detect-workers", "background": "--background",
-          "people_min_height_px": "--people-min-height", "mount": "--mount", "hfov_deg": "--hfov",
-          "camera_matrix": "--camera-matrix", "pose_source": "--pose-source", "max_pose_gap_s": "--max-pose-gap",
-          "pose_lease_s": "--pose-lease", "max_speed_mps": "--max-speed",
-          "pose_update_distance_m": "--pose-update-distance",
-          "pose_update_angle_deg": "--pose-update-angle", "max_pose_rate_hz": "--max-pose-rate",
-          "frame": "--frame", "foxglove": "--foxglove", "foxglove_fps": "--foxglove-fps"}  # fmt: skip
+def _declared(f: Field[Any]) -> Setting:
+    declared: Setting = f.metadata.get(_KEY, Setting())
+    whole = f.type in ("int", "int | None")
+    default = f.default if f.default is not MISSING else None
+    return dataclasses.replace(declared, name=f.name, whole=whole, default=default)
 
 
+#: Every setting by name, in CameraConfig's order: what the parser, environment, file and checks read.
+SETTINGS: dict[str, Setting] = {f.name: _declared(f) for f in fields(CameraConfig)}
+#: Every environment variable a camera node reads, by setting.
+ENVIRONMENT = {s.name: s.env for s in SETTINGS.values() if s.env}
+_FLAGS = {s.name: s.flag for s in SETTINGS.values() if s.flag}
 #: Numeric settings, checked wherever they come from (CameraConfig, CameraNode's constructor, the
 #: CLI): name -> (lowest, highest, whole numbers only).
 LIMITS: dict[str, tuple[float, float, bool]] = {
-    "max_range_m": (0.1, 1000.0, False),
-    "min_area_px": (1.0, 1e7, False),
-    "max_frame_age_s": (0.05, 3600.0, False),
-    "fps": (0.1, 1000.0, False),
-    "heartbeat_s": (0.05, 3600.0, False),
-    "people_min_height_px": (32.0, 1024.0, False),
-    "max_continuous": (1, 1_000_000, True),
-    "detect_workers": (1, 64, True),
-    "hfov_deg": (1.0, 179.0, False),
-    "max_pose_gap_s": (0.001, 60.0, False),
-    "pose_lease_s": (0.0, 3600.0, False),
-    "max_speed_mps": (0.0, 50.0, False),
-    "pose_update_distance_m": (0.0, 1000.0, False),
-    "pose_update_angle_deg": (0.0, 180.0, False),
-    "max_pose_rate_hz": (0.01, 100.0, False),
+    s.name: (*s.limits, s.whole) for s in SETTINGS.values() if s.limits is not None
 }
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """drvs-camera's setting flags (all but the shared security ones), in the declared order, each
+    in its group (created on first use). Each defaults to None: not given."""
+    groups: dict[str | None, argparse.ArgumentParser | argparse._ArgumentGroup] = {None: parser}
+    for s in SETTINGS.values():
+        if s.flag is not None and not s.shared:
+            if s.group not in groups:
+                groups[s.group] = parser.add_argument_group(s.group)
+            s.add_to(groups[s.group])
 
 
 def check_setting(name: str, value: Any) -> None:

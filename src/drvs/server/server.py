@@ -14,7 +14,7 @@ import secrets
 import time
 import uuid
 from collections import OrderedDict
-from collections.abc import AsyncIterator, Callable, Iterable, Mapping
+from collections.abc import AsyncIterator, Callable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -44,15 +44,10 @@ from drvs.errors import (
     Unavailable,
 )
 from drvs.etcd import Endpoints, EtcdClient
-from drvs.geometry import DEFAULT_MAX_RANGE_M, Homography
+from drvs.geometry import Homography
 from drvs.model import DEFAULT_FRAME, CameraError, DetectionReport, DetectionRequest, Pose2, check_frame, check_id
 from drvs.net import format_address, host_of, is_loopback_host
 from drvs.registry import (
-    DEFAULT_GRACE_S,
-    DEFAULT_LEASE_TTL_S,
-    DEFAULT_MAX_CAMERAS_PER_IDENTITY,
-    DEFAULT_MAX_FOV_AREA_M2,
-    DEFAULT_MAX_FOV_RANGE_M,
     CameraEntry,
     Claims,
     Registry,
@@ -72,9 +67,7 @@ from drvs.security import (
 )
 from drvs.server.admission import Door, LinkDelay
 from drvs.server.config import (
-    DEFAULT_FORWARD_TIMEOUT_S,
     DEFAULT_LISTEN,
-    DEFAULT_MAX_QUEUED_FORWARDS,
     WILDCARDS,
     ServerConfig,
 )
@@ -238,40 +231,16 @@ class DrvsServer(Lifecycle):
         self,
         listen: str = DEFAULT_LISTEN,
         *,
-        lease_ttl_s: float = DEFAULT_LEASE_TTL_S,
-        forward_timeout_s: float = DEFAULT_FORWARD_TIMEOUT_S,
-        max_queued_forwards: int = DEFAULT_MAX_QUEUED_FORWARDS,
-        default_max_range_m: float = DEFAULT_MAX_RANGE_M,
-        allow_callback: Iterable[str] = (),
-        allow_any_callback: bool = False,
         security: Security | None = None,
         camera_tokens: Mapping[str, str] | None = None,
         robot_tokens: Mapping[str, str] | None = None,
         limits: RequestLimits | None = None,
         connection_limits: _grpc.ConnectionLimits | None = None,
-        trust_network: bool = False,
-        registration_grace_s: float = DEFAULT_GRACE_S,
-        max_cameras_per_identity: int = DEFAULT_MAX_CAMERAS_PER_IDENTITY,
-        max_fov_range_m: float = DEFAULT_MAX_FOV_RANGE_M,
-        max_fov_area_m2: float = DEFAULT_MAX_FOV_AREA_M2,
-        warm_up_s: float | None = None,
         config: ServerConfig | None = None,
+        **settings: Any,
     ) -> None:
-        given = ServerConfig(
-            listen=listen,
-            lease_ttl_s=lease_ttl_s,
-            forward_timeout_s=forward_timeout_s,
-            max_queued_forwards=max_queued_forwards,
-            default_max_range_m=default_max_range_m,
-            allow_callback=tuple(allow_callback),
-            allow_any_callback=allow_any_callback,
-            trust_network=trust_network,
-            registration_grace_s=registration_grace_s,
-            max_cameras_per_identity=max_cameras_per_identity,
-            max_fov_range_m=max_fov_range_m,
-            max_fov_area_m2=max_fov_area_m2,
-            warm_up_s=warm_up_s,
-        )
+        # Any ServerConfig field is a keyword (an unknown one: TypeError naming it); no list here.
+        given = ServerConfig(listen=listen, **settings)
         if config is None:
             config = given
         elif given != ServerConfig():
