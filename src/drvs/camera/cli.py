@@ -19,7 +19,7 @@ from drvs.camera.config import DEFAULT_FOXGLOVE_FPS, DEFAULT_LISTEN, DEFAULT_SER
 from drvs.camera.liveview import MAX_FPS
 from drvs.camera.node import CameraNode
 from drvs.camera.source import FrameSource, VideoSource, plugin_source
-from drvs.detection import Frame
+from drvs.detectors import Frame
 from drvs.errors import DrvsError
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, polygon_coords
 from drvs.homography_file import load_homography
