@@ -20,8 +20,8 @@ from drvs.object_types import HsvRange, MarkerType, ModelType, object_type
 from .test_object_types import plugin_env
 
 ROOT = Path(__file__).resolve().parents[1]
-ONE_OF_EACH = ("hsv_014110130035225200", "hsv_170100100010255255", "aruco_4x4_50", "aruco_original_7")
-ONE_OF_EACH += ("people", "foreground", "model_yolo", "model_yolo_traffic_light")
+ONE_OF_EACH: tuple[str, ...] = ("hsv_014110130035225200", "hsv_170100100010255255", "aruco_4x4_50")
+ONE_OF_EACH += ("aruco_original_7", "people", "foreground", "model_yolo", "model_yolo_traffic_light")
 #: After the code ran: OpenCV and drvs.detectors (any of its modules) must not have been loaded.
 NOTHING_HEAVY = (
     "heavy = sorted(m for m in sys.modules if m == 'cv2' or m.startswith(('cv2.', 'drvs.detectors')))\n"

@@ -45,7 +45,7 @@ if TYPE_CHECKING:
     from drvs.object_types import aruco as aruco
     from drvs.object_types import foreground as foreground
     from drvs.object_types import hsv as hsv
-    from drvs.object_types import model as model_type  # noqa: F401  (in __all__ through _EXPORTS)
+    from drvs.object_types import model_type as model_type
     from drvs.object_types import people as people
     from drvs.robot.client import CameraInfo as CameraInfo
     from drvs.robot.client import DetectionResult as DetectionResult
@@ -87,8 +87,6 @@ _EXPORTS = {
     "foreground": "drvs.object_types",
     "model_type": "drvs.object_types",
 }
-#: Exported under another name: `drvs.model` is the module of the domain objects.
-_RENAMED = {"model_type": "model"}
 
 __all__ = ["__version__", *_EXPORTS]
 
@@ -97,7 +95,7 @@ def __getattr__(name: str) -> Any:
     module = _EXPORTS.get(name)
     if module is None:
         raise AttributeError(f"module 'drvs' has no attribute {name!r}")
-    value = getattr(importlib.import_module(module), _RENAMED.get(name, name))
+    value = getattr(importlib.import_module(module), name)
     globals()[name] = value
     return value
 

@@ -57,6 +57,7 @@ __all__ = [
     "hsv",
     "is_known_type",
     "model",
+    "model_type",
     "object_type",
     "parse_object_type",
     "people",
@@ -484,3 +485,7 @@ def model(name: str, cls: str | None = None) -> str:
     if not isinstance(cls, str) or not CLASS_NAME_RE.fullmatch(cls):
         raise InvalidArgument(f"model: cls {cls!r:.40} must be 1-32 letters, digits and '_ - .'")
     return _checked(f"{MODEL_PREFIX}{name}_{cls}", "model")
+
+
+#: `model` under the name the drvs package exports it as (there `drvs.model` is the module).
+model_type = model
