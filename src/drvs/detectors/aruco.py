@@ -38,13 +38,18 @@ from .base import CameraView, Detector, FrameAnalysis, ObjectType, register
 
 
 def _check_dictionaries() -> None:
-    """The grammar's dictionary table (drvs.object_types, which imports no OpenCV) is this cv2's."""
+    """The grammar's dictionary table (drvs.object_types, which imports no OpenCV) is this cv2's:
+    each name (OpenCV's DICT_ constant's, lower case, "aruco_" dropped) is that constant, of that size.
+    A dictionary a later OpenCV adds is not offered until the table names it."""
+    for attr in dir(cv2.aruco):
+        value = getattr(cv2.aruco, attr)
+        name = attr[len("DICT_") :].lower().removeprefix("aruco_")
+        if attr.startswith("DICT_") and name in DICTIONARIES and DICTIONARIES[name] != value:
+            raise RuntimeError(f"cv2.aruco.{attr} is {value}; drvs.object_types has {name}: {DICTIONARIES.get(name)}")
     for name, value in DICTIONARIES.items():
         size = int(cv2.aruco.getPredefinedDictionary(value).bytesList.shape[0])
         if size != DICTIONARY_SIZES[name]:
-            raise RuntimeError(
-                f"ArUco dictionary {name}: OpenCV has {size} markers, the grammar {DICTIONARY_SIZES[name]}"
-            )
+            raise RuntimeError(f"ArUco {name}: OpenCV has {size} markers, drvs.object_types {DICTIONARY_SIZES[name]}")
 
 
 _check_dictionaries()
