@@ -22,7 +22,7 @@ from drvs_bench.fakes import register_message as register_message  # re-exported
 from numpy.typing import NDArray
 
 from drvs import _grpc
-from drvs.detection import DEFAULT_MIN_AREA_PX, CameraView, HsvDetector
+from drvs.detectors import DEFAULT_MIN_AREA_PX, CameraView, HsvDetector
 from drvs.filters import HsvRange
 from drvs.geometry import FieldOfView, Homography, homography_from_pose
 from drvs.launch import ManagedProcess, start_camera, start_server

@@ -11,8 +11,8 @@ import pytest
 from numpy.typing import NDArray
 from shapely.geometry import Point
 
-from drvs.detection import DEFAULT_MIN_AREA_PX, FrameAnalysis
-from drvs.detection import Frame as DetFrame
+from drvs.detectors import DEFAULT_MIN_AREA_PX, FrameAnalysis
+from drvs.detectors import Frame as DetFrame
 from drvs.geometry import box_region
 from drvs.model import Detection
 from drvs.sim.scene import write_video

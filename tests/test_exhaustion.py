@@ -22,7 +22,7 @@ from grpc import aio
 from drvs import convert
 from drvs.camera.node import CameraNode
 from drvs.convert import MAX_REGION_BYTES, RegionCache, region_to_pb
-from drvs.detection import Frame
+from drvs.detectors import Frame
 from drvs.errors import InvalidArgument, ResourceExhausted
 from drvs.geometry import MAX_REGION_VERTICES, homography_from_pose, polygon_region
 from drvs.launch import ManagedProcess, start_server

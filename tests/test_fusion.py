@@ -15,8 +15,8 @@ from numpy.typing import NDArray
 from shapely.geometry import Point, Polygon
 from shapely.geometry import box as floor_box
 
-from drvs.detection import CameraView, FrameAnalysis, HsvDetector
-from drvs.detection import Frame as DetFrame
+from drvs.detectors import CameraView, FrameAnalysis, HsvDetector
+from drvs.detectors import Frame as DetFrame
 from drvs.detectors.base import REGISTRY
 from drvs.errors import InvalidArgument
 from drvs.filters import HsvRange, object_type

@@ -13,6 +13,10 @@ From the bottom up:
          it imports drvs.robot alone (its robot is a robot program).
 The `drvs` package itself (drvs/__init__.py) is the robot programmer's front door: it may re-export
 drvs.robot, and nothing else above the core.
+Within the core, the detectors (drvs.detectors: OpenCV and every plug-in) are for cameras: the rest
+of the core parses filter_defs with the grammar (drvs.object_types) and imports no detector, so
+neither the server nor a robot loads one (drvs.frames, the frame sources' shared part, which cameras
+and the simulator alone use, is the one exception: a Frame is the detectors').
 
 Checked twice: statically (every import statement of every module, inside functions too, and
 importlib.import_module("...") with a literal name), and by importing every module of each role in
@@ -39,6 +43,9 @@ FACADE = "drvs"
 GENERATED = "drvs.v1"
 #: Third-party packages that only tools may import: matplotlib draws the office's map and the plots.
 TOOL_ONLY_LIBRARIES = ("matplotlib",)
+DETECTORS = "drvs.detectors"
+#: Core modules outside drvs.detectors that may import it, and why.
+DETECTOR_USERS = {"drvs.frames": "the frame sources' newest frame is a drvs.detectors Frame"}
 
 
 def under(module: str, package: str) -> bool:
@@ -140,6 +147,13 @@ def violations(imports: list[Import]) -> list[str]:
             bad.append(f"{imp}: {target} is a tool, above every role")
         elif source == "core" and layer(target) in ROLES:
             bad.append(f"{imp}: the core (pure logic and shared plumbing) imports no role")
+        elif (
+            source == "core"
+            and under(target, DETECTORS)
+            and not under(imp.module, DETECTORS)
+            and imp.module not in DETECTOR_USERS
+        ):
+            bad.append(f"{imp}: the core parses filter_defs with drvs.object_types and imports no detector plug-in")
         elif source == "facade" and layer(target) in ROLES and layer(target) != "drvs.robot":
             bad.append(f"{imp}: the drvs package re-exports the robot API only")
         elif source in ROLES and layer(target) in ROLES and layer(target) != source:
@@ -189,6 +203,9 @@ def test_the_rules_catch_each_kind_of_crossing() -> None:
         ("drvs", "drvs.camera"): "robot API only",
         ("drvs.sim.scene", "drvs.camera.calibration"): "over the wire",
         ("drvs.sim.office", "drvs.server.cli"): "over the wire",
+        ("drvs.model", "drvs.detectors"): "no detector plug-in",
+        ("drvs.filters", "drvs.detectors.hsv"): "no detector plug-in",
+        ("drvs.convert", "drvs.detectors.base"): "no detector plug-in",
     }
     for (module, target), why in cases.items():
         (message,) = violations([Import(module, target, 1)])
@@ -201,6 +218,10 @@ def test_the_rules_catch_each_kind_of_crossing() -> None:
         ("drvs", "drvs.robot"),
         ("drvs.robot.client", "drvs.robot.cli"),
         ("drvs.sim.report", "matplotlib"),
+        ("drvs.detectors.hsv", "drvs.object_types"),
+        ("drvs.detectors.aruco", "drvs.detectors.base"),
+        ("drvs.camera.node", "drvs.detectors"),
+        ("drvs.sim.scenario", "drvs.detectors.aruco"),
     ]
     assert violations([Import(m, t, 1) for m, t in allowed]) == []
 
@@ -234,3 +255,27 @@ def test_a_role_loads_no_simulator_benchmarks_or_matplotlib(role: str) -> None:
     assert done.returncode == 0, done.stderr
     loaded = done.stdout.split()
     assert loaded == [], f"importing {role} loaded {loaded} (never: {NEVER_LOADED_BY_ROLES})"
+
+
+@pytest.mark.parametrize("role", ("drvs.server", "drvs.robot"))
+def test_the_server_and_robots_parse_filter_defs_without_loading_a_detector(role: str) -> None:
+    """Import every module of the role in a fresh interpreter, then validate a request of every
+    built-in type as the server does (drvs.convert.request_from_pb): no drvs.detectors module loads."""
+    mods = sorted(name for name in module_files() if under(name, role))
+    filter_defs = ("hsv_014110130035225200", "aruco_4x4_50_7", "people", "foreground", "model_yolo_person")
+    code = (
+        "import importlib, sys\n"
+        f"for name in {mods!r}:\n"
+        "    importlib.import_module(name)\n"
+        "from shapely.geometry import box\n"
+        "from drvs.convert import request_from_pb, request_to_pb\n"
+        "from drvs.model import DetectionRequest\n"
+        f"for f in {filter_defs!r}:\n"
+        "    request_from_pb(request_to_pb(DetectionRequest('r', 'b', f, box(0, 0, 1, 1), '127.0.0.1:5000')))\n"
+        f"loaded = [m for m in sys.modules if m == {DETECTORS!r} or m.startswith({DETECTORS + '.'!r})]\n"
+        "print('\\n'.join(sorted(loaded)))\n"
+    )
+    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
+    assert done.returncode == 0, done.stderr
+    loaded = done.stdout.split()
+    assert loaded == [], f"{role} loaded {loaded} to parse filter_defs (drvs.object_types needs no detector)"

@@ -8,7 +8,7 @@ import threading
 import numpy as np
 
 from drvs.camera.prefetch import Analyses
-from drvs.detection import Frame
+from drvs.detectors import Frame
 
 from .helpers import BIG, GREEN, YELLOW, camera, detector, render
 

@@ -18,8 +18,8 @@ from hypothesis import strategies as st
 from numpy.typing import NDArray
 from shapely.geometry import box as floor_box
 
-from drvs.detection import CameraView, FrameAnalysis, HsvDetector
-from drvs.detection import Frame as DetFrame
+from drvs.detectors import CameraView, FrameAnalysis, HsvDetector
+from drvs.detectors import Frame as DetFrame
 from drvs.errors import InvalidArgument
 from drvs.filters import HsvRange
 from drvs.fusion import fuse

@@ -34,7 +34,7 @@ from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.sim.scene import write_video
 
 from .common import YELLOW, bench_process, cpu_seconds
-from .fusion import REGION, Cameras, Disc
+from .fusion_scene import REGION, Cameras, Disc
 from .paper import check_drvs, check_fused
 from .stats import check_work, interleaved, publish
 

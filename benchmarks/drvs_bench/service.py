@@ -32,7 +32,7 @@ from shapely import STRtree
 from shapely.geometry import Polygon, box
 
 from drvs.camera.source import VideoSource
-from drvs.detection import CameraView, Frame, FrameAnalysis, HsvDetector
+from drvs.detectors import CameraView, Frame, FrameAnalysis, HsvDetector
 from drvs.geometry import FieldOfView
 from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.registry import CameraEntry, Registry

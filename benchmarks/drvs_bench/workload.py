@@ -30,8 +30,7 @@ import numpy as np
 from grpc import aio
 from shapely.geometry import box
 
-from drvs.detection import CameraView, Frame, FrameAnalysis, HsvDetector
-from drvs.detectors import Detector, select
+from drvs.detectors import CameraView, Detector, Frame, FrameAnalysis, HsvDetector, select
 from drvs.detectors.people import PeopleDetector
 from drvs.errors import DrvsError
 from drvs.filters import object_type

@@ -10,6 +10,10 @@ The robot programmer's API is re-exported here (from drvs.robot and drvs.errors)
     async with DrvsClient.connect("drvs.example:50051", robot_id="turtle-1") as drvs:
         result = await drvs.detect("hsv_014110130035225200", (0, 0, 5, 5))
 
+filter_defs can be built from typed arguments, checked by the grammar (drvs.object_types):
+`drvs.hsv((14, 110, 130), (35, 225, 200))`, `drvs.aruco("4x4_50", 7)`, `drvs.people()`,
+`drvs.foreground()`, `drvs.model_type("yolo", "person")` (not `drvs.model`: that is the module).
+
 Those names are imported when first used, so `import drvs` (as a camera node or the server does
 for its own modules) stays light.
 """
@@ -38,6 +42,11 @@ if TYPE_CHECKING:
     from drvs.model import Pose2 as Pose2
     from drvs.model import Snapshot as Snapshot
     from drvs.model import WorldObject as WorldObject
+    from drvs.object_types import aruco as aruco
+    from drvs.object_types import foreground as foreground
+    from drvs.object_types import hsv as hsv
+    from drvs.object_types import model_type as model_type
+    from drvs.object_types import people as people
     from drvs.robot.client import CameraInfo as CameraInfo
     from drvs.robot.client import DetectionResult as DetectionResult
     from drvs.robot.client import DrvsClient as DrvsClient
@@ -72,6 +81,11 @@ _EXPORTS = {
     "ResourceExhausted": "drvs.errors",
     "PermissionDenied": "drvs.errors",
     "Unauthenticated": "drvs.errors",
+    "hsv": "drvs.object_types",
+    "aruco": "drvs.object_types",
+    "people": "drvs.object_types",
+    "foreground": "drvs.object_types",
+    "model_type": "drvs.object_types",
 }
 
 __all__ = ["__version__", *_EXPORTS]

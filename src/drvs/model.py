@@ -12,6 +12,7 @@ from shapely.geometry import Point, Polygon
 
 from drvs.errors import DrvsError, InvalidArgument, error_for
 from drvs.net import parse_address
+from drvs.object_types import detector_kind, is_known_type
 
 #: Continuous requests are bounded so one request cannot keep cameras busy forever: reports a
 #: second, and seconds.
@@ -373,15 +374,14 @@ class DetectionRequest:
     def validate(self, *, require_request_id: bool = True, unknown_types: bool = False) -> None:
         """Everything but the region, which is validated when it is built. unknown_types=True (the
         robot's side): a filter_def whose type this process has no detector plug-in for is left to
-        the server, which knows what its cameras serve; types it knows are checked here."""
+        the server, which knows what its cameras serve; types it knows are checked here (by the
+        grammar, drvs.object_types: no detector is loaded)."""
         if require_request_id and not self.request_id:
             raise InvalidArgument("request_id: empty")
         check_id(self.request_id, "request_id", allow_empty=not require_request_id)
         check_id(self.robot_id, "robot_id", allow_empty=True)
-        from drvs.filters import is_known_type, validate_filter_def  # drvs.filters imports the detectors
-
         if not (unknown_types and self.filter_def and not is_known_type(self.filter_def)):
-            validate_filter_def(self.filter_def)
+            detector_kind(self.filter_def)
         elif len(self.filter_def) > MAX_ID_LENGTH:
             raise InvalidArgument(f"filter_def: longer than {MAX_ID_LENGTH} characters")
         if self.fusion is not None:
@@ -398,8 +398,6 @@ class DetectionRequest:
     @property
     def kind(self) -> str:
         """The routing kind of the filter_def (hsv, aruco, people, foreground, model_<name>)."""
-        from drvs.filters import detector_kind
-
         return detector_kind(self.filter_def)
 
 

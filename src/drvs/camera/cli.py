@@ -18,7 +18,7 @@ from drvs.camera.calibration import fit_homography, load_points, save_calibratio
 from drvs.camera.config import DEFAULT_FOXGLOVE_FPS, ENVIRONMENT, add_arguments, load_config
 from drvs.camera.node import CameraNode
 from drvs.camera.source import FrameSource, VideoSource, plugin_source
-from drvs.detection import Frame
+from drvs.detectors import Frame
 from drvs.errors import DrvsError
 from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, polygon_coords
 from drvs.homography_file import load_homography

@@ -17,10 +17,9 @@ from typing import Any
 
 from drvs._cli import SECURITY_ENV, format_number, parse_bool, read_token
 from drvs._files import read_yaml
-from drvs.detection import DEFAULT_MIN_AREA_PX
+from drvs.detectors import DEFAULT_MIN_AREA_PX, DETECTOR_KINDS
 from drvs.detectors.model import ModelSpec, parse_models
 from drvs.errors import InvalidArgument
-from drvs.filters import DETECTOR_KINDS
 from drvs.geometry import DEFAULT_MAX_RANGE_M
 from drvs.liveview import parse_listen
 from drvs.logs import FORMATS

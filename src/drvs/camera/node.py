@@ -21,12 +21,12 @@ from drvs import liveview, logs, metrics
 from drvs._service import Endpoint, Lifecycle
 from drvs.callback import CallbackSender
 from drvs.convert import homography_to_pb, request_from_pb
-from drvs.detection import Frame
 from drvs.detectors import (
     DEFAULT_MIN_AREA_PX,
     REGISTRY,
     CameraView,
     Detector,
+    Frame,
     FrameAnalysis,
     ObjectType,
     prefixes,

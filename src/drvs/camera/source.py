@@ -14,7 +14,7 @@ from typing import Protocol, cast
 import cv2
 import numpy as np
 
-from drvs.detection import Frame
+from drvs.detectors import Frame
 from drvs.errors import FailedPrecondition, InvalidArgument
 from drvs.frames import NewestFrame
 

@@ -2,7 +2,8 @@
 
 A new detector is one module: a `Detector` subclass decorated with `@register`, either here
 (imported below) or in any installed package that names the module under the "drvs.detectors"
-entry-point group. Servers and cameras both load it: the server parses filter_defs with it.
+entry-point group. Cameras load them all; `@register` adds a plug-in's filter_def grammar to the
+core's (`drvs.object_types`), which servers and robots parse with without importing this package.
 See `drvs.detectors.base` for what a detector implements and what stays common.
 """
 
@@ -10,6 +11,8 @@ from __future__ import annotations
 
 import importlib.metadata
 import logging
+
+from drvs.object_types import PLUGIN_GROUP
 
 from .aruco import ArucoDetector as ArucoDetector
 from .base import (
@@ -37,6 +40,7 @@ from .foreground import ForegroundDetector  # noqa: F401  (registers "foreground
 
 __all__ = [
     "DEFAULT_MIN_AREA_PX",
+    "DETECTOR_KINDS",
     "OUTLINE_TOLERANCE_PX",
     "REGISTRY",
     "CameraView",
@@ -55,7 +59,7 @@ __all__ = [
 
 #: The entry-point group a package names its detector modules in, e.g. in its pyproject.toml:
 #: [project.entry-points."drvs.detectors"] stripes = "my_package.stripes"
-ENTRY_POINT_GROUP = "drvs.detectors"
+ENTRY_POINT_GROUP = PLUGIN_GROUP
 log = logging.getLogger(__name__)
 
 
@@ -72,3 +76,6 @@ def _load_plugins() -> None:
 
 
 _load_plugins()
+
+#: The prefixes of the detectors this process can run (built-ins, then plug-ins), in registration order.
+DETECTOR_KINDS = prefixes()

@@ -1,4 +1,5 @@
-"""Fiducial markers lying on the floor: ``aruco_<dictionary>`` and ``aruco_<dictionary>_<id>``.
+"""Fiducial markers lying on the floor: ``aruco_<dictionary>`` and ``aruco_<dictionary>_<id>``
+(the grammar and the dictionary table are the core's, drvs.object_types).
 
 Dictionaries are OpenCV's predefined ones (the ``cv2.aruco.DICT_*`` constants), named in lower
 case without ``DICT_``: ``4x4_50``, ``6x6_1000``, ``apriltag_36h11``; the two whose OpenCV names
@@ -17,89 +18,41 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 import threading
 from collections.abc import Mapping
-from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from drvs.errors import InvalidArgument
 from drvs.model import Detection
+from drvs.object_types import ARUCO_PREFIX as ARUCO_PREFIX
+from drvs.object_types import DICTIONARIES as DICTIONARIES
+from drvs.object_types import DICTIONARY_SIZES as DICTIONARY_SIZES
+from drvs.object_types import MarkerType as MarkerType
+from drvs.object_types import parse_aruco
+from drvs.object_types import parse_marker_type as parse_marker_type
 
 from .base import CameraView, Detector, FrameAnalysis, ObjectType, register
 
-ARUCO_PREFIX = "aruco_"
-_ID_RE = re.compile(r"[0-9]+")
 
-
-def _dictionaries() -> dict[str, int]:
-    """Every predefined dictionary cv2.aruco offers, by its filter_def name, in OpenCV's order."""
-    found: dict[int, str] = {}
+def _check_dictionaries() -> None:
+    """The grammar's dictionary table (drvs.object_types, which imports no OpenCV) is this cv2's:
+    each name (OpenCV's DICT_ constant's, lower case, "aruco_" dropped) is that constant, of that size.
+    A dictionary a later OpenCV adds is not offered until the table names it."""
     for attr in dir(cv2.aruco):
-        if not attr.startswith("DICT_"):
-            continue
         value = getattr(cv2.aruco, attr)
-        if not isinstance(value, int):
-            continue
-        name = attr[len("DICT_") :].lower()
-        name = name.removeprefix("aruco_")  # DICT_ARUCO_ORIGINAL: "aruco_original", not "aruco_aruco_original"
-        found.setdefault(value, name)  # DICT_APRILTAG_16H5 and DICT_APRILTAG_16h5 are one dictionary
-    return {name: value for value, name in sorted(found.items())}
+        name = attr[len("DICT_") :].lower().removeprefix("aruco_")
+        if attr.startswith("DICT_") and name in DICTIONARIES and DICTIONARIES[name] != value:
+            raise RuntimeError(f"cv2.aruco.{attr} is {value}; drvs.object_types has {name}: {DICTIONARIES.get(name)}")
+    for name, value in DICTIONARIES.items():
+        size = int(cv2.aruco.getPredefinedDictionary(value).bytesList.shape[0])
+        if size != DICTIONARY_SIZES[name]:
+            raise RuntimeError(f"ArUco {name}: OpenCV has {size} markers, drvs.object_types {DICTIONARY_SIZES[name]}")
 
 
-#: Dictionary name (as in filter_defs) -> cv2.aruco predefined dictionary constant.
-DICTIONARIES: dict[str, int] = _dictionaries()
-#: Number of markers in each dictionary (valid ids are 0 .. size - 1).
-DICTIONARY_SIZES: dict[str, int] = {
-    name: int(cv2.aruco.getPredefinedDictionary(value).bytesList.shape[0]) for name, value in DICTIONARIES.items()
-}
-
-
-@dataclass(frozen=True, slots=True)
-class MarkerType:
-    """What an ``aruco_`` filter_def asks for: a dictionary, and one marker id or every one."""
-
-    dictionary: str
-    marker_id: int | None = None
-
-
-def _unknown_dictionary(name: str, filter_def: str) -> InvalidArgument:
-    hint = "; dictionary names are lower case" if name.lower() in DICTIONARIES and name != name.lower() else ""
-    return InvalidArgument(
-        f"filter_def: unknown ArUco dictionary {name[:40]!r} in {filter_def[:64]!r}; "
-        f"OpenCV's dictionaries are {', '.join(DICTIONARIES)} "
-        f"(e.g. 'aruco_4x4_50' for every marker, 'aruco_4x4_50_7' for marker 7){hint}"
-    )
-
-
-def parse_marker_type(filter_def: str) -> MarkerType:
-    """Parse ``aruco_<dictionary>`` or ``aruco_<dictionary>_<id>``; InvalidArgument naming the wrong part."""
-    if not isinstance(filter_def, str) or not (filter_def + "_").startswith(ARUCO_PREFIX):
-        raise InvalidArgument(f"filter_def: {str(filter_def)[:40]!r} does not start with 'aruco_'")
-    rest = filter_def[len(ARUCO_PREFIX) :]
-    if not rest:
-        raise InvalidArgument(
-            f"filter_def: {filter_def!r} names no ArUco dictionary; expected aruco_<dictionary> or "
-            f"aruco_<dictionary>_<id>, e.g. 'aruco_4x4_50' or 'aruco_4x4_50_7'"
-        )
-    if rest in DICTIONARIES:
-        return MarkerType(rest)
-    # No dictionary's name followed by "_" starts another's, so at most one matches.
-    head = next((name for name in DICTIONARIES if rest.startswith(name + "_")), None)
-    if head is None:
-        raise _unknown_dictionary(rest, filter_def)
-    tail = rest[len(head) + 1 :]
-    size = DICTIONARY_SIZES[head]
-    if not _ID_RE.fullmatch(tail) or int(tail) >= size:
-        raise InvalidArgument(
-            f"filter_def: marker id {tail[:20]!r} in {filter_def!r} is not an integer in 0-{size - 1} "
-            f"(dictionary {head} has {size} markers)"
-        )
-    return MarkerType(head, int(tail))
+_check_dictionaries()
 
 
 def heading_deg(corners_floor: NDArray[np.float64]) -> float:
@@ -140,8 +93,7 @@ class ArucoDetector(Detector):
 
     @classmethod
     def parse(cls, filter_def: str) -> ObjectType:
-        marker = parse_marker_type(filter_def)
-        return ObjectType(filter_def, "aruco", "aruco", ARUCO_PREFIX + marker.dictionary, marker)
+        return parse_aruco(filter_def)
 
     def _detector(self, dictionary: str) -> cv2.aruco.ArucoDetector:
         cache: dict[str, cv2.aruco.ArucoDetector] | None = getattr(self._local, "detectors", None)

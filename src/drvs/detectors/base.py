@@ -3,15 +3,11 @@
 A detector is a plug-in keyed by the prefix of the `filter_def` strings it serves (``hsv``,
 ``aruco``, ``people``, ``foreground``, ``model``), as frigate's detectors are keyed by type: one
 file defines a `Detector` subclass decorated with `@register`, and `drvs.detectors` imports it.
-The class parses and validates its strings (pure, cheap: the server calls it on every request);
-an instance runs on one camera and finds objects in frames. Mapping pixels to the floor
-(`CameraView`), selecting by region and sharing one frame's work among requests stay common.
-
-Each `filter_def` parses to an `ObjectType` with three names:
-- `kind`: what a camera registers and the server routes by (``hsv``, ``aruco``, ``model_yolo``);
-- `key`: the per-frame work it shares with other types (``aruco_4x4_50`` serves every id of that
-  dictionary; ``model_yolo`` serves every class of that model);
-- `filter_def` itself, which `Detector.narrow` uses to keep what this type asks for.
+The strings' grammar is the core's (`drvs.object_types`: pure, cheap, the server and robots parse
+with it and never load a detector): a built-in detector's `parse` is the grammar's, and `@register`
+adds a plug-in's `parse` to the grammar's table. An instance runs on one camera and finds objects
+in frames. Mapping pixels to the floor (`CameraView`), selecting by region and sharing one frame's
+work among requests stay common. See `drvs.object_types` for an `ObjectType`'s kind and key.
 """
 
 from __future__ import annotations
@@ -33,6 +29,10 @@ from shapely.geometry import Polygon
 from drvs.errors import InvalidArgument
 from drvs.geometry import FieldOfView, Homography
 from drvs.model import Detection, PixelBox
+from drvs.object_types import MAX_FILTER_DEF_LENGTH as MAX_FILTER_DEF_LENGTH
+from drvs.object_types import ObjectType as ObjectType
+from drvs.object_types import add_grammar
+from drvs.object_types import parse_object_type as parse_object_type
 
 #: Blobs smaller than this many pixels are noise.
 DEFAULT_MIN_AREA_PX = 30.0
@@ -40,8 +40,6 @@ DEFAULT_MIN_AREA_PX = 30.0
 #: a contour lists every boundary pixel, and reports would carry ten times the points for
 #: no information the image resolution supports.
 OUTLINE_TOLERANCE_PX = 1.0
-#: filter_def strings are short; longer ones are refused before any parsing.
-MAX_FILTER_DEF_LENGTH = 64
 
 
 @dataclass(frozen=True)
@@ -117,18 +115,6 @@ class FrameAnalysis:
                 image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), dtype=np.uint8
             )
         return self._gray
-
-
-@dataclass(frozen=True)
-class ObjectType:
-    """A parsed, valid filter_def (see the module docstring for kind and key)."""
-
-    filter_def: str
-    prefix: str
-    kind: str
-    key: str
-    #: What the detector parsed out of the string (an HsvRange, a marker id, a class name ...).
-    params: Any = None
 
 
 class CameraView:
@@ -360,6 +346,7 @@ def register(cls: D) -> D:
     if prefix in REGISTRY and REGISTRY[prefix] is not cls:
         raise ValueError(f"two detectors claim prefix {prefix!r}: {REGISTRY[prefix].__name__} and {cls.__name__}")
     REGISTRY[prefix] = cls
+    add_grammar(prefix, cls.parse, cls.example)  # the server and robots parse it without this module
     return cls
 
 
@@ -371,25 +358,3 @@ def prefixes() -> tuple[str, ...]:
     """Every registered prefix: the built-ins in BUILTIN_ORDER, then plug-ins as they registered."""
     rank = {prefix: i for i, prefix in enumerate(BUILTIN_ORDER)}
     return tuple(sorted(REGISTRY, key=lambda p: rank.get(p, len(rank))))
-
-
-def parse_object_type(filter_def: str) -> ObjectType:
-    """The ObjectType a filter_def names; InvalidArgument naming what is wrong."""
-    if not isinstance(filter_def, str) or not filter_def:
-        raise InvalidArgument(f"filter_def: empty; expected e.g. {_examples()}")
-    if len(filter_def) > MAX_FILTER_DEF_LENGTH:
-        raise InvalidArgument(
-            f"filter_def: {len(filter_def)} characters; at most {MAX_FILTER_DEF_LENGTH} (e.g. {_examples()})"
-        )
-    prefix = filter_def.split("_", 1)[0]
-    cls = REGISTRY.get(prefix)
-    if cls is None:
-        raise InvalidArgument(
-            f"filter_def: unknown object type {prefix[:40]!r} in {filter_def[:40]!r}; "
-            f"known types: {', '.join(prefixes())} (e.g. {_examples()})"
-        )
-    return cls.parse(filter_def)
-
-
-def _examples() -> str:
-    return ", ".join(repr(REGISTRY[prefix].example) for prefix in prefixes())

@@ -39,10 +39,10 @@ from numpy.typing import NDArray
 
 from drvs.errors import FailedPrecondition, InvalidArgument
 from drvs.model import Detection
+from drvs.object_types import FOREGROUND, parse_foreground
 
 from .base import CameraView, Detector, Frame, FrameAnalysis, ObjectType, register
 
-FOREGROUND = "foreground"
 #: Pixel work happens on frames scaled down to at most this width (640x480 -> 320x240).
 WORK_WIDTH = 320
 #: The motion model's memory in frames (MOG2's history): after its first WARMUP_FRAMES it learns
@@ -177,9 +177,7 @@ class ForegroundDetector(Detector):
 
     @classmethod
     def parse(cls, filter_def: str) -> ObjectType:
-        if filter_def != FOREGROUND:
-            raise InvalidArgument(f"filter_def: {filter_def[:40]!r} is not {FOREGROUND!r} (it takes no parameters)")
-        return ObjectType(FOREGROUND, "foreground", "foreground", FOREGROUND)
+        return parse_foreground(filter_def)
 
     # --- pixel work ----------------------------------------------------------------------------
 

@@ -48,7 +48,6 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -60,14 +59,13 @@ from numpy.typing import NDArray
 
 from drvs.errors import FailedPrecondition, InvalidArgument
 from drvs.model import Detection, PixelBox
+from drvs.object_types import CLASS_NAME_RE, MODEL_NAME_RE, MODEL_PREFIX, parse_model
 
 from .base import CameraView, Detector, FrameAnalysis, ObjectType, register
 
-PREFIX = "model_"
-#: Model names: lower-case letters, digits and '-'; no '_', which separates the class.
-MODEL_NAME_RE = re.compile(r"[a-z0-9-]{1,24}")
-#: Class names: letters, digits and '_ - .' (a class may hold '_': it is everything after the second '_').
-CLASS_NAME_RE = re.compile(r"[A-Za-z0-9_.-]{1,32}")
+#: Model names (no '_', which separates the class) and class names (which may hold '_': a class
+#: is everything after the second '_') are the grammar's, drvs.object_types.
+PREFIX = MODEL_PREFIX
 #: A camera registers at most 16 object types in all; models leave room for the built-ins.
 MAX_MODELS = 8
 MAX_CLASSES = 1000
@@ -405,23 +403,7 @@ class ModelDetector(Detector):
 
     @classmethod
     def parse(cls, filter_def: str) -> ObjectType:
-        if not filter_def.startswith(PREFIX):
-            raise InvalidArgument(
-                f"filter_def: {filter_def[:40]!r} names no model: expected model_<name> or model_<name>_<class> "
-                f"(e.g. {cls.example!r})"
-            )
-        name, separator, label = filter_def[len(PREFIX) :].partition("_")
-        if not MODEL_NAME_RE.fullmatch(name):
-            raise InvalidArgument(
-                f"filter_def: model name {name[:40]!r} in {filter_def[:40]!r} must be 1-24 lower-case letters, "
-                "digits and '-'"
-            )
-        if separator and not CLASS_NAME_RE.fullmatch(label):
-            raise InvalidArgument(
-                f"filter_def: class {label[:40]!r} in {filter_def[:40]!r} must be 1-32 letters, digits and '_ - .'"
-            )
-        kind = PREFIX + name
-        return ObjectType(filter_def, cls.prefix, kind, kind, (name, label or None))
+        return parse_model(filter_def)
 
     def kinds(self) -> tuple[str, ...]:
         return tuple(PREFIX + name for name in self.models)

@@ -26,10 +26,10 @@ from shapely.geometry import Point
 
 from drvs.errors import InvalidArgument
 from drvs.model import Detection, PixelBox
+from drvs.object_types import PEOPLE, parse_people
 
 from .base import CameraView, Detector, FrameAnalysis, ObjectType, register
 
-PEOPLE = "people"
 #: HOG's detection window height: with min_height_px at this, frames are searched as they are.
 HOG_WINDOW_PX = 128
 DEFAULT_MIN_HEIGHT_PX = HOG_WINDOW_PX
@@ -101,11 +101,7 @@ class PeopleDetector(Detector):
 
     @classmethod
     def parse(cls, filter_def: str) -> ObjectType:
-        if filter_def != PEOPLE:
-            raise InvalidArgument(
-                f"filter_def: {filter_def[:40]!r}: the people type takes no parameters; write 'people'"
-            )
-        return ObjectType(filter_def, PEOPLE, PEOPLE, PEOPLE)
+        return parse_people(filter_def)
 
     def search(self, gray: np.ndarray[Any, Any]) -> list[tuple[float, float, float, float, float]]:
         """The HOG search on a grey frame: (x, y, w, h, margin) of each person in the frame's
