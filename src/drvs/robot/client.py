@@ -27,19 +27,18 @@ import contextlib
 import ipaddress
 import itertools
 import logging
-import math
 import secrets
-from collections.abc import AsyncIterator, Awaitable, Callable, Generator, Iterator, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Generator, Sequence
 from dataclasses import dataclass, field, replace
 from types import TracebackType
-from typing import Any, ClassVar, Generic, Literal, TypeAlias, TypeVar, overload
+from typing import Any, Generic, Literal, TypeAlias, TypeVar, overload
 
 import grpc
 from grpc import aio
 from shapely.geometry import Polygon
 
 from drvs import _grpc
-from drvs.backoff import Backoff, waits
+from drvs.backoff import Backoff
 from drvs.channels import check_role, open_channel
 from drvs.convert import polygon_from_pb, pose_from_pb, region_to_pb, report_from_pb, request_to_pb, snapshot_from_pb
 from drvs.errors import (
@@ -74,6 +73,20 @@ from drvs.net import (
 from drvs.report_auth import key_matches, new_secret
 from drvs.report_bounds import NOT_READING, oversized_id, write_control
 from drvs.request_stream import RequestStream
+from drvs.robot.limits import (
+    DEFAULT_CONNECT_TIMEOUT_S,
+    DEFAULT_RPC_TIMEOUT_S,
+    DEFAULT_TIMEOUT_S,
+    DEFAULT_TRACK_RATE_HZ,
+    MAX_BACKOFF_S,
+    MAX_QUEUED_REPORTS,
+    MAX_QUEUED_SNAPSHOTS,
+    check_queue,
+    check_timeout,
+    fusion_options,
+    seconds,
+)
+from drvs.robot.retry import RetryPolicy, retrying
 from drvs.robot.throttle import DEFAULT_K, AdaptiveThrottle
 from drvs.security import SERVER, Security
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
@@ -82,20 +95,29 @@ log = logging.getLogger("drvs.robot")
 
 T = TypeVar("T")
 
-#: Seconds to wait, beyond a request's own duration, for every camera's final report (`timeout_s`).
-DEFAULT_TIMEOUT_S = 5.0
-#: Seconds one attempt of one call waits for the server's reply (`rpc_timeout_s`).
-DEFAULT_RPC_TIMEOUT_S = 5.0
-#: Seconds one attempt to reach the server may take in DrvsClient.connect (`connect_timeout_s`).
-DEFAULT_CONNECT_TIMEOUT_S = 5.0
-#: Unread reports a continuous request keeps (the newest; older ones are dropped and counted).
-MAX_QUEUED_REPORTS = 1024
-#: Unread snapshots a track keeps (the newest; older ones are dropped and counted): 6.4 s at 10 Hz.
-MAX_QUEUED_SNAPSHOTS = 64
-#: Snapshots a second DrvsClient.track asks for unless told.
-DEFAULT_TRACK_RATE_HZ = 10.0
-#: The longest wait between retries, seconds (RetryPolicy's default max_backoff_s).
-MAX_BACKOFF_S = 5.0
+# What robot code, tools and tests import from here (the parts now live in their own modules).
+__all__ = [
+    "DEFAULT_CONNECT_TIMEOUT_S",
+    "DEFAULT_RPC_TIMEOUT_S",
+    "DEFAULT_TIMEOUT_S",
+    "DEFAULT_TRACK_RATE_HZ",
+    "MAX_BACKOFF_S",
+    "MAX_QUEUED_REPORTS",
+    "MAX_QUEUED_SNAPSHOTS",
+    "REGION_CACHE_SIZE",
+    "CameraInfo",
+    "Connecting",
+    "DetectionResult",
+    "DrvsClient",
+    "RegionLike",
+    "RetryPolicy",
+    "Subscribing",
+    "Subscription",
+    "Track",
+    "Tracking",
+    "as_region",
+]
+
 #: Regions a client keeps built and encoded, by the value robot code passed.
 REGION_CACHE_SIZE = 256
 
@@ -113,80 +135,6 @@ def as_region(region: RegionLike) -> Polygon:
     if items and all(isinstance(p, Sequence) for p in items):
         return polygon_region(items, "region")
     raise InvalidArgument("region: expected a shapely Polygon, a box (x0, y0, x1, y1) or a list of [x, y] points")
-
-
-def _seconds(value: float, name: str, limit: float) -> float:
-    """`value` as seconds in (0, limit], or InvalidArgument naming `name`."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0 < value <= limit):
-        raise InvalidArgument(f"{name}: {value!r} must be a number of seconds in (0, {limit:g}]")
-    return float(value)
-
-
-def _check_timeout(timeout_s: float) -> None:
-    if isinstance(timeout_s, bool) or not (
-        isinstance(timeout_s, (int, float)) and math.isfinite(timeout_s) and timeout_s >= 0
-    ):
-        raise InvalidArgument(f"timeout_s: {timeout_s!r} must be a finite number of seconds >= 0")
-
-
-def _fusion_options(deadline_s: float | None, drop_after_s: float | None) -> FusionOptions:
-    """FusionOptions from a fused call's arguments (None: 0, the server's default), checked."""
-    values = []
-    for name, value in (("deadline_s", deadline_s), ("drop_after_s", drop_after_s)):
-        if value is None:
-            value = 0.0
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise InvalidArgument(f"{name}: {value!r} must be a number of seconds, or None for the server's default")
-        values.append(float(value))
-    fusion = FusionOptions(deadline_s=values[0], drop_after_s=values[1])
-    fusion.validate()
-    return fusion
-
-
-@dataclass(frozen=True)
-class RetryPolicy:
-    """How often to try a call the server could not take (Unavailable: down, restarting, unreachable).
-
-    - `attempts`: how many times in all a call is tried, the first included (1: no retry), at most 1000;
-    - `initial_backoff_s`: seconds to wait before the second attempt, in (0, max_backoff_s];
-    - `max_backoff_s`: the longest wait between attempts, seconds, in (0, 60]; each wait doubles
-      the previous one up to this.
-
-    It applies to DrvsClient.connect's check of the server and to each request's and cameras()
-    call's wait for the server's reply; never to a call the server has answered (a refusal is final).
-    `RetryPolicy.retries(n)` is the policy of n retries (n + 1 attempts) with the default backoff.
-    """
-
-    attempts: int = 1
-    initial_backoff_s: float = 0.2
-    max_backoff_s: float = MAX_BACKOFF_S
-
-    MAX_ATTEMPTS: ClassVar[int] = 1000
-    MAX_BACKOFF_LIMIT_S: ClassVar[float] = 60.0
-
-    def __post_init__(self) -> None:
-        if (
-            isinstance(self.attempts, bool)
-            or not isinstance(self.attempts, int)
-            or not (1 <= self.attempts <= self.MAX_ATTEMPTS)
-        ):
-            raise InvalidArgument(
-                f"retry.attempts: {self.attempts!r} must be a whole number in [1, {self.MAX_ATTEMPTS}] "
-                "(the first try included)"
-            )
-        _seconds(self.max_backoff_s, "retry.max_backoff_s", self.MAX_BACKOFF_LIMIT_S)
-        _seconds(self.initial_backoff_s, "retry.initial_backoff_s", self.max_backoff_s)
-
-    @classmethod
-    def retries(cls, count: int) -> RetryPolicy:
-        """`count` retries after the first attempt, with the default backoff (drvs-robot --retries)."""
-        if isinstance(count, bool) or not isinstance(count, int) or not (0 <= count < cls.MAX_ATTEMPTS):
-            raise InvalidArgument(f"retries: {count!r} must be a whole number in [0, {cls.MAX_ATTEMPTS - 1}]")
-        return cls(attempts=count + 1)
-
-    def backoffs(self) -> Iterator[float]:
-        """The waits (seconds) before the second, third ... attempt: attempts - 1 of them."""
-        return waits(self.initial_backoff_s, self.max_backoff_s, self.attempts - 1)
 
 
 class _Regions:
@@ -958,7 +906,7 @@ class DrvsClient:
         Unavailable naming its address (a refused credential: Unauthenticated). The other
         arguments are DrvsClient's; bad ones raise InvalidArgument at once.
         """
-        timeout_s = _seconds(connect_timeout_s, "connect_timeout_s", 3600.0)
+        timeout_s = seconds(connect_timeout_s, "connect_timeout_s", 3600.0)
         client = cls(
             server,
             robot_id=robot_id,
@@ -1049,16 +997,7 @@ class DrvsClient:
 
     async def _retrying(self, what: str, call: Callable[[], Awaitable[T]]) -> T:
         """`call()`, tried again after each Unavailable as `retry` allows."""
-        waits = self.retry.backoffs()
-        while True:
-            try:
-                return await call()
-            except Unavailable:
-                wait = next(waits, None)
-                if wait is None:
-                    raise
-                log.info("server %s unavailable; retrying %s in %.1f s", self.server, what, wait)
-                await asyncio.sleep(wait)
+        return await retrying(self.retry, self.server, what, call)
 
     async def _asking(self, what: str, call: Callable[[], Awaitable[T]]) -> T:
         """A request to the server, through the client's throttle: refused here at once while the
@@ -1181,10 +1120,9 @@ class DrvsClient:
         the attempts `retry` allows. Sending starts the report listener if it is not running.
         """
         self._require_started()
-        _check_timeout(timeout_s)
-        _seconds(rpc_timeout_s, "rpc_timeout_s", 3600.0)
-        if isinstance(max_queued, bool) or not isinstance(max_queued, int) or max_queued < 1:
-            raise InvalidArgument(f"max_queued: {max_queued!r} must be a whole number of reports >= 1")
+        check_timeout(timeout_s)
+        seconds(rpc_timeout_s, "rpc_timeout_s", 3600.0)
+        check_queue(max_queued, "reports")
         request, message = self._build(
             filter_def, region, ContinuousMode(float(rate_hz), float(duration_s)), outlines, request_id, None
         )
@@ -1353,8 +1291,8 @@ class DrvsClient:
         request_id: str | None,
     ) -> Snapshot:
         self._require_started()
-        _check_timeout(timeout_s)
-        fusion = _fusion_options(deadline_s, None)
+        check_timeout(timeout_s)
+        fusion = fusion_options(deadline_s, None)
         _, message = self._build(filter_def, region, ContinuousMode(), outlines, request_id, fusion)
         if message.request_id in self._subscriptions or message.request_id in self._tracks:
             raise InvalidArgument(f"request_id: {message.request_id!r} is already in use")
@@ -1413,14 +1351,13 @@ class DrvsClient:
         Track. A bad argument raises InvalidArgument at once; nothing is sent before that.
         """
         self._require_started()
-        _check_timeout(timeout_s)
-        _seconds(rpc_timeout_s, "rpc_timeout_s", 3600.0)
-        if isinstance(max_queued, bool) or not isinstance(max_queued, int) or max_queued < 1:
-            raise InvalidArgument(f"max_queued: {max_queued!r} must be a whole number of snapshots >= 1")
+        check_timeout(timeout_s)
+        seconds(rpc_timeout_s, "rpc_timeout_s", 3600.0)
+        check_queue(max_queued, "snapshots")
         for name, value in (("rate_hz", rate_hz), ("duration_s", duration_s)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
                 raise InvalidArgument(f"{name}: {value!r} must be a number > 0 (a track runs at a rate for a time)")
-        fusion = _fusion_options(deadline_s, drop_after_s)
+        fusion = fusion_options(deadline_s, drop_after_s)
         request, message = self._build(
             filter_def, region, ContinuousMode(float(rate_hz), float(duration_s)), outlines, request_id, fusion
         )
