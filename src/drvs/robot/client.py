@@ -28,10 +28,10 @@ import ipaddress
 import itertools
 import logging
 import secrets
-from collections.abc import AsyncIterator, Awaitable, Callable, Generator, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Generator
 from dataclasses import dataclass, field, replace
 from types import TracebackType
-from typing import Any, Generic, Literal, TypeAlias, TypeVar, overload
+from typing import Any, Generic, Literal, TypeVar, overload
 
 import grpc
 from grpc import aio
@@ -40,7 +40,7 @@ from shapely.geometry import Polygon
 from drvs import _grpc
 from drvs.backoff import Backoff
 from drvs.channels import check_role, open_channel
-from drvs.convert import polygon_from_pb, pose_from_pb, region_to_pb, report_from_pb, request_to_pb, snapshot_from_pb
+from drvs.convert import polygon_from_pb, pose_from_pb, report_from_pb, request_to_pb, snapshot_from_pb
 from drvs.errors import (
     DeadlineExceeded,
     DrvsError,
@@ -49,7 +49,6 @@ from drvs.errors import (
     ResourceExhausted,
     Unavailable,
 )
-from drvs.geometry import box_region, polygon_region
 from drvs.model import (
     DEFAULT_FRAME,
     CameraError,
@@ -86,10 +85,11 @@ from drvs.robot.limits import (
     fusion_options,
     seconds,
 )
+from drvs.robot.regions import REGION_CACHE_SIZE, RegionLike, _Regions, as_region
 from drvs.robot.retry import RetryPolicy, retrying
 from drvs.robot.throttle import DEFAULT_K, AdaptiveThrottle
 from drvs.security import SERVER, Security
-from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
+from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
 
 log = logging.getLogger("drvs.robot")
 
@@ -117,59 +117,6 @@ __all__ = [
     "Tracking",
     "as_region",
 ]
-
-#: Regions a client keeps built and encoded, by the value robot code passed.
-REGION_CACHE_SIZE = 256
-
-#: A floor region in metres: a shapely Polygon, a box (x0, y0, x1, y1), or a list of [x, y] points.
-RegionLike: TypeAlias = "Polygon | Sequence[float] | Sequence[Sequence[float]]"
-
-
-def as_region(region: RegionLike) -> Polygon:
-    """A shapely polygon, a box (x0, y0, x1, y1), or a list of [x, y] points (metres) as a validated Polygon."""
-    if isinstance(region, Polygon):
-        return polygon_region(list(region.exterior.coords), "region")
-    items: list[Any] = list(region)
-    if len(items) == 4 and all(isinstance(v, (int, float)) for v in items):
-        return box_region(*items)
-    if items and all(isinstance(p, Sequence) for p in items):
-        return polygon_region(items, "region")
-    raise InvalidArgument("region: expected a shapely Polygon, a box (x0, y0, x1, y1) or a list of [x, y] points")
-
-
-class _Regions:
-    """Robot code asks about the same few regions again and again: each is built, validated and
-    encoded once. Building the polygon and its wire form was a tenth of a request's CPU at 30 Hz.
-    Keyed by the values robot code passed (a shapely Polygon by identity: it is immutable)."""
-
-    def __init__(self, size: int = REGION_CACHE_SIZE) -> None:
-        self._size = size
-        self._cache: collections.OrderedDict[Any, tuple[Any, Polygon, geometry_pb2.Region]] = collections.OrderedDict()
-
-    @staticmethod
-    def _key(region: RegionLike) -> Any:
-        if isinstance(region, Polygon):
-            return ("polygon", id(region))
-        try:
-            key = tuple(tuple(p) if isinstance(p, Sequence) else p for p in region)
-            hash(key)
-        except TypeError:
-            return None
-        return key
-
-    def get(self, region: RegionLike) -> tuple[Polygon, geometry_pb2.Region]:
-        key = self._key(region)
-        hit = self._cache.get(key) if key is not None else None
-        if hit is not None and (not isinstance(region, Polygon) or hit[0] is region):
-            self._cache.move_to_end(key)
-            return hit[1], hit[2]
-        polygon = as_region(region)  # a bad region raises here, every time, and is not kept
-        encoded = region_to_pb(polygon)
-        if key is not None:
-            self._cache[key] = (region, polygon, encoded)
-            if len(self._cache) > self._size:
-                self._cache.popitem(last=False)
-        return polygon, encoded
 
 
 @dataclass(frozen=True)
