@@ -22,12 +22,11 @@ restarting, or unreachable): nothing is sent again after the server has taken it
 from __future__ import annotations
 
 import asyncio
-import contextlib
 import ipaddress
 import itertools
 import logging
 import secrets
-from collections.abc import AsyncIterator, Awaitable, Callable
+from collections.abc import Awaitable, Callable
 from dataclasses import replace
 from types import TracebackType
 from typing import Any, Literal, TypeVar, overload
@@ -62,8 +61,7 @@ from drvs.net import (
     parse_address,
     parse_address_list,
 )
-from drvs.report_auth import key_matches, new_secret
-from drvs.report_bounds import NOT_READING, oversized_id, write_control
+from drvs.report_auth import new_secret
 from drvs.request_stream import RequestStream
 from drvs.robot.handles import Connecting
 from drvs.robot.limits import (
@@ -79,6 +77,7 @@ from drvs.robot.limits import (
     fusion_options,
     seconds,
 )
+from drvs.robot.listener import Listener, ReportKeys
 from drvs.robot.regions import REGION_CACHE_SIZE, RegionLike, _Regions, as_region
 from drvs.robot.results import CameraInfo, DetectionResult, camera_info_from_pb
 from drvs.robot.retry import RetryPolicy, retrying
@@ -202,11 +201,9 @@ class DrvsClient:
         self.reports_received = 0
         #: Reports refused: not from a camera the request was dispatched to, or not on its stream.
         self.reports_rejected = 0
-        # Proves reports (drvs.report_auth): the server derives each camera's key from it.
-        self._report_secret = new_secret()
-        # camera id -> the report streams that presented its key: the only ones its reports count on
-        # (its own, and the server's when it answered for the camera).
-        self._camera_streams: dict[str, set[object]] = {}
+        # Proves reports (drvs.report_auth): the server derives each camera's key from it, and a
+        # camera's reports count only on the streams that presented its key.
+        self._report_keys = ReportKeys(new_secret())
         self._closing = False
         self._open_at_close: list[str] = []
         self._report_streams: set[asyncio.Task[Any]] = set()
@@ -293,7 +290,7 @@ class DrvsClient:
                     # given is one way to the same cameras: the first with a route picks the interface.
                     self.listen = format_address(await asyncio.to_thread(local_ip_towards, self.servers), 0)
                 listener = _grpc.new_server()
-                detection_pb2_grpc.add_CallbackCoordinatesServicer_to_server(_Listener(self), listener)
+                detection_pb2_grpc.add_CallbackCoordinatesServicer_to_server(Listener(self), listener)
                 self.port = self.security.bind(listener, self.listen)
                 await listener.start()
                 self._listener = listener
@@ -355,18 +352,40 @@ class DrvsClient:
         self.throttle.accepted()
         return reply
 
-    def _receive(self, peer: str) -> _ReportStream:
-        return _ReportStream(self, peer)
+    # What the report listener (drvs.robot.listener) asks of the client: it edits nothing here itself.
 
-    def _accepts(self, message: detection_pb2.DetectionReport, stream: object) -> bool:
-        """A camera's reports count only on a stream that presented its key."""
-        camera_id = message.camera_id
-        if message.report_key:
-            if not key_matches(self._report_secret, camera_id, message.report_key):
-                return False
-            self._camera_streams.setdefault(camera_id, set()).add(stream)
-            return True
-        return stream in self._camera_streams.get(camera_id, ())
+    def _take_report(self, message: detection_pb2.DetectionReport, stream: object) -> bool | None:
+        """Hand one report to its subscription: True when taken; False when its request is unknown
+        or closed (the camera is told to stop it); None when refused: not proven its camera's on
+        this stream (answered as an unknown request, so the sender learns nothing more)."""
+        sub = self._subscriptions.get(message.request_id)
+        if not self._report_keys.accepts(message, stream):
+            self.reports_rejected += 1
+            return None
+        if sub is None or not sub._deliver(report_from_pb(message, sub.request.filter_def)):
+            return False
+        self.reports_received += 1
+        return True
+
+    def _stream_opened(self, task: asyncio.Task[Any] | None) -> None:
+        if task is not None:
+            self._report_streams.add(task)
+
+    def _stream_ended(self, stream: object, task: asyncio.Task[Any] | None) -> None:
+        """A report stream ended: cameras that reported only on it have none now, and the requests
+        they had not finished are interrupted."""
+        if task is not None:
+            self._report_streams.discard(task)
+        cameras = self._report_keys.forget(stream)
+        if cameras:
+            for sub in list(self._subscriptions.values()):
+                sub._stream_ended(cameras)
+
+    def _closing_control(self) -> detection_pb2.ReportControl | None:
+        """What a report stream tells its camera while the robot closes: stop the requests still open."""
+        if not self._open_at_close:
+            return None
+        return detection_pb2.ReportControl(cancelled_request_ids=self._open_at_close)
 
     def new_request_id(self) -> str:
         """A request id unique to this client (and, by its random prefix, across restarts)."""
@@ -467,7 +486,7 @@ class DrvsClient:
         request, message = self._build(
             filter_def, region, ContinuousMode(float(rate_hz), float(duration_s)), outlines, request_id, None
         )
-        message.report_secret = self._report_secret
+        message.report_secret = self._report_keys.secret
         return Subscribing(lambda: self._send(request, message, timeout_s, rpc_timeout_s, max_queued))
 
     def _build(
@@ -765,108 +784,6 @@ class DrvsClient:
             if not reply.next_page_token or reply.next_page_token == msg.page_token:
                 return found
             msg.page_token = reply.next_page_token
-
-
-class _ReportStream:
-    """One camera's report stream as the client sees it: which reports count, and where they go."""
-
-    def __init__(self, client: DrvsClient, peer: str) -> None:
-        self._client = client
-        self._peer = peer
-        self._warned = False
-        self._task = asyncio.current_task()
-        if self._task is not None:
-            client._report_streams.add(self._task)
-
-    def receive(self, message: detection_pb2.DetectionReport) -> detection_pb2.ReportControl | None:
-        """Hand one report to its subscription; a control message to send back when the camera
-        should stop sending this request's reports (unknown, closed, or not proven its)."""
-        client = self._client
-        sub = client._subscriptions.get(message.request_id)
-        if not client._accepts(message, self):
-            client.reports_rejected += 1
-            if not self._warned:  # once per stream: a hostile peer does not flood the log
-                self._warned = True
-                log.warning(
-                    "report for request %s in camera %r's name from %s rejected: no valid report key "
-                    "for this stream (not a camera the server dispatched to, or not its stream)",
-                    message.request_id,
-                    message.camera_id[:40],
-                    self._peer,
-                )
-            sub = None  # answered as an unknown request: the sender learns nothing more
-        if sub is None or not sub._deliver(report_from_pb(message, sub.request.filter_def)):
-            return detection_pb2.ReportControl(cancelled_request_ids=[message.request_id])
-        client.reports_received += 1
-        return None
-
-    @property
-    def closing(self) -> bool:
-        """The robot is closing (its stream tasks are cancelled on purpose)."""
-        return self._client._closing
-
-    def closing_control(self) -> detection_pb2.ReportControl | None:
-        """What to tell the camera when the robot closes: stop the requests still open."""
-        if not self._client._open_at_close:
-            return None
-        return detection_pb2.ReportControl(cancelled_request_ids=self._client._open_at_close)
-
-    def end(self) -> None:
-        """The stream ended: cameras that reported only on it have none now, and the requests they
-        had not finished are interrupted."""
-        client = self._client
-        if self._task is not None:
-            client._report_streams.discard(self._task)
-        cameras = set()
-        for camera_id, streams in list(client._camera_streams.items()):
-            if self in streams:
-                streams.discard(self)
-                if not streams:
-                    del client._camera_streams[camera_id]
-                    cameras.add(camera_id)
-        if cameras:
-            for sub in list(client._subscriptions.values()):
-                sub._stream_ended(cameras)
-
-
-class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):
-    """The robot's CallbackCoordinates service: reads each camera's stream and delegates to the client."""
-
-    def __init__(self, client: DrvsClient) -> None:
-        self._client = client
-
-    async def ReportDetections(
-        self,
-        request_iterator: AsyncIterator[detection_pb2.DetectionReport],
-        context: aio.ServicerContext[Any, Any],
-    ) -> None:
-        """One camera's stream of reports, for any of this robot's requests, for as long as it lasts.
-
-        A closing robot cancels each stream's task and ends the stream itself (the camera sees a
-        normal end) instead of leaving gRPC to cancel it.
-        """
-        stream = self._client._receive(context.peer())
-        refusal = (grpc.StatusCode.OK, "")
-        try:
-            async for message in request_iterator:
-                if why := oversized_id(message):  # before anything holds or echoes it
-                    refusal = (grpc.StatusCode.INVALID_ARGUMENT, why)
-                    break
-                control = stream.receive(message)
-                if control is not None and not await write_control(context, control):
-                    refusal = (grpc.StatusCode.RESOURCE_EXHAUSTED, NOT_READING)
-                    break
-        except asyncio.CancelledError:
-            if not stream.closing:
-                raise
-            control = stream.closing_control()
-            if control is not None:
-                with contextlib.suppress(Exception):
-                    await asyncio.wait_for(context.write(control), 0.5)
-        finally:
-            stream.end()
-        if refusal[1]:
-            await context.abort(*refusal)
 
 
 def _is_ip_literal(address: str) -> bool:
