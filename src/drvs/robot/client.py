@@ -38,12 +38,9 @@ from drvs import _grpc
 from drvs.channels import check_role, open_channel
 from drvs.convert import polygon_from_pb, report_from_pb, request_to_pb, snapshot_from_pb
 from drvs.errors import (
-    DeadlineExceeded,
     DrvsError,
     FailedPrecondition,
     InvalidArgument,
-    ResourceExhausted,
-    Unavailable,
 )
 from drvs.model import (
     DEFAULT_FRAME,
@@ -63,7 +60,7 @@ from drvs.net import (
 )
 from drvs.report_auth import new_secret
 from drvs.request_stream import RequestStream
-from drvs.robot.handles import Connecting
+from drvs.robot.handles import Connecting, health_check
 from drvs.robot.limits import (
     DEFAULT_CONNECT_TIMEOUT_S,
     DEFAULT_RPC_TIMEOUT_S,
@@ -80,10 +77,10 @@ from drvs.robot.limits import (
 from drvs.robot.listener import Listener, ReportKeys
 from drvs.robot.regions import REGION_CACHE_SIZE, RegionLike, _Regions, as_region
 from drvs.robot.results import CameraInfo, DetectionResult, camera_info_from_pb
-from drvs.robot.retry import RetryPolicy, retrying
-from drvs.robot.subscription import Subscribing, Subscription
+from drvs.robot.retry import RetryPolicy, asking, retrying
+from drvs.robot.subscription import Subscribing, Subscription, open_subscription
 from drvs.robot.throttle import DEFAULT_K, AdaptiveThrottle
-from drvs.robot.track import Track, Tracking
+from drvs.robot.track import Track, Tracking, open_track
 from drvs.security import SERVER, Security
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
 
@@ -303,29 +300,8 @@ class DrvsClient:
         is not there, not serving, or silent; other refusals (Unauthenticated ...) as they come."""
         self._require_started()
         await check_role(self.security, self.servers, SERVER, "server")  # under TLS: a server's certificate
-        from grpc_health.v1 import health_pb2, health_pb2_grpc
-
         assert self._channel is not None
-        stub = health_pb2_grpc.HealthStub(self._channel)
-        metadata = self.security.metadata() or None
-
-        async def check() -> None:
-            try:
-                reply = await stub.Check(health_pb2.HealthCheckRequest(), timeout=timeout_s, metadata=metadata)
-            except grpc.RpcError as exc:
-                code = exc.code() if hasattr(exc, "code") else grpc.StatusCode.UNKNOWN
-                if code == grpc.StatusCode.UNIMPLEMENTED:
-                    return  # a server without a health service: it answered, so it is there
-                if code in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
-                    details = exc.details() if hasattr(exc, "details") else ""
-                    raise Unavailable(
-                        f"server {self.server}: not reachable within {timeout_s:g} s ({code.name}: {details})"
-                    ) from None
-                raise _grpc.from_rpc_error(exc, f"server {self.server}") from None
-            if reply.status != health_pb2.HealthCheckResponse.SERVING:
-                status = health_pb2.HealthCheckResponse.ServingStatus.Name(reply.status)
-                raise Unavailable(f"server {self.server}: its health service says {status}")
-
+        check = health_check(self._channel, self.security.metadata() or None, self.server, timeout_s)
         await self._retrying("the connection", check)
 
     async def _retrying(self, what: str, call: Callable[[], Awaitable[T]]) -> T:
@@ -336,21 +312,7 @@ class DrvsClient:
         """A request to the server, through the client's throttle: refused here at once while the
         server refuses this robot for overload (see drvs.robot.throttle), else sent as `_retrying`
         sends it; the server's answer is counted."""
-        self.throttle.check(what)
-        try:
-            reply = await self._retrying(what, call)
-        except DrvsError as exc:
-            # Refused for overload (the server's door gives a retry hint; a robot over its own
-            # budget gets none) or not answered in time: not accepted. Anything else says nothing
-            # of the server's load.
-            overload = isinstance(exc, DeadlineExceeded) or (
-                isinstance(exc, ResourceExhausted) and exc.retry_after_s > 0
-            )
-            if not overload:
-                self.throttle.accepted()
-            raise
-        self.throttle.accepted()
-        return reply
+        return await asking(self.throttle, self.retry, self.server, what, call)
 
     # What the report listener (drvs.robot.listener) asks of the client: it edits nothing here itself.
 
@@ -394,6 +356,18 @@ class DrvsClient:
     def _cancel_at_server(self, request_id: str) -> None:
         if self._requests is not None:
             self._requests.cancel_soon(request_id)
+
+    def _check_unused(self, request_id: str) -> None:
+        if request_id in self._subscriptions or request_id in self._tracks:
+            raise InvalidArgument(f"request_id: {request_id!r} is already in use")
+
+    def _register(self, handle: Subscription | Track) -> None:
+        """A subscription or track about to be sent: reports and snapshots for its id go to it."""
+        self._check_unused(handle.request_id)
+        if isinstance(handle, Subscription):
+            self._subscriptions[handle.request_id] = handle
+        else:
+            self._tracks[handle.request_id] = handle
 
     def _forget(self, request_id: str) -> None:
         """A subscription or track closed: no longer this client's to deliver to or close."""
@@ -487,7 +461,7 @@ class DrvsClient:
             filter_def, region, ContinuousMode(float(rate_hz), float(duration_s)), outlines, request_id, None
         )
         message.report_secret = self._report_keys.secret
-        return Subscribing(lambda: self._send(request, message, timeout_s, rpc_timeout_s, max_queued))
+        return Subscribing(lambda: open_subscription(self, request, message, timeout_s, rpc_timeout_s, max_queued))
 
     def _build(
         self,
@@ -516,36 +490,6 @@ class DrvsClient:
         checked = request if request.callback_address or fusion else replace(request, fusion=FusionOptions())
         checked.validate(unknown_types=True)
         return request, request_to_pb(request, region=region_pb)
-
-    async def _send(
-        self,
-        request: DetectionRequest,
-        message: detection_pb2.DetectionRequest,
-        timeout_s: float,
-        rpc_timeout_s: float,
-        max_queued: int,
-    ) -> Subscription:
-        if not request.callback_address:
-            callback = await self.start_listener()
-            parse_address(callback, "callback_address")
-            request = replace(request, callback_address=callback)
-            message.callback_address = callback
-        sub = Subscription(self, request, timeout_s, max_queued)
-        if sub.request_id in self._subscriptions or sub.request_id in self._tracks:
-            raise InvalidArgument(f"request_id: {sub.request_id!r} is already in use")
-        # Registered before sending: a camera may report before the server's reply arrives.
-        self._subscriptions[sub.request_id] = sub
-        requests = self._requests
-        assert requests is not None
-        try:
-            reply = await self._asking(
-                f"request {message.request_id}", lambda: requests.request(message, rpc_timeout_s)
-            )
-        except BaseException:
-            sub.close()
-            raise
-        sub._dispatched(reply)
-        return sub
 
     @overload
     async def detect(
@@ -654,8 +598,7 @@ class DrvsClient:
         check_timeout(timeout_s)
         fusion = fusion_options(deadline_s, None)
         _, message = self._build(filter_def, region, ContinuousMode(), outlines, request_id, fusion)
-        if message.request_id in self._subscriptions or message.request_id in self._tracks:
-            raise InvalidArgument(f"request_id: {message.request_id!r} is already in use")
+        self._check_unused(message.request_id)
         requests = self._requests
         assert requests is not None
         wait = fusion.single_shot_deadline_s + timeout_s
@@ -721,34 +664,7 @@ class DrvsClient:
         request, message = self._build(
             filter_def, region, ContinuousMode(float(rate_hz), float(duration_s)), outlines, request_id, fusion
         )
-        return Tracking(lambda: self._open_track(request, message, timeout_s, rpc_timeout_s, max_queued))
-
-    async def _open_track(
-        self,
-        request: DetectionRequest,
-        message: detection_pb2.DetectionRequest,
-        timeout_s: float,
-        rpc_timeout_s: float,
-        max_queued: int,
-    ) -> Track:
-        whole = detection_pb2.DetectionRequest()
-        whole.CopyFrom(message)  # the request stream leaves out what repeats: keep it whole to resend
-        track = Track(self, request, timeout_s, max_queued, whole, rpc_timeout_s)
-        if track.request_id in self._subscriptions or track.request_id in self._tracks:
-            raise InvalidArgument(f"request_id: {track.request_id!r} is already in use")
-        self._tracks[track.request_id] = track
-        requests = self._requests
-        assert requests is not None
-        try:
-            reply = await self._asking(f"request {message.request_id}", lambda: track._attempt(requests, message))
-        except DeadlineExceeded:
-            track.close()  # the server may have taken it: tell it to stop
-            raise
-        except BaseException:
-            track._abandon()  # refused or never taken: nothing to stop at the server
-            raise
-        track._dispatched(reply)
-        return track
+        return Tracking(lambda: open_track(self, request, message, timeout_s, rpc_timeout_s, max_queued))
 
     async def cameras(
         self,

@@ -5,9 +5,15 @@ opened by awaiting it or entering it."""
 from __future__ import annotations
 
 import asyncio
-from collections.abc import Awaitable, Callable, Generator
+from collections.abc import Awaitable, Callable, Generator, Sequence
 from types import TracebackType
 from typing import TYPE_CHECKING, Any, Generic, TypeVar
+
+import grpc
+from grpc import aio
+
+from drvs import _grpc
+from drvs.errors import Unavailable
 
 if TYPE_CHECKING:
     from drvs.robot.client import DrvsClient
@@ -108,3 +114,32 @@ class Connecting(_Opening["DrvsClient"]):
 
     async def _close(self, opened: DrvsClient) -> None:
         await opened.close()
+
+
+def health_check(
+    channel: aio.Channel, metadata: Sequence[tuple[str, str]] | None, server: str, timeout_s: float
+) -> Callable[[], Awaitable[None]]:
+    """One attempt to ask the server's gRPC health service whether it serves (DrvsClient.check_server):
+    Unavailable naming `server` when it is not there, not serving, or silent for `timeout_s` seconds."""
+    from grpc_health.v1 import health_pb2, health_pb2_grpc
+
+    stub = health_pb2_grpc.HealthStub(channel)
+
+    async def check() -> None:
+        try:
+            reply = await stub.Check(health_pb2.HealthCheckRequest(), timeout=timeout_s, metadata=metadata)
+        except grpc.RpcError as exc:
+            code = exc.code() if hasattr(exc, "code") else grpc.StatusCode.UNKNOWN
+            if code == grpc.StatusCode.UNIMPLEMENTED:
+                return  # a server without a health service: it answered, so it is there
+            if code in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
+                details = exc.details() if hasattr(exc, "details") else ""
+                raise Unavailable(
+                    f"server {server}: not reachable within {timeout_s:g} s ({code.name}: {details})"
+                ) from None
+            raise _grpc.from_rpc_error(exc, f"server {server}") from None
+        if reply.status != health_pb2.HealthCheckResponse.SERVING:
+            status = health_pb2.HealthCheckResponse.ServingStatus.Name(reply.status)
+            raise Unavailable(f"server {server}: its health service says {status}")
+
+    return check

@@ -10,8 +10,9 @@ from dataclasses import dataclass
 from typing import ClassVar, TypeVar
 
 from drvs.backoff import waits
-from drvs.errors import InvalidArgument, Unavailable
+from drvs.errors import DeadlineExceeded, DrvsError, InvalidArgument, ResourceExhausted, Unavailable
 from drvs.robot.limits import MAX_BACKOFF_S, seconds
+from drvs.robot.throttle import AdaptiveThrottle
 
 log = logging.getLogger("drvs.robot")
 
@@ -76,3 +77,24 @@ async def retrying(policy: RetryPolicy, server: str, what: str, call: Callable[[
                 raise
             log.info("server %s unavailable; retrying %s in %.1f s", server, what, wait)
             await asyncio.sleep(wait)
+
+
+async def asking(
+    throttle: AdaptiveThrottle, policy: RetryPolicy, server: str, what: str, call: Callable[[], Awaitable[T]]
+) -> T:
+    """A request to the server through the client's throttle: refused at once while the server
+    refuses this robot for overload (drvs.robot.throttle), else sent as `retrying` sends it; the
+    server's answer is counted."""
+    throttle.check(what)
+    try:
+        reply = await retrying(policy, server, what, call)
+    except DrvsError as exc:
+        # Refused for overload (the server's door gives a retry hint; a robot over its own
+        # budget gets none) or not answered in time: not accepted. Anything else says nothing
+        # of the server's load.
+        overload = isinstance(exc, DeadlineExceeded) or (isinstance(exc, ResourceExhausted) and exc.retry_after_s > 0)
+        if not overload:
+            throttle.accepted()
+        raise
+    throttle.accepted()
+    return reply

@@ -7,10 +7,12 @@ import asyncio
 import collections
 import logging
 from collections.abc import AsyncIterator
+from dataclasses import replace
 from typing import TYPE_CHECKING
 
 from drvs.convert import polygon_from_pb
 from drvs.model import CameraError, DetectionReport, DetectionRequest
+from drvs.net import parse_address
 from drvs.robot.handles import _Delivery, _Sending
 from drvs.robot.limits import MAX_QUEUED_REPORTS
 from drvs.robot.results import DetectionResult
@@ -173,3 +175,31 @@ class Subscribing(_Sending[Subscription]):
     """What DrvsClient.subscribe returns: `await` it for the Subscription, or use it as an async
     context manager (`async with drvs.subscribe(...) as sub:`), which closes the subscription on
     leaving the block. The request is sent when it is awaited or entered, not before."""
+
+
+async def open_subscription(
+    client: DrvsClient,
+    request: DetectionRequest,
+    message: detection_pb2.DetectionRequest,
+    timeout_s: float,
+    rpc_timeout_s: float,
+    max_queued: int,
+) -> Subscription:
+    """Send a per-camera request (DrvsClient.subscribe): its Subscription, once the server replied."""
+    if not request.callback_address:
+        callback = await client.start_listener()
+        parse_address(callback, "callback_address")
+        request = replace(request, callback_address=callback)
+        message.callback_address = callback
+    sub = Subscription(client, request, timeout_s, max_queued)
+    # Registered before sending: a camera may report before the server's reply arrives.
+    client._register(sub)
+    requests = client._requests
+    assert requests is not None
+    try:
+        reply = await client._asking(f"request {message.request_id}", lambda: requests.request(message, rpc_timeout_s))
+    except BaseException:
+        sub.close()
+        raise
+    sub._dispatched(reply)
+    return sub

@@ -286,3 +286,30 @@ class Tracking(_Sending[Track]):
                 yield snapshot
         finally:
             track.close()
+
+
+async def open_track(
+    client: DrvsClient,
+    request: DetectionRequest,
+    message: detection_pb2.DetectionRequest,
+    timeout_s: float,
+    rpc_timeout_s: float,
+    max_queued: int,
+) -> Track:
+    """Send a fused continuous request (DrvsClient.track): its Track, once the server replied."""
+    whole = detection_pb2.DetectionRequest()
+    whole.CopyFrom(message)  # the request stream leaves out what repeats: keep it whole to resend
+    track = Track(client, request, timeout_s, max_queued, whole, rpc_timeout_s)
+    client._register(track)
+    requests = client._requests
+    assert requests is not None
+    try:
+        reply = await client._asking(f"request {message.request_id}", lambda: track._attempt(requests, message))
+    except DeadlineExceeded:
+        track.close()  # the server may have taken it: tell it to stop
+        raise
+    except BaseException:
+        track._abandon()  # refused or never taken: nothing to stop at the server
+        raise
+    track._dispatched(reply)
+    return track
