@@ -1,4 +1,4 @@
-"""The robot's side of fused delivery: DrvsClient.detect(fuse=True), DrvsClient.track and
+"""The robot's side of fused delivery: DrvsClient.snapshot, DrvsClient.track and
 drvs-robot track / detect --fuse.
 
 The first half runs the client against a real gRPC server in this process (port 0) that answers
@@ -183,7 +183,7 @@ async def fusing() -> AsyncIterator[tuple[FusingServer, str]]:
 async def test_fused_detect_returns_one_snapshot_and_opens_no_listener(fusing: tuple[FusingServer, str]) -> None:
     servicer, address = fusing
     async with DrvsClient.connect(address, robot_id="r1") as robot:
-        snapshot = await robot.detect(YELLOW, (0, 0, 5, 5), fuse=True, deadline_s=1.5)
+        snapshot = await robot.snapshot(YELLOW, (0, 0, 5, 5), deadline_s=1.5)
         assert isinstance(snapshot, drvs.Snapshot)
         time, objects, missing = snapshot
         assert (time, objects, missing) == (snapshot.time, snapshot.objects, snapshot.missing_cameras)
@@ -202,7 +202,10 @@ async def test_fused_detect_returns_one_snapshot_and_opens_no_listener(fusing: t
             assert servicer.requests[-1].callback_address == f"127.0.0.1:{robot.port}"
         # ... and a fused request after it still sends no callback address (on the wire: the
         # server's StreamContext fills the previous one back in, which it ignores for fused requests).
-        await robot.detect(YELLOW, (0, 0, 5, 5), fuse=True)
+        # (detect(fuse=True), the deprecated spelling of snapshot(), warns and still works.)
+        with pytest.warns(DeprecationWarning, match=r"detect\(fuse=True\) is deprecated: use snapshot\(\)"):
+            old = await robot.detect(YELLOW, (0, 0, 5, 5), fuse=True)
+        assert isinstance(old, drvs.Snapshot) and old.objects == snapshot.objects
         assert servicer.raw[-1].callback_address == "" and servicer.raw[-1].HasField("fusion")
 
 
@@ -275,7 +278,7 @@ async def test_a_stream_that_ends_mid_track_raises_unavailable_after_what_came(
                 seen.append(snapshot.sequence)
         assert seen == [0, 1]
         # The next request opens a new stream.
-        assert (await robot.detect(YELLOW, (0, 0, 5, 5), fuse=True)).objects
+        assert (await robot.snapshot(YELLOW, (0, 0, 5, 5))).objects
 
 
 async def test_a_track_without_its_final_snapshot_raises_deadline_exceeded(fusing: tuple[FusingServer, str]) -> None:
@@ -322,7 +325,7 @@ API_CASES: list[tuple[Callable[[DrvsClient], Any], str]] = [
         "fuse: detect(fuse=True) is a single shot (rate_hz and duration_s 0); use track() for snapshots over time",
     ),
     (
-        lambda r: r.detect(YELLOW, BOX, fuse=True, deadline_s=31),
+        lambda r: r.snapshot(YELLOW, BOX, deadline_s=31),
         "fusion.deadline_s: 31.0 is not between 0 and 30 seconds",
     ),
     (
@@ -521,7 +524,7 @@ def near_disc(xy: tuple[float, float] | list[float]) -> float:
 @pytest.mark.slow
 async def test_end_to_end_fused_detect_merges_two_cameras_into_one_object_each(fused_office: Scene) -> None:
     async with DrvsClient.connect(fused_office.address, robot_id="r1") as robot:
-        snapshot = await robot.detect(YELLOW, REGION, fuse=True)
+        snapshot = await robot.snapshot(YELLOW, REGION)
         assert snapshot.final and snapshot.missing_cameras == () and set(snapshot.camera_ids) == {"camA", "camB"}
         assert len(snapshot.objects) == len(DISCS)  # each disc once, not once per camera
         for o in snapshot.objects:

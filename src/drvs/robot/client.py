@@ -26,6 +26,7 @@ import ipaddress
 import itertools
 import logging
 import secrets
+import warnings
 from collections.abc import Awaitable, Callable
 from dataclasses import replace
 from types import TracebackType
@@ -128,9 +129,9 @@ class DrvsClient:
     - `advertise`: HOST:PORT cameras dial to deliver reports (behind NAT, a relay ...); default:
       the bound listener's address;
 
-    The report listener is only for per-camera requests (subscribe, detect without fuse): it starts
+    The report listener is only for per-camera requests (subscribe, detect): it starts
     with the first of them (at start() when `listen` or `advertise` is given, or on
-    `await start_listener()`). A robot whose requests are all fused (detect(fuse=True), track)
+    `await start_listener()`). A robot whose requests are all fused (snapshot, track)
     dials out only and opens no port, so it works behind NAT.
     - `retry`: a RetryPolicy for calls the server could not take (default: no retry);
     - `throttle_k`: client-side throttling (drvs.robot.throttle): while the server refuses requests
@@ -550,28 +551,21 @@ class DrvsClient:
         beyond `duration_s` have passed; the arguments are subscribe's. Camera failures do not
         raise: they are in `result.camera_errors` (or call `result.raise_for_errors()`).
 
-        `fuse=True`: the server gathers the cameras' reports itself and answers with one
-        `drvs.model.Snapshot` (`time, objects, missing_cameras = snapshot`): each physical object
-        once, as a `WorldObject`, however many cameras saw it. No listener is used. A single shot
-        only (rate_hz and duration_s 0; `track()` gives snapshots over time).
-
-        - `deadline_s`: the server answers with what it has this many seconds after it sent the
-          request to the cameras, naming the cameras that did not report in time in
-          `snapshot.missing_cameras` (DEADLINE_EXCEEDED); None or 0: the server's default (2 s);
-          at most 30;
-        - `timeout_s`: how long beyond `deadline_s` to wait for the server's answer; past it
-          DeadlineExceeded;
-        - `request_id`: an id of your own (default: a fresh one).
-
-        A server that refuses the request raises its DrvsError (InvalidArgument ...).
+        `fuse=True` is the deprecated spelling of `snapshot()` (it warns; removed in the next
+        release): a fused single shot, answered with one Snapshot.
         """
         if fuse:
+            warnings.warn(
+                "detect(fuse=True) is deprecated: use snapshot(), which returns the Snapshot", DeprecationWarning, 2
+            )
             if rate_hz or duration_s:
                 raise InvalidArgument(
                     "fuse: detect(fuse=True) is a single shot (rate_hz and duration_s 0); "
                     "use track() for snapshots over time"
                 )
-            return await self._detect_fused(filter_def, region, timeout_s, outlines, deadline_s, request_id)
+            return await self.snapshot(
+                filter_def, region, timeout_s=timeout_s, outlines=outlines, deadline_s=deadline_s, request_id=request_id
+            )
         if deadline_s is not None:
             raise InvalidArgument("deadline_s: only for fused requests (fuse=True)")
         async with self.subscribe(
@@ -585,15 +579,32 @@ class DrvsClient:
         ) as sub:
             return await sub.collect()
 
-    async def _detect_fused(
+    async def snapshot(
         self,
         filter_def: str,
         region: RegionLike,
-        timeout_s: float,
-        outlines: bool,
-        deadline_s: float | None,
-        request_id: str | None,
+        *,
+        timeout_s: float = DEFAULT_TIMEOUT_S,
+        outlines: bool = True,
+        deadline_s: float | None = None,
+        request_id: str | None = None,
     ) -> Snapshot:
+        """A fused single shot: the server gathers the cameras' reports itself and answers with one
+        `drvs.model.Snapshot` (`time, objects, missing_cameras = snapshot`): each physical object
+        once, as a `WorldObject`, however many cameras saw it. No listener is used (`track()` gives
+        snapshots over time).
+
+        - `filter_def`, `region`, `outlines`: what and where, as for subscribe;
+        - `deadline_s`: the server answers with what it has this many seconds after it sent the
+          request to the cameras, naming the cameras that did not report in time in
+          `snapshot.missing_cameras` (DEADLINE_EXCEEDED); None or 0: the server's default (2 s);
+          at most 30;
+        - `timeout_s`: how long beyond `deadline_s` to wait for the server's answer; past it
+          DeadlineExceeded;
+        - `request_id`: an id of your own (default: a fresh one).
+
+        A server that refuses the request raises its DrvsError (InvalidArgument ...).
+        """
         self._require_started()
         check_timeout(timeout_s)
         fusion = fusion_options(deadline_s, None)
