@@ -121,7 +121,9 @@ class FusingServer(detection_pb2_grpc.DetectObjectBoundaryServicer):
                     reply.snapshot.CopyFrom(snapshot_to_pb(snapshot))
                     out.put_nowait(reply)
                 else:
-                    out.put_nowait(detection_pb2.DetectionReply(request_id=rid, camera_ids=["camA", "camB"]))
+                    reply = detection_pb2.DetectionReply(request_id=rid, camera_ids=["camA", "camB"])
+                    reply.missing_cameras.add(camera_id="camM", code="UNAVAILABLE", message="camera camM: gone")
+                    out.put_nowait(reply)
                     runs[rid] = asyncio.get_running_loop().create_task(self._run(message, out))
             out.put_nowait(None)
 
@@ -229,6 +231,11 @@ async def test_leaving_a_track_early_cancels_it_at_the_server(fusing: tuple[Fusi
     async with DrvsClient.connect(address, robot_id="r1") as robot:
         async with robot.track(YELLOW, (0, 0, 5, 5), rate_hz=20, duration_s=30) as track:
             assert track.camera_ids == ("camA", "camB")
+            gone = CameraError("UNAVAILABLE", "camera camM: gone", "camM")
+            assert track.camera_errors == {"camM": gone}
+            # The deprecated tuple of CameraErrors warns and still works.
+            with pytest.warns(DeprecationWarning, match=r"Track\.missing_cameras is deprecated"):
+                assert track.missing_cameras == (gone,)
             async for snapshot in track:
                 if snapshot.sequence == 1:
                     break

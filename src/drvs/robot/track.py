@@ -7,6 +7,7 @@ from __future__ import annotations
 import asyncio
 import collections
 import logging
+import warnings
 from collections.abc import AsyncIterator
 from typing import TYPE_CHECKING
 
@@ -49,8 +50,9 @@ class Track(_Delivery):
     the server's reply.
 
     - `request_id`: the request; `camera_ids`: the cameras the server dispatched it to;
-    - `missing_cameras`: CameraErrors for the cameras that see the region but were not asked (the
-      server's reply; each snapshot names the cameras missing from it too);
+    - `camera_errors`: camera id -> CameraError for the cameras that see the region but were not
+      asked (the server's reply; each snapshot names the cameras missing from it too), as on
+      DetectionResult; `missing_cameras` (the same CameraErrors as a tuple) is deprecated;
     - `uncovered`: parts of the region (shapely Polygons, metres) that no camera asked sees (each
       snapshot carries them too, `Snapshot.uncovered`);
     - `received`: snapshots that arrived; `dropped`: those dropped unread; `last`: the newest read;
@@ -82,7 +84,8 @@ class Track(_Delivery):
         self._ends_at = 0.0
         self._resuming: asyncio.Task[None] | None = None
         self.camera_ids: tuple[str, ...] = ()
-        self.missing_cameras: tuple[CameraError, ...] = ()
+        #: camera id -> why the server did not ask it (it sees the region).
+        self.camera_errors: dict[str, CameraError] = {}
         self.uncovered: list[Polygon] = []
         self.received = 0
         self.dropped = 0
@@ -96,6 +99,17 @@ class Track(_Delivery):
         self._wakeup: asyncio.Future[None] | None = None
         self._failure: DrvsError | None = None
         self._timer: asyncio.TimerHandle | None = None
+
+    @property
+    def missing_cameras(self) -> tuple[CameraError, ...]:
+        """Deprecated (removed next release, when `missing_cameras` becomes the camera ids as on
+        DetectionResult): the CameraErrors of `camera_errors`, as a tuple."""
+        warnings.warn(
+            "Track.missing_cameras is deprecated: use Track.camera_errors (camera id -> CameraError)",
+            DeprecationWarning,
+            2,
+        )
+        return tuple(self.camera_errors.values())
 
     def fail(self, error: DrvsError) -> None:
         """End the iteration with `error` (raised once the snapshots already queued are read),
@@ -118,7 +132,7 @@ class Track(_Delivery):
 
     def _dispatched(self, reply: detection_pb2.DetectionReply) -> None:
         self.camera_ids = tuple(reply.camera_ids)
-        self.missing_cameras = tuple(CameraError(m.code, m.message, m.camera_id) for m in reply.missing_cameras)
+        self.camera_errors = {m.camera_id: CameraError(m.code, m.message, m.camera_id) for m in reply.missing_cameras}
         self.uncovered = [polygon_from_pb(p, "uncovered") for p in reply.uncovered]
         request = self.request
         assert request.fusion is not None

@@ -277,7 +277,7 @@ class SimRobot:
             ]
             try:
                 for track in tracks:
-                    for missing in track.missing_cameras:  # whom the server could not ask
+                    for missing in track.camera_errors.values():  # whom the server could not ask
                         self.lose(missing.camera_id, f"{missing.code} {missing.message}")
                 self.set_unseen("watch", [p for t in tracks for p in t.uncovered])
                 await asyncio.gather(*(self._follow(f, t) for f, t in zip(self.obstacle_filters, tracks, strict=True)))
