@@ -15,6 +15,7 @@ robot's own connection (no listener, so it works behind NAT):
             ...
 
 See DrvsClient (connect, subscribe, detect, snapshot, track, cameras), Snapshot, WorldObject, RetryPolicy,
+Security (TLS files and the robot's token),
 snapshot_json, and drvs.errors.
 """
 
@@ -43,6 +44,7 @@ from drvs.robot.client import (
     Tracking,
 )
 from drvs.robot.snapshots import snapshot_json, world_object_json
+from drvs.security import Security
 
 __all__ = [
     "CameraError",
@@ -63,6 +65,7 @@ __all__ = [
     "RegionLike",
     "ResourceExhausted",
     "RetryPolicy",
+    "Security",
     "Snapshot",
     "Subscribing",
     "Subscription",
