@@ -19,7 +19,7 @@ from drvs.robot.results import DetectionResult
 from drvs.v1 import detection_pb2
 
 if TYPE_CHECKING:
-    from drvs.robot.client import DrvsClient
+    from drvs.robot.connection import ClientConnection
 
 log = logging.getLogger("drvs.robot")
 
@@ -41,7 +41,11 @@ class Subscription(_Delivery):
     """
 
     def __init__(
-        self, client: DrvsClient, request: DetectionRequest, timeout_s: float, max_queued: int = MAX_QUEUED_REPORTS
+        self,
+        client: ClientConnection,
+        request: DetectionRequest,
+        timeout_s: float,
+        max_queued: int = MAX_QUEUED_REPORTS,
     ) -> None:
         self._client = client
         self.request = request
@@ -178,7 +182,7 @@ class Subscribing(_Sending[Subscription]):
 
 
 async def open_subscription(
-    client: DrvsClient,
+    client: ClientConnection,
     request: DetectionRequest,
     message: detection_pb2.DetectionRequest,
     timeout_s: float,

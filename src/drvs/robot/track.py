@@ -23,7 +23,7 @@ from drvs.robot.limits import DEFAULT_RPC_TIMEOUT_S
 from drvs.v1 import detection_pb2
 
 if TYPE_CHECKING:
-    from drvs.robot.client import DrvsClient
+    from drvs.robot.connection import ClientConnection
 
 log = logging.getLogger("drvs.robot")
 
@@ -62,7 +62,7 @@ class Track(_Delivery):
 
     def __init__(
         self,
-        client: DrvsClient,
+        client: ClientConnection,
         request: DetectionRequest,
         timeout_s: float,
         max_queued: int,
@@ -303,7 +303,7 @@ class Tracking(_Sending[Track]):
 
 
 async def open_track(
-    client: DrvsClient,
+    client: ClientConnection,
     request: DetectionRequest,
     message: detection_pb2.DetectionRequest,
     timeout_s: float,
