@@ -360,6 +360,7 @@ CLI_CASES: list[tuple[list[str], str]] = [
 ]
 
 
+@pytest.mark.filterwarnings("ignore:detect\\(fuse=True\\) is deprecated:DeprecationWarning")  # one case is its refusal
 async def test_bad_fused_arguments_are_refused_before_anything_is_sent(fusing: tuple[FusingServer, str]) -> None:
     servicer, address = fusing
     async with DrvsClient.connect(address, robot_id="r1") as robot:
