@@ -21,10 +21,9 @@ restarting, or unreachable): nothing is sent again after the server has taken it
 
 from __future__ import annotations
 
-import logging
 import warnings
 from dataclasses import replace
-from typing import Literal, TypeVar, overload
+from typing import Literal, overload
 
 import grpc
 
@@ -65,10 +64,6 @@ from drvs.robot.throttle import DEFAULT_K
 from drvs.robot.track import Track, Tracking, open_track
 from drvs.security import Security
 from drvs.v1 import detection_pb2, registry_pb2
-
-log = logging.getLogger("drvs.robot")
-
-T = TypeVar("T")
 
 # What robot code, tools and tests import from here (the parts now live in their own modules).
 __all__ = [
