@@ -304,7 +304,7 @@ async def test_a_refused_fused_request_on_a_stream_is_told_so_at_once() -> None:
 
         async def ask() -> str:
             try:
-                await robot.detect(YELLOW, QUEUED_REGION, fuse=True, deadline_s=0.3, timeout_s=2)
+                await robot.snapshot(YELLOW, QUEUED_REGION, deadline_s=0.3, timeout_s=2)
             except ResourceExhausted as exc:
                 assert "rate" in str(exc), exc
                 return "refused"

@@ -9,7 +9,7 @@ from shapely.geometry import Point, box
 from drvs.convert import region_from_pb, region_to_pb
 from drvs.errors import InvalidArgument
 from drvs.model import Detection, PixelBox
-from drvs.robot.client import _Regions
+from drvs.robot.regions import _Regions
 
 
 def test_same_region_values_are_built_and_encoded_once() -> None:

@@ -57,10 +57,10 @@ async def test_every_python_answer_carries_what_no_camera_sees(office: Office) -
         assert same_area(sub.result.uncovered, unseen) and not sub.result.all_seen
 
         # Fused single shot, and the snapshots of a track.
-        snapshot = await robot.detect(YELLOW, CAM1_REGION, fuse=True, timeout_s=5)
+        snapshot = await robot.snapshot(YELLOW, CAM1_REGION, timeout_s=5)
         assert snapshot.camera_ids == ("cam1",) and same_area(snapshot.uncovered, unseen) and not snapshot.all_seen
-        assert (await robot.detect(YELLOW, inside, fuse=True, timeout_s=5)).all_seen
-        nobody = await robot.detect(YELLOW, NOWHERE, fuse=True, timeout_s=5)
+        assert (await robot.snapshot(YELLOW, inside, timeout_s=5)).all_seen
+        nobody = await robot.snapshot(YELLOW, NOWHERE, timeout_s=5)
         assert nobody.objects == () and same_area(nobody.uncovered, box(*NOWHERE))
         async with robot.track(YELLOW, CAM1_REGION, rate_hz=10, duration_s=0.3) as track:
             snapshots = [s async for s in track]

@@ -356,6 +356,15 @@ def test_help_of_the_client_reads_as_documentation() -> None:
         assert getattr(drvs.DrvsClient, method).__doc__, method
 
 
+def test_every_handle_is_an_async_context_manager() -> None:
+    """`async with` works the same on each: what connect, subscribe and track return, and the
+    Subscription and Track they open."""
+    from drvs.robot import Connecting, Subscribing, Subscription, Track, Tracking
+
+    for handle in (Connecting, Subscribing, Subscription, Tracking, Track):
+        assert callable(getattr(handle, "__aenter__", None)) and callable(getattr(handle, "__aexit__", None)), handle
+
+
 def test_import_drvs_is_light_and_re_exports_the_robot_api() -> None:
     code = (
         "import sys, drvs\n"
@@ -364,6 +373,9 @@ def test_import_drvs_is_light_and_re_exports_the_robot_api() -> None:
         "from drvs import DrvsError, Unavailable, InvalidArgument\n"
         "import drvs.robot, drvs.errors, drvs.model\n"
         "assert DrvsClient is drvs.robot.DrvsClient and Unavailable is drvs.errors.Unavailable\n"
+        "from drvs import Security\n"
+        "import drvs.security\n"
+        "assert Security is drvs.security.Security is drvs.robot.Security\n"
         "assert 'cv2' not in sys.modules, 'the robot API imports cv2'\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)

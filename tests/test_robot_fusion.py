@@ -1,4 +1,4 @@
-"""The robot's side of fused delivery: DrvsClient.detect(fuse=True), DrvsClient.track and
+"""The robot's side of fused delivery: DrvsClient.snapshot, DrvsClient.track and
 drvs-robot track / detect --fuse.
 
 The first half runs the client against a real gRPC server in this process (port 0) that answers
@@ -121,7 +121,9 @@ class FusingServer(detection_pb2_grpc.DetectObjectBoundaryServicer):
                     reply.snapshot.CopyFrom(snapshot_to_pb(snapshot))
                     out.put_nowait(reply)
                 else:
-                    out.put_nowait(detection_pb2.DetectionReply(request_id=rid, camera_ids=["camA", "camB"]))
+                    reply = detection_pb2.DetectionReply(request_id=rid, camera_ids=["camA", "camB"])
+                    reply.missing_cameras.add(camera_id="camM", code="UNAVAILABLE", message="camera camM: gone")
+                    out.put_nowait(reply)
                     runs[rid] = asyncio.get_running_loop().create_task(self._run(message, out))
             out.put_nowait(None)
 
@@ -183,7 +185,7 @@ async def fusing() -> AsyncIterator[tuple[FusingServer, str]]:
 async def test_fused_detect_returns_one_snapshot_and_opens_no_listener(fusing: tuple[FusingServer, str]) -> None:
     servicer, address = fusing
     async with DrvsClient.connect(address, robot_id="r1") as robot:
-        snapshot = await robot.detect(YELLOW, (0, 0, 5, 5), fuse=True, deadline_s=1.5)
+        snapshot = await robot.snapshot(YELLOW, (0, 0, 5, 5), deadline_s=1.5)
         assert isinstance(snapshot, drvs.Snapshot)
         time, objects, missing = snapshot
         assert (time, objects, missing) == (snapshot.time, snapshot.objects, snapshot.missing_cameras)
@@ -202,7 +204,10 @@ async def test_fused_detect_returns_one_snapshot_and_opens_no_listener(fusing: t
             assert servicer.requests[-1].callback_address == f"127.0.0.1:{robot.port}"
         # ... and a fused request after it still sends no callback address (on the wire: the
         # server's StreamContext fills the previous one back in, which it ignores for fused requests).
-        await robot.detect(YELLOW, (0, 0, 5, 5), fuse=True)
+        # (detect(fuse=True), the deprecated spelling of snapshot(), warns and still works.)
+        with pytest.warns(DeprecationWarning, match=r"detect\(fuse=True\) is deprecated: use snapshot\(\)"):
+            old = await robot.detect(YELLOW, (0, 0, 5, 5), fuse=True)
+        assert isinstance(old, drvs.Snapshot) and old.objects == snapshot.objects
         assert servicer.raw[-1].callback_address == "" and servicer.raw[-1].HasField("fusion")
 
 
@@ -226,6 +231,11 @@ async def test_leaving_a_track_early_cancels_it_at_the_server(fusing: tuple[Fusi
     async with DrvsClient.connect(address, robot_id="r1") as robot:
         async with robot.track(YELLOW, (0, 0, 5, 5), rate_hz=20, duration_s=30) as track:
             assert track.camera_ids == ("camA", "camB")
+            gone = CameraError("UNAVAILABLE", "camera camM: gone", "camM")
+            assert track.camera_errors == {"camM": gone}
+            # The deprecated tuple of CameraErrors warns and still works.
+            with pytest.warns(DeprecationWarning, match=r"Track\.missing_cameras is deprecated"):
+                assert track.missing_cameras == (gone,)
             async for snapshot in track:
                 if snapshot.sequence == 1:
                     break
@@ -275,7 +285,7 @@ async def test_a_stream_that_ends_mid_track_raises_unavailable_after_what_came(
                 seen.append(snapshot.sequence)
         assert seen == [0, 1]
         # The next request opens a new stream.
-        assert (await robot.detect(YELLOW, (0, 0, 5, 5), fuse=True)).objects
+        assert (await robot.snapshot(YELLOW, (0, 0, 5, 5))).objects
 
 
 async def test_a_track_without_its_final_snapshot_raises_deadline_exceeded(fusing: tuple[FusingServer, str]) -> None:
@@ -322,7 +332,7 @@ API_CASES: list[tuple[Callable[[DrvsClient], Any], str]] = [
         "fuse: detect(fuse=True) is a single shot (rate_hz and duration_s 0); use track() for snapshots over time",
     ),
     (
-        lambda r: r.detect(YELLOW, BOX, fuse=True, deadline_s=31),
+        lambda r: r.snapshot(YELLOW, BOX, deadline_s=31),
         "fusion.deadline_s: 31.0 is not between 0 and 30 seconds",
     ),
     (
@@ -350,6 +360,7 @@ CLI_CASES: list[tuple[list[str], str]] = [
 ]
 
 
+@pytest.mark.filterwarnings("ignore:detect\\(fuse=True\\) is deprecated:DeprecationWarning")  # one case is its refusal
 async def test_bad_fused_arguments_are_refused_before_anything_is_sent(fusing: tuple[FusingServer, str]) -> None:
     servicer, address = fusing
     async with DrvsClient.connect(address, robot_id="r1") as robot:
@@ -521,7 +532,7 @@ def near_disc(xy: tuple[float, float] | list[float]) -> float:
 @pytest.mark.slow
 async def test_end_to_end_fused_detect_merges_two_cameras_into_one_object_each(fused_office: Scene) -> None:
     async with DrvsClient.connect(fused_office.address, robot_id="r1") as robot:
-        snapshot = await robot.detect(YELLOW, REGION, fuse=True)
+        snapshot = await robot.snapshot(YELLOW, REGION)
         assert snapshot.final and snapshot.missing_cameras == () and set(snapshot.camera_ids) == {"camA", "camB"}
         assert len(snapshot.objects) == len(DISCS)  # each disc once, not once per camera
         for o in snapshot.objects:

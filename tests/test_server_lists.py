@@ -145,7 +145,7 @@ async def test_fused_detect_track_and_cameras_through_the_list(pair: Pair) -> No
     listing, each through B."""
     await pair.kill_a()
     async with DrvsClient.connect(pair.both, robot_id="r2") as drvs:
-        snapshot = await drvs.detect(YELLOW, CAM1_REGION, fuse=True, timeout_s=10)
+        snapshot = await drvs.snapshot(YELLOW, CAM1_REGION, timeout_s=10)
         assert snapshot.camera_ids == ("cam1",) and not snapshot.missing_cameras, snapshot
         assert_cam1_yellow([o.centroid_xy for o in snapshot.objects])
         async with drvs.track(YELLOW, CAM1_REGION, rate_hz=5, duration_s=1) as track:
@@ -197,7 +197,7 @@ async def test_without_etcd_a_dead_first_entry_leads_to_the_live_server(recorded
             async with DrvsClient.connect(servers, robot_id="r3") as drvs:
                 assert drvs.callback_address == ""  # fused and listing need no listener
                 assert [c.camera_id for c in await drvs.cameras()] == ["cam1"]
-                snapshot = await drvs.detect(YELLOW, CAM1_REGION, fuse=True, timeout_s=10)
+                snapshot = await drvs.snapshot(YELLOW, CAM1_REGION, timeout_s=10)
                 assert_cam1_yellow([o.centroid_xy for o in snapshot.objects])
                 result = await drvs.detect(YELLOW, CAM1_REGION, timeout_s=10)
                 assert result.camera_ids == ("cam1",) and not result.errors, result

@@ -55,6 +55,7 @@ if TYPE_CHECKING:
     from drvs.robot.client import Track as Track
     from drvs.robot.client import Tracking as Tracking
     from drvs.robot.snapshots import snapshot_json as snapshot_json
+    from drvs.security import Security as Security
 
 _EXPORTS = {
     "DrvsClient": "drvs.robot.client",
@@ -65,6 +66,7 @@ _EXPORTS = {
     "Track": "drvs.robot.client",
     "Tracking": "drvs.robot.client",
     "snapshot_json": "drvs.robot.snapshots",
+    "Security": "drvs.security",
     "Snapshot": "drvs.model",
     "WorldObject": "drvs.model",
     "FusionOptions": "drvs.model",

@@ -10,11 +10,12 @@
 Fused delivery: the server merges what the cameras see into world objects and answers on the
 robot's own connection (no listener, so it works behind NAT):
 
-        snapshot = await drvs.detect("hsv_014110130035225200", (0, 0, 5, 5), fuse=True)
+        snapshot = await drvs.snapshot("hsv_014110130035225200", (0, 0, 5, 5))
         async for time, objects, missing in drvs.track("hsv_014110130035225200", (0, 0, 5, 5), duration_s=5):
             ...
 
-See DrvsClient (connect, subscribe, detect, track, cameras), Snapshot, WorldObject, RetryPolicy,
+See DrvsClient (connect, subscribe, detect, snapshot, track, cameras), Snapshot, WorldObject, RetryPolicy,
+Security (TLS files and the robot's token),
 snapshot_json, and drvs.errors.
 """
 
@@ -43,6 +44,7 @@ from drvs.robot.client import (
     Tracking,
 )
 from drvs.robot.snapshots import snapshot_json, world_object_json
+from drvs.security import Security
 
 __all__ = [
     "CameraError",
@@ -63,6 +65,7 @@ __all__ = [
     "RegionLike",
     "ResourceExhausted",
     "RetryPolicy",
+    "Security",
     "Snapshot",
     "Subscribing",
     "Subscription",

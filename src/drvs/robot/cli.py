@@ -204,10 +204,9 @@ async def detect_fused(args: argparse.Namespace) -> int:
     region = parse_roi(args)
     check_fused_flags(args, "detect")
     async with connecting(args) as client:
-        snapshot = await client.detect(
+        snapshot = await client.snapshot(
             args.filter,
             region,
-            fuse=True,
             deadline_s=args.deadline,
             timeout_s=args.timeout,
             outlines=not args.no_outlines,

@@ -21,818 +21,75 @@ restarting, or unreachable): nothing is sent again after the server has taken it
 
 from __future__ import annotations
 
-import asyncio
-import collections
-import contextlib
-import ipaddress
-import itertools
-import logging
-import math
-import secrets
-from collections.abc import AsyncIterator, Awaitable, Callable, Generator, Iterator, Sequence
-from dataclasses import dataclass, field, replace
-from types import TracebackType
-from typing import Any, ClassVar, Generic, Literal, TypeAlias, TypeVar, overload
+import warnings
+from dataclasses import replace
+from typing import Literal, overload
 
 import grpc
-from grpc import aio
-from shapely.geometry import Polygon
 
 from drvs import _grpc
-from drvs.backoff import Backoff, waits
-from drvs.channels import check_role, open_channel
-from drvs.convert import polygon_from_pb, pose_from_pb, region_to_pb, report_from_pb, request_to_pb, snapshot_from_pb
+from drvs.convert import polygon_from_pb, request_to_pb, snapshot_from_pb
 from drvs.errors import (
-    DeadlineExceeded,
-    DrvsError,
     FailedPrecondition,
     InvalidArgument,
-    ResourceExhausted,
-    Unavailable,
 )
-from drvs.geometry import box_region, polygon_region
 from drvs.model import (
     DEFAULT_FRAME,
-    CameraError,
     ContinuousMode,
-    Detection,
-    DetectionReport,
     DetectionRequest,
     FusionOptions,
-    Pose2,
     Snapshot,
     check_frame,
 )
-from drvs.net import (
-    dialable_address,
-    format_address,
-    host_of,
-    local_ip_towards,
-    parse_address,
-    parse_address_list,
+from drvs.robot.connection import ClientConnection
+from drvs.robot.handles import Connecting
+from drvs.robot.limits import (
+    DEFAULT_CONNECT_TIMEOUT_S,
+    DEFAULT_RPC_TIMEOUT_S,
+    DEFAULT_TIMEOUT_S,
+    DEFAULT_TRACK_RATE_HZ,
+    MAX_BACKOFF_S,
+    MAX_QUEUED_REPORTS,
+    MAX_QUEUED_SNAPSHOTS,
+    check_queue,
+    check_timeout,
+    fusion_options,
+    seconds,
 )
-from drvs.report_auth import key_matches, new_secret
-from drvs.report_bounds import NOT_READING, oversized_id, write_control
-from drvs.request_stream import RequestStream
-from drvs.robot.throttle import DEFAULT_K, AdaptiveThrottle
-from drvs.security import SERVER, Security
-from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
-
-log = logging.getLogger("drvs.robot")
-
-T = TypeVar("T")
-
-#: Seconds to wait, beyond a request's own duration, for every camera's final report (`timeout_s`).
-DEFAULT_TIMEOUT_S = 5.0
-#: Seconds one attempt of one call waits for the server's reply (`rpc_timeout_s`).
-DEFAULT_RPC_TIMEOUT_S = 5.0
-#: Seconds one attempt to reach the server may take in DrvsClient.connect (`connect_timeout_s`).
-DEFAULT_CONNECT_TIMEOUT_S = 5.0
-#: Unread reports a continuous request keeps (the newest; older ones are dropped and counted).
-MAX_QUEUED_REPORTS = 1024
-#: Unread snapshots a track keeps (the newest; older ones are dropped and counted): 6.4 s at 10 Hz.
-MAX_QUEUED_SNAPSHOTS = 64
-#: Snapshots a second DrvsClient.track asks for unless told.
-DEFAULT_TRACK_RATE_HZ = 10.0
-#: The longest wait between retries, seconds (RetryPolicy's default max_backoff_s).
-MAX_BACKOFF_S = 5.0
-#: Regions a client keeps built and encoded, by the value robot code passed.
-REGION_CACHE_SIZE = 256
-
-#: A floor region in metres: a shapely Polygon, a box (x0, y0, x1, y1), or a list of [x, y] points.
-RegionLike: TypeAlias = "Polygon | Sequence[float] | Sequence[Sequence[float]]"
-
-
-def as_region(region: RegionLike) -> Polygon:
-    """A shapely polygon, a box (x0, y0, x1, y1), or a list of [x, y] points (metres) as a validated Polygon."""
-    if isinstance(region, Polygon):
-        return polygon_region(list(region.exterior.coords), "region")
-    items: list[Any] = list(region)
-    if len(items) == 4 and all(isinstance(v, (int, float)) for v in items):
-        return box_region(*items)
-    if items and all(isinstance(p, Sequence) for p in items):
-        return polygon_region(items, "region")
-    raise InvalidArgument("region: expected a shapely Polygon, a box (x0, y0, x1, y1) or a list of [x, y] points")
-
-
-def _seconds(value: float, name: str, limit: float) -> float:
-    """`value` as seconds in (0, limit], or InvalidArgument naming `name`."""
-    if isinstance(value, bool) or not isinstance(value, (int, float)) or not (0 < value <= limit):
-        raise InvalidArgument(f"{name}: {value!r} must be a number of seconds in (0, {limit:g}]")
-    return float(value)
-
-
-def _check_timeout(timeout_s: float) -> None:
-    if isinstance(timeout_s, bool) or not (
-        isinstance(timeout_s, (int, float)) and math.isfinite(timeout_s) and timeout_s >= 0
-    ):
-        raise InvalidArgument(f"timeout_s: {timeout_s!r} must be a finite number of seconds >= 0")
-
-
-def _fusion_options(deadline_s: float | None, drop_after_s: float | None) -> FusionOptions:
-    """FusionOptions from a fused call's arguments (None: 0, the server's default), checked."""
-    values = []
-    for name, value in (("deadline_s", deadline_s), ("drop_after_s", drop_after_s)):
-        if value is None:
-            value = 0.0
-        if isinstance(value, bool) or not isinstance(value, (int, float)):
-            raise InvalidArgument(f"{name}: {value!r} must be a number of seconds, or None for the server's default")
-        values.append(float(value))
-    fusion = FusionOptions(deadline_s=values[0], drop_after_s=values[1])
-    fusion.validate()
-    return fusion
-
-
-@dataclass(frozen=True)
-class RetryPolicy:
-    """How often to try a call the server could not take (Unavailable: down, restarting, unreachable).
-
-    - `attempts`: how many times in all a call is tried, the first included (1: no retry), at most 1000;
-    - `initial_backoff_s`: seconds to wait before the second attempt, in (0, max_backoff_s];
-    - `max_backoff_s`: the longest wait between attempts, seconds, in (0, 60]; each wait doubles
-      the previous one up to this.
-
-    It applies to DrvsClient.connect's check of the server and to each request's and cameras()
-    call's wait for the server's reply; never to a call the server has answered (a refusal is final).
-    `RetryPolicy.retries(n)` is the policy of n retries (n + 1 attempts) with the default backoff.
-    """
-
-    attempts: int = 1
-    initial_backoff_s: float = 0.2
-    max_backoff_s: float = MAX_BACKOFF_S
-
-    MAX_ATTEMPTS: ClassVar[int] = 1000
-    MAX_BACKOFF_LIMIT_S: ClassVar[float] = 60.0
-
-    def __post_init__(self) -> None:
-        if (
-            isinstance(self.attempts, bool)
-            or not isinstance(self.attempts, int)
-            or not (1 <= self.attempts <= self.MAX_ATTEMPTS)
-        ):
-            raise InvalidArgument(
-                f"retry.attempts: {self.attempts!r} must be a whole number in [1, {self.MAX_ATTEMPTS}] "
-                "(the first try included)"
-            )
-        _seconds(self.max_backoff_s, "retry.max_backoff_s", self.MAX_BACKOFF_LIMIT_S)
-        _seconds(self.initial_backoff_s, "retry.initial_backoff_s", self.max_backoff_s)
-
-    @classmethod
-    def retries(cls, count: int) -> RetryPolicy:
-        """`count` retries after the first attempt, with the default backoff (drvs-robot --retries)."""
-        if isinstance(count, bool) or not isinstance(count, int) or not (0 <= count < cls.MAX_ATTEMPTS):
-            raise InvalidArgument(f"retries: {count!r} must be a whole number in [0, {cls.MAX_ATTEMPTS - 1}]")
-        return cls(attempts=count + 1)
-
-    def backoffs(self) -> Iterator[float]:
-        """The waits (seconds) before the second, third ... attempt: attempts - 1 of them."""
-        return waits(self.initial_backoff_s, self.max_backoff_s, self.attempts - 1)
-
-
-class _Regions:
-    """Robot code asks about the same few regions again and again: each is built, validated and
-    encoded once. Building the polygon and its wire form was a tenth of a request's CPU at 30 Hz.
-    Keyed by the values robot code passed (a shapely Polygon by identity: it is immutable)."""
-
-    def __init__(self, size: int = REGION_CACHE_SIZE) -> None:
-        self._size = size
-        self._cache: collections.OrderedDict[Any, tuple[Any, Polygon, geometry_pb2.Region]] = collections.OrderedDict()
-
-    @staticmethod
-    def _key(region: RegionLike) -> Any:
-        if isinstance(region, Polygon):
-            return ("polygon", id(region))
-        try:
-            key = tuple(tuple(p) if isinstance(p, Sequence) else p for p in region)
-            hash(key)
-        except TypeError:
-            return None
-        return key
-
-    def get(self, region: RegionLike) -> tuple[Polygon, geometry_pb2.Region]:
-        key = self._key(region)
-        hit = self._cache.get(key) if key is not None else None
-        if hit is not None and (not isinstance(region, Polygon) or hit[0] is region):
-            self._cache.move_to_end(key)
-            return hit[1], hit[2]
-        polygon = as_region(region)  # a bad region raises here, every time, and is not kept
-        encoded = region_to_pb(polygon)
-        if key is not None:
-            self._cache[key] = (region, polygon, encoded)
-            if len(self._cache) > self._size:
-                self._cache.popitem(last=False)
-        return polygon, encoded
-
-
-@dataclass(frozen=True)
-class CameraInfo:
-    """A camera the server routes to: its id, the address it serves on, its field of view on the
-    floor (a shapely Polygon, metres), the detector kinds it serves (hsv, aruco ...), and the
-    seconds left on its registration lease.
-
-    A camera on a robot (`mobile`): `field_of_view` is where its robot's last pose puts it (empty
-    before the first pose, or when it sees no floor), `pose` that pose (map frame; None before the
-    first), `pose_age_s` the seconds since the server received it, and `unroutable` why the server
-    does not route to it now ("" when it does: a stale pose, no pose yet, a mount that sees no floor).
-    """
-
-    camera_id: str
-    address: str
-    field_of_view: Polygon
-    detector_kinds: tuple[str, ...]
-    lease_remaining_s: float
-    mobile: bool = False
-    pose: Pose2 | None = None
-    pose_age_s: float = 0.0
-    unroutable: str = ""
-    #: The floor plan it registered in ("map" unless it gave one).
-    frame: str = DEFAULT_FRAME
-
-
-@dataclass
-class DetectionResult:
-    """Everything one request brought back.
-
-    Absence of detections means "nothing there" only where a camera looked: `complete` is False
-    when any camera that sees the region did not answer (`missing_cameras`, each with its
-    `camera_errors` entry, a CameraError), and `uncovered` holds the parts of the region (shapely
-    Polygons, metres) that no camera the server asked sees: no camera at all, or only missing
-    ones. `all_seen` is True only when both say nothing: the whole region was looked at. A region
-    (or frame) no camera sees is complete, and all of it uncovered. `coverage_uncertain_s` > 0: the server
-    restarted that many seconds ago or less and may not know every camera yet, so parts of the
-    region no dispatched camera sees are not known to be clear. `dropped`: reports this request's
-    subscription dropped unread (continuous requests keep only the newest; see
-    DrvsClient.subscribe). `raise_for_errors()` turns the first camera failure into an exception.
-    """
-
-    request_id: str
-    camera_ids: tuple[str, ...]
-    reports: list[DetectionReport] = field(default_factory=list)
-    #: Cameras the server named in its reply as seeing the region but not asked.
-    skipped: dict[str, CameraError] = field(default_factory=dict)
-    #: Dispatched cameras whose report stream ended before their final report.
-    interrupted: set[str] = field(default_factory=set)
-    uncovered: list[Polygon] = field(default_factory=list)
-    coverage_uncertain_s: float = 0.0
-    dropped: int = 0
-
-    @property
-    def detections(self) -> list[Detection]:
-        """Every detection of every report, in the order the reports arrived."""
-        return [d for r in self.reports for d in r.detections]
-
-    @property
-    def finished_cameras(self) -> set[str]:
-        """Dispatched cameras that have sent their final report."""
-        return {r.camera_id for r in self.reports if r.final}
-
-    @property
-    def unfinished_cameras(self) -> set[str]:
-        """Dispatched cameras that have sent no final report (yet)."""
-        return set(self.camera_ids) - self.finished_cameras
-
-    @property
-    def camera_errors(self) -> dict[str, CameraError]:
-        """Every camera whose answer is missing, and why (camera id -> CameraError)."""
-        errors = dict(self.skipped)
-        for camera_id in self.unfinished_cameras:
-            if camera_id in self.interrupted:
-                errors[camera_id] = CameraError(
-                    "UNAVAILABLE", f"camera {camera_id}: its report stream ended before its final report", camera_id
-                )
-            else:
-                errors[camera_id] = CameraError(
-                    "DEADLINE_EXCEEDED", f"camera {camera_id}: no final report in time", camera_id
-                )
-        for r in self.reports:
-            error = r.camera_error
-            if r.final and error is not None:
-                errors[r.camera_id] = error
-        return errors
-
-    @property
-    def missing_cameras(self) -> set[str]:
-        """Cameras that see the region but did not answer: not asked (skipped, gone), failed, or
-        sent no final report before the timeout."""
-        return set(self.camera_errors)
-
-    @property
-    def complete(self) -> bool:
-        """True when every camera that sees the region answered."""
-        return not self.missing_cameras
-
-    @property
-    def all_seen(self) -> bool:
-        """True when the whole region was looked at: every camera answered and no part of the
-        region is uncovered. Only then do no detections mean nothing there."""
-        return self.complete and not self.uncovered
-
-    @property
-    def errors(self) -> list[str]:
-        """The error text of every report that carried one (see camera_errors for typed values)."""
-        return [r.error for r in self.reports if r.error]
-
-    def raise_for_errors(self) -> DetectionResult:
-        """Raise the drvs.errors exception of the first missing camera (by id; its `.code` the
-        status name, its `.camera_id` the camera), or return this result when it is complete."""
-        errors = self.camera_errors
-        if errors:
-            raise errors[min(errors)].exception()
-        return self
-
-
-class _Delivery:
-    """What Subscription and Track share: a waiter woken when something arrives or the delivery
-    ends, and `async with` closing it on leaving the block."""
-
-    _wakeup: asyncio.Future[None] | None
-
-    def close(self) -> None:
-        raise NotImplementedError
-
-    def _wake(self) -> None:
-        if self._wakeup is not None and not self._wakeup.done():
-            self._wakeup.set_result(None)
-
-    async def __aenter__(self: _D) -> _D:
-        return self
-
-    async def __aexit__(
-        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
-
-
-_D = TypeVar("_D", bound=_Delivery)
-
-
-class Subscription(_Delivery):
-    """The reports of one request, as an async iterator that ends when every dispatched camera has
-    sent its final report, or `timeout_s` seconds after the request's duration has passed.
-
-    Use it as an async context manager (`async with drvs.subscribe(...) as sub:`): leaving the block
-    closes it, and cameras still reporting for it are told to stop. `result` (a DetectionResult)
-    gathers the reports read so far; `camera_ids` names the cameras the request went to.
-
-    Unread reports never hold back anything else: the robot's listener hands each report over
-    without waiting. A continuous request keeps the newest `max_queued` unread reports and drops
-    the oldest beyond that, counting them in `dropped`; each camera's final report is always kept.
-    A single-shot request gets one report per camera, its final one, and keeps them all: its queue
-    is bounded by the number of cameras the server dispatched to (a second report from the same
-    camera is dropped and counted).
-    """
-
-    def __init__(
-        self, client: DrvsClient, request: DetectionRequest, timeout_s: float, max_queued: int = MAX_QUEUED_REPORTS
-    ) -> None:
-        self._client = client
-        self.request = request
-        self.request_id = request.request_id
-        self.camera_ids: tuple[str, ...] = ()
-        # A deque and one waiter future, not an asyncio.Queue with wait_for: at 30 requests a
-        # second per robot, a task per report was a visible share of the robot's CPU.
-        self._pending: collections.deque[DetectionReport] = collections.deque()
-        self._max_queued = max_queued
-        self._wakeup: asyncio.Future[None] | None = None
-        self._timer: asyncio.TimerHandle | None = None
-        self._expired = False
-        self._timeout_s = timeout_s
-        self.closed = False
-        self.result = DetectionResult(request.request_id, ())
-        self._finals: set[str] = set()  # cameras whose final report arrived
-        #: camera id -> when (loop time, seconds) its latest report arrived: a continuous request's
-        #: camera that falls silent is a camera that stopped looking.
-        self.last_report_at: dict[str, float] = {}
-
-    @property
-    def dropped(self) -> int:
-        """Reports dropped unread: the oldest of a continuous request's beyond `max_queued`, and
-        any second report of a camera that had already sent its final one."""
-        return self.result.dropped
-
-    def _dispatched(self, reply: detection_pb2.DetectionReply) -> None:
-        self.camera_ids = tuple(reply.camera_ids)
-        self.result.camera_ids = self.camera_ids
-        self.result.skipped = {m.camera_id: CameraError(m.code, m.message, m.camera_id) for m in reply.missing_cameras}
-        self.result.uncovered = [polygon_from_pb(p, "uncovered") for p in reply.uncovered]
-        self.result.coverage_uncertain_s = reply.coverage_uncertain_s
-        loop = asyncio.get_running_loop()
-        self._timer = loop.call_later(self.request.continuous.duration_s + self._timeout_s, self._expire)
-
-    def _expire(self) -> None:
-        self._expired = True
-        self._wake()
-
-    def _stream_ended(self, cameras: set[str]) -> None:
-        """The report stream of `cameras` ended: those this request went to that have not sent
-        their final report are interrupted (a camera that reconnects presents its key again and
-        reports on)."""
-        for camera_id in cameras:
-            if camera_id in self.camera_ids and camera_id not in self._finals:
-                self.result.interrupted.add(camera_id)
-
-    @property
-    def interrupted(self) -> set[str]:
-        """Dispatched cameras whose report stream ended before their final report, and that have not
-        reported since: they stopped looking (crashed, or cut off)."""
-        return self.result.interrupted
-
-    def _deliver(self, report: DetectionReport) -> bool:
-        """Queue a report without waiting (one camera's stream carries the reports of every request
-        to this robot: waiting here would hold all of them back). False once the subscription is
-        closed."""
-        if self.closed:
-            return False
-        if report.camera_id in self._finals:
-            self.result.dropped += 1  # the camera already finished: nothing more is due from it
-            return True
-        self.last_report_at[report.camera_id] = asyncio.get_running_loop().time()
-        self.result.interrupted.discard(report.camera_id)
-        if report.final:
-            self._finals.add(report.camera_id)
-        elif len(self._pending) >= self._max_queued:
-            self._drop_oldest()
-        self._pending.append(report)
-        self._wake()
-        return True
-
-    def _drop_oldest(self) -> None:
-        """Drop the oldest unread report that is not a final one (finals, one a camera, are kept)."""
-        for i, old in enumerate(self._pending):
-            if not old.final:
-                del self._pending[i]
-                self.result.dropped += 1
-                return
-
-    async def _next(self) -> DetectionReport | None:
-        while not self._pending:
-            if self._expired or self.closed:
-                return None
-            self._wakeup = asyncio.get_running_loop().create_future()
-            await self._wakeup
-        return self._pending.popleft()
-
-    def __aiter__(self) -> AsyncIterator[DetectionReport]:
-        return self._iterate()
-
-    async def _iterate(self) -> AsyncIterator[DetectionReport]:
-        try:
-            while not self.closed and self.result.unfinished_cameras:
-                report = await self._next()
-                if report is None:
-                    break
-                if report.camera_id not in self.camera_ids:
-                    self._client.reports_rejected += 1
-                    log.warning(
-                        "request %s: report from undispatched camera %s ignored",
-                        self.request_id,
-                        report.camera_id,
-                    )
-                    continue
-                self.result.reports.append(report)
-                yield report
-        finally:
-            self.close()
-
-    async def collect(self) -> DetectionResult:
-        """Read every report to the end (see the class) and return the result."""
-        async for _ in self:
-            pass
-        return self.result
-
-    def close(self) -> None:
-        """Stop listening: cameras still streaming for this request are told to stop, and the
-        server frees the request's place among the robot's running continuous requests."""
-        if not self.closed:
-            self.closed = True
-            if self.request.continuous.duration_s > 0 and not self._expired and self.result.unfinished_cameras:
-                self._client._cancel_at_server(self.request_id)
-            if self._timer is not None:
-                self._timer.cancel()
-            self._wake()
-            self._client._subscriptions.pop(self.request_id, None)
-
-
-class _Opening(Generic[T]):
-    """Something opened by awaiting it (`x = await opening`) or by entering it as an async context
-    manager (`async with opening as x:`), which closes it on leaving the block."""
-
-    def __init__(self) -> None:
-        self._opened: T | None = None
-
-    async def _open(self) -> T:
-        raise NotImplementedError
-
-    async def _close(self, opened: T) -> None:
-        raise NotImplementedError
-
-    async def _opening(self) -> T:
-        self._opened = await self._open()
-        return self._opened
-
-    def __await__(self) -> Generator[Any, None, T]:
-        return self._opening().__await__()
-
-    async def __aenter__(self) -> T:
-        return await self._opening()
-
-    async def __aexit__(
-        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        if self._opened is not None:
-            await self._close(self._opened)
-
-
-_Sent = TypeVar("_Sent", bound=_Delivery)
-
-
-class _Sending(_Opening[_Sent]):
-    """A request opened by sending it (`send`), closed by closing what it opened."""
-
-    def __init__(self, send: Callable[[], Awaitable[_Sent]]) -> None:
-        super().__init__()
-        self._send = send
-
-    async def _open(self) -> _Sent:
-        return await self._send()
-
-    async def _close(self, opened: _Sent) -> None:
-        opened.close()
-
-
-class Subscribing(_Sending[Subscription]):
-    """What DrvsClient.subscribe returns: `await` it for the Subscription, or use it as an async
-    context manager (`async with drvs.subscribe(...) as sub:`), which closes the subscription on
-    leaving the block. The request is sent when it is awaited or entered, not before."""
-
-
-class Connecting(_Opening["DrvsClient"]):
-    """What DrvsClient.connect returns: `await` it for a started client whose server answered, or
-    use it as an async context manager (`async with DrvsClient.connect(...) as drvs:`), which closes
-    the client on leaving the block. A server that does not answer raises Unavailable naming it."""
-
-    def __init__(self, client: DrvsClient, connect_timeout_s: float) -> None:
-        super().__init__()
-        self.client = client
-        self._timeout_s = connect_timeout_s
-
-    async def _open(self) -> DrvsClient:
-        try:
-            await self.client.start()
-            await self.client.check_server(self._timeout_s)
-        except BaseException:
-            await self.client.close()
-            raise
-        return self.client
-
-    async def _close(self, opened: DrvsClient) -> None:
-        await opened.close()
-
-
-class Track(_Delivery):
-    """The snapshots of one fused continuous request (DrvsClient.track), as an async iterator that
-    ends after the final snapshot (`snapshot.final`).
-
-    The server fuses what every camera reports into world objects (`drvs.model.WorldObject`: one
-    per physical object, with a track id that stays the same from snapshot to snapshot) and sends
-    one `drvs.model.Snapshot` per period on the robot's own request stream: no listener is needed.
-
-    Unread snapshots never hold anything back: the stream's reader hands each one over without
-    waiting. The newest `max_queued` are kept and older ones dropped and counted in `dropped`; the
-    final snapshot is always kept. Leaving `async with` (or breaking out of `async for`) closes the
-    track, and the server stops it and its cameras.
-
-    Errors come out of the iteration: Unavailable when the request stream ends before the final
-    snapshot (the server restarted, the network broke; the track is over: call track() again for a
-    new one) and the client knows one server by its address; a client given several (servers
-    sharing one registry), or a DNS name, sends the track again through the next that answers, for
-    what remains of it, and the iteration goes on (`resumes`, `gaps_s`; track ids start anew). DeadlineExceeded when no
-    final snapshot came within `duration_s` plus the fusion deadline plus `timeout_s` seconds of
-    the server's reply.
-
-    - `request_id`: the request; `camera_ids`: the cameras the server dispatched it to;
-    - `missing_cameras`: CameraErrors for the cameras that see the region but were not asked (the
-      server's reply; each snapshot names the cameras missing from it too);
-    - `uncovered`: parts of the region (shapely Polygons, metres) that no camera asked sees (each
-      snapshot carries them too, `Snapshot.uncovered`);
-    - `received`: snapshots that arrived; `dropped`: those dropped unread; `last`: the newest read;
-    - `resumes`: times it was sent again through another server; `gaps_s`: for each, the seconds
-      the robot went without a snapshot (the last before the stream ended to the first after).
-    """
-
-    def __init__(
-        self,
-        client: DrvsClient,
-        request: DetectionRequest,
-        timeout_s: float,
-        max_queued: int,
-        message: detection_pb2.DetectionRequest | None = None,
-        rpc_timeout_s: float = DEFAULT_RPC_TIMEOUT_S,
-    ) -> None:
-        self._client = client
-        self.request = request
-        self.request_id = request.request_id
-        #: The request as first sent, whole (a resumed track sends it again, for what remains).
-        self._message = message
-        self._rpc_timeout_s = rpc_timeout_s
-        #: Times the track was resumed through another server, and each gap the robot saw: seconds
-        #: from the last snapshot before the stream ended to the first after it.
-        self.resumes = 0
-        self.gaps_s: list[float] = []
-        self._broke_at: float | None = None
-        self._last_snapshot_at: float | None = None
-        self._ends_at = 0.0
-        self._resuming: asyncio.Task[None] | None = None
-        self.camera_ids: tuple[str, ...] = ()
-        self.missing_cameras: tuple[CameraError, ...] = ()
-        self.uncovered: list[Polygon] = []
-        self.received = 0
-        self.dropped = 0
-        self.last: Snapshot | None = None
-        self.closed = False
-        #: The final snapshot has arrived (it may still be unread).
-        self.finished = False
-        self._timeout_s = timeout_s
-        self._max_queued = max_queued
-        self._pending: collections.deque[Snapshot] = collections.deque()
-        self._wakeup: asyncio.Future[None] | None = None
-        self._failure: DrvsError | None = None
-        self._timer: asyncio.TimerHandle | None = None
-
-    def _dispatched(self, reply: detection_pb2.DetectionReply) -> None:
-        self.camera_ids = tuple(reply.camera_ids)
-        self.missing_cameras = tuple(CameraError(m.code, m.message, m.camera_id) for m in reply.missing_cameras)
-        self.uncovered = [polygon_from_pb(p, "uncovered") for p in reply.uncovered]
-        request = self.request
-        assert request.fusion is not None
-        # The final snapshot is due at the end of the duration, the server's grace for late
-        # reports (its deadline, or one period) after it at most.
-        grace = request.fusion.deadline_s or 1.0 / request.continuous.rate_hz
-        if not self._ends_at:
-            self._ends_at = asyncio.get_running_loop().time() + request.continuous.duration_s
-        remaining = max(0.0, self._ends_at - asyncio.get_running_loop().time())
-        limit = remaining + grace + self._timeout_s
-        if self._timer is not None:
-            self._timer.cancel()
-        if not self.finished and not self.closed:
-            self._timer = asyncio.get_running_loop().call_later(limit, self._expire, limit)
-
-    def _expire(self, limit: float) -> None:
-        self._timer = None
-        if not self.finished and self._failure is None:
-            self._failure = DeadlineExceeded(
-                f"request {self.request_id}: no final snapshot within {limit:g} s of the server's reply"
-            )
-            self._wake()
-
-    def _take(self, item: detection_pb2.DetectionReply | DrvsError) -> None:
-        """The request stream's reader hands over a reply with a snapshot, or the error that ended
-        the stream. Never waits."""
-        if self.closed or self.finished:
-            return
-        if isinstance(item, DrvsError):
-            if self._client.fails_over and self._message is not None and self._resuming is None:
-                # Several servers share the registry: ask another for what remains of the track.
-                self._broke_at = self._last_snapshot_at or asyncio.get_running_loop().time()
-                self._resuming = asyncio.get_running_loop().create_task(self._resume(item))
-                return
-            if self._failure is None:
-                self._failure = Unavailable(
-                    f"request {self.request_id}: the request stream ended before the final snapshot ({item})"
-                )
-            self._wake()
-            return
-        now = asyncio.get_running_loop().time()
-        if self._broke_at is not None:
-            self.gaps_s.append(now - self._broke_at)
-            self._broke_at = None
-        self._last_snapshot_at = now
-        snapshot = snapshot_from_pb(item.snapshot, self.request_id, self.uncovered)
-        self.received += 1
-        if snapshot.final:
-            self.finished = True
-            self._client._release(self.request_id)
-            if self._timer is not None:
-                self._timer.cancel()
-                self._timer = None
-        elif len(self._pending) >= self._max_queued:
-            self._pending.popleft()  # never the final one: nothing comes after it
-            self.dropped += 1
-        self._pending.append(snapshot)
-        self._wake()
-
-    async def _resume(self, why: DrvsError) -> None:
-        """Send the track again, through the client's channel (which moves on to a server that
-        answers), for what remains of its duration; the robot's iteration goes on. Track ids start
-        anew (another server's tracker). Gives up, as a single-server track does (Unavailable),
-        when less than a period remains or no server answers before the track would have ended."""
-        assert self._message is not None
-        loop = asyncio.get_running_loop()
-        period = 1.0 / self.request.continuous.rate_hz
-        backoff = Backoff(0.05, 1.0)
-        try:
-            while not (self.closed or self.finished):
-                remaining = self._ends_at - loop.time()
-                if remaining < period:
-                    raise Unavailable(f"request {self.request_id}: no server took it back before it would have ended")
-                message = detection_pb2.DetectionRequest()
-                message.CopyFrom(self._message)
-                message.continuous.duration_s = remaining
-                requests = self._client._requests
-                assert requests is not None
-                try:
-                    reply = await requests.request(message, self._rpc_timeout_s, self._take)
-                except Unavailable as exc:
-                    log.info(
-                        "request %s: no server answers yet (%s); again in %.2f s", self.request_id, exc, backoff.current
-                    )
-                    await backoff.sleep()
-                    continue
-                self.resumes += 1
-                log.info(
-                    "request %s: resumed through another server for the remaining %.1f s (%s)",
-                    self.request_id,
-                    remaining,
-                    why,
-                )
-                self._dispatched(reply)
-                return
-        except DrvsError as exc:
-            if self._failure is None:
-                self._failure = Unavailable(
-                    f"request {self.request_id}: the request stream ended before the final snapshot ({why}); "
-                    f"resuming failed: {exc}"
-                )
-            self._wake()
-        finally:
-            self._resuming = None
-
-    def __aiter__(self) -> AsyncIterator[Snapshot]:
-        return self._iterate()
-
-    async def _iterate(self) -> AsyncIterator[Snapshot]:
-        try:
-            while True:
-                if self._pending:
-                    snapshot = self._pending.popleft()
-                    self.last = snapshot
-                    yield snapshot
-                    if snapshot.final:
-                        return
-                    continue
-                if self._failure is not None:
-                    raise self._failure
-                if self.closed or self.finished:
-                    return
-                self._wakeup = asyncio.get_running_loop().create_future()
-                await self._wakeup
-        finally:
-            self.close()
-
-    def close(self) -> None:
-        """Stop the track: the server is told to stop it (and its cameras) unless it is over."""
-        if self.closed:
-            return
-        self.closed = True
-        if self._resuming is not None:
-            self._resuming.cancel()
-        self._client._release(self.request_id)
-        if not self.finished and not isinstance(self._failure, Unavailable):
-            self._client._cancel_at_server(self.request_id)
-        if self._timer is not None:
-            self._timer.cancel()
-            self._timer = None
-        self._wake()
-        self._client._tracks.pop(self.request_id, None)
-
-
-class Tracking(_Sending[Track]):
-    """What DrvsClient.track returns. Three ways to use it:
-
-        async for snapshot in drvs.track(YELLOW, region, rate_hz=10, duration_s=5):
-            ...                                 # sent on the first iteration; break stops it
-        async with drvs.track(...) as track:    # sent on entering; leaving stops it
-            async for snapshot in track: ...
-        track = await drvs.track(...)           # sent now; call track.close() when done
-
-    The request is sent when it is iterated, entered or awaited, not before; a server that refuses
-    it raises the DrvsError it stands for then (InvalidArgument, ResourceExhausted ...), and one
-    that cannot be reached Unavailable, after the attempts `retry` allows.
-    """
-
-    def __aiter__(self) -> AsyncIterator[Snapshot]:
-        return self._iterate()
-
-    async def _iterate(self) -> AsyncIterator[Snapshot]:
-        track = self._opened if self._opened is not None else await self._opening()
-        try:
-            async for snapshot in track:
-                yield snapshot
-        finally:
-            track.close()
-
-
-class DrvsClient:
+from drvs.robot.regions import REGION_CACHE_SIZE, RegionLike, as_region
+from drvs.robot.results import CameraInfo, DetectionResult, camera_info_from_pb
+from drvs.robot.retry import RetryPolicy
+from drvs.robot.subscription import Subscribing, Subscription, open_subscription
+from drvs.robot.throttle import DEFAULT_K
+from drvs.robot.track import Track, Tracking, open_track
+from drvs.security import Security
+from drvs.v1 import detection_pb2, registry_pb2
+
+# What robot code, tools and tests import from here (the parts now live in their own modules).
+__all__ = [
+    "DEFAULT_CONNECT_TIMEOUT_S",
+    "DEFAULT_RPC_TIMEOUT_S",
+    "DEFAULT_TIMEOUT_S",
+    "DEFAULT_TRACK_RATE_HZ",
+    "MAX_BACKOFF_S",
+    "MAX_QUEUED_REPORTS",
+    "MAX_QUEUED_SNAPSHOTS",
+    "REGION_CACHE_SIZE",
+    "CameraInfo",
+    "Connecting",
+    "DetectionResult",
+    "DrvsClient",
+    "RegionLike",
+    "RetryPolicy",
+    "Subscribing",
+    "Subscription",
+    "Track",
+    "Tracking",
+    "as_region",
+]
+
+
+class DrvsClient(ClientConnection):
     """A robot's connection to a DRVS server: ask where objects are, get Python objects back.
 
     Connect with `DrvsClient.connect(server, ...)`, which checks that the server answers:
@@ -848,9 +105,9 @@ class DrvsClient:
     - `advertise`: HOST:PORT cameras dial to deliver reports (behind NAT, a relay ...); default:
       the bound listener's address;
 
-    The report listener is only for per-camera requests (subscribe, detect without fuse): it starts
+    The report listener is only for per-camera requests (subscribe, detect): it starts
     with the first of them (at start() when `listen` or `advertise` is given, or on
-    `await start_listener()`). A robot whose requests are all fused (detect(fuse=True), track)
+    `await start_listener()`). A robot whose requests are all fused (snapshot, track)
     dials out only and opens no port, so it works behind NAT.
     - `retry`: a RetryPolicy for calls the server could not take (default: no retry);
     - `throttle_k`: client-side throttling (drvs.robot.throttle): while the server refuses requests
@@ -873,67 +130,6 @@ class DrvsClient:
     Counters: `reports_received` (reports handed to subscriptions) and `reports_rejected`
     (reports refused: not from a camera the request went to, or not on its stream).
     """
-
-    def __init__(
-        self,
-        server: str,
-        *,
-        robot_id: str = "",
-        listen: str | None = None,
-        advertise: str | None = None,
-        retry: RetryPolicy | None = None,
-        security: Security | None = None,
-        frame: str = DEFAULT_FRAME,
-        throttle_k: float = DEFAULT_K,
-    ) -> None:
-        self.security = security or Security()
-        #: The server, or several sharing one registry ("a:50051,b:50051"): one gRPC channel over
-        #: them, which moves on from one that fails; with several, tracks resume through another.
-        self.servers = parse_address_list(server, "server")
-        self.server = server
-        #: Several servers given, or a DNS name (which may stand for several): a track whose
-        #: server's stream ends is sent again through the channel, which moves on to one that answers.
-        self.fails_over = len(self.servers) > 1 or not _is_ip_literal(self.servers[0])
-        self.robot_id = robot_id
-        #: The floor plan this robot's regions are in ("building-a/floor-2"; "map" by default): its
-        #: requests go only to cameras of this frame. Set it when the robot changes floors.
-        self.frame = check_frame(frame)
-        #: HOST:PORT the listener binds; "" until start() picks the default.
-        self.listen = listen or ""
-        if listen:
-            parse_address(listen, "listen", allow_port_zero=True)
-        self._advertise = advertise
-        if advertise:
-            parse_address(advertise, "advertise")
-        if retry is not None and not isinstance(retry, RetryPolicy):
-            raise InvalidArgument(f"retry: expected a RetryPolicy, got {type(retry).__name__}")
-        self.retry = retry or RetryPolicy()
-        #: The port the listener bound (0 until started).
-        self.port = 0
-        self._channel: aio.Channel | None = None
-        self._listener: aio.Server | None = None
-        self._listener_lock = asyncio.Lock()
-        self._subscriptions: dict[str, Subscription] = {}
-        self._tracks: dict[str, Track] = {}
-        self.reports_received = 0
-        #: Reports refused: not from a camera the request was dispatched to, or not on its stream.
-        self.reports_rejected = 0
-        # Proves reports (drvs.report_auth): the server derives each camera's key from it.
-        self._report_secret = new_secret()
-        # camera id -> the report streams that presented its key: the only ones its reports count on
-        # (its own, and the server's when it answered for the camera).
-        self._camera_streams: dict[str, set[object]] = {}
-        self._closing = False
-        self._open_at_close: list[str] = []
-        self._report_streams: set[asyncio.Task[Any]] = set()
-        # Request ids: a random prefix per client (a restarted robot never reuses a live id) and a
-        # counter; short, because the id travels in the request, the reply and every report.
-        self._id_prefix = secrets.token_urlsafe(3)  # 4 characters, 24 random bits
-        self._id_counter = itertools.count(1)
-        self._requests: RequestStream | None = None
-        self._regions = _Regions()
-        #: Holds back requests while the server refuses them for overload (drvs.robot.throttle).
-        self.throttle = AdaptiveThrottle(throttle_k)
 
     @classmethod
     def connect(
@@ -958,7 +154,7 @@ class DrvsClient:
         Unavailable naming its address (a refused credential: Unauthenticated). The other
         arguments are DrvsClient's; bad ones raise InvalidArgument at once.
         """
-        timeout_s = _seconds(connect_timeout_s, "connect_timeout_s", 3600.0)
+        timeout_s = seconds(connect_timeout_s, "connect_timeout_s", 3600.0)
         client = cls(
             server,
             robot_id=robot_id,
@@ -970,177 +166,6 @@ class DrvsClient:
             throttle_k=throttle_k,
         )
         return Connecting(client, timeout_s)
-
-    @property
-    def callback_address(self) -> str:
-        """HOST:PORT cameras dial to deliver this robot's reports (`advertise`, or the listener's);
-        "" while no listener runs (see `listening`)."""
-        if self._advertise:
-            return self._advertise
-        if self._listener is None:
-            return ""
-        return dialable_address(self.listen, self.port, self.servers)
-
-    @property
-    def listening(self) -> bool:
-        """True once the report listener runs (a per-camera request, `listen`/`advertise`, or
-        start_listener()); a robot whose requests are all fused never opens it."""
-        return self._listener is not None
-
-    async def start(self) -> None:
-        """Open the channel to the server (no check of the server: DrvsClient.connect does that),
-        and the report listener when `listen` or `advertise` was given (otherwise it starts with the
-        first per-camera request)."""
-        self._channel = open_channel(self.security, self.servers)  # TLS: a channel per server
-        self._detect = detection_pb2_grpc.DetectObjectBoundaryStub(self._channel)
-        self._requests = RequestStream(self._detect, f"server {self.server}", metadata=self.security.metadata())
-        self._registry = registry_pb2_grpc.RegisterVisionServiceStub(self._channel)
-        if self.listen or self._advertise:
-            await self.start_listener()
-
-    async def start_listener(self) -> str:
-        """Start the report listener cameras dial with the reports of per-camera requests, if it
-        is not running, and return `callback_address`. Per-camera requests start it themselves."""
-        self._require_started()
-        async with self._listener_lock:
-            if self._listener is None:
-                if not self.listen:
-                    # Resolving the servers' names may block: not on the event loop. Every server
-                    # given is one way to the same cameras: the first with a route picks the interface.
-                    self.listen = format_address(await asyncio.to_thread(local_ip_towards, self.servers), 0)
-                listener = _grpc.new_server()
-                detection_pb2_grpc.add_CallbackCoordinatesServicer_to_server(_Listener(self), listener)
-                self.port = self.security.bind(listener, self.listen)
-                await listener.start()
-                self._listener = listener
-                log.debug("robot %r listening for reports on %s", self.robot_id, self.callback_address)
-        return self.callback_address
-
-    async def check_server(self, timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S) -> None:
-        """Ask the server's gRPC health service whether it serves, each attempt waiting at most
-        `timeout_s` seconds, retried as `retry` allows. Raises Unavailable naming the server when it
-        is not there, not serving, or silent; other refusals (Unauthenticated ...) as they come."""
-        self._require_started()
-        await check_role(self.security, self.servers, SERVER, "server")  # under TLS: a server's certificate
-        from grpc_health.v1 import health_pb2, health_pb2_grpc
-
-        assert self._channel is not None
-        stub = health_pb2_grpc.HealthStub(self._channel)
-        metadata = self.security.metadata() or None
-
-        async def check() -> None:
-            try:
-                reply = await stub.Check(health_pb2.HealthCheckRequest(), timeout=timeout_s, metadata=metadata)
-            except grpc.RpcError as exc:
-                code = exc.code() if hasattr(exc, "code") else grpc.StatusCode.UNKNOWN
-                if code == grpc.StatusCode.UNIMPLEMENTED:
-                    return  # a server without a health service: it answered, so it is there
-                if code in (grpc.StatusCode.UNAVAILABLE, grpc.StatusCode.DEADLINE_EXCEEDED):
-                    details = exc.details() if hasattr(exc, "details") else ""
-                    raise Unavailable(
-                        f"server {self.server}: not reachable within {timeout_s:g} s ({code.name}: {details})"
-                    ) from None
-                raise _grpc.from_rpc_error(exc, f"server {self.server}") from None
-            if reply.status != health_pb2.HealthCheckResponse.SERVING:
-                status = health_pb2.HealthCheckResponse.ServingStatus.Name(reply.status)
-                raise Unavailable(f"server {self.server}: its health service says {status}")
-
-        await self._retrying("the connection", check)
-
-    async def _retrying(self, what: str, call: Callable[[], Awaitable[T]]) -> T:
-        """`call()`, tried again after each Unavailable as `retry` allows."""
-        waits = self.retry.backoffs()
-        while True:
-            try:
-                return await call()
-            except Unavailable:
-                wait = next(waits, None)
-                if wait is None:
-                    raise
-                log.info("server %s unavailable; retrying %s in %.1f s", self.server, what, wait)
-                await asyncio.sleep(wait)
-
-    async def _asking(self, what: str, call: Callable[[], Awaitable[T]]) -> T:
-        """A request to the server, through the client's throttle: refused here at once while the
-        server refuses this robot for overload (see drvs.robot.throttle), else sent as `_retrying`
-        sends it; the server's answer is counted."""
-        self.throttle.check(what)
-        try:
-            reply = await self._retrying(what, call)
-        except DrvsError as exc:
-            # Refused for overload (the server's door gives a retry hint; a robot over its own
-            # budget gets none) or not answered in time: not accepted. Anything else says nothing
-            # of the server's load.
-            overload = isinstance(exc, DeadlineExceeded) or (
-                isinstance(exc, ResourceExhausted) and exc.retry_after_s > 0
-            )
-            if not overload:
-                self.throttle.accepted()
-            raise
-        self.throttle.accepted()
-        return reply
-
-    def _receive(self, peer: str) -> _ReportStream:
-        return _ReportStream(self, peer)
-
-    def _accepts(self, message: detection_pb2.DetectionReport, stream: object) -> bool:
-        """A camera's reports count only on a stream that presented its key."""
-        camera_id = message.camera_id
-        if message.report_key:
-            if not key_matches(self._report_secret, camera_id, message.report_key):
-                return False
-            self._camera_streams.setdefault(camera_id, set()).add(stream)
-            return True
-        return stream in self._camera_streams.get(camera_id, ())
-
-    def new_request_id(self) -> str:
-        """A request id unique to this client (and, by its random prefix, across restarts)."""
-        return f"{self._id_prefix}{next(self._id_counter):x}"
-
-    def _cancel_at_server(self, request_id: str) -> None:
-        if self._requests is not None:
-            self._requests.cancel_soon(request_id)
-
-    def _release(self, request_id: str) -> None:
-        if self._requests is not None:
-            self._requests.release(request_id)
-
-    async def close(self) -> None:
-        """Close every open subscription (cameras are told to stop), the listener and the channel.
-        Closing again does nothing."""
-        self._closing = True
-        # Requests still open: each report stream tells its camera to stop them before it ends,
-        # so cameras do not go on dialling a robot that has gone.
-        self._open_at_close = list(self._subscriptions)
-        for sub in list(self._subscriptions.values()):
-            sub.close()
-        for track in list(self._tracks.values()):
-            track.close()
-        for task in list(self._report_streams):
-            task.cancel()
-        if self._requests is not None:
-            requests, self._requests = self._requests, None
-            await requests.flush_cancels()
-            await requests.close()
-        if self._listener is not None:
-            await self._listener.stop(0.5)
-            self._listener = None
-        if self._channel is not None:
-            await self._channel.close()
-            self._channel = None
-
-    async def __aenter__(self) -> DrvsClient:
-        await self.start()
-        return self
-
-    async def __aexit__(
-        self, et: type[BaseException] | None, exc: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        await self.close()
-
-    def _require_started(self) -> None:
-        if self._channel is None:
-            raise DrvsError("DrvsClient is not started; use `async with DrvsClient.connect(...)` or await start()")
 
     def subscribe(
         self,
@@ -1181,15 +206,14 @@ class DrvsClient:
         the attempts `retry` allows. Sending starts the report listener if it is not running.
         """
         self._require_started()
-        _check_timeout(timeout_s)
-        _seconds(rpc_timeout_s, "rpc_timeout_s", 3600.0)
-        if isinstance(max_queued, bool) or not isinstance(max_queued, int) or max_queued < 1:
-            raise InvalidArgument(f"max_queued: {max_queued!r} must be a whole number of reports >= 1")
+        check_timeout(timeout_s)
+        seconds(rpc_timeout_s, "rpc_timeout_s", 3600.0)
+        check_queue(max_queued, "reports")
         request, message = self._build(
             filter_def, region, ContinuousMode(float(rate_hz), float(duration_s)), outlines, request_id, None
         )
-        message.report_secret = self._report_secret
-        return Subscribing(lambda: self._send(request, message, timeout_s, rpc_timeout_s, max_queued))
+        message.report_secret = self._report_keys.secret
+        return Subscribing(lambda: open_subscription(self, request, message, timeout_s, rpc_timeout_s, max_queued))
 
     def _build(
         self,
@@ -1218,36 +242,6 @@ class DrvsClient:
         checked = request if request.callback_address or fusion else replace(request, fusion=FusionOptions())
         checked.validate(unknown_types=True)
         return request, request_to_pb(request, region=region_pb)
-
-    async def _send(
-        self,
-        request: DetectionRequest,
-        message: detection_pb2.DetectionRequest,
-        timeout_s: float,
-        rpc_timeout_s: float,
-        max_queued: int,
-    ) -> Subscription:
-        if not request.callback_address:
-            callback = await self.start_listener()
-            parse_address(callback, "callback_address")
-            request = replace(request, callback_address=callback)
-            message.callback_address = callback
-        sub = Subscription(self, request, timeout_s, max_queued)
-        if sub.request_id in self._subscriptions or sub.request_id in self._tracks:
-            raise InvalidArgument(f"request_id: {sub.request_id!r} is already in use")
-        # Registered before sending: a camera may report before the server's reply arrives.
-        self._subscriptions[sub.request_id] = sub
-        requests = self._requests
-        assert requests is not None
-        try:
-            reply = await self._asking(
-                f"request {message.request_id}", lambda: requests.request(message, rpc_timeout_s)
-            )
-        except BaseException:
-            sub.close()
-            raise
-        sub._dispatched(reply)
-        return sub
 
     @overload
     async def detect(
@@ -1308,28 +302,21 @@ class DrvsClient:
         beyond `duration_s` have passed; the arguments are subscribe's. Camera failures do not
         raise: they are in `result.camera_errors` (or call `result.raise_for_errors()`).
 
-        `fuse=True`: the server gathers the cameras' reports itself and answers with one
-        `drvs.model.Snapshot` (`time, objects, missing_cameras = snapshot`): each physical object
-        once, as a `WorldObject`, however many cameras saw it. No listener is used. A single shot
-        only (rate_hz and duration_s 0; `track()` gives snapshots over time).
-
-        - `deadline_s`: the server answers with what it has this many seconds after it sent the
-          request to the cameras, naming the cameras that did not report in time in
-          `snapshot.missing_cameras` (DEADLINE_EXCEEDED); None or 0: the server's default (2 s);
-          at most 30;
-        - `timeout_s`: how long beyond `deadline_s` to wait for the server's answer; past it
-          DeadlineExceeded;
-        - `request_id`: an id of your own (default: a fresh one).
-
-        A server that refuses the request raises its DrvsError (InvalidArgument ...).
+        `fuse=True` is the deprecated spelling of `snapshot()` (it warns; removed in the next
+        release): a fused single shot, answered with one Snapshot.
         """
         if fuse:
+            warnings.warn(
+                "detect(fuse=True) is deprecated: use snapshot(), which returns the Snapshot", DeprecationWarning, 2
+            )
             if rate_hz or duration_s:
                 raise InvalidArgument(
                     "fuse: detect(fuse=True) is a single shot (rate_hz and duration_s 0); "
                     "use track() for snapshots over time"
                 )
-            return await self._detect_fused(filter_def, region, timeout_s, outlines, deadline_s, request_id)
+            return await self.snapshot(
+                filter_def, region, timeout_s=timeout_s, outlines=outlines, deadline_s=deadline_s, request_id=request_id
+            )
         if deadline_s is not None:
             raise InvalidArgument("deadline_s: only for fused requests (fuse=True)")
         async with self.subscribe(
@@ -1343,21 +330,37 @@ class DrvsClient:
         ) as sub:
             return await sub.collect()
 
-    async def _detect_fused(
+    async def snapshot(
         self,
         filter_def: str,
         region: RegionLike,
-        timeout_s: float,
-        outlines: bool,
-        deadline_s: float | None,
-        request_id: str | None,
+        *,
+        timeout_s: float = DEFAULT_TIMEOUT_S,
+        outlines: bool = True,
+        deadline_s: float | None = None,
+        request_id: str | None = None,
     ) -> Snapshot:
+        """A fused single shot: the server gathers the cameras' reports itself and answers with one
+        `drvs.model.Snapshot` (`time, objects, missing_cameras = snapshot`): each physical object
+        once, as a `WorldObject`, however many cameras saw it. No listener is used (`track()` gives
+        snapshots over time).
+
+        - `filter_def`, `region`, `outlines`: what and where, as for subscribe;
+        - `deadline_s`: the server answers with what it has this many seconds after it sent the
+          request to the cameras, naming the cameras that did not report in time in
+          `snapshot.missing_cameras` (DEADLINE_EXCEEDED); None or 0: the server's default (2 s);
+          at most 30;
+        - `timeout_s`: how long beyond `deadline_s` to wait for the server's answer; past it
+          DeadlineExceeded;
+        - `request_id`: an id of your own (default: a fresh one).
+
+        A server that refuses the request raises its DrvsError (InvalidArgument ...).
+        """
         self._require_started()
-        _check_timeout(timeout_s)
-        fusion = _fusion_options(deadline_s, None)
+        check_timeout(timeout_s)
+        fusion = fusion_options(deadline_s, None)
         _, message = self._build(filter_def, region, ContinuousMode(), outlines, request_id, fusion)
-        if message.request_id in self._subscriptions or message.request_id in self._tracks:
-            raise InvalidArgument(f"request_id: {message.request_id!r} is already in use")
+        self._check_unused(message.request_id)
         requests = self._requests
         assert requests is not None
         wait = fusion.single_shot_deadline_s + timeout_s
@@ -1413,51 +416,17 @@ class DrvsClient:
         Track. A bad argument raises InvalidArgument at once; nothing is sent before that.
         """
         self._require_started()
-        _check_timeout(timeout_s)
-        _seconds(rpc_timeout_s, "rpc_timeout_s", 3600.0)
-        if isinstance(max_queued, bool) or not isinstance(max_queued, int) or max_queued < 1:
-            raise InvalidArgument(f"max_queued: {max_queued!r} must be a whole number of snapshots >= 1")
+        check_timeout(timeout_s)
+        seconds(rpc_timeout_s, "rpc_timeout_s", 3600.0)
+        check_queue(max_queued, "snapshots")
         for name, value in (("rate_hz", rate_hz), ("duration_s", duration_s)):
             if isinstance(value, bool) or not isinstance(value, (int, float)) or not value > 0:
                 raise InvalidArgument(f"{name}: {value!r} must be a number > 0 (a track runs at a rate for a time)")
-        fusion = _fusion_options(deadline_s, drop_after_s)
+        fusion = fusion_options(deadline_s, drop_after_s)
         request, message = self._build(
             filter_def, region, ContinuousMode(float(rate_hz), float(duration_s)), outlines, request_id, fusion
         )
-        return Tracking(lambda: self._open_track(request, message, timeout_s, rpc_timeout_s, max_queued))
-
-    async def _open_track(
-        self,
-        request: DetectionRequest,
-        message: detection_pb2.DetectionRequest,
-        timeout_s: float,
-        rpc_timeout_s: float,
-        max_queued: int,
-    ) -> Track:
-        whole = detection_pb2.DetectionRequest()
-        whole.CopyFrom(message)  # the request stream leaves out what repeats: keep it whole to resend
-        track = Track(self, request, timeout_s, max_queued, whole, rpc_timeout_s)
-        if track.request_id in self._subscriptions or track.request_id in self._tracks:
-            raise InvalidArgument(f"request_id: {track.request_id!r} is already in use")
-        self._tracks[track.request_id] = track
-        requests = self._requests
-        assert requests is not None
-
-        async def attempt() -> detection_pb2.DetectionReply:
-            track._failure = None  # a stream that ended under an earlier attempt: that attempt's failure
-            return await requests.request(message, rpc_timeout_s, track._take)
-
-        try:
-            reply = await self._asking(f"request {message.request_id}", attempt)
-        except DeadlineExceeded:
-            track.close()  # the server may have taken it: tell it to stop
-            raise
-        except BaseException:
-            track.finished = True  # refused or never taken: nothing to stop at the server
-            track.close()
-            raise
-        track._dispatched(reply)
-        return track
+        return Tracking(lambda: open_track(self, request, message, timeout_s, rpc_timeout_s, max_queued))
 
     async def cameras(
         self,
@@ -1489,134 +458,7 @@ class DrvsClient:
 
         while True:  # the server answers a page at a time: follow next_page_token to the end
             reply = await self._retrying("listing cameras", page)
-            found.extend(
-                CameraInfo(
-                    camera_id=c.camera_id,
-                    address=c.address,
-                    field_of_view=polygon_from_pb(c.field_of_view, "field_of_view")
-                    if c.HasField("field_of_view")
-                    else Polygon(),
-                    detector_kinds=tuple(c.detector_kinds),
-                    lease_remaining_s=c.lease_remaining_s,
-                    mobile=c.mobile,
-                    pose=pose_from_pb(c.pose) if c.HasField("pose") else None,
-                    pose_age_s=c.pose_age_s,
-                    unroutable=c.unroutable,
-                    frame=c.frame or DEFAULT_FRAME,
-                )
-                for c in reply.cameras
-            )
+            found.extend(camera_info_from_pb(c) for c in reply.cameras)
             if not reply.next_page_token or reply.next_page_token == msg.page_token:
                 return found
             msg.page_token = reply.next_page_token
-
-
-class _ReportStream:
-    """One camera's report stream as the client sees it: which reports count, and where they go."""
-
-    def __init__(self, client: DrvsClient, peer: str) -> None:
-        self._client = client
-        self._peer = peer
-        self._warned = False
-        self._task = asyncio.current_task()
-        if self._task is not None:
-            client._report_streams.add(self._task)
-
-    def receive(self, message: detection_pb2.DetectionReport) -> detection_pb2.ReportControl | None:
-        """Hand one report to its subscription; a control message to send back when the camera
-        should stop sending this request's reports (unknown, closed, or not proven its)."""
-        client = self._client
-        sub = client._subscriptions.get(message.request_id)
-        if not client._accepts(message, self):
-            client.reports_rejected += 1
-            if not self._warned:  # once per stream: a hostile peer does not flood the log
-                self._warned = True
-                log.warning(
-                    "report for request %s in camera %r's name from %s rejected: no valid report key "
-                    "for this stream (not a camera the server dispatched to, or not its stream)",
-                    message.request_id,
-                    message.camera_id[:40],
-                    self._peer,
-                )
-            sub = None  # answered as an unknown request: the sender learns nothing more
-        if sub is None or not sub._deliver(report_from_pb(message, sub.request.filter_def)):
-            return detection_pb2.ReportControl(cancelled_request_ids=[message.request_id])
-        client.reports_received += 1
-        return None
-
-    @property
-    def closing(self) -> bool:
-        """The robot is closing (its stream tasks are cancelled on purpose)."""
-        return self._client._closing
-
-    def closing_control(self) -> detection_pb2.ReportControl | None:
-        """What to tell the camera when the robot closes: stop the requests still open."""
-        if not self._client._open_at_close:
-            return None
-        return detection_pb2.ReportControl(cancelled_request_ids=self._client._open_at_close)
-
-    def end(self) -> None:
-        """The stream ended: cameras that reported only on it have none now, and the requests they
-        had not finished are interrupted."""
-        client = self._client
-        if self._task is not None:
-            client._report_streams.discard(self._task)
-        cameras = set()
-        for camera_id, streams in list(client._camera_streams.items()):
-            if self in streams:
-                streams.discard(self)
-                if not streams:
-                    del client._camera_streams[camera_id]
-                    cameras.add(camera_id)
-        if cameras:
-            for sub in list(client._subscriptions.values()):
-                sub._stream_ended(cameras)
-
-
-class _Listener(detection_pb2_grpc.CallbackCoordinatesServicer):
-    """The robot's CallbackCoordinates service: reads each camera's stream and delegates to the client."""
-
-    def __init__(self, client: DrvsClient) -> None:
-        self._client = client
-
-    async def ReportDetections(
-        self,
-        request_iterator: AsyncIterator[detection_pb2.DetectionReport],
-        context: aio.ServicerContext[Any, Any],
-    ) -> None:
-        """One camera's stream of reports, for any of this robot's requests, for as long as it lasts.
-
-        A closing robot cancels each stream's task and ends the stream itself (the camera sees a
-        normal end) instead of leaving gRPC to cancel it.
-        """
-        stream = self._client._receive(context.peer())
-        refusal = (grpc.StatusCode.OK, "")
-        try:
-            async for message in request_iterator:
-                if why := oversized_id(message):  # before anything holds or echoes it
-                    refusal = (grpc.StatusCode.INVALID_ARGUMENT, why)
-                    break
-                control = stream.receive(message)
-                if control is not None and not await write_control(context, control):
-                    refusal = (grpc.StatusCode.RESOURCE_EXHAUSTED, NOT_READING)
-                    break
-        except asyncio.CancelledError:
-            if not stream.closing:
-                raise
-            control = stream.closing_control()
-            if control is not None:
-                with contextlib.suppress(Exception):
-                    await asyncio.wait_for(context.write(control), 0.5)
-        finally:
-            stream.end()
-        if refusal[1]:
-            await context.abort(*refusal)
-
-
-def _is_ip_literal(address: str) -> bool:
-    host = host_of(address).strip("[]")
-    try:
-        ipaddress.ip_address(host)
-    except ValueError:
-        return False
-    return True

@@ -6,7 +6,7 @@ the floor that is not the empty floor is one; and the ArUco ids of its own marke
 Everything else it learns from DRVS, or, in the baseline, by touching it.
 
 By default it plans from fused delivery (`delivery="fused"`): single shots with
-`detect(fuse=True)`, and while it drives `track()` snapshots of world objects along its way. A
+`snapshot()`, and while it drives `track()` snapshots of world objects along its way. A
 track that stands still is an obstacle on its map; one that moves is predicted from its velocity
 (drvs.sim.predict): the robot waits for it where it would cross its way, and ignores it once it
 has gone. `delivery="per-camera"` is the paper's: every camera's reports, unioned.
@@ -277,7 +277,7 @@ class SimRobot:
             ]
             try:
                 for track in tracks:
-                    for missing in track.missing_cameras:  # whom the server could not ask
+                    for missing in track.camera_errors.values():  # whom the server could not ask
                         self.lose(missing.camera_id, f"{missing.code} {missing.message}")
                 self.set_unseen("watch", [p for t in tracks for p in t.uncovered])
                 await asyncio.gather(*(self._follow(f, t) for f, t in zip(self.obstacle_filters, tracks, strict=True)))
@@ -365,7 +365,7 @@ class SimRobot:
 
     async def _fused_shot(self, filter_def: str, region: Polygon) -> Snapshot:
         assert self.drvs is not None
-        return await self.drvs.detect(filter_def, region, fuse=True, timeout_s=5.0)
+        return await self.drvs.snapshot(filter_def, region, timeout_s=5.0)
 
     async def look_fused(self, filters: Sequence[str], region: Polygon) -> list[Detection]:
         """One fused single shot per filter: each physical object once, whatever camera saw it."""
