@@ -188,7 +188,7 @@ async def test_a_recording_drvs_server_made_is_summarised_with_what_it_recorded(
     try:
         async with DrvsClient.connect(server.address, robot_id="replayer") as drvs:
             for _ in range(3):
-                await drvs.detect(YELLOW, (0, 0, 5, 5), fuse=True)
+                await drvs.snapshot(YELLOW, (0, 0, 5, 5))
     finally:
         await server.stop()  # finishes the file: its summary and index
     recorded = read_independently(path)

@@ -211,7 +211,7 @@ async def test_a_camera_that_knows_several_servers_survives_one_being_killed(
         await b.wait_for_line(registered_line("cam1"), timeout=10)
         await c.wait_for_line(registered_line("cam1"), timeout=10)
         async with DrvsClient.connect(b_address, robot_id="r1") as drvs:
-            snapshot = await drvs.detect(YELLOW, CAM1_REGION, fuse=True, timeout_s=10)
+            snapshot = await drvs.snapshot(YELLOW, CAM1_REGION, timeout_s=10)
             assert snapshot.camera_ids == ("cam1",) and len(snapshot.objects) == 2, snapshot
         a.kill()
         # gRPC moves the camera's channel on to B (it may not even see a heartbeat fail): the next
@@ -431,7 +431,7 @@ async def test_a_camera_whose_lease_lapses_is_missing_on_every_server_one_that_d
                 # Where only cam2 looked, nobody is missing: it left (the floor is uncovered all the same).
                 only_cam2 = await robot.detect(YELLOW, CAM2_REGION, timeout_s=5)
                 assert only_cam2.complete and only_cam2.missing_cameras == set() and only_cam2.uncovered
-                fused = await robot.detect(YELLOW, CAM1_REGION, fuse=True, timeout_s=5)
+                fused = await robot.snapshot(YELLOW, CAM1_REGION, timeout_s=5)
                 assert [m.camera_id for m in fused.missing_cameras] == ["cam1"] and fused.uncovered
     finally:
         for proc in cameras.values():

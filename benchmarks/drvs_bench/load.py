@@ -22,7 +22,7 @@ throttle, told apart by its `throttle.refused_locally` count around the call; th
 scheduled send to the refusal is recorded); incomplete (dispatched, but a camera's report, or a
 fused snapshot's missing camera, carried an error: counted by code); lost (DeadlineExceeded,
 Unavailable, or a camera's final report that never came). Goodput is complete requests a second.
-`--delivery fused` asks `detect(..., fuse=True)` single shots instead (complete: a snapshot that
+`--delivery fused` asks `snapshot(...)` fused single shots instead (complete: a snapshot that
 names no missing camera). `--overload 2,4` runs --robots (taken as capacity) and then 2x and 4x the
 robots, each on fresh processes, and judges issue 27's overload targets; `--sweep` bisects the most
 robots that complete every request, each probe a short run on fresh processes. Both write a
@@ -141,7 +141,7 @@ async def robots_worker(args: argparse.Namespace) -> None:
     try:
         for client in clients:  # connections up, one round each
             if fused:
-                await client.detect(YELLOW, ALL_REGION, fuse=True, timeout_s=10)
+                await client.snapshot(YELLOW, ALL_REGION, timeout_s=10)
             else:
                 await client.detect(YELLOW, ALL_REGION, timeout_s=10)
         go = asyncio.Event()
@@ -207,7 +207,7 @@ async def robots_worker(args: argparse.Namespace) -> None:
             refused_before = client.throttle.refused_locally
             try:
                 if fused:
-                    snapshot = await client.detect(YELLOW, ALL_REGION, fuse=True, timeout_s=args.timeout)
+                    snapshot = await client.snapshot(YELLOW, ALL_REGION, timeout_s=args.timeout)
                 else:
                     sub = await client.subscribe(YELLOW, ALL_REGION, timeout_s=args.timeout)
                     result = await sub.collect()
@@ -1021,7 +1021,7 @@ def add_load_parser(sub: Any) -> None:
         "--delivery",
         choices=DELIVERIES,
         default="per-camera",
-        help="per-camera reports (subscribe; default) or fused single shots (detect(fuse=True))",
+        help="per-camera reports (subscribe; default) or fused single shots (snapshot())",
     )
     p.add_argument(
         "--overload",

@@ -205,7 +205,7 @@ async def fused_mode(args: argparse.Namespace) -> dict[str, object]:
 
         async def ask(i: int) -> Snapshot:
             filter_def, region = _request(args, i)
-            return await client.detect(filter_def, region, fuse=True, timeout_s=5.0, outlines=outlines)
+            return await client.snapshot(filter_def, region, timeout_s=5.0, outlines=outlines)
 
         def tally(i: int, snapshot: Snapshot) -> None:
             nonlocal snapshots, objects, missing, delivered
