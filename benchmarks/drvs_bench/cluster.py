@@ -111,7 +111,8 @@ async def propagation(registrations: int) -> dict[str, Any]:
         await b.start()
         arrived: dict[str, float] = {}
         applied = asyncio.Event()
-        original = b._apply_shared
+        assert b.shared is not None
+        original = b.shared._apply  # what b's etcd watch applies each registration with
 
         def timed(record: Any) -> Any:
             entry = original(record)
@@ -119,8 +120,7 @@ async def propagation(registrations: int) -> dict[str, Any]:
             applied.set()
             return entry
 
-        b._apply_shared = timed  # type: ignore[method-assign]
-        b.shared._apply = timed  # type: ignore[union-attr]
+        b.shared._apply = timed
         assert members[0].proc is not None
         etcd_cpu0, own_cpu0 = cpu_seconds(members[0].proc.pid), time.process_time()
         delays: list[float] = []
