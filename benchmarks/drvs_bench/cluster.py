@@ -6,7 +6,7 @@ through another.
 A real etcd member (Debian's etcd-server, on loopback) and two `DrvsServer`s in this process, each
 on its own gRPC port with `--registry etcd://…`. A camera registers through A over gRPC (a real
 `Register` call, as a camera sends it). The delay runs on one clock from when the call is sent to
-when B's watch has put the camera into B's routing index (B's `_apply_shared` returns): A reads the
+when B's watch has put the camera into B's routing index (B's `EtcdBackend.apply` returns): A reads the
 id's holder from etcd, takes a lease, writes by compare-and-put and answers, and B hears of the
 write on its watch, often before the camera hears A's answer. Registrations are spread out (one at a
 time), so each delay is the path's own, not a queue's. Also published: the CPU seconds etcd spent

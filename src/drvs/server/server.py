@@ -156,14 +156,13 @@ class DrvsServer(Lifecycle):
         )
         #: Admission: past capacity requests are refused here, before anything is forwarded.
         self.door = Door(config.admission_target_s)
-        # After a start, cameras registered with a previous run may not be back yet for this long.
-        self.warm_up_s = config.warm_up
         self._sweeper: asyncio.Task[None] | None = None
         #: Fused requests in flight, whose cameras report here (fusion_session.py).
         self.fusion = FusionSessions()
         self._stopped = False
         #: The rooms (see the module's docstring), wired together.
-        self.routing = Routing(self.registry, self.warm_up_s)
+        # After a start, cameras registered with a previous run may not be back yet for warm_up_s.
+        self.routing = Routing(self.registry, config.warm_up)
         self.forwarder = Forwarder(
             self.security, self.forward_timeout_s, self.max_queued_forwards, self.door, self.routing
         )
@@ -235,6 +234,11 @@ class DrvsServer(Lifecycle):
     @property
     def address(self) -> str:
         return self._endpoint.address
+
+    @property
+    def warm_up_s(self) -> float:
+        """After a start, cameras registered with a previous run may not be back yet for this long."""
+        return self.routing.warm_up_s
 
     @property
     def _unreachable(self) -> set[str]:
