@@ -34,7 +34,7 @@ from drvs.launch import ManagedProcess, start_server
 from drvs.model import DetectionRequest
 from drvs.report_auth import KEY_BYTES
 from drvs.server import DrvsServer
-from drvs.server import server as server_module
+from drvs.server import servicers as servicers_module
 from drvs.sim.scene import FloorPatch, RecordedCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2_grpc
 
@@ -608,7 +608,7 @@ async def test_fused_requests_are_bounded_and_end_with_their_stream(monkeypatch:
     same id on the stream is refused, so is one past the stream's waiting single shots and one past
     the server's sessions; the refusals hold nothing. When the robot's stream ends, its session
     ends: nothing is left in flight."""
-    monkeypatch.setattr(server_module, "MAX_FUSED_WAITING_PER_STREAM", 2)
+    monkeypatch.setattr(servicers_module, "MAX_FUSED_WAITING_PER_STREAM", 2)
     async with server_with_quiet_camera() as (server, channel, _quiet):
         region = (-1.0, 2.0, 1.0, 5.0)
         call = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()

@@ -6,7 +6,7 @@ through another.
 A real etcd member (Debian's etcd-server, on loopback) and two `DrvsServer`s in this process, each
 on its own gRPC port with `--registry etcd://…`. A camera registers through A over gRPC (a real
 `Register` call, as a camera sends it). The delay runs on one clock from when the call is sent to
-when B's watch has put the camera into B's routing index (B's `_apply_shared` returns): A reads the
+when B's watch has put the camera into B's routing index (B's `EtcdBackend.apply` returns): A reads the
 id's holder from etcd, takes a lease, writes by compare-and-put and answers, and B hears of the
 write on its watch, often before the camera hears A's answer. Registrations are spread out (one at a
 time), so each delay is the path's own, not a queue's. Also published: the CPU seconds etcd spent
@@ -111,7 +111,8 @@ async def propagation(registrations: int) -> dict[str, Any]:
         await b.start()
         arrived: dict[str, float] = {}
         applied = asyncio.Event()
-        original = b._apply_shared
+        assert b.shared is not None
+        original = b.shared._apply  # what b's etcd watch applies each registration with
 
         def timed(record: Any) -> Any:
             entry = original(record)
@@ -119,8 +120,7 @@ async def propagation(registrations: int) -> dict[str, Any]:
             applied.set()
             return entry
 
-        b._apply_shared = timed  # type: ignore[method-assign]
-        b.shared._apply = timed  # type: ignore[union-attr]
+        b.shared._apply = timed
         assert members[0].proc is not None
         etcd_cpu0, own_cpu0 = cpu_seconds(members[0].proc.pid), time.process_time()
         delays: list[float] = []

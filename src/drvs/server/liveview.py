@@ -36,7 +36,7 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any, Protocol
 
 from shapely.geometry import Polygon, box
 
@@ -44,12 +44,22 @@ from drvs import liveview as lv
 from drvs._files import read_yaml
 from drvs.convert import detection_from_pb, region_from_pb, snapshot_from_pb
 from drvs.errors import InvalidArgument
+from drvs.registry import CameraEntry, Registry
 from drvs.v1 import detection_pb2, registry_pb2
 
-if TYPE_CHECKING:
-    from drvs.server.server import DrvsServer
-
 log = logging.getLogger("drvs.server.liveview")
+
+
+class Observed(Protocol):
+    """What the live view reads of the server (DrvsServer is one): its cameras, as it lists them."""
+
+    @property
+    def registry(self) -> Registry: ...
+
+    def camera_info(self, e: CameraEntry) -> registry_pb2.CameraInfo:
+        """A camera as ListCameras describes it."""
+        ...
+
 
 #: How often the registry is read for cameras that came, went or moved.
 CAMERA_POLL_S = 0.2
@@ -102,7 +112,7 @@ def load_floor_plan(path: Path) -> FloorPlan:
 class ServerView:
     """The server's live view and recording, on `hub`. `start()` on the server's event loop."""
 
-    def __init__(self, hub: lv.LiveHub, server: DrvsServer, floor_plan: FloorPlan | None = None) -> None:
+    def __init__(self, hub: lv.LiveHub, server: Observed, floor_plan: FloorPlan | None = None) -> None:
         self.hub = hub
         self.server = server
         self.floor_plan = floor_plan
@@ -131,7 +141,7 @@ class ServerView:
     @classmethod
     def open(
         cls,
-        server: DrvsServer,
+        server: Observed,
         listen: tuple[str, int] | None,
         record: Path | None,
         floor_plan: Path | None,
