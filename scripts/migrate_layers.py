@@ -236,22 +236,24 @@ def text_files() -> list[Path]:
 
 
 def shim_text(old: str, new: str) -> str:
-    return f'''"""Deprecated: {old} moved to {new} (the layers as folders, docs/architecture.md). This alias
-goes in the next release: import {new}."""
+    package, _, name = new.rpartition(".")
+    return f'''"""Deprecated alias of {new} (the layers as folders, docs/architecture.md).
+
+{old} moved to {new}; this alias goes in the next release."""
 
 {SHIM_MARK}
 import sys
 import warnings
 from typing import TYPE_CHECKING
 
-import {new}
+from {package} import {name} as _new
 
 if TYPE_CHECKING:
     from {new} import *  # noqa: F403
 
 warnings.warn("{old} is deprecated: import {new}", DeprecationWarning, stacklevel=2)
-# `import {old}`, `{old}.X` and `from {old} import X` all get the one module object.
-sys.modules[__name__] = sys.modules["{new}"]
+# `import {old}`, `{old}.X` and `from {old} import X` all get the one module object: {new}.
+sys.modules[__name__] = _new
 '''
 
 
