@@ -252,7 +252,7 @@ if TYPE_CHECKING:
     from {new} import *  # noqa: F403
 
 warnings.warn("{old} is deprecated: import {new}", DeprecationWarning, stacklevel=2)
-# `import {old}`, `{old}.X` and `from {old} import X` all get the one module object: {new}.
+# `import {old}` and `from {old} import X` get the new module itself.
 sys.modules[__name__] = _new
 '''
 
