@@ -6,16 +6,16 @@ From the bottom up:
          (security, metrics, _service, callback, request_stream, ...). Imports no role and no tool.
   roles  drvs.server, drvs.camera, drvs.robot: each stands on the core alone; none imports another
          role, the simulator, the benchmarks or a tool.
-  tools  the simulator (drvs.sim), the benchmarks (drvs_bench), drvs.demo, drvs.launch, drvs.certs,
-         drvs._entry (the console scripts' launcher), drvs.meter (byte-counting relays around a
+  tools  the simulator (drvs.sim), the benchmarks (drvs_bench), drvs.tools.demo, drvs.tools.launch, drvs.tools.certs,
+         drvs.tools._entry (the console scripts' launcher), drvs.tools.meter (byte-counting relays around a
          robot's client, for the simulated robot and the benchmarks): may use everything below, but the simulator
          talks to servers and cameras only over the wire (it starts their processes): of the roles
          it imports drvs.robot alone (its robot is a robot program).
 The `drvs` package itself (drvs/__init__.py) is the robot programmer's front door: it may re-export
 drvs.robot, and nothing else above the core.
 Within the core, the detectors (drvs.detectors: OpenCV and every plug-in) are for cameras: the rest
-of the core parses filter_defs with the grammar (drvs.object_types) and imports no detector, so
-neither the server nor a robot loads one (drvs.frames, the frame sources' shared part, which cameras
+of the core parses filter_defs with the grammar (drvs.core.object_types) and imports no detector, so
+neither the server nor a robot loads one (drvs.core.frames, the frame sources' shared part, which cameras
 and the simulator alone use, is the one exception: a Frame is the detectors').
 
 Checked twice: statically (every import statement of every module, inside functions too, and
@@ -38,14 +38,22 @@ SOURCES = {"drvs": ROOT / "src" / "drvs", "drvs_bench": ROOT / "benchmarks" / "d
 ROLES = ("drvs.server", "drvs.camera", "drvs.robot")
 SIMULATOR = "drvs.sim"
 BENCHMARKS = "drvs_bench"
-TOOLS = (SIMULATOR, BENCHMARKS, "drvs.demo", "drvs.launch", "drvs.certs", "drvs._entry", "drvs.meter")
+TOOLS = (
+    SIMULATOR,
+    BENCHMARKS,
+    "drvs.tools.demo",
+    "drvs.tools.launch",
+    "drvs.tools.certs",
+    "drvs.tools._entry",
+    "drvs.tools.meter",
+)
 FACADE = "drvs"
 GENERATED = "drvs.v1"
 #: Third-party packages that only tools may import: matplotlib draws the office's map and the plots.
 TOOL_ONLY_LIBRARIES = ("matplotlib",)
 DETECTORS = "drvs.detectors"
 #: Core modules outside drvs.detectors that may import it, and why.
-DETECTOR_USERS = {"drvs.frames": "the frame sources' newest frame is a drvs.detectors Frame"}
+DETECTOR_USERS = {"drvs.core.frames": "the frame sources' newest frame is a drvs.detectors Frame"}
 
 
 def under(module: str, package: str) -> bool:
@@ -109,7 +117,7 @@ def imports_of(module: str, path: Path) -> list[Import]:
             else:
                 source = node.module or ""
             for alias in node.names:
-                # `from drvs import sim` imports the module drvs.sim; `from drvs.geometry import Homography` does not.
+                # `from drvs import sim` imports the module drvs.sim; `from drvs.core.geometry import Homography` does not.
                 candidate = f"{source}.{alias.name}"
                 found.append(Import(module, candidate if _is_module(candidate) else source, node.lineno))
         elif (
@@ -153,7 +161,9 @@ def violations(imports: list[Import]) -> list[str]:
             and not under(imp.module, DETECTORS)
             and imp.module not in DETECTOR_USERS
         ):
-            bad.append(f"{imp}: the core parses filter_defs with drvs.object_types and imports no detector plug-in")
+            bad.append(
+                f"{imp}: the core parses filter_defs with drvs.core.object_types and imports no detector plug-in"
+            )
         elif source == "facade" and layer(target) in ROLES and layer(target) != "drvs.robot":
             bad.append(f"{imp}: the drvs package re-exports the robot API only")
         elif source in ROLES and layer(target) in ROLES and layer(target) != source:
@@ -166,7 +176,7 @@ def test_the_scan_sees_every_kind_of_import(tmp_path: Path) -> None:
     source = (
         "import drvs.sim.scene\n"
         "from drvs import sim\n"
-        "from drvs.geometry import Homography\n"
+        "from drvs.core.geometry import Homography\n"
         "from . import config\n"
         "from ..sim.source import SimSource\n"
         "def f():\n"
@@ -180,7 +190,7 @@ def test_the_scan_sees_every_kind_of_import(tmp_path: Path) -> None:
     assert targets == [
         "drvs.sim.scene",
         "drvs.sim",
-        "drvs.geometry",
+        "drvs.core.geometry",
         "drvs.camera.config",
         "drvs.sim.source",
         "drvs_bench.common",
@@ -195,17 +205,17 @@ def test_the_rules_catch_each_kind_of_crossing() -> None:
     cases = {
         ("drvs.camera.aruco", "drvs.sim.scene"): "simulator",
         ("drvs.server.cli", "drvs_bench.common"): "benchmarks",
-        ("drvs.geometry", "drvs.camera.homography_file"): "imports no role",
-        ("drvs.registry", "drvs.server.server"): "imports no role",
-        ("drvs.camera.cli", "drvs.launch"): "is a tool",
+        ("drvs.core.geometry", "drvs.camera.homography_file"): "imports no role",
+        ("drvs.server.registry", "drvs.server.server"): "imports no role",
+        ("drvs.camera.cli", "drvs.tools.launch"): "is a tool",
         ("drvs.robot.client", "drvs.server.server"): "no other role",
         ("drvs.camera.node", "matplotlib.pyplot"): "only tools",
         ("drvs", "drvs.camera"): "robot API only",
         ("drvs.sim.scene", "drvs.camera.calibration"): "over the wire",
         ("drvs.sim.office", "drvs.server.cli"): "over the wire",
-        ("drvs.model", "drvs.detectors"): "no detector plug-in",
-        ("drvs.filters", "drvs.detectors.hsv"): "no detector plug-in",
-        ("drvs.convert", "drvs.detectors.base"): "no detector plug-in",
+        ("drvs.core.model", "drvs.detectors"): "no detector plug-in",
+        ("drvs.core.filters", "drvs.detectors.hsv"): "no detector plug-in",
+        ("drvs.wire.convert", "drvs.detectors.base"): "no detector plug-in",
     }
     for (module, target), why in cases.items():
         (message,) = violations([Import(module, target, 1)])
@@ -214,11 +224,11 @@ def test_the_rules_catch_each_kind_of_crossing() -> None:
         ("drvs.sim.robot", "drvs.robot"),
         ("drvs_bench.service", "drvs.server.server"),
         ("drvs_bench.common", "drvs.sim.scene"),
-        ("drvs.camera.node", "drvs.geometry"),
+        ("drvs.camera.node", "drvs.core.geometry"),
         ("drvs", "drvs.robot"),
         ("drvs.robot.client", "drvs.robot.cli"),
         ("drvs.sim.report", "matplotlib"),
-        ("drvs.detectors.hsv", "drvs.object_types"),
+        ("drvs.detectors.hsv", "drvs.core.object_types"),
         ("drvs.detectors.aruco", "drvs.detectors.base"),
         ("drvs.camera.node", "drvs.detectors"),
         ("drvs.sim.scenario", "drvs.detectors.aruco"),
@@ -228,9 +238,13 @@ def test_the_rules_catch_each_kind_of_crossing() -> None:
 
 def test_no_module_imports_across_the_layers() -> None:
     modules = module_files()
-    assert {"drvs.geometry", "drvs.camera.cli", "drvs.server.server", "drvs.robot.client", "drvs.sim.scene"} <= set(
-        modules
-    )
+    assert {
+        "drvs.core.geometry",
+        "drvs.camera.cli",
+        "drvs.server.server",
+        "drvs.robot.client",
+        "drvs.sim.scene",
+    } <= set(modules)
     bad = violations(all_imports())
     assert not bad, "imports across the layers (docs/architecture.md, Layers):\n" + "\n".join(bad)
 
@@ -260,7 +274,7 @@ def test_a_role_loads_no_simulator_benchmarks_or_matplotlib(role: str) -> None:
 @pytest.mark.parametrize("role", ("drvs.server", "drvs.robot"))
 def test_the_server_and_robots_parse_filter_defs_without_loading_a_detector(role: str) -> None:
     """Import every module of the role in a fresh interpreter, then validate a request of every
-    built-in type as the server does (drvs.convert.request_from_pb): no drvs.detectors module loads."""
+    built-in type as the server does (drvs.wire.convert.request_from_pb): no drvs.detectors module loads."""
     mods = sorted(name for name in module_files() if under(name, role))
     filter_defs = ("hsv_014110130035225200", "aruco_4x4_50_7", "people", "foreground", "model_yolo_person")
     code = (
@@ -268,8 +282,8 @@ def test_the_server_and_robots_parse_filter_defs_without_loading_a_detector(role
         f"for name in {mods!r}:\n"
         "    importlib.import_module(name)\n"
         "from shapely.geometry import box\n"
-        "from drvs.convert import request_from_pb, request_to_pb\n"
-        "from drvs.model import DetectionRequest\n"
+        "from drvs.wire.convert import request_from_pb, request_to_pb\n"
+        "from drvs.core.model import DetectionRequest\n"
         f"for f in {filter_defs!r}:\n"
         "    request_from_pb(request_to_pb(DetectionRequest('r', 'b', f, box(0, 0, 1, 1), '127.0.0.1:5000')))\n"
         f"loaded = [m for m in sys.modules if m == {DETECTORS!r} or m.startswith({DETECTORS + '.'!r})]\n"
@@ -278,4 +292,4 @@ def test_the_server_and_robots_parse_filter_defs_without_loading_a_detector(role
     done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60, cwd=ROOT)
     assert done.returncode == 0, done.stderr
     loaded = done.stdout.split()
-    assert loaded == [], f"{role} loaded {loaded} to parse filter_defs (drvs.object_types needs no detector)"
+    assert loaded == [], f"{role} loaded {loaded} to parse filter_defs (drvs.core.object_types needs no detector)"

@@ -24,16 +24,7 @@ import shapely
 from grpc import aio
 from shapely.geometry import Polygon
 
-from drvs import _grpc, logs, metrics
-from drvs._service import Endpoint, Lifecycle
-from drvs.callback import CallbackSender
-from drvs.convert import (
-    polygon_to_pb,
-    pose_to_pb,
-    region_from_pb,
-    request_from_pb,
-)
-from drvs.errors import (
+from drvs.core.errors import (
     DeadlineExceeded,
     DrvsError,
     FailedPrecondition,
@@ -43,19 +34,40 @@ from drvs.errors import (
     Unauthenticated,
     Unavailable,
 )
-from drvs.etcd import Endpoints, EtcdClient
-from drvs.geometry import Homography
-from drvs.model import DEFAULT_FRAME, CameraError, DetectionReport, DetectionRequest, Pose2, check_frame, check_id
-from drvs.net import format_address, host_of, is_loopback_host
-from drvs.registry import (
+from drvs.core.geometry import Homography
+from drvs.core.model import DEFAULT_FRAME, CameraError, DetectionReport, DetectionRequest, Pose2, check_frame, check_id
+from drvs.core.net import format_address, host_of, is_loopback_host
+from drvs.server.admission import Door, LinkDelay
+from drvs.server.config import (
+    DEFAULT_LISTEN,
+    WILDCARDS,
+    ServerConfig,
+)
+from drvs.server.coverage import uncovered
+from drvs.server.etcd import Endpoints, EtcdClient
+from drvs.server.fusion_session import Continuous, FusionSession, FusionSessions, ReportIntake, SingleShot
+from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits, peer_ip
+from drvs.server.registry import (
     CameraEntry,
     Claims,
     Registry,
 )
-from drvs.report_auth import MAX_SECRET_BYTES, new_secret, report_key
-from drvs.report_bounds import serve_report_stream
-from drvs.request_stream import BatchSender, ReplyQueue, serve_request_stream_queued
-from drvs.security import (
+from drvs.server.routing_errors import KEPT, RoutingErrors
+from drvs.server.shared import PoseRecord, Record, SharedRegistry, secret_digest
+from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
+from drvs.wire import _grpc, logs, metrics
+from drvs.wire._service import Endpoint, Lifecycle
+from drvs.wire.callback import CallbackSender
+from drvs.wire.convert import (
+    polygon_to_pb,
+    pose_to_pb,
+    region_from_pb,
+    request_from_pb,
+)
+from drvs.wire.report_auth import MAX_SECRET_BYTES, new_secret, report_key
+from drvs.wire.report_bounds import serve_report_stream
+from drvs.wire.request_stream import BatchSender, ReplyQueue, serve_request_stream_queued
+from drvs.wire.security import (
     CAMERA,
     ROBOT,
     Security,
@@ -65,18 +77,6 @@ from drvs.security import (
     caller_identity,
     camera_identity,
 )
-from drvs.server.admission import Door, LinkDelay
-from drvs.server.config import (
-    DEFAULT_LISTEN,
-    WILDCARDS,
-    ServerConfig,
-)
-from drvs.server.coverage import uncovered
-from drvs.server.fusion_session import Continuous, FusionSession, FusionSessions, ReportIntake, SingleShot
-from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits, peer_ip
-from drvs.server.routing_errors import KEPT, RoutingErrors
-from drvs.server.shared import PoseRecord, Record, SharedRegistry, secret_digest
-from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 if TYPE_CHECKING:
     from drvs.server.liveview import ServerView
@@ -350,7 +350,7 @@ class DrvsServer(Lifecycle):
     ) -> None:
         """Before start(): a Foxglove live view on `listen` (host, port; port 0 picks one) and/or a
         recording to the MCAP file `record`, drawing `floor_plan` (see drvs.server.liveview); the
-        view needs `token` if given; both take in at most `bytes_per_s` (drvs.liveview.LiveHub).
+        view needs `token` if given; both take in at most `bytes_per_s` (drvs.live.liveview.LiveHub).
         Needs the live extra (FailedPrecondition names it)."""
         from drvs.server.liveview import ServerView
 
