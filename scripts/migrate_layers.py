@@ -16,6 +16,8 @@ since (a server split's drvs/server/*.py importing drvs.registry, say) are rewri
 - file paths `src/drvs/geometry.py` and `drvs/geometry.py`;
 - pyproject.toml's [tool.setuptools] packages (the new packages are added).
 
+A line that names an old path on purpose carries `migrate_layers: keep` (in a comment) and is left alone.
+
 It leaves a deprecated alias at the old path of the modules robot programmers import (SHIMS): a tiny module
 that warns and puts the new module in its place in sys.modules, so `import drvs.model`, `drvs.model.X` and
 `from drvs.model import X` keep working, on the very same module object. Nothing in the repository imports
@@ -83,6 +85,9 @@ MAPPING: dict[str, str] = {f"drvs.{name}": f"{package}.{name}" for package, name
 #: Old paths robot programmers (third parties) import: a deprecated alias stays there for one release.
 SHIMS = ("drvs.model", "drvs.geometry", "drvs.errors", "drvs.security", "drvs.object_types")
 SHIM_MARK = "# drvs-layers-shim: a deprecated alias, not rewritten by scripts/migrate_layers.py"
+
+#: A line that names an old path on purpose (the aliases' tests and docs) carries this, and is kept.
+KEEP = "migrate_layers: keep"
 
 PACKAGE_DOCS = {
     "drvs.core": "The core: pure logic (geometry, the domain model, the object-type grammar, filters, errors,\n"
@@ -202,6 +207,19 @@ def rewrite_pyproject(text: str) -> str:
 
 
 def rewrite(path: Path, text: str) -> str:
+    """The file's text with the references rewritten; a line carrying KEEP is left as it is."""
+    kept: list[str] = []
+
+    def keep(match: re.Match[str]) -> str:
+        kept.append(match[0])
+        return f"\0KEEP{len(kept) - 1}\0"
+
+    text = re.sub(rf"^[^\n]*{re.escape(KEEP)}[^\n]*$", keep, text, flags=re.MULTILINE)
+    text = _rewrite(path, text)
+    return re.sub(r"\0KEEP(\d+)\0", lambda m: kept[int(m[1])], text)
+
+
+def _rewrite(path: Path, text: str) -> str:
     rel = path.relative_to(ROOT).as_posix()
     python = path.suffix in (".py", ".pyi")
     if python and rel.startswith("src/drvs/"):
