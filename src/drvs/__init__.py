@@ -3,7 +3,8 @@
 Robots ask for *what* (a filter_def) and *where* (a floor region); the server forwards the request to
 the camera nodes that see that region; the cameras stream object locations back to the robot.
 
-The robot programmer's API is re-exported here (from drvs.robot and drvs.core.errors):
+The robot programmer's API is re-exported here (from drvs.robot, drvs.core.model, drvs.core.errors and
+drvs.wire.security):
 
     from drvs import DrvsClient
 
@@ -12,7 +13,7 @@ The robot programmer's API is re-exported here (from drvs.robot and drvs.core.er
 
 filter_defs can be built from typed arguments, checked by the grammar (drvs.core.object_types):
 `drvs.hsv((14, 110, 130), (35, 225, 200))`, `drvs.aruco("4x4_50", 7)`, `drvs.people()`,
-`drvs.foreground()`, `drvs.model_type("yolo", "person")` (not `drvs.core.model`: that is the module).
+`drvs.foreground()`, `drvs.model_type("yolo", "person")` (model_type: `model` names a module).
 
 Those names are imported when first used, so `import drvs` (as a camera node or the server does
 for its own modules) stays light.

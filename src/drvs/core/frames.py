@@ -1,6 +1,6 @@
 """The newest frame a frame source produced, for a camera node to read: what every source (a
-device, a file, a stream, frames a program pushes, the simulator's renderer) shares. Core: camera
-sources and the simulator's plug-in source stand on it alike."""
+device, a file, a stream, frames a program pushes, the simulator's renderer) shares. In the core:
+camera sources and the simulator's plug-in source stand on it alike."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """etcd, the store several DRVS servers share their registry in: a small asyncio client of
-etcd's own v3 gRPC API. Shared plumbing (core): the server stands on it.
+etcd's own v3 gRPC API. The server's (drvs-server --registry etcd://...); the tools' launcher starts etcd.
 
 The API's messages and stubs are the generated ones the `aetcd` package ships (`aetcd.rpc`: etcd's
 own .proto files, compiled for current grpcio and protobuf, maintained); the channel is ours, so
