@@ -1,4 +1,4 @@
-"""One-off check of drvs.meter's wire bytes against a packet capture (root, tcpdump and ethtool needed).
+"""One-off check of drvs.tools.meter's wire bytes against a packet capture (root, tcpdump and ethtool needed).
 
 In a fresh network namespace whose loopback has segmentation and receive offloads turned off (so
 each TCP segment is one captured frame), a CountingRelay carries 200 small request/reply round trips
@@ -27,7 +27,7 @@ BULK = 1_000_000
 
 
 async def exchange() -> None:
-    from drvs.meter import CountingRelay
+    from drvs.tools.meter import CountingRelay
 
     async def target(r: asyncio.StreamReader, w: asyncio.StreamWriter) -> None:
         while data := await r.read(65536):

@@ -175,7 +175,7 @@ grep -q 'live view on ws://0.0.0.0:8765' <<<"$(logs_of server)" || fail "the ser
 import asyncio
 import sys
 
-from drvs.foxglove_client import FoxgloveClient
+from drvs.live.foxglove_client import FoxgloveClient
 
 WANTED = {"/drvs/floor_plan", "/drvs/cameras", "/robot/pose"}
 

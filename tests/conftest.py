@@ -8,15 +8,15 @@ from collections.abc import AsyncIterator, Generator, Iterator
 import pytest
 import pytest_asyncio
 
-from drvs.launch import running
 from drvs.sim.scene import RecordedCamera
+from drvs.tools.launch import running
 
 from .helpers import CAMERA_POSES, Office, record_floor, start_office, stop_office
 
 
 @pytest.fixture(autouse=True)
 def _no_process_outlives_its_test(request: pytest.FixtureRequest) -> Iterator[None]:
-    """Every process a test started (drvs.launch) is stopped when the test ends, also when it fails
+    """Every process a test started (drvs.tools.launch) is stopped when the test ends, also when it fails
     or times out: this runs after the test's own fixtures have stopped theirs, SIGKILLs whatever is
     left, and fails a test that passed while leaving processes behind."""
     before = running()

@@ -6,8 +6,8 @@ from __future__ import annotations
 import contextlib
 from collections.abc import AsyncIterator
 
-from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.sim.scene import RecordedCamera
+from drvs.tools.launch import ManagedProcess, start_camera, start_server
 
 from .helpers import MAX_RANGE
 

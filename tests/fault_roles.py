@@ -28,10 +28,10 @@ import grpc
 from drvs_bench.fakes import AckingCamera, register_message, serve_camera
 from grpc import aio
 
-from drvs._cli import shutdown_event
-from drvs.errors import DrvsError
+from drvs.core.errors import DrvsError
 from drvs.robot import DrvsClient
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
+from drvs.wire._cli import shutdown_event
 
 YELLOW = "hsv_014110130035225200"
 

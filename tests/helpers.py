@@ -21,17 +21,17 @@ from drvs_bench.fakes import AckingCamera
 from drvs_bench.fakes import register_message as register_message  # re-exported for the tests
 from numpy.typing import NDArray
 
-from drvs import _grpc
+from drvs.core.filters import HsvRange
+from drvs.core.geometry import FieldOfView, Homography, homography_from_pose
+from drvs.core.mobile import Mount
+from drvs.core.model import Pose2
 from drvs.detectors import DEFAULT_MIN_AREA_PX, CameraView, HsvDetector
-from drvs.filters import HsvRange
-from drvs.geometry import FieldOfView, Homography, homography_from_pose
-from drvs.launch import ManagedProcess, start_camera, start_server
-from drvs.mobile import Mount
-from drvs.model import Pose2
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import CameraDef, Scenario
 from drvs.sim.scene import FloorPatch, RecordedCamera, record_camera, render_view
+from drvs.tools.launch import ManagedProcess, start_camera, start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
+from drvs.wire import _grpc
 
 # --- the recorded two-camera floor (the `recorded` and `office` fixtures) -----------------------
 

@@ -16,8 +16,7 @@ from pathlib import Path
 
 import pytest
 
-from drvs.errors import InvalidArgument, ResourceExhausted
-from drvs.launch import ManagedProcess, start_server
+from drvs.core.errors import InvalidArgument, ResourceExhausted
 from drvs.robot import DrvsClient
 from drvs.robot.throttle import MIN_EXCESS, AdaptiveThrottle
 from drvs.server.admission import (
@@ -33,6 +32,7 @@ from drvs.server.admission import (
     Shedder,
     retry_after_s,
 )
+from drvs.tools.launch import ManagedProcess, start_server
 
 from .helpers import YELLOW
 

@@ -11,10 +11,10 @@ from shapely import contains_xy
 
 from drvs.camera.aruco import BoardSpec, find_correspondences, render_board_view
 from drvs.camera.calibration import fit_homography
-from drvs.errors import InvalidArgument
-from drvs.geometry import FieldOfView, Homography, homography_from_pose
-from drvs.homography_file import load_homography
-from drvs.launch import ManagedProcess
+from drvs.core.errors import InvalidArgument
+from drvs.core.geometry import FieldOfView, Homography, homography_from_pose
+from drvs.core.homography_file import load_homography
+from drvs.tools.launch import ManagedProcess
 
 SIZE = (640, 480)
 TRUE = homography_from_pose((0.0, 0.0, 2.5), 90.0, 45.0, 60.0, SIZE)

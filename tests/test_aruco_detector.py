@@ -20,15 +20,15 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
+from drvs.core.errors import InvalidArgument
+from drvs.core.filters import object_type
+from drvs.core.geometry import FieldOfView, Homography, homography_from_pose
+from drvs.core.homography_file import save_homography
+from drvs.core.model import Detection
 from drvs.detectors import CameraView, Frame, FrameAnalysis
 from drvs.detectors.aruco import DICTIONARIES, ArucoDetector
-from drvs.errors import InvalidArgument
-from drvs.filters import object_type
-from drvs.geometry import FieldOfView, Homography, homography_from_pose
-from drvs.homography_file import save_homography
-from drvs.launch import start_camera, start_server
-from drvs.model import Detection
 from drvs.sim.scene import write_video
+from drvs.tools.launch import start_camera, start_server
 
 from .helpers import roi, run_robot
 

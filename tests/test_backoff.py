@@ -1,10 +1,10 @@
-"""drvs.backoff: the one exponential backoff every retry loop takes its waits from."""
+"""drvs.core.backoff: the one exponential backoff every retry loop takes its waits from."""
 
 from __future__ import annotations
 
 import pytest
 
-from drvs.backoff import Backoff, waits
+from drvs.core.backoff import Backoff, waits
 
 
 def test_waits_double_up_to_the_longest() -> None:

@@ -13,10 +13,11 @@ import pytest
 from drvs_bench.fakes import serve_camera
 from grpc import aio
 
-from drvs import _grpc, errors
-from drvs.request_stream import BatchSender, refusal
+from drvs.core import errors
 from drvs.server import DrvsServer
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
+from drvs.wire import _grpc
+from drvs.wire.request_stream import BatchSender, refusal
 
 Result = detection_pb2.DetectionReply | errors.DrvsError
 

@@ -15,7 +15,7 @@ from drvs_bench.paper import check_drvs, check_stream, run_mode
 from drvs_bench.service import check_latency_run
 from drvs_bench.stats import QUICK_ROUNDS, WorkMismatch
 
-from drvs.launch import ManagedProcess, start_camera, start_server
+from drvs.tools.launch import ManagedProcess, start_camera, start_server
 
 #: The people modes' requests per run in the smoke run: 3 s at 2 Hz instead of --quick's 8 s.
 SMOKE_PEOPLE_REQUESTS = 6

@@ -14,7 +14,7 @@ from drvs_bench.common import record_scene
 from drvs_bench.paper import FUSED_TARGETS, check_fused, run_mode, summarise
 from drvs_bench.stats import WorkMismatch
 
-from drvs.launch import ManagedProcess, start_camera, start_server
+from drvs.tools.launch import ManagedProcess, start_camera, start_server
 
 
 async def _bench(tmp_path: Path, *args: str, timeout: float) -> dict[str, Any]:

@@ -11,11 +11,11 @@ import pytest
 import yaml
 
 from drvs.camera.calibration import Correspondence, fit_homography, load_points
-from drvs.errors import InvalidArgument
-from drvs.geometry import FieldOfView, homography_from_pose
-from drvs.homography_file import load_homography
-from drvs.launch import ManagedProcess
+from drvs.core.errors import InvalidArgument
+from drvs.core.geometry import FieldOfView, homography_from_pose
+from drvs.core.homography_file import load_homography
 from drvs.sim.scene import RecordedCamera
+from drvs.tools.launch import ManagedProcess
 
 SIZE = (640, 480)
 TRUE = homography_from_pose((2.0, -1.0, 3.0), 80.0, 40.0, 60.0, SIZE)
@@ -41,7 +41,7 @@ def floor_grid_error_m(fitted: np.ndarray) -> float:
 
     floor = floor[contains_xy(fov.floor, floor[:, 0], floor[:, 1])]
     pixels = TRUE.inverse().apply(floor)
-    from drvs.geometry import Homography
+    from drvs.core.geometry import Homography
 
     return float(np.max(np.linalg.norm(Homography.from_values(fitted).apply(pixels) - floor, axis=1)))
 

@@ -11,9 +11,9 @@ from grpc import aio
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
 from drvs.camera.config import DEFAULT_SERVER, load_config
-from drvs.errors import InvalidArgument
-from drvs.launch import ManagedProcess, camera_ready
+from drvs.core.errors import InvalidArgument
 from drvs.robot import DrvsClient
+from drvs.tools.launch import ManagedProcess, camera_ready
 
 from .helpers import CAM1_REGION, YELLOW, Office
 
@@ -152,7 +152,7 @@ def test_capture_detector_and_heartbeat_settings(tmp_path: Path) -> None:
 def test_heartbeat_never_outlives_the_lease(tmp_path: Path) -> None:
     from drvs.camera.node import CameraNode
     from drvs.camera.source import VideoSource
-    from drvs.geometry import homography_from_pose
+    from drvs.core.geometry import homography_from_pose
 
     h = homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
     node = CameraNode("a", VideoSource("0"), h, "127.0.0.1:1", heartbeat_s=2.0)

@@ -25,13 +25,13 @@ from numpy.typing import NDArray
 from drvs.camera import CameraNode, PushSource
 from drvs.camera.cli import main as camera_main
 from drvs.camera.liveview import CameraLiveView
-from drvs.errors import FailedPrecondition
-from drvs.foxglove_client import Channel, FoxgloveClient, Message
-from drvs.geometry import Homography
-from drvs.launch import LIVE_READY, ManagedProcess, start_server
-from drvs.model import PixelBox
+from drvs.core.errors import FailedPrecondition
+from drvs.core.geometry import Homography
+from drvs.core.model import PixelBox
+from drvs.live.foxglove_client import Channel, FoxgloveClient, Message
 from drvs.robot import DrvsClient
 from drvs.sim.scene import RecordedCamera
+from drvs.tools.launch import LIVE_READY, ManagedProcess, start_server
 
 from .fakes import start_recorded_camera
 from .helpers import CAM1_REGION, IMAGE_SIZE, YELLOW, metrics_at_least, metrics_port, scrape, wait_until

@@ -10,10 +10,10 @@ from typing import Any
 
 import pytest
 
-from drvs._cli import format_number
 from drvs.camera.cli import build_parser
 from drvs.camera.config import _FLAGS, ENVIRONMENT, LIMITS, SETTINGS, CameraConfig, Setting, load_config
-from drvs.errors import InvalidArgument
+from drvs.core.errors import InvalidArgument
+from drvs.wire._cli import format_number
 
 REQUIRED = ("--id", "cam1", "--source", "x.avi", "--homography", "h.yaml")
 LIMITED = [s for s in SETTINGS.values() if s.limits is not None]

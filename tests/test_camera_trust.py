@@ -14,12 +14,12 @@ import numpy as np
 import pytest
 from grpc import aio
 
-from drvs import _grpc
 from drvs.camera import CameraNode, PushSource
-from drvs.geometry import homography_from_pose
-from drvs.launch import start_server
-from drvs.security import Security
+from drvs.core.geometry import homography_from_pose
+from drvs.tools.launch import start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, stream_pb2, stream_pb2_grpc
+from drvs.wire import _grpc
+from drvs.wire.security import Security
 
 from .helpers import YELLOW
 

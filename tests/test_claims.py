@@ -1,4 +1,4 @@
-"""Camera-id ownership (drvs.registry.Claims) as a property: whatever several identities do to the
+"""Camera-id ownership (drvs.server.registry.Claims) as a property: whatever several identities do to the
 same few ids, in any order, no identity registers, renews or deregisters an id another holds, and
 every refusal changes nothing."""
 
@@ -12,9 +12,9 @@ from grpc import aio
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from drvs.errors import FailedPrecondition, NotFound, PermissionDenied, ResourceExhausted
-from drvs.registry import Claims
+from drvs.core.errors import FailedPrecondition, NotFound, PermissionDenied, ResourceExhausted
 from drvs.server import DrvsServer
+from drvs.server.registry import Claims
 from drvs.v1 import registry_pb2, registry_pb2_grpc
 
 from .helpers import register_message

@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from drvs.launch import ManagedProcess
+from drvs.tools.launch import ManagedProcess
 
 from .helpers import CAM1_SEEN, OBJECTS, YELLOW, Office, nearest, roi, run_robot
 
@@ -151,7 +151,7 @@ async def test_every_cli_refuses_bad_input_with_exit_2_and_no_traceback(
         args = [*args, "--out", str(out)]
     if command == "drvs-certs":
         proc = ManagedProcess(
-            "certs", [sys.executable, "-c", "from drvs.certs import main; raise SystemExit(main())", *args]
+            "certs", [sys.executable, "-c", "from drvs.tools.certs import main; raise SystemExit(main())", *args]
         )
     else:
         proc = ManagedProcess.entry_point("bad", command, *args)

@@ -6,10 +6,10 @@ from __future__ import annotations
 import pytest
 from shapely.geometry import Point, box
 
-from drvs.convert import region_from_pb, region_to_pb
-from drvs.errors import InvalidArgument
-from drvs.model import Detection, PixelBox
+from drvs.core.errors import InvalidArgument
+from drvs.core.model import Detection, PixelBox
 from drvs.robot.regions import _Regions
+from drvs.wire.convert import region_from_pb, region_to_pb
 
 
 def test_same_region_values_are_built_and_encoded_once() -> None:

@@ -10,7 +10,20 @@ import numpy as np
 import pytest
 from shapely.geometry import Point, Polygon
 
-from drvs.convert import (
+from drvs.core.errors import InvalidArgument
+from drvs.core.geometry import box_region, homography_from_pose, polygon_coords, polygon_region
+from drvs.core.model import (
+    MAX_RATE_HZ,
+    ContinuousMode,
+    Detection,
+    DetectionReport,
+    DetectionRequest,
+    PixelBox,
+    Snapshot,
+    WorldObject,
+)
+from drvs.v1 import detection_pb2, geometry_pb2, registry_pb2
+from drvs.wire.convert import (
     detection_from_pb,
     detection_to_pb,
     homography_from_pb,
@@ -25,19 +38,6 @@ from drvs.convert import (
     snapshot_to_pb,
     world_object_from_pb,
 )
-from drvs.errors import InvalidArgument
-from drvs.geometry import box_region, homography_from_pose, polygon_coords, polygon_region
-from drvs.model import (
-    MAX_RATE_HZ,
-    ContinuousMode,
-    Detection,
-    DetectionReport,
-    DetectionRequest,
-    PixelBox,
-    Snapshot,
-    WorldObject,
-)
-from drvs.v1 import detection_pb2, geometry_pb2, registry_pb2
 
 YELLOW = "hsv_014110130035225200"
 GREEN = "hsv_040080080080255255"

@@ -14,10 +14,10 @@ from shapely.geometry import Polygon, box
 from shapely.ops import unary_union
 
 from drvs import DrvsClient
-from drvs.convert import polygon_from_pb
 from drvs.sim.robot import DELIVERIES, SimRobot
 from drvs.sim.scenario import load_scenario
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
+from drvs.wire.convert import polygon_from_pb
 
 from .helpers import CAM1_REGION, YELLOW, Office, detect_message, roi, run_robot
 

@@ -11,10 +11,10 @@ import pytest
 from numpy.typing import NDArray
 from shapely.geometry import Point
 
+from drvs.core.geometry import box_region
+from drvs.core.model import Detection
 from drvs.detectors import DEFAULT_MIN_AREA_PX, FrameAnalysis
 from drvs.detectors import Frame as DetFrame
-from drvs.geometry import box_region
-from drvs.model import Detection
 from drvs.sim.scene import write_video
 
 from .helpers import BIG, BLUE, GREEN, IMAGE_SIZE, RED, YELLOW, Disc, camera, detector, render

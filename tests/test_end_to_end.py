@@ -9,7 +9,7 @@ import pytest
 from shapely.geometry import box
 from shapely.ops import unary_union
 
-from drvs.errors import Unavailable
+from drvs.core.errors import Unavailable
 from drvs.robot import DrvsClient
 
 from .helpers import BOTH_REGION, CAM1_REGION, CAM2_REGION, OBJECTS, YELLOW, Office, nearest
@@ -172,7 +172,7 @@ async def test_camera_deregisters_on_sigterm(office: Office) -> None:
 async def test_cameras_reregister_after_server_restart(office: Office) -> None:
     port = office.address.rsplit(":", 1)[1]
     assert await office.server.stop() == 0
-    from drvs.launch import start_server
+    from drvs.tools.launch import start_server
 
     office.server, address = await start_server("--lease-ttl", "1.5", "--listen", f"127.0.0.1:{port}")
     assert address == office.address

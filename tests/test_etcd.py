@@ -1,4 +1,4 @@
-"""drvs.etcd against real etcd processes (Debian's etcd-server, started on free ports and reaped):
+"""drvs.server.etcd against real etcd processes (Debian's etcd-server, started on free ports and reaped):
 keys under a prefix, leases that expire on their own, compare-and-put, watches from a revision,
 and a three-member cluster that keeps answering through the client's one channel when a member
 dies."""
@@ -13,9 +13,9 @@ from pathlib import Path
 import pytest
 import pytest_asyncio
 
-from drvs.errors import InvalidArgument, Unavailable
-from drvs.etcd import Endpoints, EtcdClient, Event
-from drvs.launch import EtcdMember, start_etcd
+from drvs.core.errors import InvalidArgument, Unavailable
+from drvs.server.etcd import Endpoints, EtcdClient, Event
+from drvs.tools.launch import EtcdMember, start_etcd
 
 pytestmark = pytest.mark.skipif(
     shutil.which("etcd") is None, reason="etcd is not installed (./run test installs it as root)"

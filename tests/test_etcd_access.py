@@ -1,5 +1,5 @@
 """Who may use the registry in etcd (issue 28, finding 4): etcd started with TLS, client
-certificates and its own access control (drvs.etcd_auth, users from certificates' common names)
+certificates and its own access control (drvs.server.etcd_auth, users from certificates' common names)
 serves a DRVS server's certificate and refuses a robot's or a camera's from the same CA, for reads
 and for writes; and etcd never holds a registration's secret, only its digest."""
 
@@ -13,13 +13,13 @@ import grpc
 import pytest
 from grpc import aio
 
-from drvs import etcd_auth
-from drvs.certs import make_all
-from drvs.errors import InvalidArgument, Unavailable
-from drvs.etcd import Endpoints, EtcdClient
-from drvs.launch import ManagedProcess, running_etcd, start_etcd, start_server
+from drvs.core.errors import InvalidArgument, Unavailable
+from drvs.server import etcd_auth
 from drvs.server.config import ServerConfig
+from drvs.server.etcd import Endpoints, EtcdClient
 from drvs.server.shared import PREFIX, secret_digest
+from drvs.tools.certs import make_all
+from drvs.tools.launch import ManagedProcess, running_etcd, start_etcd, start_server
 from drvs.v1 import registry_pb2, registry_pb2_grpc
 
 from .helpers import register_message

@@ -19,19 +19,19 @@ import pytest
 from drvs_bench.amplification import measure
 from grpc import aio
 
-from drvs import convert
 from drvs.camera.node import CameraNode
-from drvs.convert import MAX_REGION_BYTES, RegionCache, region_to_pb
+from drvs.core.errors import InvalidArgument, ResourceExhausted
+from drvs.core.geometry import MAX_REGION_VERTICES, homography_from_pose, polygon_region
+from drvs.core.model import ContinuousMode
 from drvs.detectors import Frame
-from drvs.errors import InvalidArgument, ResourceExhausted
-from drvs.geometry import MAX_REGION_VERTICES, homography_from_pose, polygon_region
-from drvs.launch import ManagedProcess, start_server
-from drvs.model import ContinuousMode
 from drvs.robot import DrvsClient, RetryPolicy
 from drvs.robot.client import Subscription
 from drvs.server.policy import RequestLimits
 from drvs.sim.scene import RecordedCamera
+from drvs.tools.launch import ManagedProcess, start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
+from drvs.wire import convert
+from drvs.wire.convert import MAX_REGION_BYTES, RegionCache, region_to_pb
 
 from .fakes import server_process, start_recorded_camera
 from .helpers import CAM1_REGION, YELLOW

@@ -16,7 +16,7 @@ from pathlib import Path
 import pytest
 from packaging.requirements import Requirement
 
-from drvs._entry import EXTRAS
+from drvs.tools._entry import EXTRAS
 
 ROOT = Path(__file__).resolve().parents[1]
 ROLE_SCRIPTS = {
@@ -103,7 +103,7 @@ def test_every_console_script_is_a_role_or_goes_through_the_launcher() -> None:
     scripts = {
         e.name: e.value for e in importlib.metadata.entry_points(group="console_scripts") if e.name.startswith("drvs-")
     }
-    roles = {name: value for name, value in scripts.items() if not value.startswith("drvs._entry:")}
+    roles = {name: value for name, value in scripts.items() if not value.startswith("drvs.tools._entry:")}
     assert roles == ROLE_SCRIPTS
     assert set(scripts) - set(roles) == {
         "drvs-office", "drvs-sim", "drvs-demo", "drvs-bench", "drvs-certs", "drvs-replay"

@@ -26,10 +26,10 @@ from typing import Any
 import pytest
 from grpc import aio
 
-from drvs.errors import Unavailable
-from drvs.launch import ManagedProcess, start_server
+from drvs.core.errors import Unavailable
 from drvs.robot import DrvsClient, RetryPolicy
 from drvs.sim.scene import RecordedCamera
+from drvs.tools.launch import ManagedProcess, start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc
 
 from .fakes import start_recorded_camera
@@ -151,7 +151,7 @@ async def _routes_only(robot: DrvsClient, camera_ids: list[str]) -> bool:
 
 HEARTBEAT_S = 1.0
 #: The longest a camera's channel waits between attempts to reach a server that went away
-#: (drvs._grpc's grpc.max_reconnect_backoff_ms, 2 s, plus gRPC's 20 % jitter): a camera's next
+#: (drvs.wire._grpc's grpc.max_reconnect_backoff_ms, 2 s, plus gRPC's 20 % jitter): a camera's next
 #: heartbeat after the restart may first wait out one such attempt.
 RECONNECT_S = 2.4
 

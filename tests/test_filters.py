@@ -7,8 +7,8 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from drvs.errors import InvalidArgument
-from drvs.filters import HsvRange, detector_kind, validate_filter_def
+from drvs.core.errors import InvalidArgument
+from drvs.core.filters import HsvRange, detector_kind, validate_filter_def
 
 YELLOW = "hsv_014110130035225200"
 RED = "hsv_170100100010255255"

@@ -19,15 +19,15 @@ from shapely.geometry import Polygon
 
 from drvs.camera.cli import snapshot_main
 from drvs.camera.config import load_config
+from drvs.core.errors import FailedPrecondition, InvalidArgument
+from drvs.core.geometry import FieldOfView, Homography, homography_from_pose
+from drvs.core.homography_file import save_homography
+from drvs.core.model import Detection
 from drvs.detectors import CameraView, Frame, FrameAnalysis, parse_object_type
 from drvs.detectors.foreground import ForegroundDetector
-from drvs.errors import FailedPrecondition, InvalidArgument
-from drvs.geometry import FieldOfView, Homography, homography_from_pose
-from drvs.homography_file import save_homography
-from drvs.launch import ManagedProcess, camera_ready, start_server
-from drvs.model import Detection
 from drvs.robot import DrvsClient
 from drvs.sim.scene import FloorPatch, render_view, write_video
+from drvs.tools.launch import ManagedProcess, camera_ready, start_server
 
 from .helpers import footage
 

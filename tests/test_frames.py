@@ -14,7 +14,7 @@ from grpc import aio
 from shapely.geometry import box
 
 from drvs import DrvsClient
-from drvs.launch import ManagedProcess, start_server
+from drvs.tools.launch import ManagedProcess, start_server
 from drvs.v1 import detection_pb2_grpc, registry_pb2, registry_pb2_grpc
 
 from .helpers import detect_message, register_message

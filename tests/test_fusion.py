@@ -1,4 +1,4 @@
-"""drvs.fusion on real camera geometry: ground sampling distance from real homographies, merging of
+"""drvs.server.fusion on real camera geometry: ground sampling distance from real homographies, merging of
 one object seen by several cameras, what must never merge, precision weighting, and the whole path
 on real pixels (two overlapping simulated cameras, the HSV detector the camera node runs, fuse)."""
 
@@ -15,14 +15,14 @@ from numpy.typing import NDArray
 from shapely.geometry import Point, Polygon
 from shapely.geometry import box as floor_box
 
+from drvs.core.errors import InvalidArgument
+from drvs.core.filters import HsvRange, object_type
+from drvs.core.geometry import FieldOfView, Homography, homography_from_pose
+from drvs.core.model import Detection, DetectionReport
 from drvs.detectors import CameraView, FrameAnalysis, HsvDetector
 from drvs.detectors import Frame as DetFrame
 from drvs.detectors.base import REGISTRY
-from drvs.errors import InvalidArgument
-from drvs.filters import HsvRange, object_type
-from drvs.fusion import PIXEL_SIGMA, fuse, ground_sampling_distance
-from drvs.geometry import FieldOfView, Homography, homography_from_pose
-from drvs.model import Detection, DetectionReport
+from drvs.server.fusion import PIXEL_SIGMA, fuse, ground_sampling_distance
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import parse_scenario
 from drvs.sim.scene import FloorPatch, render_view

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from shapely.geometry import Point, Polygon
 
-from drvs.errors import InvalidArgument
-from drvs.geometry import (
+from drvs.core.errors import InvalidArgument
+from drvs.core.geometry import (
     FieldOfView,
     Homography,
     box_region,

@@ -5,7 +5,8 @@ from __future__ import annotations
 import grpc
 from grpc import aio
 
-from drvs import _grpc, errors
+from drvs.core import errors
+from drvs.wire import _grpc
 
 
 def rpc_error(code: grpc.StatusCode, details: str) -> aio.AioRpcError:
@@ -21,7 +22,7 @@ def test_a_connection_broken_under_a_call_is_unavailable_not_a_fault_of_the_peer
 
 
 #: The contract, written out here rather than read from the module under test: a wrong or missing
-#: row in drvs._grpc fails this test.
+#: row in drvs.wire._grpc fails this test.
 EXPECTED_STATUS: dict[type[errors.DrvsError], grpc.StatusCode] = {
     errors.InvalidArgument: grpc.StatusCode.INVALID_ARGUMENT,
     errors.NotFound: grpc.StatusCode.NOT_FOUND,

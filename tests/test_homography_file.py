@@ -10,9 +10,9 @@ import numpy as np
 import pytest
 import yaml
 
-from drvs.errors import InvalidArgument
-from drvs.geometry import Homography, homography_from_pose
-from drvs.homography_file import load_homography, save_homography
+from drvs.core.errors import InvalidArgument
+from drvs.core.geometry import Homography, homography_from_pose
+from drvs.core.homography_file import load_homography, save_homography
 
 ROWS = [[0.5, -0.25, 4.0], [0.0, 2.0, -1.0], [0.001, 0.002, 1.0]]
 FLAT = [v for row in ROWS for v in row]

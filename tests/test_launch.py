@@ -1,4 +1,4 @@
-"""drvs.launch, which the demo, the office and most tests start their processes with: readiness is
+"""drvs.tools.launch, which the demo, the office and most tests start their processes with: readiness is
 awaited by gRPC health, and a process is never left running when a wait fails or times out."""
 
 from __future__ import annotations
@@ -10,9 +10,9 @@ import pytest
 from grpc import aio
 from grpc_health.v1 import health, health_pb2, health_pb2_grpc
 
-from drvs.launch import ManagedProcess, running, running_server, start_camera, start_server, wait_serving
 from drvs.robot import DrvsClient
 from drvs.sim.scene import RecordedCamera
+from drvs.tools.launch import ManagedProcess, running, running_server, start_camera, start_server, wait_serving
 
 from .helpers import CAM1_REGION, YELLOW
 

@@ -21,11 +21,11 @@ from mcap.reader import make_reader
 from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory
 
-from drvs.filters import HsvRange
-from drvs.foxglove_client import Channel, FoxgloveClient
-from drvs.launch import LIVE_READY, ManagedProcess, free_ports, start_server
-from drvs.liveview import SCENE_TOPICS, foxglove_layout
+from drvs.core.filters import HsvRange
+from drvs.live.foxglove_client import Channel, FoxgloveClient
+from drvs.live.liveview import SCENE_TOPICS, foxglove_layout
 from drvs.sim.scene import FloorPatch, RecordedCamera
+from drvs.tools.launch import LIVE_READY, ManagedProcess, free_ports, start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
 
 from .fakes import start_recorded_camera
@@ -307,9 +307,9 @@ async def test_a_live_view_that_cannot_start_stops_the_server_before_it_serves(t
 
 
 def test_the_shipped_foxglove_layout_is_the_one_the_code_makes() -> None:
-    """docs/foxglove-layout.json comes from drvs.liveview.foxglove_layout (foxglove-sdk's layouts)."""
+    """docs/foxglove-layout.json comes from drvs.live.liveview.foxglove_layout (foxglove-sdk's layouts)."""
     shipped = (Path(__file__).resolve().parents[1] / "docs" / "foxglove-layout.json").read_text()
-    assert shipped == foxglove_layout(), "regenerate: python -m drvs.liveview > docs/foxglove-layout.json"
+    assert shipped == foxglove_layout(), "regenerate: python -m drvs.live.liveview > docs/foxglove-layout.json"
     panel = json.loads(shipped)["content"]["items"][0]["content"]
     assert panel["panelType"] == "ThreeDee" and set(panel["config"]["topics"]) >= set(SCENE_TOPICS)
 

@@ -20,8 +20,8 @@ from mcap.reader import make_reader
 from mcap_protobuf.schema import build_file_descriptor_set
 from websockets.exceptions import InvalidStatus
 
-from drvs.foxglove_client import FoxgloveClient
-from drvs.launch import LIVE_READY, ManagedProcess, start_server
+from drvs.live.foxglove_client import FoxgloveClient
+from drvs.tools.launch import LIVE_READY, ManagedProcess, start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
 
 from .helpers import detect_message, wait_until

@@ -7,7 +7,7 @@ import math
 
 import pytest
 
-from drvs.meter import ETHERNET_HEADER, IPV4_HEADER, TCP_HEADER, TCP_TIMESTAMPS, CountingRelay, tcp_counters
+from drvs.tools.meter import ETHERNET_HEADER, IPV4_HEADER, TCP_HEADER, TCP_TIMESTAMPS, CountingRelay, tcp_counters
 
 UP = 1_000_000  # bytes the client sends through the relay
 DOWN = 300_000  # bytes the target answers with

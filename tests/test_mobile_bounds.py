@@ -17,9 +17,9 @@ from shapely.geometry import box
 
 from drvs import DrvsClient
 from drvs.camera import CameraNode, PushSource
-from drvs.launch import running_server
-from drvs.model import Pose2
+from drvs.core.model import Pose2
 from drvs.sim.scenario import parse_scenario
+from drvs.tools.launch import running_server
 from drvs.v1 import registry_pb2_grpc
 
 from .helpers import MOUNT, YELLOW

@@ -18,12 +18,12 @@ from shapely.geometry import box
 
 from drvs import DrvsClient
 from drvs.camera import CameraNode, PushSource
-from drvs.errors import FailedPrecondition, InvalidArgument
-from drvs.launch import ManagedProcess, start_server
-from drvs.mobile import Mount, PoseBuffer
-from drvs.model import Pose2
+from drvs.core.errors import FailedPrecondition, InvalidArgument
+from drvs.core.mobile import Mount, PoseBuffer
+from drvs.core.model import Pose2
 from drvs.sim.scenario import parse_scenario
 from drvs.sim.scene import record_camera
+from drvs.tools.launch import ManagedProcess, start_server
 
 from .helpers import MOBILE_SCENE, MOBILE_SIZE, MOBILE_TARGET, MOUNT, YELLOW, mounted_camera, mounted_frame
 
@@ -134,8 +134,8 @@ def test_pose_buffer_interpolates_between_poses_and_refuses_gaps() -> None:
 
 def test_a_mounts_homography_is_the_composed_pinhole_camera() -> None:
     """Base homography moved by a pose == the pinhole camera placed where the mount puts it."""
-    from drvs.geometry import homography_from_pose
-    from drvs.mobile import map_homography
+    from drvs.core.geometry import homography_from_pose
+    from drvs.core.mobile import map_homography
 
     pose = Pose2(3.0, -1.0, math.radians(35))
     composed = map_homography(MOUNT.base_homography(SIZE), pose)

@@ -27,12 +27,12 @@ from numpy.typing import NDArray
 
 from drvs import DrvsClient
 from drvs.camera import CameraNode, PushSource
-from drvs.launch import running_server
-from drvs.model import DetectionRequest, Pose2, Snapshot
+from drvs.core.model import DetectionRequest, Pose2, Snapshot
 from drvs.server import DrvsServer
 from drvs.server.config import ServerConfig
 from drvs.server.fusion_session import Continuous
 from drvs.sim.scenario import Scenario, parse_scenario
+from drvs.tools.launch import running_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 from .helpers import (

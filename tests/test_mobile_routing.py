@@ -17,13 +17,13 @@ from grpc import aio
 from shapely.geometry import Polygon, box
 
 from drvs import DrvsClient
-from drvs.errors import FailedPrecondition, InvalidArgument, NotFound, ResourceExhausted
-from drvs.fusion import fuse
-from drvs.geometry import Homography
-from drvs.launch import running_server
-from drvs.mobile import Mount, map_homography, move_polygon
-from drvs.model import Detection, DetectionReport, PixelBox, Pose2
-from drvs.registry import Registry
+from drvs.core.errors import FailedPrecondition, InvalidArgument, NotFound, ResourceExhausted
+from drvs.core.geometry import Homography
+from drvs.core.mobile import Mount, map_homography, move_polygon
+from drvs.core.model import Detection, DetectionReport, PixelBox, Pose2
+from drvs.server.fusion import fuse
+from drvs.server.registry import Registry
+from drvs.tools.launch import running_server
 from drvs.v1 import detection_pb2, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 from .test_registry import SIZE, Clock, camera_at

@@ -44,14 +44,14 @@ from drvs_bench.onnx_models import (
 )
 
 from drvs.camera.config import load_config
+from drvs.core.errors import FailedPrecondition, InvalidArgument
+from drvs.core.filters import object_type
+from drvs.core.geometry import FieldOfView, homography_from_pose
 from drvs.detectors import CameraView, Frame, FrameAnalysis
 from drvs.detectors.model import ModelDetector, ModelSpec, letterbox, parse_models
-from drvs.errors import FailedPrecondition, InvalidArgument
-from drvs.filters import object_type
-from drvs.geometry import FieldOfView, homography_from_pose
-from drvs.launch import ManagedProcess, camera_ready, start_server
 from drvs.robot import DrvsClient
 from drvs.sim.scene import FloorPatch, record_camera, render_view
+from drvs.tools.launch import ManagedProcess, camera_ready, start_server
 
 IMAGE_SIZE = (640, 480)
 HOMOGRAPHY = homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, IMAGE_SIZE)

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import pytest
 
-from drvs.errors import InvalidArgument
-from drvs.net import format_address, parse_address
+from drvs.core.errors import InvalidArgument
+from drvs.core.net import format_address, parse_address
 
 
 @pytest.mark.parametrize(

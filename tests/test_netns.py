@@ -21,8 +21,8 @@ from typing import Any
 import pytest
 import pytest_asyncio
 
-from drvs.launch import CAMERA_REGISTERED, SERVER_READY, ManagedProcess
 from drvs.sim.scene import RecordedCamera
+from drvs.tools.launch import CAMERA_REGISTERED, SERVER_READY, ManagedProcess
 
 from .helpers import CAM1_REGION, MAX_RANGE
 

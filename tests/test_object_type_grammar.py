@@ -1,4 +1,4 @@
-"""The object-type grammar (drvs.object_types) is the core's: validating a request parses every
+"""The object-type grammar (drvs.core.object_types) is the core's: validating a request parses every
 filter_def syntax without loading OpenCV or a detector plug-in, on a robot and on the server, with
 real interpreters; the typed builders (drvs.hsv, drvs.aruco, ...) produce strings the grammar
 accepts and refuse bad arguments by name; a third-party plug-in still adds its own prefix."""
@@ -13,9 +13,9 @@ from typing import Any
 import pytest
 
 import drvs
-from drvs import object_types
-from drvs.errors import InvalidArgument
-from drvs.object_types import HsvRange, MarkerType, ModelType, object_type
+from drvs.core import object_types
+from drvs.core.errors import InvalidArgument
+from drvs.core.object_types import HsvRange, MarkerType, ModelType, object_type
 
 from .test_object_types import plugin_env
 
@@ -39,7 +39,7 @@ def test_a_robot_validates_every_kind_of_request_without_opencv_or_a_detector() 
     code = (
         "import sys\n"
         "from shapely.geometry import box\n"
-        "from drvs.model import DetectionRequest\n"
+        "from drvs.core.model import DetectionRequest\n"
         f"for f in {ONE_OF_EACH!r}:\n"
         "    r = DetectionRequest('r1', 'bot', f, box(0, 0, 1, 1), '127.0.0.1:5000')\n"
         "    r.validate()\n"
@@ -53,13 +53,13 @@ def test_a_robot_validates_every_kind_of_request_without_opencv_or_a_detector() 
 
 
 def test_the_server_parses_robots_requests_without_opencv_or_a_detector() -> None:
-    """drvs.convert.request_from_pb is what the server validates a robot's request with."""
+    """drvs.wire.convert.request_from_pb is what the server validates a robot's request with."""
     code = (
         "import sys\n"
         "from shapely.geometry import box\n"
-        "from drvs.convert import request_from_pb, request_to_pb\n"
-        "from drvs.errors import InvalidArgument\n"
-        "from drvs.model import DetectionRequest\n"
+        "from drvs.wire.convert import request_from_pb, request_to_pb\n"
+        "from drvs.core.errors import InvalidArgument\n"
+        "from drvs.core.model import DetectionRequest\n"
         "def pb(f):\n"
         "    return request_to_pb(DetectionRequest('r1', 'bot', f, box(0, 0, 1, 1), '127.0.0.1:5000'))\n"
         f"for f in {ONE_OF_EACH!r}:\n"
@@ -80,8 +80,8 @@ def test_a_plug_in_installed_beside_the_server_adds_its_grammar(tmp_path: Path) 
     answers (and its errors), and the built-in types still never needed it."""
     code = (
         "import sys\n"
-        "from drvs.errors import InvalidArgument\n"
-        "from drvs.object_types import detector_kind, is_known_type\n"
+        "from drvs.core.errors import InvalidArgument\n"
+        "from drvs.core.object_types import detector_kind, is_known_type\n"
         "assert detector_kind('people') == 'people' and not is_known_type('yellowish_30')\n" + NOTHING_HEAVY + ""
         "assert detector_kind('yellowish_30') == 'yellowish' and is_known_type('greenish_1')\n"
         "try:\n"

@@ -15,10 +15,10 @@ from pathlib import Path
 import pytest
 import pytest_asyncio
 
-from drvs.errors import FailedPrecondition, InvalidArgument
-from drvs.launch import ManagedProcess, start_server
+from drvs.core.errors import FailedPrecondition, InvalidArgument
 from drvs.robot import DrvsClient
 from drvs.sim.scene import RecordedCamera
+from drvs.tools.launch import ManagedProcess, start_server
 
 from .fakes import start_recorded_camera
 from .helpers import CAM1_REGION, OBJECTS, YELLOW, metrics_port, scrape

@@ -5,9 +5,9 @@ from __future__ import annotations
 
 import json
 
-from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.robot import DrvsClient
 from drvs.sim.scene import RecordedCamera
+from drvs.tools.launch import ManagedProcess, start_camera, start_server
 
 from .helpers import CAM1_REGION, MAX_RANGE, YELLOW, metrics_port, scrape
 

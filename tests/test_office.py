@@ -12,8 +12,8 @@ import cv2
 import pytest
 from shapely.geometry import LineString, Point, Polygon, box
 
-from drvs.launch import ManagedProcess
 from drvs.sim.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
+from drvs.tools.launch import ManagedProcess
 
 SMALL_ROOM = Path(__file__).parent / "scenarios" / "small_room.yaml"
 TWO_CAMERAS = Path(__file__).parent / "scenarios" / "two_cameras.yaml"

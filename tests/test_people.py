@@ -23,15 +23,15 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
+from drvs.core.errors import InvalidArgument
+from drvs.core.geometry import FieldOfView, Homography, homography_from_pose
+from drvs.core.homography_file import save_homography
+from drvs.core.model import Detection
 from drvs.detectors import CameraView, Frame, FrameAnalysis, parse_object_type
 from drvs.detectors.people import PeopleDetector
-from drvs.errors import InvalidArgument
-from drvs.geometry import FieldOfView, Homography, homography_from_pose
-from drvs.homography_file import save_homography
-from drvs.launch import ManagedProcess, start_camera, start_server
-from drvs.model import Detection
 from drvs.robot import DrvsClient
 from drvs.sim.scene import write_video
+from drvs.tools.launch import ManagedProcess, start_camera, start_server
 
 from .helpers import VTEST, footage, metrics_port, scrape
 

@@ -20,13 +20,11 @@ from grpc import aio
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
-from drvs import certs as drvs_certs
-from drvs.convert import homography_from_pb
-from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.robot import DrvsClient
-from drvs.security import Security, bearer_token
 from drvs.server import DrvsServer
 from drvs.sim.scene import RecordedCamera
+from drvs.tools import certs as drvs_certs
+from drvs.tools.launch import ManagedProcess, start_camera, start_server
 from drvs.v1 import (
     detection_pb2,
     detection_pb2_grpc,
@@ -36,6 +34,8 @@ from drvs.v1 import (
     stream_pb2,
     stream_pb2_grpc,
 )
+from drvs.wire.convert import homography_from_pb
+from drvs.wire.security import Security, bearer_token
 
 from .fakes import server_process, start_recorded_camera
 from .helpers import CAM1_REGION, MAX_RANGE, YELLOW, register_message, serving_detection

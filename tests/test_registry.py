@@ -9,9 +9,9 @@ import pytest
 import shapely
 from shapely.geometry import Polygon, box
 
-from drvs.errors import InvalidArgument, NotFound
-from drvs.geometry import FieldOfView, Homography, box_region, homography_from_pose, polygon_region
-from drvs.registry import Registry
+from drvs.core.errors import InvalidArgument, NotFound
+from drvs.core.geometry import FieldOfView, Homography, box_region, homography_from_pose, polygon_region
+from drvs.server.registry import Registry
 
 SIZE = (640, 480)
 TTL = 10.0
@@ -327,7 +327,7 @@ def test_a_region_asked_about_again_is_routed_afresh_after_every_change(clock: C
 
 
 def test_routing_memory_is_bounded(clock: Clock) -> None:
-    from drvs import registry
+    from drvs.server import registry
 
     reg = new_registry(clock)
     register(reg, "a", 0.0)
@@ -415,7 +415,7 @@ def test_frames_are_indexed_apart(clock: Clock) -> None:
 def test_a_large_region_and_a_wide_view_are_found_every_way(clock: Clock) -> None:
     """A region over more cells than SCAN_MIN_CELLS that hold cameras (every camera's bounds tested
     at once), one over fewer (the cells probed), and a view many of the finest cells wide."""
-    from drvs import registry
+    from drvs.server import registry
 
     reg = new_registry(clock)
     for i in range(100):
@@ -438,8 +438,8 @@ def test_a_large_region_and_a_wide_view_are_found_every_way(clock: Clock) -> Non
 
 
 def test_changes_update_the_index_in_place_and_pose_updates_never_touch_it(clock: Clock) -> None:
-    from drvs.mobile import Mount
-    from drvs.model import Pose2
+    from drvs.core.mobile import Mount
+    from drvs.core.model import Pose2
 
     reg = Registry(lease_ttl_s=TTL, clock=clock.reader(), min_pose_interval_s=0.0)
     index = reg._tree

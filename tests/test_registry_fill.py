@@ -15,9 +15,9 @@ import grpc
 import pytest
 from grpc import aio
 
-from drvs.etcd import Endpoints, EtcdClient
-from drvs.launch import ETCD_QUOTA_BYTES, start_etcd, start_server
-from drvs.mobile import Mount
+from drvs.core.mobile import Mount
+from drvs.server.etcd import Endpoints, EtcdClient
+from drvs.tools.launch import ETCD_QUOTA_BYTES, start_etcd, start_server
 from drvs.v1 import geometry_pb2, registry_pb2, registry_pb2_grpc
 
 from .helpers import register_message

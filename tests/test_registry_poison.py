@@ -17,12 +17,12 @@ import pytest_asyncio
 from grpc import aio
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-from drvs import metrics
-from drvs.errors import Unavailable
-from drvs.etcd import Endpoints, EtcdClient
-from drvs.launch import EtcdMember, start_etcd, start_server
+from drvs.core.errors import Unavailable
+from drvs.server.etcd import Endpoints, EtcdClient
 from drvs.server.shared import MAX_VALUE_BYTES, POSES, PREFIX, PoseRecord, Record, SharedRegistry
+from drvs.tools.launch import EtcdMember, start_etcd, start_server
 from drvs.v1 import registry_pb2, registry_pb2_grpc
+from drvs.wire import metrics
 
 from .helpers import metrics_at_least, metrics_port, register_message, wait_until
 

@@ -21,12 +21,12 @@ from mcap.reader import make_reader
 from mcap.records import Schema
 from shapely.geometry import box
 
-from drvs import liveview as lv
-from drvs.foxglove_client import FoxgloveClient
-from drvs.launch import LIVE_READY, ManagedProcess
-from drvs.replay import MAGIC, MAX_CHUNK_BYTES, MAX_EXPANSION, utc
+from drvs.live import liveview as lv
+from drvs.live.foxglove_client import FoxgloveClient
+from drvs.live.replay import MAGIC, MAX_CHUNK_BYTES, MAX_EXPANSION, utc
 from drvs.robot import DrvsClient
 from drvs.server.server import DrvsServer
+from drvs.tools.launch import LIVE_READY, ManagedProcess
 from drvs.v1 import detection_pb2, geometry_pb2
 
 from .helpers import YELLOW
@@ -117,7 +117,7 @@ def recording(tmp_path_factory: pytest.TempPathFactory) -> Recorded:
 def replay_argv(*args: str) -> list[str]:
     """drvs-replay as installed (the console script beside this interpreter), else its module."""
     script = Path(sys.executable).parent / "drvs-replay"
-    return [str(script), *args] if script.exists() else [sys.executable, "-m", "drvs.replay", *args]
+    return [str(script), *args] if script.exists() else [sys.executable, "-m", "drvs.live.replay", *args]
 
 
 def replay(*args: str) -> subprocess.CompletedProcess[str]:

@@ -11,9 +11,9 @@ from pathlib import Path
 import grpc
 from grpc import aio
 
-from drvs.launch import start_server
-from drvs.model import MAX_ID_LENGTH
+from drvs.core.model import MAX_ID_LENGTH
 from drvs.robot import DrvsClient
+from drvs.tools.launch import start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc
 
 #: The ids of the issue's flood: 1 MB each.

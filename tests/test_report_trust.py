@@ -18,15 +18,15 @@ from grpc import aio
 from shapely.geometry import box
 from shapely.ops import unary_union
 
-from drvs.errors import PermissionDenied
-from drvs.launch import ManagedProcess, start_camera, start_server
-from drvs.net import parse_address
-from drvs.report_auth import KEY_BYTES, report_key
+from drvs.core.errors import PermissionDenied
+from drvs.core.net import parse_address
 from drvs.robot import DrvsClient
 from drvs.server import DrvsServer
 from drvs.server.policy import CallbackPolicy, IPAddress
 from drvs.sim.scene import RecordedCamera
+from drvs.tools.launch import ManagedProcess, start_camera, start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
+from drvs.wire.report_auth import KEY_BYTES, report_key
 
 from .helpers import CAM1_REGION, CAM2_REGION, MAX_RANGE, YELLOW, CapturingCamera, detect_message, register_message
 

@@ -9,9 +9,9 @@ from collections.abc import AsyncIterator
 from hypothesis import given
 from hypothesis import strategies as st
 
-from drvs.errors import InvalidArgument
-from drvs.request_stream import ReplyQueue, StreamContext, serve_request_stream_queued
+from drvs.core.errors import InvalidArgument
 from drvs.v1 import detection_pb2, geometry_pb2
+from drvs.wire.request_stream import ReplyQueue, StreamContext, serve_request_stream_queued
 
 FILTERS = ["hsv_014110130035225200", "hsv_040080080080255255"]
 Box = tuple[float, float, float, float]

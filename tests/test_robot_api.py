@@ -20,11 +20,11 @@ import pytest
 from grpc import aio
 
 import drvs
-from drvs import errors, model
-from drvs.errors import DrvsError, InvalidArgument, Unavailable
-from drvs.launch import ManagedProcess, start_server
-from drvs.model import CameraError, DetectionReport
+from drvs.core import errors, model
+from drvs.core.errors import DrvsError, InvalidArgument, Unavailable
+from drvs.core.model import CameraError, DetectionReport
 from drvs.robot import DrvsClient, RetryPolicy
+from drvs.tools.launch import ManagedProcess, start_server
 from drvs.v1 import registry_pb2_grpc
 
 from .helpers import BOTH_REGION, CAM1_REGION, YELLOW, Office, register_message
@@ -311,7 +311,7 @@ async def test_errors_carry_their_code_and_the_failed_camera(refused_address: st
 def test_every_error_class_has_its_status_name() -> None:
     import grpc
 
-    from drvs import _grpc
+    from drvs.wire import _grpc
 
     for code, cls in errors.BY_CODE.items():
         assert cls.code == code and grpc.StatusCode[code] == _grpc.status_of(cls("x"))
@@ -371,11 +371,11 @@ def test_import_drvs_is_light_and_re_exports_the_robot_api() -> None:
         "assert 'cv2' not in sys.modules and 'grpc' not in sys.modules, 'heavy import drvs'\n"
         "from drvs import DrvsClient, RetryPolicy, Detection, DetectionReport, DetectionResult, CameraError\n"
         "from drvs import DrvsError, Unavailable, InvalidArgument\n"
-        "import drvs.robot, drvs.errors, drvs.model\n"
-        "assert DrvsClient is drvs.robot.DrvsClient and Unavailable is drvs.errors.Unavailable\n"
+        "import drvs.robot, drvs.core.errors, drvs.core.model\n"
+        "assert DrvsClient is drvs.robot.DrvsClient and Unavailable is drvs.core.errors.Unavailable\n"
         "from drvs import Security\n"
-        "import drvs.security\n"
-        "assert Security is drvs.security.Security is drvs.robot.Security\n"
+        "import drvs.wire.security\n"
+        "assert Security is drvs.wire.security.Security is drvs.robot.Security\n"
         "assert 'cv2' not in sys.modules, 'the robot API imports cv2'\n"
     )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=60)

@@ -26,16 +26,16 @@ import pytest_asyncio
 from grpc import aio
 
 import drvs
-from drvs import _grpc
-from drvs.convert import snapshot_to_pb
-from drvs.errors import DeadlineExceeded, InvalidArgument, ResourceExhausted, Unavailable
-from drvs.filters import HsvRange
-from drvs.launch import ManagedProcess, start_server
-from drvs.model import CameraError, Snapshot, WorldObject
-from drvs.request_stream import StreamContext, refusal
+from drvs.core.errors import DeadlineExceeded, InvalidArgument, ResourceExhausted, Unavailable
+from drvs.core.filters import HsvRange
+from drvs.core.model import CameraError, Snapshot, WorldObject
 from drvs.robot import DrvsClient, snapshot_json
 from drvs.sim.scene import FloorPatch, RecordedCamera
+from drvs.tools.launch import ManagedProcess, start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc
+from drvs.wire import _grpc
+from drvs.wire.convert import snapshot_to_pb
+from drvs.wire.request_stream import StreamContext, refusal
 
 from .fakes import start_recorded_camera
 from .helpers import YELLOW, Scene, metrics_port, record_facing, scrape, serving_detection, wait_until

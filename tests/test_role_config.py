@@ -12,11 +12,11 @@ import pytest
 
 from drvs.camera.node import CameraNode
 from drvs.camera.source import VideoSource
-from drvs.errors import InvalidArgument
-from drvs.geometry import homography_from_pose
-from drvs.launch import ManagedProcess
+from drvs.core.errors import InvalidArgument
+from drvs.core.geometry import homography_from_pose
 from drvs.server import DrvsServer
 from drvs.server.config import ServerConfig
+from drvs.tools.launch import ManagedProcess
 
 CAMERA_ARGS = ("--id", "cam1", "--source", "x.avi", "--homography", "h.yaml")
 

@@ -12,10 +12,10 @@ from collections.abc import AsyncIterator
 import pytest
 from grpc import aio
 
-from drvs.errors import DeadlineExceeded, InvalidArgument, Unavailable
-from drvs.launch import start_server
+from drvs.core.errors import DeadlineExceeded, InvalidArgument, Unavailable
 from drvs.robot import DrvsClient
 from drvs.server.routing_errors import RoutingErrors
+from drvs.tools.launch import start_server
 from drvs.v1 import registry_pb2_grpc
 
 from .helpers import YELLOW, register_message

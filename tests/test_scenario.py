@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import yaml
 
-from drvs.geometry import FieldOfView
+from drvs.core.geometry import FieldOfView
 from drvs.sim.scenario import DEFAULT_SCENARIO, ScenarioError, along_path, load_scenario, parse_scenario
 
 OFFICE = yaml.safe_load(DEFAULT_SCENARIO.read_text())

@@ -20,18 +20,19 @@ import pytest_asyncio
 from grpc import aio
 from shapely.geometry import box
 
-from drvs import DrvsClient, _grpc
+from drvs import DrvsClient
+from drvs.core.filters import object_type
+from drvs.core.geometry import FieldOfView
+from drvs.core.model import Detection, Pose2
 from drvs.detectors.base import REGISTRY, CameraView, Frame, FrameAnalysis
-from drvs.filters import object_type
-from drvs.geometry import FieldOfView
-from drvs.launch import ManagedProcess, start_server
-from drvs.model import Detection, Pose2
 from drvs.sim.office import start_scout
 from drvs.sim.poses import Mover, SimPoseSource, parse_spec
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import Scenario, load_scenario, parse_scenario
 from drvs.sim.world import WorldServer
+from drvs.tools.launch import ManagedProcess, start_server
 from drvs.v1 import sim_pb2, sim_pb2_grpc
+from drvs.wire import _grpc
 
 from .test_scenario import with_change
 

@@ -14,15 +14,15 @@ import pytest_asyncio
 from grpc import aio
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 
-from drvs.certs import make_all
-from drvs.errors import InvalidArgument, ResourceExhausted, Unauthenticated, Unavailable
-from drvs.launch import ManagedProcess, start_camera, start_server
+from drvs.core.errors import InvalidArgument, ResourceExhausted, Unauthenticated, Unavailable
 from drvs.robot import DrvsClient, RetryPolicy
-from drvs.security import Security, load_tokens
 from drvs.server import DrvsServer
 from drvs.server.policy import RequestLimits
 from drvs.sim.scene import RecordedCamera
+from drvs.tools.certs import make_all
+from drvs.tools.launch import ManagedProcess, start_camera, start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
+from drvs.wire.security import Security, load_tokens
 
 from .fakes import start_recorded_camera
 from .helpers import CAM1_REGION, MAX_RANGE, YELLOW, detect_message, register_message

@@ -13,8 +13,8 @@ from grpc import aio
 from grpc_health.v1 import health_pb2, health_pb2_grpc
 from grpc_reflection.v1alpha import reflection_pb2, reflection_pb2_grpc
 
-from drvs.errors import ResourceExhausted
-from drvs.geometry import homography_from_pose
+from drvs.core.errors import ResourceExhausted
+from drvs.core.geometry import homography_from_pose
 from drvs.robot import DrvsClient
 from drvs.server import DrvsServer
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc

@@ -25,18 +25,18 @@ from grpc import aio
 
 from drvs.camera.node import CameraNode
 from drvs.camera.source import VideoSource
-from drvs.certs import make_all
-from drvs.convert import snapshot_from_pb
-from drvs.errors import FailedPrecondition
-from drvs.filters import HsvRange
-from drvs.geometry import box_region
-from drvs.launch import ManagedProcess, start_server
-from drvs.model import DetectionRequest
-from drvs.report_auth import KEY_BYTES
+from drvs.core.errors import FailedPrecondition
+from drvs.core.filters import HsvRange
+from drvs.core.geometry import box_region
+from drvs.core.model import DetectionRequest
 from drvs.server import DrvsServer
 from drvs.server import servicers as servicers_module
 from drvs.sim.scene import FloorPatch, RecordedCamera
+from drvs.tools.certs import make_all
+from drvs.tools.launch import ManagedProcess, start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2_grpc
+from drvs.wire.convert import snapshot_from_pb
+from drvs.wire.report_auth import KEY_BYTES
 
 from .fakes import start_recorded_camera
 from .helpers import (
@@ -486,7 +486,7 @@ async def test_with_mutual_tls_only_camera_certificates_report_to_the_server(
 ) -> None:
     """Mutual TLS: the cameras report over TLS with their certificates, so a fused single shot works;
     a caller with a robot's certificate is refused on ReportDetections (PERMISSION_DENIED)."""
-    from drvs.security import Security
+    from drvs.wire.security import Security
 
     async with scene(overlap, tls_args(certs, "server"), tls_args(certs, "camera")) as secured:
         robot = Security(

@@ -24,13 +24,21 @@ import pytest_asyncio
 from shapely.geometry import box
 
 from drvs import DrvsClient
-from drvs.errors import InvalidArgument
-from drvs.launch import EtcdMember, ManagedProcess, free_ports, running_server, start_camera, start_etcd, start_server
-from drvs.meter import MeteredClient
-from drvs.model import Pose2
-from drvs.net import local_ip_towards
+from drvs.core.errors import InvalidArgument
+from drvs.core.model import Pose2
+from drvs.core.net import local_ip_towards
 from drvs.robot.client import RetryPolicy
 from drvs.sim.scene import RecordedCamera, record_camera
+from drvs.tools.launch import (
+    EtcdMember,
+    ManagedProcess,
+    free_ports,
+    running_server,
+    start_camera,
+    start_etcd,
+    start_server,
+)
+from drvs.tools.meter import MeteredClient
 
 from .helpers import CAM1_REGION, CAM1_SEEN, MAX_RANGE, MOBILE_SIZE, MOUNT, YELLOW, nearest, roi, run_robot
 

@@ -12,11 +12,11 @@ from typing import Any
 
 import pytest
 
-from drvs._cli import format_number
-from drvs.errors import InvalidArgument
+from drvs.core.errors import InvalidArgument
 from drvs.server import DrvsServer
 from drvs.server.cli import build_parser, config_from
 from drvs.server.config import ENVIRONMENT, FLAGS, SETTINGS, ServerConfig, Setting, described
+from drvs.wire._cli import format_number
 
 RANGED = [s for s in SETTINGS.values() if s.range is not None]
 WITH_ENV = [s for s in SETTINGS.values() if s.env is not None]

@@ -22,10 +22,10 @@ from shapely.geometry import box as floor_box
 from shapely.ops import unary_union
 
 from drvs import DrvsClient
-from drvs.certs import make_all
-from drvs.launch import EtcdMember, ManagedProcess, start_camera, start_etcd, start_server
-from drvs.mobile import Mount
+from drvs.core.mobile import Mount
 from drvs.sim.scene import RecordedCamera
+from drvs.tools.certs import make_all
+from drvs.tools.launch import EtcdMember, ManagedProcess, start_camera, start_etcd, start_server
 from drvs.v1 import geometry_pb2, registry_pb2, registry_pb2_grpc
 
 from .helpers import BOTH_REGION, CAM1_REGION, CAM2_REGION, MAX_RANGE, YELLOW, register_message

@@ -12,9 +12,9 @@ import pytest
 import yaml
 from shapely.geometry import Polygon
 
+from drvs.core.filters import object_type
+from drvs.core.model import Detection
 from drvs.detectors.base import REGISTRY, CameraView, Frame, FrameAnalysis
-from drvs.filters import object_type
-from drvs.model import Detection
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import Scenario, load_scenario, parse_scenario
 

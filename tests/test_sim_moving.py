@@ -15,15 +15,15 @@ import yaml
 from numpy.typing import NDArray
 from shapely.geometry import Point
 
-from drvs import _grpc
+from drvs.core.filters import object_type
+from drvs.core.model import Detection
 from drvs.detectors.base import REGISTRY, CameraView, Frame, FrameAnalysis
-from drvs.filters import object_type
-from drvs.model import Detection
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import DEFAULT_SCENARIO, Scenario, ScenarioError, load_scenario, parse_scenario
 from drvs.sim.source import SimSource
 from drvs.sim.world import WorldServer, WorldState
 from drvs.v1 import sim_pb2, sim_pb2_grpc
+from drvs.wire import _grpc
 
 from .test_scenario import with_change
 

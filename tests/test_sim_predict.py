@@ -7,7 +7,7 @@ from __future__ import annotations
 import pytest
 from shapely.geometry import box
 
-from drvs.model import WorldObject
+from drvs.core.model import WorldObject
 from drvs.sim.predict import MovingObstacle, TrackRecord, decide, first_conflict, positions_along
 
 NOW = 1_000_000.0
@@ -102,7 +102,7 @@ def test_a_replans_new_track_of_a_moving_obstacle_keeps_its_motion() -> None:
     until their second look. A new track where a moving track of the earlier request was just seen
     is that obstacle: it is predicted at that track's velocity, not taken to stand still (the
     default office's robot was once run into by the trolley that way; CI, 6e30bf9)."""
-    from drvs.model import Snapshot
+    from drvs.core.model import Snapshot
     from drvs.sim.robot import SimRobot
     from drvs.sim.scenario import load_scenario
 

@@ -16,11 +16,11 @@ from pathlib import Path
 import pytest
 
 from drvs import DrvsClient
-from drvs.certs import make_all
-from drvs.errors import PermissionDenied, Unavailable
-from drvs.launch import ManagedProcess, start_camera, start_etcd, start_server
-from drvs.security import Security
+from drvs.core.errors import PermissionDenied, Unavailable
 from drvs.sim.scene import RecordedCamera
+from drvs.tools.certs import make_all
+from drvs.tools.launch import ManagedProcess, start_camera, start_etcd, start_server
+from drvs.wire.security import Security
 
 from .helpers import CAM1_REGION, MAX_RANGE, YELLOW
 
@@ -121,7 +121,7 @@ async def test_robot_and_camera_refuse_a_server_with_another_roles_certificate(
 def test_drvs_certs_gives_each_role_its_own_host_names(tmp_path: Path) -> None:
     from cryptography import x509
 
-    from drvs import certs as drvs_certs
+    from drvs.tools import certs as drvs_certs
 
     roles = ["--role", "server", "--role", "camera", "--role", "robot"]
     assert drvs_certs.main([*roles, "--out", str(tmp_path), "--server-host", "drvs.test", "--camera-host", "cams.test",

@@ -1,4 +1,4 @@
-"""drvs.tracking.Tracker on synthetic paths with measurement noise: ids stable through crossings,
+"""drvs.server.tracking.Tracker on synthetic paths with measurement noise: ids stable through crossings,
 misses and camera hand-overs, tracks dropped after drop_after_s, velocity and heading against the
 truth, markers by id, labels apart, time going backwards, bad input and the track cap."""
 
@@ -18,15 +18,15 @@ from hypothesis import strategies as st
 from numpy.typing import NDArray
 from shapely.geometry import box as floor_box
 
+from drvs.core.errors import InvalidArgument
+from drvs.core.filters import HsvRange
+from drvs.core.geometry import FieldOfView, homography_from_pose
+from drvs.core.model import DetectionReport, WorldObject
 from drvs.detectors import CameraView, FrameAnalysis, HsvDetector
 from drvs.detectors import Frame as DetFrame
-from drvs.errors import InvalidArgument
-from drvs.filters import HsvRange
-from drvs.fusion import fuse
-from drvs.geometry import FieldOfView, homography_from_pose
-from drvs.model import DetectionReport, WorldObject
+from drvs.server.fusion import fuse
+from drvs.server.tracking import MIN_HEADING_SPEED_MPS, Tracker
 from drvs.sim.scene import FloorPatch, render_view
-from drvs.tracking import MIN_HEADING_SPEED_MPS, Tracker
 
 from .helpers import IMAGE_SIZE, YELLOW
 

@@ -18,11 +18,11 @@ import pytest
 import pytest_asyncio
 from grpc import aio
 
-from drvs.geometry import homography_from_pose
-from drvs.launch import ManagedProcess
-from drvs.mobile import Mount
+from drvs.core.geometry import homography_from_pose
+from drvs.core.mobile import Mount
 from drvs.server import DrvsServer
 from drvs.server.config import ServerConfig
+from drvs.tools.launch import ManagedProcess
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 
 from .helpers import detect_message

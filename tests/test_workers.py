@@ -12,11 +12,11 @@ from pathlib import Path
 
 import pytest
 
-from drvs.errors import ResourceExhausted
-from drvs.launch import SERVER_READY, ManagedProcess, start_camera, start_etcd, start_server
-from drvs.model import Snapshot
+from drvs.core.errors import ResourceExhausted
+from drvs.core.model import Snapshot
 from drvs.robot import DrvsClient, RetryPolicy
 from drvs.sim.scene import RecordedCamera
+from drvs.tools.launch import SERVER_READY, ManagedProcess, start_camera, start_etcd, start_server
 
 from .helpers import CAM1_REGION, MAX_RANGE, YELLOW, scrape
 

@@ -40,10 +40,10 @@ from typing import Any
 import grpc
 from grpc import aio
 
-from drvs import _grpc
-from drvs.geometry import homography_from_pose
-from drvs.mobile import Mount
+from drvs.core.geometry import homography_from_pose
+from drvs.core.mobile import Mount
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
+from drvs.wire import _grpc
 
 from .common import YELLOW
 from .helpers import grid_position
@@ -298,7 +298,7 @@ async def abuse(args: argparse.Namespace) -> None:
 
 async def view_flood(args: argparse.Namespace, counts: dict[str, int], refusals: dict[str, int], end: float) -> None:
     """--view-floods publishers and as many subscribers that never read, on the live view."""
-    from drvs.foxglove_client import FoxgloveClient
+    from drvs.live.foxglove_client import FoxgloveClient
 
     loop = asyncio.get_running_loop()
     payload = b"x" * args.view_message_bytes

@@ -25,9 +25,9 @@ from typing import Any
 
 from grpc import aio
 
-from drvs.errors import DrvsError, ResourceExhausted
-from drvs.launch import start_server
-from drvs.meter import CountingRelay, MeteredClient
+from drvs.core.errors import DrvsError, ResourceExhausted
+from drvs.tools.launch import start_server
+from drvs.tools.meter import CountingRelay, MeteredClient
 from drvs.v1 import detection_pb2, registry_pb2_grpc
 
 from .fakes import AckingCamera, register_message, serve_camera

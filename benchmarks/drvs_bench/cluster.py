@@ -63,16 +63,16 @@ from typing import Any
 import grpc
 from grpc import aio
 
-from drvs import _grpc
 from drvs.camera import CameraNode, PushSource
-from drvs.filters import HsvRange
-from drvs.geometry import homography_from_pose
-from drvs.launch import SERVER_READY, ManagedProcess, cpu_seconds, running_etcd, start_etcd, start_server
+from drvs.core.filters import HsvRange
+from drvs.core.geometry import homography_from_pose
 from drvs.robot import DrvsClient
 from drvs.server import DrvsServer
 from drvs.server.config import ServerConfig
 from drvs.sim.scene import FloorPatch, render_view
+from drvs.tools.launch import SERVER_READY, ManagedProcess, cpu_seconds, running_etcd, start_etcd, start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2_grpc
+from drvs.wire import _grpc
 
 from .common import YELLOW, bench_process, machine, pyplot, write_result
 from .etcd_writes import fleet_writes

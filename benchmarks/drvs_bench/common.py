@@ -12,12 +12,12 @@ from pathlib import Path
 from types import ModuleType
 from typing import Any
 
-from drvs.homography_file import save_homography
-from drvs.launch import ManagedProcess
-from drvs.launch import cpu_seconds as cpu_seconds  # re-exported for the benchmarks
+from drvs.core.homography_file import save_homography
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import load_scenario
 from drvs.sim.scene import RecordedCamera, write_video
+from drvs.tools.launch import ManagedProcess
+from drvs.tools.launch import cpu_seconds as cpu_seconds  # re-exported for the benchmarks
 
 YELLOW = "hsv_014110130035225200"
 IMAGE_SIZE = (640, 480)
@@ -48,7 +48,7 @@ def record_people(directory: Path, cameras: int = 2) -> dict[str, RecordedCamera
     import numpy as np
     from numpy.typing import NDArray
 
-    from drvs.geometry import homography_from_pose
+    from drvs.core.geometry import homography_from_pose
 
     if not VTEST.is_file():
         return None

@@ -45,14 +45,14 @@ import yaml
 from numpy.typing import NDArray
 from shapely.geometry import Polygon, box
 
+from drvs.core.geometry import FieldOfView, Homography
+from drvs.core.homography_file import save_homography
 from drvs.detectors import REGISTRY, CameraView, Detector, Frame, FrameAnalysis, parse_object_type
-from drvs.geometry import FieldOfView, Homography
-from drvs.homography_file import save_homography
-from drvs.launch import ManagedProcess, start_camera, start_server
 from drvs.robot import DrvsClient
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import CameraDef, ColorDef, ObjectDef, Scenario, load_scenario
 from drvs.sim.scene import write_video
+from drvs.tools.launch import ManagedProcess, start_camera, start_server
 
 from .common import IMAGE_SIZE, cpu_seconds, machine, peak_rss_bytes, pyplot
 from .service import CAPACITY_NOT_POLICY
@@ -356,7 +356,7 @@ def vtest_frames(indices: Sequence[int], resize: bool = True) -> dict[int, NDArr
 
 
 def vtest_homography() -> Homography:
-    from drvs.geometry import homography_from_pose
+    from drvs.core.geometry import homography_from_pose
 
     position, yaw, pitch, hfov = VTEST_POSE
     return homography_from_pose(position, yaw, pitch, hfov, IMAGE_SIZE)
@@ -769,7 +769,7 @@ def accuracy_people(work: Work) -> dict[str, Any]:
         marks = {f["index"]: [(p["feet"][0] * sx, p["feet"][1] * sy) for p in f["people"]] for f in truth["frames"]}
         images = vtest_frames(list(marks), resize=size != native_size)
         position, yaw, pitch, hfov = VTEST_POSE
-        from drvs.geometry import homography_from_pose
+        from drvs.core.geometry import homography_from_pose
 
         homography = homography_from_pose(position, yaw, pitch, hfov, size)
         view = CameraView(homography, FieldOfView.compute(homography, size, VTEST_RANGE_M), size)

@@ -1,6 +1,6 @@
 """drvs-bench cluster `--parts writes`: what a fleet writes to etcd (issue 28, finding 12).
 
-A real etcd member (as drvs.launch runs it) and one `DrvsServer` in this process with the registry
+A real etcd member (as drvs.tools.launch runs it) and one `DrvsServer` in this process with the registry
 in it (the default lease, 10 s, and the default rates lifted so that the run is not refused). Fake
 cameras register, heartbeat and (the mobile ones) send pose updates over gRPC as camera nodes do,
 one phase after another; around each phase the run reads etcd's own counters from its /metrics
@@ -21,13 +21,13 @@ from typing import Any
 
 from grpc import aio
 
-from drvs.etcd import Endpoints, EtcdClient
-from drvs.launch import running_etcd
-from drvs.mobile import Mount
-from drvs.registry import DEFAULT_LEASE_TTL_S
+from drvs.core.mobile import Mount
 from drvs.server import DrvsServer
 from drvs.server.config import ServerConfig
+from drvs.server.etcd import Endpoints, EtcdClient
+from drvs.server.registry import DEFAULT_LEASE_TTL_S
 from drvs.server.shared import ROOT
+from drvs.tools.launch import running_etcd
 from drvs.v1 import geometry_pb2, registry_pb2, registry_pb2_grpc
 
 from .fakes import register_message

@@ -9,7 +9,7 @@ from typing import Any
 
 from grpc import aio
 
-from drvs.geometry import homography_from_pose
+from drvs.core.geometry import homography_from_pose
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2
 
 _Context = aio.ServicerContext[Any, Any]

@@ -1,4 +1,4 @@
-"""drvs-bench fusion: how well the server's fusion and tracking (drvs.fusion, drvs.tracking) work on
+"""drvs-bench fusion: how well the server's fusion and tracking (drvs.server.fusion, drvs.server.tracking) work on
 real pixels, and what fused delivery costs the server.
 
 Two overlapping cameras of the simulator (its renderer and camera geometry: textured floor,
@@ -6,7 +6,7 @@ lighting, sensor noise) look at yellow discs lying on the floor; the cameras' re
 finds them in the rendered pixels. Each frame goes through the pipeline the server runs: per
 camera a DetectionReport as a camera node makes it (found, narrowed, selected by the request's
 region, and through the wire format and back, as the server receives it), then
-`drvs.fusion.fuse` over both cameras' reports, then (tracking) `drvs.tracking.Tracker`.
+`drvs.server.fusion.fuse` over both cameras' reports, then (tracking) `drvs.server.tracking.Tracker`.
 
 - accuracy: discs at known random places in the overlap, a few per placement; each camera's
   position error against the truth, and the fused one, in cm (p50/p95), and what the fusion
@@ -40,7 +40,7 @@ from typing import Any
 import numpy as np
 from shapely.geometry import Polygon
 
-from drvs.model import WorldObject
+from drvs.core.model import WorldObject
 
 from .common import YELLOW, machine, pyplot, write_result
 from .fusion_cost import run_cost
@@ -156,7 +156,7 @@ def run_accuracy(placements: int, seed: int, miscalibrated: bool = False) -> dic
     """One round of the accuracy part: `placements` placements of INSIDE_DISCS discs wholly in both
     views and one across a view's edge (place_edge_disc); with miscalibrated, the cameras'
     homographies are off as a real calibration's are (Cameras)."""
-    from drvs.fusion import fuse
+    from drvs.server.fusion import fuse
 
     cams = Cameras(seed, miscalibrated)
     rng = np.random.default_rng([seed, 17])
@@ -288,8 +288,8 @@ def movers(rng: np.random.Generator, seconds: float) -> list[Mover]:
 
 def run_tracking(seconds: float, seed: int, drop_after_s: float = 1.0) -> dict[str, Any]:
     """One round of the tracking part: reports -> fuse -> Tracker at TRACK_RATE_HZ, scored against the truth."""
-    from drvs.fusion import fuse
-    from drvs.tracking import Tracker
+    from drvs.server.fusion import fuse
+    from drvs.server.tracking import Tracker
 
     cams = Cameras(seed, miscalibrated=True)
     rng = np.random.default_rng([seed, 29])
@@ -453,7 +453,7 @@ async def run_fusion(
             "overlap_m2": round(Cameras(0).overlap.area, 2),
             "detector": f"hsv ({YELLOW}) on rendered 640x480 frames (textured floor, lighting, noise sigma 3)",
             "pipeline": "per camera: find, narrow, select by region, report through the wire format and back; "
-            "then drvs.fusion.fuse over both cameras' reports; tracking: drvs.tracking.Tracker per frame",
+            "then drvs.server.fusion.fuse over both cameras' reports; tracking: drvs.server.tracking.Tracker per frame",
         },
     }
     if "accuracy" in parts:

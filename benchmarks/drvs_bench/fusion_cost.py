@@ -29,9 +29,9 @@ import tempfile
 from pathlib import Path
 from typing import Any
 
-from drvs.homography_file import save_homography
-from drvs.launch import ManagedProcess, start_camera, start_server
+from drvs.core.homography_file import save_homography
 from drvs.sim.scene import write_video
+from drvs.tools.launch import ManagedProcess, start_camera, start_server
 
 from .common import YELLOW, bench_process, cpu_seconds
 from .fusion_scene import REGION, Cameras, Disc

@@ -12,14 +12,14 @@ import numpy as np
 from numpy.typing import NDArray
 from shapely.geometry import Point, Polygon, box
 
-from drvs.convert import report_from_pb, report_to_pb
+from drvs.core.filters import object_type
+from drvs.core.geometry import FieldOfView, Homography, homography_from_pose
+from drvs.core.model import DetectionReport
 from drvs.detectors import REGISTRY, CameraView, Detector, Frame, FrameAnalysis, select
-from drvs.filters import object_type
-from drvs.geometry import FieldOfView, Homography, homography_from_pose
-from drvs.model import DetectionReport
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import CameraDef, Scenario, parse_scenario
 from drvs.sim.scene import fill_floor_shape
+from drvs.wire.convert import report_from_pb, report_to_pb
 
 from .common import YELLOW
 

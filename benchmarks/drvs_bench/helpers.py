@@ -14,13 +14,13 @@ from typing import Any
 import grpc
 from grpc import aio
 
-from drvs import _grpc
-from drvs._cli import shutdown_event
-from drvs._service import Endpoint
-from drvs.errors import DrvsError
-from drvs.geometry import homography_from_pose
+from drvs.core.errors import DrvsError
+from drvs.core.geometry import homography_from_pose
 from drvs.robot import DrvsClient
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
+from drvs.wire import _grpc
+from drvs.wire._cli import shutdown_event
+from drvs.wire._service import Endpoint
 
 from .common import ALL_REGION, YELLOW, peak_rss_bytes
 from .fakes import AckingCamera

@@ -28,8 +28,8 @@ from operator import itemgetter
 from pathlib import Path
 from typing import Any
 
-from drvs.foxglove_client import FoxgloveClient
-from drvs.launch import ManagedProcess, free_ports
+from drvs.live.foxglove_client import FoxgloveClient
+from drvs.tools.launch import ManagedProcess, free_ports
 
 from .common import machine, pyplot, write_result
 from .stats import WorkMismatch, interleaved, per_round_ratio, publish

@@ -46,10 +46,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from drvs.errors import DrvsError, ResourceExhausted
-from drvs.launch import LIVE_READY, ManagedProcess, running_etcd, start_camera, start_server
+from drvs.core.errors import DrvsError, ResourceExhausted
 from drvs.robot import DetectionResult, DrvsClient, Snapshot
 from drvs.robot.throttle import DEFAULT_K
+from drvs.tools.launch import LIVE_READY, ManagedProcess, running_etcd, start_camera, start_server
 
 from .abuse import add_abuse_parser
 from .common import ALL_REGION, YELLOW, bench_process, cpu_seconds, machine, pyplot, record_scene

@@ -30,10 +30,10 @@ from typing import Any
 
 from shapely.geometry import box
 
-from drvs.geometry import homography_from_pose
-from drvs.mobile import Mount
-from drvs.model import Pose2
-from drvs.registry import Registry
+from drvs.core.geometry import homography_from_pose
+from drvs.core.mobile import Mount
+from drvs.core.model import Pose2
+from drvs.server.registry import Registry
 
 from .common import machine, pyplot, write_result
 from .helpers import percentile

@@ -27,11 +27,11 @@ import statistics
 import time
 from typing import Any
 
+from drvs.core.filters import object_type
+from drvs.core.geometry import FieldOfView
+from drvs.core.mobile import PoseBuffer, move_detection
+from drvs.core.model import Pose2
 from drvs.detectors.base import REGISTRY, CameraView, Frame, FrameAnalysis
-from drvs.filters import object_type
-from drvs.geometry import FieldOfView
-from drvs.mobile import PoseBuffer, move_detection
-from drvs.model import Pose2
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import Scenario, parse_scenario
 

@@ -20,10 +20,10 @@ from typing import Any
 import numpy as np
 
 from drvs.camera import CameraNode, PushSource
-from drvs.launch import start_server
-from drvs.mobile import Mount
-from drvs.model import Pose2
+from drvs.core.mobile import Mount
+from drvs.core.model import Pose2
 from drvs.robot import DrvsClient
+from drvs.tools.launch import start_server
 
 from .helpers import percentile
 

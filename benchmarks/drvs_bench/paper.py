@@ -3,7 +3,7 @@
 The robot, a process of its own, either asks DRVS (single-shot requests at 30 Hz) or has both
 cameras stream every frame (raw, or JPEG at quality 80) and detects on board. Counting TCP relays
 in front of the robot measure what its sockets carry: the TCP payload, and the frames a 1500-byte-
-MTU Ethernet link would carry (drvs.meter). /proc gives its CPU time and the machine's.
+MTU Ethernet link would carry (drvs.tools.meter). /proc gives its CPU time and the machine's.
 
 Every mode and floor runs once per round, in the same order (A B C … A B C …), for several rounds;
 each figure, and each ratio taken within a round, is published as its median and spread. Every run
@@ -39,10 +39,10 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from drvs.geometry import FieldOfView
-from drvs.launch import ManagedProcess, start_camera, start_server
-from drvs.meter import CountingRelay, WireCount
+from drvs.core.geometry import FieldOfView
 from drvs.sim.scenario import load_scenario
+from drvs.tools.launch import ManagedProcess, start_camera, start_server
+from drvs.tools.meter import CountingRelay, WireCount
 
 from .common import (
     BOTH_REGION,
@@ -245,7 +245,7 @@ async def run_mode(
     skip, end = int((t_start - t_relays) / BUCKET_S), int((t_done - t_relays) / BUCKET_S) + 1
     return {
         **outcome,
-        # Wire bytes: both directions, as a 1500-byte-MTU Ethernet link carries them (drvs.meter).
+        # Wire bytes: both directions, as a 1500-byte-MTU Ethernet link carries them (drvs.tools.meter).
         "bytes": wire.total,
         "bytes_per_s": wire.total / wall,
         "wire_bytes_to_robot": wire.to_host,
@@ -282,7 +282,7 @@ def expected_detections(
     if an object lies across a field of view's or the region's edge (its count is not certain)."""
     from shapely.geometry import box
 
-    from drvs.homography_file import load_homography
+    from drvs.core.homography_file import load_homography
 
     scenario = load_scenario(SCENE)
     area = box(*region)

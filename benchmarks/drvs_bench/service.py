@@ -32,11 +32,11 @@ from shapely import STRtree
 from shapely.geometry import Polygon, box
 
 from drvs.camera.source import VideoSource
+from drvs.core.geometry import FieldOfView
 from drvs.detectors import CameraView, Frame, FrameAnalysis, HsvDetector
-from drvs.geometry import FieldOfView
-from drvs.launch import ManagedProcess, start_camera, start_server
-from drvs.registry import CameraEntry, Registry
 from drvs.robot import DrvsClient
+from drvs.server.registry import CameraEntry, Registry
+from drvs.tools.launch import ManagedProcess, start_camera, start_server
 
 from .common import (
     ALL_REGION,
@@ -83,7 +83,7 @@ CAPACITY_NOT_POLICY = (
 #: Where the floors hold.
 FLOOR_HOLDS = (
     "this message layout (DRVS's request, reply, forward and report messages, reports without "
-    "detections), grpcio's default channel and server settings as drvs._grpc sets them, loopback, "
+    "detections), grpcio's default channel and server settings as drvs.wire._grpc sets them, loopback, "
     "and this machine at the time of the run; not a bound on every Python robot or router"
 )
 
@@ -421,7 +421,7 @@ async def measure_routing(quick: bool, out: dict[str, Any]) -> None:
 
 
 def measure_lookup(quick: bool, out: dict[str, Any]) -> None:
-    from drvs.geometry import homography_from_pose
+    from drvs.core.geometry import homography_from_pose
 
     h_cache = {}
     registries = {}
@@ -682,13 +682,13 @@ class RebuildWhole:
 
 
 def churn_run(mode: str, cameras: int, seconds: float, seed: int) -> dict[str, Any]:
-    """One registry (`index`: drvs.registry.Registry; `rebuild_whole`: the floor) of `cameras` fixed
+    """One registry (`index`: drvs.server.registry.Registry; `rebuild_whole`: the floor) of `cameras` fixed
     cameras on a square grid, then `seconds` of lookups back to back with registration changes due
     at CHURN_RATE a second between them: in turn a new camera, a camera registering again (moved up
     to 1 m) and a lapsed lease (the new cameras' leases lapse CHURN_LEASE_TICKS changes later;
     expire() runs each CHURN_RATE changes, as the server's once a second). Run in a process of its own,
     so that its peak RSS is its registry's."""
-    from drvs.geometry import Homography, homography_from_pose
+    from drvs.core.geometry import Homography, homography_from_pose
 
     tick = 0.0
     clock = lambda: tick  # noqa: E731  (the churn's clock: one tick per change)
@@ -837,7 +837,7 @@ def measure_churn(quick: bool, out: dict[str, Any]) -> None:
             for n in CHURN_SWEEP
         }
     churn["definition"] = (
-        f"{cameras} fixed cameras 10 m apart on a square grid in one process (drvs.registry.Registry, no "
+        f"{cameras} fixed cameras 10 m apart on a square grid in one process (drvs.server.registry.Registry, no "
         f"server); for {seconds:g} s, lookups of a new 1 m box in front of a random camera back to back, "
         f"with {CHURN_RATE} registration changes a second due between them: new cameras, cameras registering "
         "again (moved up to 1 m, a real register() with its field of view computed) and the new cameras' "

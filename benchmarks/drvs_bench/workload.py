@@ -30,13 +30,13 @@ import numpy as np
 from grpc import aio
 from shapely.geometry import box
 
+from drvs.core.errors import DrvsError
+from drvs.core.filters import object_type
+from drvs.core.geometry import FieldOfView
+from drvs.core.homography_file import load_homography
+from drvs.core.model import Snapshot
 from drvs.detectors import CameraView, Detector, Frame, FrameAnalysis, HsvDetector, select
 from drvs.detectors.people import PeopleDetector
-from drvs.errors import DrvsError
-from drvs.filters import object_type
-from drvs.geometry import FieldOfView
-from drvs.homography_file import load_homography
-from drvs.model import Snapshot
 from drvs.robot import DetectionResult, DrvsClient
 from drvs.v1 import stream_pb2, stream_pb2_grpc
 

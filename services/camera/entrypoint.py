@@ -33,8 +33,8 @@ def sim_settings(world: str, camera_id: str, argv: list[str]) -> list[str]:
     its --pose-source); the scenario's max range unless one is set."""
     import grpc
 
-    from drvs.errors import Unavailable
-    from drvs.homography_file import save_homography
+    from drvs.core.errors import Unavailable
+    from drvs.core.homography_file import save_homography
     from drvs.sim.world import fetch_scene
 
     with grpc.insecure_channel(world) as channel:

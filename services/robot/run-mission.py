@@ -56,7 +56,7 @@ def drop_privileges(out: Path) -> None:
 def fetch_scene(world: str) -> tuple[Any, int]:
     import grpc
 
-    from drvs.errors import Unavailable
+    from drvs.core.errors import Unavailable
     from drvs.sim import world as sim_world
 
     with grpc.insecure_channel(world) as channel:

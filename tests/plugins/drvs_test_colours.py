@@ -9,9 +9,9 @@ from typing import Any, ClassVar
 
 import cv2
 
+from drvs.core.errors import InvalidArgument
+from drvs.core.model import Detection
 from drvs.detectors import Detector, FrameAnalysis, ObjectType, register
-from drvs.errors import InvalidArgument
-from drvs.model import Detection
 
 
 class _BgrBlobs(Detector):

@@ -16,9 +16,9 @@ import numpy as np
 from numpy.typing import NDArray
 
 from drvs.camera.calibration import Correspondence
-from drvs.errors import InvalidArgument
-from drvs.geometry import Homography
-from drvs.imaging import fill_polygon
+from drvs.core.errors import InvalidArgument
+from drvs.core.geometry import Homography
+from drvs.core.imaging import fill_polygon
 
 DEFAULT_DICTIONARY = "DICT_4X4_50"
 

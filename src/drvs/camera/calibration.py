@@ -17,9 +17,9 @@ import numpy as np
 import yaml
 from numpy.typing import NDArray
 
-from drvs._files import read_yaml
-from drvs.errors import InvalidArgument
-from drvs.geometry import FieldOfView, Homography
+from drvs.core._files import read_yaml
+from drvs.core.errors import InvalidArgument
+from drvs.core.geometry import FieldOfView, Homography
 
 #: RANSAC threshold: a point farther than this from where the fit puts it is an outlier.
 RANSAC_THRESHOLD_M = 0.05

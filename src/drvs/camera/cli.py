@@ -12,17 +12,17 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from drvs._cli import add_security_arguments, join_negative_values, setup_logging, shutdown_event
 from drvs.camera.aruco import DEFAULT_DICTIONARY, BoardSpec, board_image, find_correspondences
 from drvs.camera.calibration import fit_homography, load_points, save_calibration
 from drvs.camera.config import DEFAULT_FOXGLOVE_FPS, ENVIRONMENT, add_arguments, load_config
 from drvs.camera.node import CameraNode
 from drvs.camera.source import FrameSource, VideoSource, plugin_source
+from drvs.core.errors import DrvsError
+from drvs.core.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, polygon_coords
+from drvs.core.homography_file import load_homography
 from drvs.detectors import Frame
-from drvs.errors import DrvsError
-from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, polygon_coords
-from drvs.homography_file import load_homography
-from drvs.metrics import DEFAULT_METRICS_HOST, serve_metrics
+from drvs.wire._cli import add_security_arguments, join_negative_values, setup_logging, shutdown_event
+from drvs.wire.metrics import DEFAULT_METRICS_HOST, serve_metrics
 
 log = logging.getLogger("drvs.camera")
 

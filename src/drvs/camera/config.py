@@ -15,19 +15,19 @@ from dataclasses import MISSING, Field, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from drvs._cli import SECURITY_ENV, format_number, parse_bool, read_token
-from drvs._files import read_yaml
+from drvs.core._files import read_yaml
+from drvs.core.errors import InvalidArgument
+from drvs.core.geometry import DEFAULT_MAX_RANGE_M
+from drvs.core.mobile import DEFAULT_MAX_POSE_GAP_S, Mount
+from drvs.core.model import DEFAULT_FRAME, check_frame, check_id
+from drvs.core.net import format_address, parse_address, parse_address_list
 from drvs.detectors import DEFAULT_MIN_AREA_PX, DETECTOR_KINDS
 from drvs.detectors.model import ModelSpec, parse_models
-from drvs.errors import InvalidArgument
-from drvs.geometry import DEFAULT_MAX_RANGE_M
-from drvs.liveview import parse_listen
-from drvs.logs import FORMATS
-from drvs.metrics import DEFAULT_METRICS_HOST
-from drvs.mobile import DEFAULT_MAX_POSE_GAP_S, Mount
-from drvs.model import DEFAULT_FRAME, check_frame, check_id
-from drvs.net import format_address, parse_address, parse_address_list
-from drvs.security import Security
+from drvs.live.liveview import parse_listen
+from drvs.wire._cli import SECURITY_ENV, format_number, parse_bool, read_token
+from drvs.wire.logs import FORMATS
+from drvs.wire.metrics import DEFAULT_METRICS_HOST
+from drvs.wire.security import Security
 
 from .liveview import MAX_FPS, check_fps
 
@@ -56,7 +56,7 @@ class Setting:
     """One camera setting's declaration, kept in its CameraConfig field's metadata (see `setting`).
     `flag`: its drvs-camera flag; `env`: its variable; `limits`: (lowest, highest), inclusive, whole
     numbers for an int field; `arg_type`: argparse's conversion (None: the text, converted by
-    load_config with its own message); `shared`: the flag is added by drvs._cli's shared helpers
+    load_config with its own message); `shared`: the flag is added by drvs.wire._cli's shared helpers
     (security, logging), not from this declaration. The --config file's key is the field's name."""
 
     flag: str | None = None
@@ -259,7 +259,7 @@ class CameraConfig:
         help="continuous requests one robot may have running on this camera at once (default 32; %(env)s)",
     )
     #: A mobile camera (on a robot): "X,Y,Z,YAW,PITCH", where it sits on the robot (metres,
-    #: degrees; see drvs.mobile.Mount), with `hfov_deg` or `camera_matrix` ("FX,FY,CX,CY", pixels),
+    #: degrees; see drvs.core.mobile.Mount), with `hfov_deg` or `camera_matrix` ("FX,FY,CX,CY", pixels),
     #: and where its robot's poses come from (`pose_source`, see drvs.camera.poses).
     mount: str | None = setting(
         None,
@@ -374,8 +374,8 @@ class CameraConfig:
         help=f"at most N frames a second to the live view, above 0 and at most {MAX_FPS:g} "
         f"(default {DEFAULT_FOXGLOVE_FPS:g}; %(env)s)",
     )
-    #: TLS and the registration token (see drvs.security); paths are relative to the config file.
-    #: Their flags are drvs._cli.add_security_arguments'.
+    #: TLS and the registration token (see drvs.wire.security); paths are relative to the config file.
+    #: Their flags are drvs.wire._cli.add_security_arguments'.
     tls_cert: Path | None = setting(None, flag="--tls-cert", env=SECURITY_ENV["tls_cert"], shared=True)  # noqa: RUF009
     tls_key: Path | None = setting(None, flag="--tls-key", env=SECURITY_ENV["tls_key"], shared=True)  # noqa: RUF009
     tls_ca: Path | None = setting(None, flag="--tls-ca", env=SECURITY_ENV["tls_ca"], shared=True)  # noqa: RUF009

@@ -38,14 +38,14 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from drvs import metrics
-from drvs._cli import format_number
-from drvs.errors import InvalidArgument
-from drvs.filters import object_type
-from drvs.imaging import encode_jpeg
-from drvs.liveview import LiveHub, require
-from drvs.model import Detection
-from drvs.net import is_loopback_host
+from drvs.core.errors import InvalidArgument
+from drvs.core.filters import object_type
+from drvs.core.imaging import encode_jpeg
+from drvs.core.model import Detection
+from drvs.core.net import is_loopback_host
+from drvs.live.liveview import LiveHub, require
+from drvs.wire import metrics
+from drvs.wire._cli import format_number
 
 from .source import FrameSource
 

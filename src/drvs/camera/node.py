@@ -17,10 +17,13 @@ import numpy as np
 from grpc import aio
 from numpy.typing import NDArray
 
-from drvs import liveview, logs, metrics
-from drvs._service import Endpoint, Lifecycle
-from drvs.callback import CallbackSender
-from drvs.convert import homography_to_pb, request_from_pb
+from drvs.core.errors import DrvsError, FailedPrecondition, InvalidArgument, ResourceExhausted
+from drvs.core.filters import object_type
+from drvs.core.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
+from drvs.core.imaging import encode_jpeg
+from drvs.core.mobile import DEFAULT_MAX_POSE_GAP_S, Mount, PoseBuffer, move_detection
+from drvs.core.model import DEFAULT_FRAME, Detection, DetectionReport, DetectionRequest, Pose2, check_frame, check_id
+from drvs.core.net import dialable_address, parse_address, parse_address_list
 from drvs.detectors import (
     DEFAULT_MIN_AREA_PX,
     REGISTRY,
@@ -32,16 +35,14 @@ from drvs.detectors import (
     prefixes,
     select,
 )
-from drvs.errors import DrvsError, FailedPrecondition, InvalidArgument, ResourceExhausted
-from drvs.filters import object_type
-from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
-from drvs.imaging import encode_jpeg
-from drvs.mobile import DEFAULT_MAX_POSE_GAP_S, Mount, PoseBuffer, move_detection
-from drvs.model import DEFAULT_FRAME, Detection, DetectionReport, DetectionRequest, Pose2, check_frame, check_id
-from drvs.net import dialable_address, parse_address, parse_address_list
-from drvs.request_stream import serve_request_batches
-from drvs.security import Security
+from drvs.live import liveview
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, stream_pb2, stream_pb2_grpc
+from drvs.wire import logs, metrics
+from drvs.wire._service import Endpoint, Lifecycle
+from drvs.wire.callback import CallbackSender
+from drvs.wire.convert import homography_to_pb, request_from_pb
+from drvs.wire.request_stream import serve_request_batches
+from drvs.wire.security import Security
 
 from .config import (
     DEFAULT_DETECT_WORKERS,

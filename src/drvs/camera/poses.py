@@ -20,11 +20,11 @@ import math
 import time
 from typing import Protocol
 
-from drvs.backoff import Backoff
-from drvs.errors import DrvsError, InvalidArgument
-from drvs.mobile import INITIAL_BACKOFF_S, MAX_BACKOFF_S, Push
-from drvs.model import Pose2
-from drvs.net import parse_address
+from drvs.core.backoff import Backoff
+from drvs.core.errors import DrvsError, InvalidArgument
+from drvs.core.mobile import INITIAL_BACKOFF_S, MAX_BACKOFF_S, Push
+from drvs.core.model import Pose2
+from drvs.core.net import parse_address
 
 log = logging.getLogger("drvs.camera.poses")
 

@@ -15,15 +15,15 @@ import time
 import grpc
 from grpc import aio
 
-from drvs.backoff import Backoff
-from drvs.channels import check_role, open_channel
-from drvs.convert import pose_to_pb
-from drvs.errors import PermissionDenied
-from drvs.mobile import PoseBuffer
-from drvs.model import Pose2
-from drvs.net import parse_address_list
-from drvs.security import SERVER, Security
+from drvs.core.backoff import Backoff
+from drvs.core.errors import PermissionDenied
+from drvs.core.mobile import PoseBuffer
+from drvs.core.model import Pose2
+from drvs.core.net import parse_address_list
 from drvs.v1 import registry_pb2, registry_pb2_grpc
+from drvs.wire.channels import check_role, open_channel
+from drvs.wire.convert import pose_to_pb
+from drvs.wire.security import SERVER, Security
 
 log = logging.getLogger("drvs.camera")
 

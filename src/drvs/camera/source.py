@@ -14,9 +14,9 @@ from typing import Protocol, cast
 import cv2
 import numpy as np
 
+from drvs.core.errors import FailedPrecondition, InvalidArgument
+from drvs.core.frames import NewestFrame
 from drvs.detectors import Frame
-from drvs.errors import FailedPrecondition, InvalidArgument
-from drvs.frames import NewestFrame
 
 log = logging.getLogger("drvs.camera.source")
 

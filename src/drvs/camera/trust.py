@@ -22,9 +22,9 @@ from typing import TYPE_CHECKING, Any
 import grpc
 from grpc import aio
 
-from drvs.errors import InvalidArgument, PermissionDenied
-from drvs.net import host_of
-from drvs.security import bearer_token
+from drvs.core.errors import InvalidArgument, PermissionDenied
+from drvs.core.net import host_of
+from drvs.wire.security import bearer_token
 
 if TYPE_CHECKING:
     from .node import CameraNode

@@ -3,7 +3,7 @@
 A new detector is one module: a `Detector` subclass decorated with `@register`, either here
 (imported below) or in any installed package that names the module under the "drvs.detectors"
 entry-point group. Cameras load them all; `@register` adds a plug-in's filter_def grammar to the
-core's (`drvs.object_types`), which servers and robots parse with without importing this package.
+core's (`drvs.core.object_types`), which servers and robots parse with without importing this package.
 See `drvs.detectors.base` for what a detector implements and what stays common.
 """
 
@@ -12,7 +12,7 @@ from __future__ import annotations
 import importlib.metadata
 import logging
 
-from drvs.object_types import PLUGIN_GROUP
+from drvs.core.object_types import PLUGIN_GROUP
 
 from .aruco import ArucoDetector as ArucoDetector
 from .base import (

@@ -1,5 +1,5 @@
 """Fiducial markers lying on the floor: ``aruco_<dictionary>`` and ``aruco_<dictionary>_<id>``
-(the grammar and the dictionary table are the core's, drvs.object_types).
+(the grammar and the dictionary table are the core's, drvs.core.object_types).
 
 Dictionaries are OpenCV's predefined ones (the ``cv2.aruco.DICT_*`` constants), named in lower
 case without ``DICT_``: ``4x4_50``, ``6x6_1000``, ``apriltag_36h11``; the two whose OpenCV names
@@ -26,30 +26,34 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from drvs.model import Detection
-from drvs.object_types import ARUCO_PREFIX as ARUCO_PREFIX
-from drvs.object_types import DICTIONARIES as DICTIONARIES
-from drvs.object_types import DICTIONARY_SIZES as DICTIONARY_SIZES
-from drvs.object_types import MarkerType as MarkerType
-from drvs.object_types import parse_aruco
-from drvs.object_types import parse_marker_type as parse_marker_type
+from drvs.core.model import Detection
+from drvs.core.object_types import ARUCO_PREFIX as ARUCO_PREFIX
+from drvs.core.object_types import DICTIONARIES as DICTIONARIES
+from drvs.core.object_types import DICTIONARY_SIZES as DICTIONARY_SIZES
+from drvs.core.object_types import MarkerType as MarkerType
+from drvs.core.object_types import parse_aruco
+from drvs.core.object_types import parse_marker_type as parse_marker_type
 
 from .base import CameraView, Detector, FrameAnalysis, ObjectType, register
 
 
 def _check_dictionaries() -> None:
-    """The grammar's dictionary table (drvs.object_types, which imports no OpenCV) is this cv2's:
+    """The grammar's dictionary table (drvs.core.object_types, which imports no OpenCV) is this cv2's:
     each name (OpenCV's DICT_ constant's, lower case, "aruco_" dropped) is that constant, of that size.
     A dictionary a later OpenCV adds is not offered until the table names it."""
     for attr in dir(cv2.aruco):
         value = getattr(cv2.aruco, attr)
         name = attr[len("DICT_") :].lower().removeprefix("aruco_")
         if attr.startswith("DICT_") and name in DICTIONARIES and DICTIONARIES[name] != value:
-            raise RuntimeError(f"cv2.aruco.{attr} is {value}; drvs.object_types has {name}: {DICTIONARIES.get(name)}")
+            raise RuntimeError(
+                f"cv2.aruco.{attr} is {value}; drvs.core.object_types has {name}: {DICTIONARIES.get(name)}"
+            )
     for name, value in DICTIONARIES.items():
         size = int(cv2.aruco.getPredefinedDictionary(value).bytesList.shape[0])
         if size != DICTIONARY_SIZES[name]:
-            raise RuntimeError(f"ArUco {name}: OpenCV has {size} markers, drvs.object_types {DICTIONARY_SIZES[name]}")
+            raise RuntimeError(
+                f"ArUco {name}: OpenCV has {size} markers, drvs.core.object_types {DICTIONARY_SIZES[name]}"
+            )
 
 
 _check_dictionaries()

@@ -3,11 +3,11 @@
 A detector is a plug-in keyed by the prefix of the `filter_def` strings it serves (``hsv``,
 ``aruco``, ``people``, ``foreground``, ``model``), as frigate's detectors are keyed by type: one
 file defines a `Detector` subclass decorated with `@register`, and `drvs.detectors` imports it.
-The strings' grammar is the core's (`drvs.object_types`: pure, cheap, the server and robots parse
+The strings' grammar is the core's (`drvs.core.object_types`: pure, cheap, the server and robots parse
 with it and never load a detector): a built-in detector's `parse` is the grammar's, and `@register`
 adds a plug-in's `parse` to the grammar's table. An instance runs on one camera and finds objects
 in frames. Mapping pixels to the floor (`CameraView`), selecting by region and sharing one frame's
-work among requests stay common. See `drvs.object_types` for an `ObjectType`'s kind and key.
+work among requests stay common. See `drvs.core.object_types` for an `ObjectType`'s kind and key.
 """
 
 from __future__ import annotations
@@ -26,13 +26,13 @@ import shapely
 from numpy.typing import NDArray
 from shapely.geometry import Polygon
 
-from drvs.errors import InvalidArgument
-from drvs.geometry import FieldOfView, Homography
-from drvs.model import Detection, PixelBox
-from drvs.object_types import MAX_FILTER_DEF_LENGTH as MAX_FILTER_DEF_LENGTH
-from drvs.object_types import ObjectType as ObjectType
-from drvs.object_types import add_grammar
-from drvs.object_types import parse_object_type as parse_object_type
+from drvs.core.errors import InvalidArgument
+from drvs.core.geometry import FieldOfView, Homography
+from drvs.core.model import Detection, PixelBox
+from drvs.core.object_types import MAX_FILTER_DEF_LENGTH as MAX_FILTER_DEF_LENGTH
+from drvs.core.object_types import ObjectType as ObjectType
+from drvs.core.object_types import add_grammar
+from drvs.core.object_types import parse_object_type as parse_object_type
 
 #: Blobs smaller than this many pixels are noise.
 DEFAULT_MIN_AREA_PX = 30.0

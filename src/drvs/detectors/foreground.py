@@ -37,9 +37,9 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from drvs.errors import FailedPrecondition, InvalidArgument
-from drvs.model import Detection
-from drvs.object_types import FOREGROUND, parse_foreground
+from drvs.core.errors import FailedPrecondition, InvalidArgument
+from drvs.core.model import Detection
+from drvs.core.object_types import FOREGROUND, parse_foreground
 
 from .base import CameraView, Detector, Frame, FrameAnalysis, ObjectType, register
 

@@ -1,5 +1,5 @@
 """The paper's colour model: blobs of the colour an ``hsv_HloSloVloHhiShiVhi`` filter_def names
-(its grammar and `HsvRange` are the core's, drvs.object_types)."""
+(its grammar and `HsvRange` are the core's, drvs.core.object_types)."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ from typing import Any
 
 import cv2
 
-from drvs.model import Detection
-from drvs.object_types import HSV_PREFIX as HSV_PREFIX
-from drvs.object_types import HsvRange as HsvRange
-from drvs.object_types import parse_hsv
+from drvs.core.model import Detection
+from drvs.core.object_types import HSV_PREFIX as HSV_PREFIX
+from drvs.core.object_types import HsvRange as HsvRange
+from drvs.core.object_types import parse_hsv
 
 from .base import CameraView, Detector, FrameAnalysis, ObjectType, register, select
 

@@ -57,14 +57,14 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from drvs.errors import FailedPrecondition, InvalidArgument
-from drvs.model import Detection, PixelBox
-from drvs.object_types import CLASS_NAME_RE, MODEL_NAME_RE, MODEL_PREFIX, parse_model
+from drvs.core.errors import FailedPrecondition, InvalidArgument
+from drvs.core.model import Detection, PixelBox
+from drvs.core.object_types import CLASS_NAME_RE, MODEL_NAME_RE, MODEL_PREFIX, parse_model
 
 from .base import CameraView, Detector, FrameAnalysis, ObjectType, register
 
 #: Model names (no '_', which separates the class) and class names (which may hold '_': a class
-#: is everything after the second '_') are the grammar's, drvs.object_types.
+#: is everything after the second '_') are the grammar's, drvs.core.object_types.
 PREFIX = MODEL_PREFIX
 #: A camera registers at most 16 object types in all; models leave room for the built-ins.
 MAX_MODELS = 8

@@ -24,9 +24,9 @@ import cv2
 import numpy as np
 from shapely.geometry import Point
 
-from drvs.errors import InvalidArgument
-from drvs.model import Detection, PixelBox
-from drvs.object_types import PEOPLE, parse_people
+from drvs.core.errors import InvalidArgument
+from drvs.core.model import Detection, PixelBox
+from drvs.core.object_types import PEOPLE, parse_people
 
 from .base import CameraView, Detector, FrameAnalysis, ObjectType, register
 

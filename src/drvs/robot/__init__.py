@@ -16,10 +16,10 @@ robot's own connection (no listener, so it works behind NAT):
 
 See DrvsClient (connect, subscribe, detect, snapshot, track, cameras), Snapshot, WorldObject, RetryPolicy,
 Security (TLS files and the robot's token),
-snapshot_json, and drvs.errors.
+snapshot_json, and drvs.core.errors.
 """
 
-from drvs.errors import (
+from drvs.core.errors import (
     DeadlineExceeded,
     DrvsError,
     FailedPrecondition,
@@ -30,7 +30,7 @@ from drvs.errors import (
     Unauthenticated,
     Unavailable,
 )
-from drvs.model import CameraError, Detection, DetectionReport, FusionOptions, Pose2, Snapshot, WorldObject
+from drvs.core.model import CameraError, Detection, DetectionReport, FusionOptions, Pose2, Snapshot, WorldObject
 from drvs.robot.client import (
     CameraInfo,
     Connecting,
@@ -44,7 +44,7 @@ from drvs.robot.client import (
     Tracking,
 )
 from drvs.robot.snapshots import snapshot_json, world_object_json
-from drvs.security import Security
+from drvs.wire.security import Security
 
 __all__ = [
     "CameraError",

@@ -9,10 +9,8 @@ import math
 import sys
 from typing import Any
 
-from drvs._cli import add_security_arguments, env, join_negative_values, security_from, setup_logging
-from drvs.errors import DrvsError, InvalidArgument
-from drvs.logs import FORMATS
-from drvs.model import (
+from drvs.core.errors import DrvsError, InvalidArgument
+from drvs.core.model import (
     DEFAULT_FRAME,
     MAX_DURATION_S,
     MAX_FUSION_DEADLINE_S,
@@ -32,6 +30,8 @@ from drvs.robot.client import (
     RetryPolicy,
 )
 from drvs.robot.snapshots import polygon_json, snapshot_json, snapshot_table
+from drvs.wire._cli import add_security_arguments, env, join_negative_values, security_from, setup_logging
+from drvs.wire.logs import FORMATS
 
 ENV_SERVER = "DRVS_SERVER"
 

@@ -27,13 +27,11 @@ from typing import Literal, overload
 
 import grpc
 
-from drvs import _grpc
-from drvs.convert import polygon_from_pb, request_to_pb, snapshot_from_pb
-from drvs.errors import (
+from drvs.core.errors import (
     FailedPrecondition,
     InvalidArgument,
 )
-from drvs.model import (
+from drvs.core.model import (
     DEFAULT_FRAME,
     ContinuousMode,
     DetectionRequest,
@@ -62,8 +60,10 @@ from drvs.robot.retry import RetryPolicy
 from drvs.robot.subscription import Subscribing, Subscription, open_subscription
 from drvs.robot.throttle import DEFAULT_K
 from drvs.robot.track import Track, Tracking, open_track
-from drvs.security import Security
 from drvs.v1 import detection_pb2, registry_pb2
+from drvs.wire import _grpc
+from drvs.wire.convert import polygon_from_pb, request_to_pb, snapshot_from_pb
+from drvs.wire.security import Security
 
 # What robot code, tools and tests import from here (the parts now live in their own modules).
 __all__ = [
@@ -114,11 +114,11 @@ class DrvsClient(ClientConnection):
       for overload (ResourceExhausted, with `retry_after_s`), the client itself refuses new ones
       at once so that it sends at most about `throttle_k` times what the server accepts (2, the
       SRE book's value; larger throttles later; math.inf: never, for tools that measure the server);
-    - `security`: a drvs.security.Security with TLS files and this robot's token (default: plain).
+    - `security`: a drvs.wire.security.Security with TLS files and this robot's token (default: plain).
 
     Constructing one does no network work (no name is resolved); `start()` (or `async with
     DrvsClient(...)`) opens the channel without checking the server, and a call
-    to a server that is not there fails then, with Unavailable. Every error is a drvs.errors
+    to a server that is not there fails then, with Unavailable. Every error is a drvs.core.errors
     exception with `.code` (the gRPC status name) and `.camera_id`.
 
     Timeouts, in seconds, one meaning each: `connect_timeout_s` (connect) bounds one attempt to
@@ -341,7 +341,7 @@ class DrvsClient(ClientConnection):
         request_id: str | None = None,
     ) -> Snapshot:
         """A fused single shot: the server gathers the cameras' reports itself and answers with one
-        `drvs.model.Snapshot` (`time, objects, missing_cameras = snapshot`): each physical object
+        `drvs.core.model.Snapshot` (`time, objects, missing_cameras = snapshot`): each physical object
         once, as a `WorldObject`, however many cameras saw it. No listener is used (`track()` gives
         snapshots over time).
 
@@ -388,7 +388,7 @@ class DrvsClient(ClientConnection):
         max_queued: int = MAX_QUEUED_SNAPSHOTS,
         request_id: str | None = None,
     ) -> Tracking:
-        """Track objects: the server fuses the cameras' reports and sends a `drvs.model.Snapshot`
+        """Track objects: the server fuses the cameras' reports and sends a `drvs.core.model.Snapshot`
         `rate_hz` times a second for `duration_s` seconds, on the robot's own request stream (no
         listener: works behind NAT). Objects keep their `track_id` from snapshot to snapshot, also
         when they pass from one camera to another; each has a velocity (m/s) and an uncertainty (m).

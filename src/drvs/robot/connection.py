@@ -16,14 +16,9 @@ from typing import Any, TypeVar
 
 from grpc import aio
 
-from drvs import _grpc
-from drvs.channels import check_role, open_channel
-from drvs.convert import report_from_pb
-from drvs.errors import DrvsError, InvalidArgument
-from drvs.model import DEFAULT_FRAME, check_frame
-from drvs.net import dialable_address, format_address, host_of, local_ip_towards, parse_address, parse_address_list
-from drvs.report_auth import new_secret
-from drvs.request_stream import RequestStream
+from drvs.core.errors import DrvsError, InvalidArgument
+from drvs.core.model import DEFAULT_FRAME, check_frame
+from drvs.core.net import dialable_address, format_address, host_of, local_ip_towards, parse_address, parse_address_list
 from drvs.robot.handles import health_check
 from drvs.robot.limits import DEFAULT_CONNECT_TIMEOUT_S
 from drvs.robot.listener import Listener, ReportKeys
@@ -32,8 +27,13 @@ from drvs.robot.retry import RetryPolicy, asking, retrying
 from drvs.robot.subscription import Subscription
 from drvs.robot.throttle import DEFAULT_K, AdaptiveThrottle
 from drvs.robot.track import Track
-from drvs.security import SERVER, Security
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2_grpc
+from drvs.wire import _grpc
+from drvs.wire.channels import check_role, open_channel
+from drvs.wire.convert import report_from_pb
+from drvs.wire.report_auth import new_secret
+from drvs.wire.request_stream import RequestStream
+from drvs.wire.security import SERVER, Security
 
 log = logging.getLogger("drvs.robot")
 
@@ -89,7 +89,7 @@ class ClientConnection:
         self.reports_received = 0
         #: Reports refused: not from a camera the request was dispatched to, or not on its stream.
         self.reports_rejected = 0
-        # Proves reports (drvs.report_auth): the server derives each camera's key from it, and a
+        # Proves reports (drvs.wire.report_auth): the server derives each camera's key from it, and a
         # camera's reports count only on the streams that presented its key.
         self._report_keys = ReportKeys(new_secret())
         self._closing = False

@@ -12,8 +12,8 @@ from typing import TYPE_CHECKING, Any, Generic, TypeVar
 import grpc
 from grpc import aio
 
-from drvs import _grpc
-from drvs.errors import Unavailable
+from drvs.core.errors import Unavailable
+from drvs.wire import _grpc
 
 if TYPE_CHECKING:
     from drvs.robot.client import DrvsClient

@@ -5,8 +5,8 @@ from __future__ import annotations
 
 import math
 
-from drvs.errors import InvalidArgument
-from drvs.model import FusionOptions
+from drvs.core.errors import InvalidArgument
+from drvs.core.model import FusionOptions
 
 #: Seconds to wait, beyond a request's own duration, for every camera's final report (`timeout_s`).
 DEFAULT_TIMEOUT_S = 5.0

@@ -15,9 +15,9 @@ from typing import Any, Protocol
 import grpc
 from grpc import aio
 
-from drvs.report_auth import key_matches
-from drvs.report_bounds import NOT_READING, oversized_id, write_control
 from drvs.v1 import detection_pb2, detection_pb2_grpc
+from drvs.wire.report_auth import key_matches
+from drvs.wire.report_bounds import NOT_READING, oversized_id, write_control
 
 log = logging.getLogger("drvs.robot")
 
@@ -39,7 +39,7 @@ class ReportSink(Protocol):
 
 class ReportKeys:
     """Which report streams may carry which camera's reports: those that presented the camera's
-    key (drvs.report_auth), derived by the server from this robot's `secret`: its own stream, and
+    key (drvs.wire.report_auth), derived by the server from this robot's `secret`: its own stream, and
     the server's when it answered for the camera."""
 
     def __init__(self, secret: bytes) -> None:

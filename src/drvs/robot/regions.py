@@ -9,10 +9,10 @@ from typing import Any, TypeAlias
 
 from shapely.geometry import Polygon
 
-from drvs.convert import region_to_pb
-from drvs.errors import InvalidArgument
-from drvs.geometry import box_region, polygon_region
+from drvs.core.errors import InvalidArgument
+from drvs.core.geometry import box_region, polygon_region
 from drvs.v1 import geometry_pb2
+from drvs.wire.convert import region_to_pb
 
 #: Regions a client keeps built and encoded, by the value robot code passed.
 REGION_CACHE_SIZE = 256

@@ -7,9 +7,9 @@ from dataclasses import dataclass, field
 
 from shapely.geometry import Polygon
 
-from drvs.convert import polygon_from_pb, pose_from_pb
-from drvs.model import DEFAULT_FRAME, CameraError, Detection, DetectionReport, Pose2
+from drvs.core.model import DEFAULT_FRAME, CameraError, Detection, DetectionReport, Pose2
 from drvs.v1 import registry_pb2
+from drvs.wire.convert import polygon_from_pb, pose_from_pb
 
 
 @dataclass(frozen=True)
@@ -137,7 +137,7 @@ class DetectionResult:
         return [r.error for r in self.reports if r.error]
 
     def raise_for_errors(self) -> DetectionResult:
-        """Raise the drvs.errors exception of the first missing camera (by id; its `.code` the
+        """Raise the drvs.core.errors exception of the first missing camera (by id; its `.code` the
         status name, its `.camera_id` the camera), or return this result when it is complete."""
         errors = self.camera_errors
         if errors:

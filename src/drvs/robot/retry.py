@@ -1,5 +1,5 @@
 """RetryPolicy: how often the robot client tries a call the server could not take (Unavailable),
-and the waits between (drvs.backoff)."""
+and the waits between (drvs.core.backoff)."""
 
 from __future__ import annotations
 
@@ -9,8 +9,8 @@ from collections.abc import Awaitable, Callable, Iterator
 from dataclasses import dataclass
 from typing import ClassVar, TypeVar
 
-from drvs.backoff import waits
-from drvs.errors import DeadlineExceeded, DrvsError, InvalidArgument, ResourceExhausted, Unavailable
+from drvs.core.backoff import waits
+from drvs.core.errors import DeadlineExceeded, DrvsError, InvalidArgument, ResourceExhausted, Unavailable
 from drvs.robot.limits import MAX_BACKOFF_S, seconds
 from drvs.robot.throttle import AdaptiveThrottle
 

@@ -7,7 +7,7 @@ from typing import Any
 
 from shapely.geometry import Polygon
 
-from drvs.model import Snapshot, WorldObject
+from drvs.core.model import Snapshot, WorldObject
 
 
 def _r(value: float, digits: int) -> float:

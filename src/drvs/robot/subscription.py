@@ -10,13 +10,13 @@ from collections.abc import AsyncIterator
 from dataclasses import replace
 from typing import TYPE_CHECKING
 
-from drvs.convert import polygon_from_pb
-from drvs.model import CameraError, DetectionReport, DetectionRequest
-from drvs.net import parse_address
+from drvs.core.model import CameraError, DetectionReport, DetectionRequest
+from drvs.core.net import parse_address
 from drvs.robot.handles import _Delivery, _Sending
 from drvs.robot.limits import MAX_QUEUED_REPORTS
 from drvs.robot.results import DetectionResult
 from drvs.v1 import detection_pb2
+from drvs.wire.convert import polygon_from_pb
 
 if TYPE_CHECKING:
     from drvs.robot.connection import ClientConnection

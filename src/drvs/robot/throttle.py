@@ -17,7 +17,7 @@ import random
 import time
 from collections.abc import Callable
 
-from drvs.errors import InvalidArgument, ResourceExhausted
+from drvs.core.errors import InvalidArgument, ResourceExhausted
 
 #: The SRE book's multiplier: the server sees up to twice what it accepts.
 DEFAULT_K = 2.0

@@ -13,14 +13,14 @@ from typing import TYPE_CHECKING
 
 from shapely.geometry import Polygon
 
-from drvs.backoff import Backoff
-from drvs.convert import polygon_from_pb, snapshot_from_pb
-from drvs.errors import DeadlineExceeded, DrvsError, Unavailable
-from drvs.model import CameraError, DetectionRequest, Snapshot
-from drvs.request_stream import RequestStream
+from drvs.core.backoff import Backoff
+from drvs.core.errors import DeadlineExceeded, DrvsError, Unavailable
+from drvs.core.model import CameraError, DetectionRequest, Snapshot
 from drvs.robot.handles import _Delivery, _Sending
 from drvs.robot.limits import DEFAULT_RPC_TIMEOUT_S
 from drvs.v1 import detection_pb2
+from drvs.wire.convert import polygon_from_pb, snapshot_from_pb
+from drvs.wire.request_stream import RequestStream
 
 if TYPE_CHECKING:
     from drvs.robot.connection import ClientConnection
@@ -32,9 +32,9 @@ class Track(_Delivery):
     """The snapshots of one fused continuous request (DrvsClient.track), as an async iterator that
     ends after the final snapshot (`snapshot.final`).
 
-    The server fuses what every camera reports into world objects (`drvs.model.WorldObject`: one
+    The server fuses what every camera reports into world objects (`drvs.core.model.WorldObject`: one
     per physical object, with a track id that stays the same from snapshot to snapshot) and sends
-    one `drvs.model.Snapshot` per period on the robot's own request stream: no listener is needed.
+    one `drvs.core.model.Snapshot` per period on the robot's own request stream: no listener is needed.
 
     Unread snapshots never hold anything back: the stream's reader hands each one over without
     waiting. The newest `max_queued` are kept and older ones dropped and counted in `dropped`; the

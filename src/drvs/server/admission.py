@@ -21,8 +21,8 @@ import random
 import time
 from collections.abc import Callable, Iterable
 
-from drvs.errors import ResourceExhausted
-from drvs.metrics import ADMISSION_REFUSED as refused
+from drvs.core.errors import ResourceExhausted
+from drvs.wire.metrics import ADMISSION_REFUSED as refused
 
 #: CoDel's interval: a queue that stays this long above the target is standing, not a burst.
 INTERVAL_S = 0.1

@@ -9,7 +9,13 @@ import os
 import sys
 from pathlib import Path
 
-from drvs._cli import (
+from drvs.core.errors import DrvsError, InvalidArgument
+from drvs.live.liveview import parse_listen, require
+from drvs.server import workers
+from drvs.server.config import ENVIRONMENT, ServerConfig, add_arguments, from_arguments
+from drvs.server.liveview import load_floor_plan
+from drvs.server.server import DrvsServer
+from drvs.wire._cli import (
     add_observability_arguments,
     add_security_arguments,
     env,
@@ -18,14 +24,8 @@ from drvs._cli import (
     setup_logging,
     shutdown_event,
 )
-from drvs.errors import DrvsError, InvalidArgument
-from drvs.liveview import parse_listen, require
-from drvs.metrics import DEFAULT_METRICS_HOST, parse_metrics_address, serve_metrics
-from drvs.security import load_tokens
-from drvs.server import workers
-from drvs.server.config import ENVIRONMENT, ServerConfig, add_arguments, from_arguments
-from drvs.server.liveview import load_floor_plan
-from drvs.server.server import DrvsServer
+from drvs.wire.metrics import DEFAULT_METRICS_HOST, parse_metrics_address, serve_metrics
+from drvs.wire.security import load_tokens
 
 log = logging.getLogger("drvs.server")
 

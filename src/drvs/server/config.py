@@ -27,13 +27,19 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
-from drvs import _grpc
-from drvs._cli import env_number, format_number, parse_bool
-from drvs.errors import InvalidArgument
-from drvs.etcd import Endpoints
-from drvs.geometry import DEFAULT_MAX_RANGE_M
-from drvs.net import host_of, parse_address
-from drvs.registry import (
+from drvs.core.errors import InvalidArgument
+from drvs.core.geometry import DEFAULT_MAX_RANGE_M
+from drvs.core.net import host_of, parse_address
+from drvs.server.admission import DEFAULT_TARGET_S
+from drvs.server.etcd import Endpoints
+from drvs.server.policy import (
+    DEFAULT_FORWARD_BYTES_PER_S,
+    DEFAULT_MAX_ACTIVE,
+    DEFAULT_RATE_HZ,
+    CallbackPolicy,
+    RequestLimits,
+)
+from drvs.server.registry import (
     DEFAULT_GRACE_S,
     DEFAULT_LEASE_TTL_S,
     DEFAULT_MAX_CAMERAS_PER_IDENTITY,
@@ -43,15 +49,9 @@ from drvs.registry import (
     DEFAULT_POSE_LEASE_S,
     MAX_POSE_LEASE_S,
 )
-from drvs.server.admission import DEFAULT_TARGET_S
-from drvs.server.policy import (
-    DEFAULT_FORWARD_BYTES_PER_S,
-    DEFAULT_MAX_ACTIVE,
-    DEFAULT_RATE_HZ,
-    CallbackPolicy,
-    RequestLimits,
-)
 from drvs.server.shared import DEFAULT_POSE_WRITE_RATE, DEFAULT_REGISTRATION_RATE
+from drvs.wire import _grpc
+from drvs.wire._cli import env_number, format_number, parse_bool
 
 DEFAULT_LISTEN = "127.0.0.1:50051"
 #: Hosts that bind every interface: no address a camera can dial.
@@ -465,11 +465,11 @@ class ServerConfig:
             if path and not os.path.isfile(path):
                 raise InvalidArgument(f"{described(name)}: {path!r} is not a file")
         if self.etcd_cert:
-            from drvs.security import SERVER, certificate_fields
+            from drvs.wire.security import SERVER, certificate_fields
 
             with open(self.etcd_cert, "rb") as f:
                 common_name, role = certificate_fields(f.read())
-            if role and role != SERVER:  # etcd's users are servers (drvs.etcd_auth)
+            if role and role != SERVER:  # etcd's users are servers (drvs.server.etcd_auth)
                 raise InvalidArgument(
                     f"{described('etcd_cert')}: {common_name!r} is a {role} certificate (OU={role}); "
                     "etcd is for servers' certificates (OU=server)"

@@ -6,10 +6,10 @@ would to a robot), presenting the key the server made for that camera and reques
 `FusionSession` per request gathers them:
 
 - a single shot (`SingleShot`) waits until every dispatched camera has sent its final report or
-  failed, or until the request's deadline, then merges the reports (`drvs.fusion.fuse`) into one
+  failed, or until the request's deadline, then merges the reports (`drvs.server.fusion.fuse`) into one
   snapshot, delivered in the request's one reply;
 - a continuous request (`Continuous`) makes a snapshot every period from the reports received since
-  the last one, through a `drvs.tracking.Tracker` (stable track ids), the last one final. A mobile
+  the last one, through a `drvs.server.tracking.Tracker` (stable track ids), the last one final. A mobile
   camera whose field of view enters its region while it runs is asked for the rest of it, and joins
   it (`Continuous.add_camera`; the server decides when, on the camera's pose update).
 
@@ -37,15 +37,15 @@ import grpc
 import shapely
 from shapely.geometry import Polygon
 
-from drvs import metrics
-from drvs.convert import report_from_pb, snapshot_to_pb
-from drvs.errors import ResourceExhausted
-from drvs.fusion import fuse
-from drvs.geometry import Homography
-from drvs.model import CameraError, DetectionReport, DetectionRequest, Snapshot, WorldObject
-from drvs.request_stream import refusal
-from drvs.tracking import Tracker
+from drvs.core.errors import ResourceExhausted
+from drvs.core.geometry import Homography
+from drvs.core.model import CameraError, DetectionReport, DetectionRequest, Snapshot, WorldObject
+from drvs.server.fusion import fuse
+from drvs.server.tracking import Tracker
 from drvs.v1 import detection_pb2
+from drvs.wire import metrics
+from drvs.wire.convert import report_from_pb, snapshot_to_pb
+from drvs.wire.request_stream import refusal
 
 log = logging.getLogger("drvs.server")
 

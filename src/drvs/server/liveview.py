@@ -3,7 +3,7 @@
 The server's request path only hands messages over (`request`, `reply`, `report`: a copy of the
 bytes, without secrets, onto a queue), and only those that passed its checks: a refused request
 or a rejected report is neither shown nor recorded. Each must also pass the hub's `admit` (at most
-drvs.liveview.MAX_MESSAGE_BYTES, within its bytes a second), and the queue holds at most
+drvs.live.liveview.MAX_MESSAGE_BYTES, within its bytes a second), and the queue holds at most
 `MAX_BACKLOG_BYTES`; what does not fit is dropped and counted. One thread of its own logs them and
 draws the scene from them, so a slow viewer or a large scene never holds a robot's request up. The
 registry is read on the event loop (it is not thread-safe) five times a second, and only what changed is sent on; every
@@ -23,7 +23,7 @@ Topics (docs/operations.md, "Live view and recordings"):
   /drvs/rpc/reports       drvs.v1.DetectionReport   every report the server accepted (keys cleared)
 
 and what robots publish into the view (the office robot: /robot/pose, /robot/paths), each client on
-channels of its own, never under /drvs/ (drvs.liveview).
+channels of its own, never under /drvs/ (drvs.live.liveview).
 """
 
 from __future__ import annotations
@@ -46,6 +46,7 @@ from drvs.convert import detection_from_pb, region_from_pb, snapshot_from_pb
 from drvs.errors import InvalidArgument
 from drvs.registry import CameraEntry, Registry
 from drvs.v1 import detection_pb2, registry_pb2
+from drvs.wire.convert import detection_from_pb, region_from_pb, snapshot_from_pb
 
 log = logging.getLogger("drvs.server.liveview")
 

@@ -10,8 +10,8 @@ import time
 from collections import OrderedDict
 from collections.abc import Awaitable, Callable, Iterable
 
-from drvs.errors import InvalidArgument, PermissionDenied, ResourceExhausted
-from drvs.net import format_address, parse_address
+from drvs.core.errors import InvalidArgument, PermissionDenied, ResourceExhausted
+from drvs.core.net import format_address, parse_address
 
 IPAddress = ipaddress.IPv4Address | ipaddress.IPv6Address
 

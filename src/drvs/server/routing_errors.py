@@ -14,8 +14,8 @@ from __future__ import annotations
 import logging
 import time
 
-from drvs import _grpc
-from drvs.errors import DrvsError
+from drvs.core.errors import DrvsError
+from drvs.wire import _grpc
 
 log = logging.getLogger("drvs.server")
 

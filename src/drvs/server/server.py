@@ -189,7 +189,7 @@ class DrvsServer(Lifecycle):
     ) -> None:
         """Before start(): a Foxglove live view on `listen` (host, port; port 0 picks one) and/or a
         recording to the MCAP file `record`, drawing `floor_plan` (see drvs.server.liveview); the
-        view needs `token` if given; both take in at most `bytes_per_s` (drvs.liveview.LiveHub).
+        view needs `token` if given; both take in at most `bytes_per_s` (drvs.live.liveview.LiveHub).
         Needs the live extra (FailedPrecondition names it)."""
         from drvs.server.liveview import ServerView
 

@@ -33,12 +33,12 @@ from collections.abc import Awaitable, Callable
 from dataclasses import asdict, dataclass, fields, replace
 from typing import Any
 
-from drvs import metrics
-from drvs.backoff import Backoff
-from drvs.errors import DrvsError, FailedPrecondition, ResourceExhausted, Unavailable
-from drvs.etcd import Endpoints, EtcdClient, Event
-from drvs.model import DEFAULT_FRAME
-from drvs.registry import Claim
+from drvs.core.backoff import Backoff
+from drvs.core.errors import DrvsError, FailedPrecondition, ResourceExhausted, Unavailable
+from drvs.core.model import DEFAULT_FRAME
+from drvs.server.etcd import Endpoints, EtcdClient, Event
+from drvs.server.registry import Claim
+from drvs.wire import metrics
 
 log = logging.getLogger("drvs.server.shared")
 

@@ -22,7 +22,7 @@ import sys
 import threading
 import time
 
-from drvs.net import format_address, host_of, parse_address
+from drvs.core.net import format_address, host_of, parse_address
 
 log = logging.getLogger("drvs.server")
 

@@ -9,10 +9,10 @@ import logging
 import sys
 from pathlib import Path
 
-from drvs._cli import add_security_arguments, security_from, setup_logging
-from drvs.errors import DrvsError
+from drvs.core.errors import DrvsError
 from drvs.sim.poses import add_scout_arguments, scout_main
 from drvs.sim.world import add_world_arguments, world_main
+from drvs.wire._cli import add_security_arguments, security_from, setup_logging
 
 log = logging.getLogger("drvs.sim")
 PROGRESS_PREFIX = "PROGRESS "

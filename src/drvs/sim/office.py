@@ -18,13 +18,13 @@ from typing import Any, TextIO
 import cv2
 import yaml
 
-from drvs.certs import make_all
-from drvs.errors import DrvsError
-from drvs.homography_file import save_homography
-from drvs.launch import LIVE_READY, ManagedProcess, cpu_seconds, start_camera, start_server, wait_serving
-from drvs.liveview import parse_listen
+from drvs.core.errors import DrvsError
+from drvs.core.homography_file import save_homography
+from drvs.live.liveview import parse_listen
 from drvs.sim.cli import PROGRESS_PREFIX
 from drvs.sim.scenario import DEFAULT_SCENARIO, CameraDef, Scenario, ScoutDef, load_scenario
+from drvs.tools.certs import make_all
+from drvs.tools.launch import LIVE_READY, ManagedProcess, cpu_seconds, start_camera, start_server, wait_serving
 
 #: The run's recording, beside result.json (drvs-replay plays it back).
 RECORDING = "run.mcap"

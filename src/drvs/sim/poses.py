@@ -18,14 +18,14 @@ from collections.abc import AsyncIterator
 import grpc
 from grpc import aio
 
-from drvs import _grpc
-from drvs._cli import setup_logging, shutdown_event
-from drvs.backoff import Backoff
-from drvs.errors import DrvsError, InvalidArgument
-from drvs.mobile import INITIAL_BACKOFF_S, MAX_BACKOFF_S, Push
-from drvs.model import Pose2, check_id
-from drvs.net import parse_address
+from drvs.core.backoff import Backoff
+from drvs.core.errors import DrvsError, InvalidArgument
+from drvs.core.mobile import INITIAL_BACKOFF_S, MAX_BACKOFF_S, Push
+from drvs.core.model import Pose2, check_id
+from drvs.core.net import parse_address
 from drvs.v1 import sim_pb2, sim_pb2_grpc
+from drvs.wire import _grpc
+from drvs.wire._cli import setup_logging, shutdown_event
 
 log = logging.getLogger("drvs.sim.poses")
 SCHEME = "sim://"

@@ -1,6 +1,6 @@
 """Where moving obstacles will be: the simulated robot's prediction from fused tracks. Pure logic.
 
-A tracked obstacle (`drvs.model.WorldObject`: outline, centroid, velocity, uncertainty, when it was
+A tracked obstacle (`drvs.core.model.WorldObject`: outline, centroid, velocity, uncertainty, when it was
 last seen) is assumed to keep its velocity. For each instant of the robot's planning horizon the
 robot's disc is checked against the obstacle's footprint swept along its predicted path over that
 instant's time step, grown by the robot's clearance, by the track's uncertainty, and by a margin
@@ -18,7 +18,7 @@ import shapely
 from shapely import affinity
 from shapely.geometry import LineString, Polygon
 
-from drvs.model import WorldObject
+from drvs.core.model import WorldObject
 
 #: The planning horizon: the robot looks this far ahead, seconds, at this time step.
 HORIZON_S = 3.0

@@ -12,8 +12,8 @@ import numpy as np
 from numpy.typing import NDArray
 from shapely.geometry import Point, Polygon
 
-from drvs.geometry import FieldOfView, Homography
-from drvs.imaging import fill_polygon
+from drvs.core.geometry import FieldOfView, Homography
+from drvs.core.imaging import fill_polygon
 from drvs.sim.scenario import QUIET_ZONE_CELLS, ArucoDef, CameraDef, Scenario, ScoutDef
 from drvs.sim.scene import fill_floor_shape
 

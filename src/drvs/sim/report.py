@@ -17,7 +17,7 @@ import numpy as np
 from matplotlib.patches import Polygon as MplPolygon
 from shapely.geometry import Polygon
 
-from drvs.geometry import FieldOfView
+from drvs.core.geometry import FieldOfView
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import Scenario
 

@@ -30,17 +30,17 @@ import grpc
 import shapely
 from shapely.geometry import LineString, Point, Polygon, box
 
-from drvs import _grpc
-from drvs.convert import polygon_from_pb
-from drvs.errors import DrvsError, ResourceExhausted
-from drvs.meter import MeteredClient
-from drvs.model import Detection, PixelBox, Snapshot, WorldObject
+from drvs.core.errors import DrvsError, ResourceExhausted
+from drvs.core.model import Detection, PixelBox, Snapshot, WorldObject
 from drvs.robot import DetectionResult, DrvsClient, Subscription, Track
-from drvs.security import Security
 from drvs.sim.planner import NoPath, OccupancyGrid, plan_path
 from drvs.sim.predict import STILL_MPS, MovingObstacle, TrackRecord, decide
 from drvs.sim.scenario import Scenario
+from drvs.tools.meter import MeteredClient
 from drvs.v1 import sim_pb2, sim_pb2_grpc
+from drvs.wire import _grpc
+from drvs.wire.convert import polygon_from_pb
+from drvs.wire.security import Security
 
 if TYPE_CHECKING:
     from drvs.sim.robot_view import RobotView
@@ -791,7 +791,7 @@ async def run_robot(
         scene = await world.GetScene(sim_pb2.GetSceneRequest(), timeout=10, wait_for_ready=True)
         scenario = parse_scenario(scene.scenario_yaml, f"world {world_address}")
         # The robot's two connections pass through counting relays: bytes_to_robot and
-        # wire_bytes_to_robot are what its sockets received (drvs.meter).
+        # wire_bytes_to_robot are what its sockets received (drvs.tools.meter).
         metered = MeteredClient(server_address, robot_id="sim-robot", security=security) if server_address else None
         client: DrvsClient | None = None
         try:

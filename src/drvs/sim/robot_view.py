@@ -15,8 +15,8 @@ import logging
 import math
 from collections.abc import Sequence
 
-from drvs import liveview as lv
-from drvs.foxglove_client import FoxgloveClient
+from drvs.live import liveview as lv
+from drvs.live.foxglove_client import FoxgloveClient
 
 log = logging.getLogger("drvs.sim.robot_view")
 

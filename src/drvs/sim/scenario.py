@@ -20,12 +20,12 @@ from numpy.typing import NDArray
 from shapely import affinity
 from shapely.geometry import Point, Polygon, box
 
+from drvs.core.errors import InvalidArgument
+from drvs.core.filters import HsvRange
+from drvs.core.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography, homography_from_pose, polygon_region
+from drvs.core.mobile import Mount, map_homography
+from drvs.core.model import Pose2, check_id
 from drvs.detectors.aruco import DICTIONARIES, DICTIONARY_SIZES
-from drvs.errors import InvalidArgument
-from drvs.filters import HsvRange
-from drvs.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography, homography_from_pose, polygon_region
-from drvs.mobile import Mount, map_homography
-from drvs.model import Pose2, check_id
 
 DEFAULT_SCENARIO = Path(__file__).parent / "scenarios" / "office.yaml"
 MISSIONS = ("navigate", "find_charging_station")

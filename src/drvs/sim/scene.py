@@ -15,9 +15,9 @@ import numpy as np
 from numpy.typing import NDArray
 from shapely.geometry import Point, Polygon
 
-from drvs.geometry import FieldOfView, Homography
-from drvs.homography_file import save_homography
-from drvs.imaging import fill_polygon
+from drvs.core.geometry import FieldOfView, Homography
+from drvs.core.homography_file import save_homography
+from drvs.core.imaging import fill_polygon
 
 
 @dataclass(frozen=True)

@@ -9,12 +9,12 @@ from typing import Any
 
 import grpc
 
-from drvs import _grpc
-from drvs.errors import Unavailable
-from drvs.frames import NewestFrame
+from drvs.core.errors import Unavailable
+from drvs.core.frames import NewestFrame
 from drvs.sim.render import CameraRenderer
 from drvs.sim.world import fetch_scene
 from drvs.v1 import sim_pb2, sim_pb2_grpc
+from drvs.wire import _grpc
 
 log = logging.getLogger("drvs.sim.source")
 SCHEME = "sim://"

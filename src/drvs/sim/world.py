@@ -18,14 +18,14 @@ from grpc import aio
 from shapely import STRtree
 from shapely.geometry import Point, Polygon, box
 
-from drvs import _grpc
-from drvs._cli import setup_logging, shutdown_event
-from drvs._service import Endpoint, Lifecycle
-from drvs.convert import polygon_to_pb
-from drvs.errors import DrvsError, InvalidArgument, Unavailable
-from drvs.net import parse_address
+from drvs.core.errors import DrvsError, InvalidArgument, Unavailable
+from drvs.core.net import parse_address
 from drvs.sim.scenario import Scenario, ScenarioError, load_scenario, parse_scenario
 from drvs.v1 import sim_pb2, sim_pb2_grpc
+from drvs.wire import _grpc
+from drvs.wire._cli import setup_logging, shutdown_event
+from drvs.wire._service import Endpoint, Lifecycle
+from drvs.wire.convert import polygon_to_pb
 
 log = logging.getLogger("drvs.sim.world")
 

@@ -1,0 +1,178 @@
+"""gRPC plumbing shared by every role: the one place domain errors map to status codes."""
+
+from __future__ import annotations
+
+import functools
+import logging
+from collections.abc import Awaitable, Callable, Sequence
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import grpc
+from grpc import aio
+
+from drvs.core import errors
+
+log = logging.getLogger(__name__)
+
+_TO_STATUS: dict[type[errors.DrvsError], grpc.StatusCode] = {
+    cls: grpc.StatusCode[code] for code, cls in errors.BY_CODE.items()
+}
+_FROM_STATUS = {code: cls for cls, code in _TO_STATUS.items()}
+
+#: Bound every message: reports and requests are small; anything near this is an attack or a bug.
+MAX_MESSAGE_BYTES = 4 * 1024 * 1024
+CHANNEL_OPTIONS: list[tuple[str, Any]] = [
+    ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+    # Reconnect quickly after a peer restarts: the default backoff grows to two minutes.
+    ("grpc.initial_reconnect_backoff_ms", 200),
+    ("grpc.max_reconnect_backoff_ms", 2000),
+    ("grpc.min_reconnect_backoff_ms", 200),
+    # DRVS messages are small: bandwidth-delay probing cost a PING and its ack per burst of them
+    # (a tenth of a robot's bytes) and gained nothing.
+    ("grpc.http2.bdp_probe", 0),
+    # Every channel its own connection: a robot is one connection to the server (per-robot limits
+    # count connections when there are no credentials), not a share of one pooled by the process.
+    ("grpc.use_local_subchannel_pool", 1),
+]
+SERVER_OPTIONS: list[tuple[str, Any]] = [
+    ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
+    ("grpc.so_reuseport", 0),
+    ("grpc.http2.bdp_probe", 0),
+]
+
+#: Server-wide connection limits of the DRVS server (drvs-server flags of the same names).
+DEFAULT_MAX_STREAMS_PER_CONNECTION = 100
+DEFAULT_MAX_CONNECTION_IDLE_S = 300.0
+DEFAULT_MAX_CONNECTION_AGE_S = 3600.0
+DEFAULT_MAX_CONNECTION_AGE_GRACE_S = 60.0
+
+
+@dataclass(frozen=True)
+class ConnectionLimits:
+    """What one client connection may hold: streams open at once (more wait on the client), how
+    long it may stay without a call before the server closes it, and how long it may live at all
+    (after which the server asks the client to reconnect, and ends its calls `age_grace_s` later).
+    0 means no limit. Without these a client can hold connections and streams open forever."""
+
+    max_streams: int = DEFAULT_MAX_STREAMS_PER_CONNECTION
+    max_idle_s: float = DEFAULT_MAX_CONNECTION_IDLE_S
+    max_age_s: float = DEFAULT_MAX_CONNECTION_AGE_S
+    age_grace_s: float = DEFAULT_MAX_CONNECTION_AGE_GRACE_S
+
+    def __post_init__(self) -> None:
+        for name in ("max_streams", "max_idle_s", "max_age_s", "age_grace_s"):
+            value = getattr(self, name)
+            if not (value >= 0 and value <= 1e9):
+                raise errors.InvalidArgument(f"{name}: {value} must be a number in [0, 1e9] (0: no limit)")
+
+    def options(self) -> list[tuple[str, Any]]:
+        out: list[tuple[str, Any]] = []
+        if self.max_streams:
+            out.append(("grpc.max_concurrent_streams", int(self.max_streams)))
+        if self.max_idle_s:
+            out.append(("grpc.max_connection_idle_ms", round(self.max_idle_s * 1000)))
+        if self.max_age_s:
+            out.append(("grpc.max_connection_age_ms", round(self.max_age_s * 1000)))
+            out.append(("grpc.max_connection_age_grace_ms", round(self.age_grace_s * 1000)))
+        return out
+
+
+T = TypeVar("T")
+Handler = Callable[..., Awaitable[T]]
+
+
+def status_of(exc: errors.DrvsError) -> grpc.StatusCode:
+    for cls in type(exc).__mro__:
+        if cls in _TO_STATUS:
+            return _TO_STATUS[cls]
+    return grpc.StatusCode.UNKNOWN
+
+
+#: What grpc.aio says when an operation hits a call whose connection has just failed (the peer
+#: went away): not a fault of the peer but a broken link, which callers retry as Unavailable.
+CORE_BREAK = "Internal error from Core"
+
+
+def from_rpc_error(exc: grpc.RpcError, what: str) -> errors.DrvsError:
+    """Turn a failed call into the domain error robot code sees (never a raw grpc.RpcError)."""
+    code = exc.code() if hasattr(exc, "code") else grpc.StatusCode.UNKNOWN
+    details = exc.details() if hasattr(exc, "details") else str(exc)
+    if code == grpc.StatusCode.INTERNAL and details == CORE_BREAK:
+        return errors.Unavailable(f"{what}: the connection broke during the call")
+    if code == grpc.StatusCode.RESOURCE_EXHAUSTED:
+        return errors.ResourceExhausted(f"{what}: {details or code.name}", retry_after_s=retry_hint(exc))
+    cls = _FROM_STATUS.get(code, errors.DrvsError)
+    return cls(f"{what}: {details or code.name}")
+
+
+#: The trailer a refusal's retry hint travels in on a unary call: gRPC's own name for it (its
+#: retry policy honours it), in whole milliseconds.
+RETRY_PUSHBACK = "grpc-retry-pushback-ms"
+
+
+def retry_hint(exc: grpc.RpcError) -> float:
+    """The seconds a failed call's trailers ask the caller to wait (0: no hint)."""
+    trailers: Any = exc.trailing_metadata() if hasattr(exc, "trailing_metadata") else None
+    for key, value in trailers or ():
+        if key == RETRY_PUSHBACK:
+            try:
+                return max(0.0, int(value) / 1000)
+            except (TypeError, ValueError):
+                return 0.0
+    return 0.0
+
+
+def error_from_code(code_name: str, message: str, retry_after_s: float = 0.0) -> errors.DrvsError:
+    """The domain error for a status code sent by name (a refused request on a stream)."""
+    return errors.error_for(code_name, message, retry_after_s=retry_after_s)
+
+
+def servicer_method(method: Handler[T]) -> Handler[T]:
+    """Map DrvsError to its status; log and hide anything unexpected as INTERNAL."""
+
+    @functools.wraps(method)
+    async def wrapper(self: Any, request: Any, context: aio.ServicerContext[Any, Any]) -> T:
+        try:
+            return await method(self, request, context)
+        except errors.DrvsError as exc:
+            hint = getattr(exc, "retry_after_s", 0.0)
+            trailers = ((RETRY_PUSHBACK, str(max(1, round(hint * 1000)))),) if hint > 0 else ()
+            await context.abort(status_of(exc), str(exc), trailing_metadata=trailers)
+        except aio.AbortError:
+            raise
+        except Exception:
+            log.exception("%s failed", method.__qualname__)
+            await context.abort(grpc.StatusCode.INTERNAL, f"{method.__name__}: internal error")
+        raise AssertionError("unreachable")  # context.abort always raises
+
+    return wrapper
+
+
+def insecure_channel(address: str) -> aio.Channel:
+    return aio.insecure_channel(address, options=CHANNEL_OPTIONS)
+
+
+def new_server(
+    interceptors: Sequence[aio.ServerInterceptor] = (), options: Sequence[tuple[str, Any]] = ()
+) -> aio.Server:
+    merged = dict(SERVER_OPTIONS)
+    merged.update(options)  # the caller's win (gRPC would take the first of two with one name)
+    return aio.server(options=list(merged.items()), interceptors=list(interceptors) or None)
+
+
+def bind(server: aio.Server, address: str, credentials: grpc.ServerCredentials | None = None) -> int:
+    """Bind `address` (port 0 = any free port), with TLS when given credentials; returns the bound
+    port or raises OSError."""
+    try:
+        if credentials is None:
+            port = server.add_insecure_port(address)
+        else:
+            port = server.add_secure_port(address, credentials)
+    except RuntimeError as exc:
+        raise OSError(f"cannot listen on {address}: {exc}") from exc
+    if port == 0:
+        raise OSError(f"cannot listen on {address}")
+    return port
