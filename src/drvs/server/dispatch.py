@@ -10,18 +10,18 @@ import logging
 import time
 from collections.abc import Callable
 
-from drvs import metrics
-from drvs.errors import ResourceExhausted
-from drvs.geometry import Homography
-from drvs.model import CameraError, DetectionRequest
-from drvs.registry import CameraEntry, Registry
-from drvs.report_auth import new_secret, report_key
+from drvs.core.errors import ResourceExhausted
+from drvs.core.geometry import Homography
+from drvs.core.model import CameraError, DetectionRequest
 from drvs.server.admission import Door
 from drvs.server.forwarding import Forwarder, Outcome
 from drvs.server.fusion_session import Continuous, Delivery, FusionSession, FusionSessions, SingleShot
 from drvs.server.policy import CallbackPolicy, IPAddress, RequestLimits
+from drvs.server.registry import CameraEntry, Registry
 from drvs.server.routing import MissingCamera, Routing
 from drvs.v1 import detection_pb2
+from drvs.wire import metrics
+from drvs.wire.report_auth import new_secret, report_key
 
 log = logging.getLogger("drvs.server")
 

@@ -9,19 +9,19 @@ import time
 from collections.abc import Callable, Coroutine
 from typing import Any
 
-from drvs import logs, metrics
-from drvs.callback import CallbackSender
-from drvs.errors import DeadlineExceeded, DrvsError, ResourceExhausted, Unavailable
-from drvs.model import CameraError, DetectionReport, DetectionRequest
-from drvs.registry import CameraEntry
-from drvs.report_auth import report_key
-from drvs.request_stream import BatchSender
-from drvs.security import Security
+from drvs.core.errors import DeadlineExceeded, DrvsError, ResourceExhausted, Unavailable
+from drvs.core.model import CameraError, DetectionReport, DetectionRequest
 from drvs.server.admission import Door, LinkDelay
 from drvs.server.fusion_session import FusionSession
+from drvs.server.registry import CameraEntry
 from drvs.server.routing import Routing
 from drvs.server.routing_errors import KEPT, RoutingErrors
 from drvs.v1 import detection_pb2, detection_pb2_grpc
+from drvs.wire import logs, metrics
+from drvs.wire.callback import CallbackSender
+from drvs.wire.report_auth import report_key
+from drvs.wire.request_stream import BatchSender
+from drvs.wire.security import Security
 
 log = logging.getLogger("drvs.server")
 

@@ -7,10 +7,10 @@ import math
 
 from shapely.geometry import Polygon
 
-from drvs.convert import polygon_to_pb, pose_to_pb
-from drvs.model import check_frame, check_id
-from drvs.registry import CameraEntry, Registry
+from drvs.core.model import check_frame, check_id
+from drvs.server.registry import CameraEntry, Registry
 from drvs.v1 import registry_pb2
+from drvs.wire.convert import polygon_to_pb, pose_to_pb
 
 #: ListCameras: cameras per reply unless the caller asks for fewer, and the most it may ask for.
 #: A camera's entry is at most about 4 kB (id, address, 16 detector kinds, a field of view of at

@@ -40,11 +40,10 @@ from typing import Any, Protocol
 
 from shapely.geometry import Polygon, box
 
-from drvs import liveview as lv
-from drvs._files import read_yaml
-from drvs.convert import detection_from_pb, region_from_pb, snapshot_from_pb
-from drvs.errors import InvalidArgument
-from drvs.registry import CameraEntry, Registry
+from drvs.core._files import read_yaml
+from drvs.core.errors import InvalidArgument
+from drvs.live import liveview as lv
+from drvs.server.registry import CameraEntry, Registry
 from drvs.v1 import detection_pb2, registry_pb2
 from drvs.wire.convert import detection_from_pb, region_from_pb, snapshot_from_pb
 

@@ -7,16 +7,16 @@ import logging
 
 import shapely
 
-from drvs import logs, metrics
-from drvs.errors import DrvsError
-from drvs.model import Pose2, check_id
-from drvs.registry import CameraEntry, Registry
-from drvs.report_auth import report_key
+from drvs.core.errors import DrvsError
+from drvs.core.model import Pose2, check_id
 from drvs.server.forwarding import Forwarder
 from drvs.server.fusion_session import Continuous, FusionSessions
 from drvs.server.registration import POSE_APPLIED, RegistryBackend
+from drvs.server.registry import CameraEntry, Registry
 from drvs.server.routing import Routing
 from drvs.v1 import detection_pb2
+from drvs.wire import logs, metrics
+from drvs.wire.report_auth import report_key
 
 log = logging.getLogger("drvs.server")
 

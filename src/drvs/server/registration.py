@@ -14,16 +14,16 @@ from collections.abc import Awaitable, Callable
 from dataclasses import dataclass
 from typing import Protocol
 
-from drvs import metrics
-from drvs.errors import InvalidArgument, NotFound
-from drvs.etcd import Endpoints, EtcdClient
-from drvs.geometry import Homography
-from drvs.model import DEFAULT_FRAME, Pose2, check_frame, check_id
-from drvs.registry import CameraEntry, Claims, Registry
+from drvs.core.errors import InvalidArgument, NotFound
+from drvs.core.geometry import Homography
+from drvs.core.model import DEFAULT_FRAME, Pose2, check_frame, check_id
 from drvs.server.config import ServerConfig
+from drvs.server.etcd import Endpoints, EtcdClient
 from drvs.server.forwarding import Forwarder
+from drvs.server.registry import CameraEntry, Claims, Registry
 from drvs.server.routing import Routing
 from drvs.server.shared import PoseRecord, Record, SharedRegistry, secret_digest
+from drvs.wire import metrics
 
 log = logging.getLogger("drvs.server")
 

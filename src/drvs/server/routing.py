@@ -13,12 +13,12 @@ from dataclasses import dataclass
 import shapely
 from shapely.geometry import Polygon
 
-from drvs.convert import polygon_to_pb
-from drvs.errors import FailedPrecondition
-from drvs.model import DetectionRequest
-from drvs.registry import CameraEntry, Registry
+from drvs.core.errors import FailedPrecondition
+from drvs.core.model import DetectionRequest
 from drvs.server.coverage import uncovered
+from drvs.server.registry import CameraEntry, Registry
 from drvs.v1 import geometry_pb2
+from drvs.wire.convert import polygon_to_pb
 
 #: A camera whose lease ran out without it deregistering is remembered this long (at most MAX_LOST
 #: of them): requests whose region it sees name it as missing until it registers again.

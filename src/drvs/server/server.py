@@ -17,16 +17,8 @@ from typing import TYPE_CHECKING, Any
 
 from grpc import aio
 
-from drvs import _grpc
-from drvs._service import Endpoint, Lifecycle
-from drvs.errors import InvalidArgument, Unauthenticated
-from drvs.net import format_address, host_of, is_loopback_host
-from drvs.registry import (
-    CameraEntry,
-    Claims,
-    Registry,
-)
-from drvs.security import CAMERA, Security, TokenAuthority, TokenInterceptor
+from drvs.core.errors import InvalidArgument, Unauthenticated
+from drvs.core.net import format_address, host_of, is_loopback_host
 from drvs.server.admission import Door
 from drvs.server.config import (
     DEFAULT_LISTEN,
@@ -40,10 +32,18 @@ from drvs.server.listing import camera_info
 from drvs.server.mobile import MobileCameras
 from drvs.server.policy import CallbackPolicy, RequestLimits
 from drvs.server.registration import EtcdBackend, MemoryBackend, RegistryBackend
+from drvs.server.registry import (
+    CameraEntry,
+    Claims,
+    Registry,
+)
 from drvs.server.routing import Routing
 from drvs.server.servicers import add_servicers
 from drvs.server.shared import SharedRegistry
 from drvs.v1 import detection_pb2, registry_pb2
+from drvs.wire import _grpc
+from drvs.wire._service import Endpoint, Lifecycle
+from drvs.wire.security import CAMERA, Security, TokenAuthority, TokenInterceptor
 
 if TYPE_CHECKING:
     from drvs.server.liveview import ServerView

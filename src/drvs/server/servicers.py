@@ -16,15 +16,8 @@ import grpc
 from grpc import aio
 from shapely.geometry import Polygon
 
-from drvs import _grpc, logs, metrics
-from drvs.convert import polygon_to_pb, region_from_pb, request_from_pb
-from drvs.errors import DrvsError, InvalidArgument, ResourceExhausted, Unavailable
-from drvs.model import DetectionRequest, Pose2, check_id
-from drvs.registry import Registry
-from drvs.report_auth import MAX_SECRET_BYTES
-from drvs.report_bounds import serve_report_stream
-from drvs.request_stream import ReplyQueue, serve_request_stream_queued
-from drvs.security import ROBOT, Security, TokenAuthority, bearer_token, caller_identity, camera_identity
+from drvs.core.errors import DrvsError, InvalidArgument, ResourceExhausted, Unavailable
+from drvs.core.model import DetectionRequest, Pose2, check_id
 from drvs.server.admission import Door
 from drvs.server.dispatch import Dispatcher, Slots
 from drvs.server.fusion_session import FusionSession, FusionSessions, ReportIntake, SingleShot
@@ -32,7 +25,14 @@ from drvs.server.listing import camera_info, list_cameras
 from drvs.server.mobile import MobileCameras
 from drvs.server.policy import IPAddress, RequestLimits, peer_ip
 from drvs.server.registration import CameraRegistration, RegistryBackend
+from drvs.server.registry import Registry
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2, registry_pb2_grpc
+from drvs.wire import _grpc, logs, metrics
+from drvs.wire.convert import polygon_to_pb, region_from_pb, request_from_pb
+from drvs.wire.report_auth import MAX_SECRET_BYTES
+from drvs.wire.report_bounds import serve_report_stream
+from drvs.wire.request_stream import ReplyQueue, serve_request_stream_queued
+from drvs.wire.security import ROBOT, Security, TokenAuthority, bearer_token, caller_identity, camera_identity
 
 if TYPE_CHECKING:
     from drvs.server.liveview import ServerView
