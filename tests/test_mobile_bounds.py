@@ -101,7 +101,7 @@ async def test_a_mobile_camera_that_turns_off_the_region_leaves_the_request_unti
                 snapshots = aiter(tracking)  # read, not closed: leaving `async for` would end the request
                 while "scout" not in (await anext(snapshots)).camera_ids:
                     pass
-                assert node._continuous, "the scout runs the request"
+                assert node.shares.continuous(), "the scout runs the request"
                 # It turns round: its field of view leaves the region while the request runs.
                 t = time.time()
                 node.push_pose(AWAY, t)

@@ -555,7 +555,7 @@ async def test_a_camera_counts_fused_continuous_requests_per_robot(overlap: dict
             await other.write(fused("d", LEFT_ONLY, rate_hz=2, duration_s=5))  # robot_id "r", as the first's
             assert list((await read(other)).camera_ids) == ["left"]
             taken = await _first_snapshot(other, "d")
-            assert sorted(node._continuous.values()) == [1, 1], node._continuous
+            assert sorted(node.shares.continuous().values()) == [1, 1], node.shares.continuous()
             call.cancel()
             other.cancel()
     [why] = refused.missing_cameras

@@ -17,7 +17,7 @@ import numpy as np
 from grpc import aio
 from numpy.typing import NDArray
 
-from drvs.core.errors import DrvsError, FailedPrecondition, InvalidArgument, ResourceExhausted
+from drvs.core.errors import DrvsError, FailedPrecondition, InvalidArgument
 from drvs.core.filters import object_type
 from drvs.core.geometry import DEFAULT_MAX_RANGE_M, FieldOfView, Homography
 from drvs.core.imaging import encode_jpeg
@@ -55,6 +55,7 @@ from .liveview import CameraLiveView, check_fps
 from .poses import open_pose_source
 from .prefetch import Analyses
 from .registration import PoseUpdates, Registration
+from .shares import Robot, Shares
 from .source import FrameSource
 from .trust import FRAME_STREAMS, ReportTargets, check_caller
 
@@ -64,8 +65,6 @@ SERVICE_NAMES = (detection_pb2.DESCRIPTOR.services_by_name["DetectObjectBoundary
 FRAME_STREAM_SERVICE = stream_pb2.DESCRIPTOR.services_by_name["FrameStream"].full_name
 #: How often a frame stream looks for a newer frame.
 FRAME_POLL_S = 0.005
-#: Concurrent requests a node serves at once; more are refused with RESOURCE_EXHAUSTED.
-MAX_ACTIVE_REQUESTS = 512
 
 
 def default_detectors() -> tuple[str, ...]:
@@ -133,9 +132,6 @@ class CameraNode(Lifecycle):
         self.frame = check_frame(frame)
         #: Continuous requests one robot (as the server knows it) may have running here at once.
         self.max_continuous = max_continuous
-        # ("robot", requester), or ("server", requester) for a fused request's (without a requester:
-        # the callback address, or ("server", robot id)) -> continuous requests of that robot running here
-        self._continuous: dict[str | tuple[str, str], int] = {}
         self.resolution = resolution
         #: Detector prefixes to run (default: every built-in); options per prefix from the config.
         self.detectors = default_detectors() if detectors is None else tuple(detectors)
@@ -214,6 +210,8 @@ class CameraNode(Lifecycle):
         self._watchdog: asyncio.Task[None] | None = None
         self.has_fresh_frame = True
         self._jobs: set[asyncio.Task[None]] = set()
+        #: What one robot, or one callback listener, may hold of this camera's requests.
+        self.shares = Shares(camera_id, max_continuous)
         self._callbacks = CallbackSender(security=self.security)
         # Reports of fused requests go to the server this node registers with, on a channel secured
         # as registration's (its TLS, its token).
@@ -453,12 +451,8 @@ class CameraNode(Lifecycle):
                 f"(it serves {', '.join(self.kinds) or 'nothing'})"
             )
         runner.check(wanted)
-        if len(self._jobs) >= MAX_ACTIVE_REQUESTS:
-            # Out of room: a hint, which also tells the server this is its load, not a caller's cap.
-            raise ResourceExhausted(
-                f"camera {self.camera_id}: {len(self._jobs)} requests active; try later", retry_after_s=0.1
-            )
-        robot: str | tuple[str, str] = ("robot", requester) if requester else request.callback_address
+        robot: Robot = ("robot", requester) if requester else request.callback_address
+        callback = request.callback_address
         if request.report_to_server:
             if not self.registration.registered.is_set():
                 raise FailedPrecondition(
@@ -467,13 +461,11 @@ class CameraNode(Lifecycle):
                 )
             if request.report_address:
                 self.report_targets.check(request.report_address)
-            robot = ("server", requester or request.robot_id)
+            robot, callback = ("server", requester or request.robot_id), ""
         continuous = not request.continuous.single_shot
-        if continuous and self._continuous.get(robot, 0) >= self.max_continuous:
-            raise ResourceExhausted(
-                f"camera {self.camera_id}: continuous: {self._continuous[robot]} continuous requests already "
-                f"running for {_robot_name(robot)} (limit {self.max_continuous}); wait for one to end or cancel one"
-            )
+        self.shares.max_continuous = self.max_continuous
+        self.shares.check(robot, callback, continuous)
+        self._callbacks.check(callback)
         if log.isEnabledFor(logging.DEBUG):
             log.debug(
                 "camera %s: request %s from robot %r: %s, %s",
@@ -493,22 +485,7 @@ class CameraNode(Lifecycle):
             logs.request_id.reset(token)
         self._jobs.add(job)
         job.add_done_callback(self._jobs.discard)
-        if continuous:
-            self._continuous[robot] = self._continuous.get(robot, 0) + 1
-            job.add_done_callback(lambda _job: self._release(robot))
-
-    def _release(self, robot: str | tuple[str, str]) -> None:
-        """A continuous request ended (done, cancelled by the robot, or stopped): its slot is free."""
-        left = self._continuous.get(robot, 0) - 1
-        if left > 0:
-            self._continuous[robot] = left
-        else:
-            self._continuous.pop(robot, None)
-
-    def continuous_running(self, robot: str | tuple[str, str]) -> int:
-        """Continuous requests running here for `robot`: ("robot", requester), or ("server", requester)
-        for fused requests (from a server that names no requester: a callback address, ("server", robot id))."""
-        return self._continuous.get(robot, 0)
+        self.shares.hold(job, robot, callback, continuous)
 
     async def _serve(self, request: DetectionRequest) -> None:
         loop = asyncio.get_running_loop()
@@ -593,13 +570,6 @@ class CameraNode(Lifecycle):
         if self.live is not None:
             self.live.show(request.request_id, detections)
         return report(capture_time=frame.capture_time, detections=tuple(detections), camera_pose=pose)
-
-
-def _robot_name(robot: str | tuple[str, str]) -> str:
-    """Whom a continuous request's slot counts for, for a message."""
-    if isinstance(robot, tuple):
-        return f"robot {robot[1]!r}" + (" (fused, via the server)" if robot[0] == "server" else "")
-    return robot
 
 
 def _run(runner: Detector, analysis: FrameAnalysis, wanted: ObjectType) -> tuple[Detection, ...]:

@@ -11,12 +11,13 @@ import asyncio
 import contextlib
 import logging
 from collections import OrderedDict
+from collections.abc import Callable
 from typing import Any
 
 import grpc
 from grpc import aio
 
-from drvs.core.errors import Unavailable
+from drvs.core.errors import ResourceExhausted, Unavailable
 from drvs.core.model import MAX_ID_LENGTH, DetectionReport
 from drvs.v1 import detection_pb2, detection_pb2_grpc
 from drvs.wire import metrics
@@ -32,6 +33,12 @@ IDLE_CLOSE_S = 30.0
 #: A write that cannot complete in this time (the robot stopped reading) breaks the link.
 WRITE_TIMEOUT_S = 5.0
 STALLED = f"robot did not take a report within {WRITE_TIMEOUT_S:g} s"
+#: After a stall, requests reporting to that address are refused this long, and its reports are not
+#: dialled again: a listener that stopped reading would otherwise hold every request sent its way
+#: for WRITE_TIMEOUT_S, one stall after another.
+STALL_COOLDOWN_S = 5.0
+#: Stalled addresses remembered at once (the oldest is forgotten past this).
+MAX_STALLED = 4096
 #: Cancelled request ids remembered per link.
 MAX_CANCELLED = 4096
 #: Cameras whose report key a link remembers having presented (past this it starts over).
@@ -41,8 +48,15 @@ MAX_KEYED = 4096
 class RobotLink:
     """The open report stream to one robot."""
 
-    def __init__(self, address: str, security: Security, metadata: tuple[tuple[str, str], ...] = ()) -> None:
+    def __init__(
+        self,
+        address: str,
+        security: Security,
+        metadata: tuple[tuple[str, str], ...] = (),
+        on_stall: Callable[[str], None] | None = None,
+    ) -> None:
         self.address = address
+        self._on_stall = on_stall
         self._channel = security.channel(address)
         self._call: Any = detection_pb2_grpc.CallbackCoordinatesStub(self._channel).ReportDetections(
             metadata=metadata or None
@@ -124,6 +138,8 @@ class RobotLink:
         ends with CancelledError, which send turns into Unavailable)."""
         self.broken = STALLED
         self._call.cancel()
+        if self._on_stall is not None:
+            self._on_stall(self.address)
 
     async def close(self) -> None:
         with contextlib.suppress(Exception):
@@ -158,12 +174,39 @@ class CallbackSender:
         self._idle_close_s = idle_close_s
         self._links: OrderedDict[str, RobotLink] = OrderedDict()
         self._closing: set[asyncio.Task[None]] = set()
+        self._stalled: OrderedDict[str, float] = OrderedDict()  # address -> refused until (loop time)
+
+    def _stall(self, address: str) -> None:
+        self._stalled[address] = asyncio.get_running_loop().time() + STALL_COOLDOWN_S
+        self._stalled.move_to_end(address)
+        while len(self._stalled) > MAX_STALLED:
+            self._stalled.popitem(last=False)
+
+    def stalled_for(self, address: str) -> float:
+        """Seconds `address` is still refused for having stalled (0: it is not)."""
+        until = self._stalled.get(address)
+        if until is None:
+            return 0.0
+        left = until - asyncio.get_running_loop().time()
+        if left <= 0:
+            del self._stalled[address]
+            return 0.0
+        return left
+
+    def check(self, address: str) -> None:
+        """ResourceExhausted if a request reporting to `address` must be refused now: its listener
+        stalled lately (see STALL_COOLDOWN_S). No retry hint: it is that robot's doing, not load."""
+        if address and (left := self.stalled_for(address)):
+            raise ResourceExhausted(
+                f"callback_address {address}: it took no report within {WRITE_TIMEOUT_S:g} s; requests "
+                f"reporting to it are refused for another {left:.1f} s"
+            )
 
     def link(self, address: str) -> RobotLink:
         link = self._links.get(address)
         if link is None or link.broken:
             old = link
-            link = RobotLink(address, self._security, self._metadata)
+            link = RobotLink(address, self._security, self._metadata, self._stall)
             if old is not None:
                 # What the robot cancelled stays cancelled: a robot that said stop and then closed
                 # its stream is not dialled again for those requests.
@@ -178,6 +221,8 @@ class CallbackSender:
         known = self._links.get(address)
         if known is not None and known.cancelled(report.request_id):
             return False  # not even a new connection for a request the robot stopped
+        if self.stalled_for(address):
+            raise Unavailable(f"callback {address}: {STALLED}; not dialled again yet")
         return await self.link(address).send(report, outlines, key)
 
     def _evict(self) -> None:
