@@ -28,6 +28,7 @@ from drvs.server.admission import (
     LINK_MIN_WAITING,
     MIN_ADMIT,
     Door,
+    FairShares,
     LinkDelay,
     Shedder,
     retry_after_s,
@@ -146,6 +147,70 @@ def test_the_door_draws_once_against_the_busiest_camera_and_hints_a_wait() -> No
     off.check_cameras([("cam-b", busy)])
 
 
+def test_fair_shares_refuse_the_heaviest_caller_first() -> None:
+    """Max-min fairness: rates 2, 2 and 46 a tenth of a second, 20 % admissible (a budget of 10):
+    the two light callers stay under the fair level (6) and are always admitted, the heavy one gets
+    what is left (6 of 46). Equal callers are each admitted the share, as without fairness; a
+    caller not yet measured gets the share too."""
+    clock = Clock()
+    fair = FairShares(clock=clock)
+    for caller, count in (("a", 4), ("b", 4), ("flood", 92)):
+        for _ in range(count):
+            fair.arrived(caller)
+    assert fair.admit("a", 0.2) == 0.2  # nothing measured yet: the share, as without fairness
+    clock.now += INTERVAL_S
+    assert fair.rate("a") == pytest.approx(2) and fair.rate("flood") == pytest.approx(46)
+    assert fair.admit("a", 0.2) == fair.admit("b", 0.2) == 1.0
+    assert fair.admit("flood", 0.2) == pytest.approx(6 / 46)
+    assert fair.admit("flood", 1.0) == 1.0 and fair.admit("new", 0.2) == 0.2
+    # Expected admissions are the budget: 2 + 2 + 46 * 6 / 46 = 10 = 0.2 * 50.
+    assert 2 + 2 + 46 * fair.admit("flood", 0.2) == pytest.approx(0.2 * 50)
+    # Rates fade when a caller stops; forgotten once negligible.
+    clock.now += 20 * INTERVAL_S
+    assert fair.rate("flood") == 0.0
+    equal = FairShares(clock=clock)
+    for caller in ("x", "y") * 10:
+        equal.arrived(caller)
+    clock.now += INTERVAL_S
+    assert equal.admit("x", 0.3) == pytest.approx(0.3) == equal.admit("y", 0.3)
+
+
+def test_callers_past_the_tracked_number_share_one_part() -> None:
+    """Spraying identities buys nothing: past max_callers, new callers count as one."""
+    clock = Clock()
+    fair = FairShares(clock=clock, max_callers=3)
+    fair.arrived("robot")
+    for k in range(100):
+        fair.arrived(f"spray{k}")
+    clock.now += INTERVAL_S
+    assert fair.rate("robot") == pytest.approx(0.5)
+    assert fair.admit("robot", 0.1) == 1.0
+    assert fair.admit("spray99", 0.1) < 0.1  # one bucket for all of them, above the fair level
+
+
+def test_the_door_refuses_a_flooding_caller_and_not_the_robot_beside_it() -> None:
+    """The server's loop admits 20 %: the flooding caller is refused nearly always, the robot at
+    its own modest rate never (without fairness both would be refused 80 % of the time)."""
+    clock = Clock()
+    draws = iter([0.5] * 10_000)
+    door = Door(draw=lambda: next(draws))
+    door.fair = FairShares(clock=clock)
+    for _ in range(90):
+        door.fair.arrived("flood")
+    for _ in range(3):
+        door.fair.arrived("robot")
+    clock.now += INTERVAL_S
+    door.loop.shedder.admit = 0.2
+    door.check_server("robot")
+    with pytest.raises(ResourceExhausted, match="the server is past its capacity"):
+        door.check_server("flood")
+    busy = Shedder(0.01)
+    busy.admit = 0.2
+    door.check_cameras([("cam", busy)], caller="robot")
+    with pytest.raises(ResourceExhausted, match="camera cam is past what it can take now"):
+        door.check_cameras([("cam", busy)], caller="flood")
+
+
 def test_the_client_throttles_in_proportion_to_refusals_and_recovers() -> None:
     clock, draws = Clock(), iter([0.0] * 1000)
     throttle = AdaptiveThrottle(2.0, 10.0, clock=clock, draw=lambda: next(draws))
@@ -244,6 +309,36 @@ async def flood(robot: DrvsClient, seconds: float, tasks: int) -> tuple[list[str
 
     await asyncio.gather(*(one() for _ in range(tasks)))
     return dispatched, refused, other
+
+
+@pytest.mark.slow
+async def test_a_flooding_robot_is_shed_and_a_modest_one_beside_it_is_not() -> None:
+    """Two robots on their own connections (their throttling off) ask the camera that takes 100
+    requests a second: one floods it, one asks 10 times a second. The door sheds the flood's
+    excess and leaves the modest robot's requests alone. Without fair shares the door would draw
+    for both alike, refusing most of the modest robot's requests as it refuses most of the flood."""
+    async with (
+        beside_a_queueing_camera("--rate-limit", "5000", "--max-forward-bytes", "1e10") as (address, _camera),
+        DrvsClient(address, robot_id="flood", listen="127.0.0.1:0", throttle_k=math.inf) as flooder,
+        DrvsClient(address, robot_id="modest", listen="127.0.0.1:0", throttle_k=math.inf) as modest,
+    ):
+        flooding = asyncio.ensure_future(flood(flooder, 6.0, 16))
+        loop = asyncio.get_running_loop()
+        start, asked, refused = loop.time() + 1.0, 0, 0  # its first second: the door learns the rates
+        while (now := loop.time()) < start + 4.0:
+            if now >= start:
+                asked += 1
+            try:
+                sub = await modest.subscribe(YELLOW, QUEUED_REGION, timeout_s=2)
+            except ResourceExhausted:
+                refused += now >= start
+            else:
+                sub.close()
+            await asyncio.sleep(max(0.0, now + 0.1 - loop.time()))  # its pace: 10 a second
+        dispatched, flood_refused, other = await flooding
+    assert other == 0
+    assert len(flood_refused) > len(dispatched) / 2, (len(flood_refused), len(dispatched))
+    assert asked >= 20 and refused <= asked * 0.25, (refused, asked)
 
 
 @pytest.mark.slow

@@ -10,6 +10,11 @@ shortest delay of an interval was above the target: a burst drains within one, a
 does not), and admits more again once it has drained. The share moves as TCP's window does:
 cut by a factor while a queue stands, grown by a step while none does.
 
+Shedding is fair between callers (`FairShares`): when only a share of all requests can be admitted,
+each caller (a robot's credential, or its connection) is admitted a max-min fair part of it, so a
+caller sending far more than the others is refused first and the others, below their fair part, are
+not refused at all. Without that, one flooding caller would make the door refuse everyone alike.
+
 Pure logic but for LoopLag's task: the clock is injectable, so the control law is testable alone.
 """
 
@@ -50,6 +55,92 @@ LOOP_MIN_ARRIVALS = 10
 #: stall of a camera (a heavy detector holding its loop, a busy host) are no standing queue (a
 #: camera that refuses for room counts regardless).
 LINK_MIN_SAMPLES = 8
+
+
+#: Callers whose arrival rates are tracked at once; past this, new ones share one bucket (and so,
+#: together, one fair part: spraying identities buys no more than one).
+MAX_CALLERS = 4096
+#: Per interval, a caller's rate estimate moves this far towards what it sent in the interval.
+RATE_WEIGHT = 0.5
+#: A caller whose estimate falls below this (requests an interval) is forgotten.
+RATE_FLOOR = 0.01
+OTHERS = "\x00others"
+
+
+class FairShares:
+    """Per-caller arrival rates, and how likely each caller is to be admitted when only `share` of
+    all requests can be: max-min fair (water-filling). With rates r_i and budget B = share * sum(r),
+    the fair level f solves sum(min(r_i, f)) = B; caller i is admitted with probability
+    min(1, f / r_i). Equal callers are all admitted `share`, as with no fairness; a caller at twice
+    the others' rate loses its excess first. A caller not yet measured is admitted `share`."""
+
+    __slots__ = ("_clock", "_counts", "_levels", "_rates", "_sorted", "_until", "interval_s", "max_callers")
+
+    def __init__(
+        self,
+        interval_s: float = INTERVAL_S,
+        clock: Callable[[], float] = time.monotonic,
+        max_callers: int = MAX_CALLERS,
+    ) -> None:
+        self.interval_s = interval_s
+        self.max_callers = max_callers
+        self._clock = clock
+        self._counts: dict[str, int] = {}  # arrivals in the current interval
+        self._rates: dict[str, float] = {}  # arrivals an interval, smoothed
+        self._sorted: list[float] = []
+        self._levels: dict[float, float] = {}  # share -> fair level, for the rates now
+        self._until = clock() + interval_s
+
+    def arrived(self, caller: str) -> None:
+        self._roll()
+        counts = self._counts
+        if caller not in counts and caller not in self._rates and len(self._rates) + len(counts) >= self.max_callers:
+            caller = OTHERS
+        counts[caller] = counts.get(caller, 0) + 1
+
+    def admit(self, caller: str, share: float) -> float:
+        """The probability of admitting `caller`'s request now, when `share` of all can be."""
+        if share >= 1.0:
+            return 1.0
+        self._roll()
+        rate = self._rates.get(caller if caller in self._rates else OTHERS, 0.0)
+        if rate <= 0.0:
+            return share
+        level = self._levels.get(share)
+        if level is None:
+            level = self._levels[share] = self._level(share)
+        return min(1.0, level / rate)
+
+    def rate(self, caller: str) -> float:
+        """`caller`'s smoothed arrivals an interval (0: not measured)."""
+        self._roll()
+        return self._rates.get(caller, 0.0)
+
+    def _level(self, share: float) -> float:
+        rates = self._sorted
+        budget = share * sum(rates)
+        below, n = 0.0, len(rates)
+        for k, rate in enumerate(rates):
+            if below + (n - k) * rate >= budget:
+                return (budget - below) / (n - k)
+            below += rate
+        return math.inf
+
+    def _roll(self) -> None:
+        now = self._clock()
+        if now < self._until:
+            return
+        passed = 1 + int((now - self._until) / self.interval_s)
+        keep = (1.0 - RATE_WEIGHT) ** passed
+        rates = {caller: rate * keep for caller, rate in self._rates.items()}
+        fresh = RATE_WEIGHT * (1.0 - RATE_WEIGHT) ** (passed - 1)
+        for caller, count in self._counts.items():
+            rates[caller] = rates.get(caller, 0.0) + fresh * count
+        self._rates = {caller: rate for caller, rate in rates.items() if rate >= RATE_FLOOR}
+        self._sorted = sorted(self._rates.values())
+        self._levels = {}
+        self._counts = {}
+        self._until = now + self.interval_s
 
 
 class Shedder:
@@ -188,6 +279,8 @@ class Door:
         #: Fused single shots' answers (dispatch to snapshot) beyond the fastest: the queue of the
         #: cameras' reports to the server, which no forward's acknowledgement shows.
         self.fused = LinkDelay(target_s)
+        #: Who is refused first when only a share can be admitted.
+        self.fair = FairShares()
         self._draw = draw
 
     def start(self) -> None:
@@ -198,14 +291,15 @@ class Door:
         """A new camera link's delay, shedding at this door's target."""
         return LinkDelay(self.target_s)
 
-    def check_server(self) -> None:
+    def check_server(self, caller: str = "") -> None:
         """First, before a request is even read whole: ResourceExhausted if the server's own loop
-        sheds this one."""
+        sheds this one. `caller`: whom the request counts for (see FairShares)."""
         if not self.target_s:
             return
         self.loop.arrived()
+        self.fair.arrived(caller)
         admit = self.loop.shedder.share()
-        if admit < 1.0 and self._draw() >= admit:
+        if admit < 1.0 and self._draw() >= self.fair.admit(caller, admit):
             refused("server").inc()
             hint = retry_after_s(admit)
             raise ResourceExhausted(
@@ -214,11 +308,11 @@ class Door:
                 retry_after_s=hint,
             )
 
-    def check_cameras(self, links: Iterable[tuple[str, Shedder]], fused: bool = False) -> None:
+    def check_cameras(self, links: Iterable[tuple[str, Shedder]], fused: bool = False, caller: str = "") -> None:
         """Then, once routed: ResourceExhausted if a camera the request needs sheds it (or, for a
         fused request, fused delivery does); `links` are (camera id, its link's shedder) for the
         cameras it would be forwarded to. One draw for all of them, against the smallest share: a
-        request is as admissible as its busiest camera."""
+        request is as admissible as its busiest camera (and its caller's fair part of that share)."""
         if not self.target_s:
             return
         admit, who, by = 1.0, "", "camera"
@@ -228,7 +322,7 @@ class Door:
                 admit, who = share, f"camera {camera_id}"
         if fused and (share := self.fused.shedder.share()) < admit:
             admit, who, by = share, "fused delivery", "fused"
-        if admit < 1.0 and self._draw() >= admit:
+        if admit < 1.0 and self._draw() >= self.fair.admit(caller, admit):
             refused(by).inc()
             hint = retry_after_s(admit)
             raise ResourceExhausted(

@@ -136,7 +136,7 @@ class Dispatcher:
         size = message.ByteSize()
         slot = limits.admit(robot, request.continuous.duration_s, size * len(cameras))
         try:
-            self.admit(cameras)
+            self.admit(cameras, caller=robot)
             verified = checked_callbacks.get(request.callback_address)
             if verified is None:
                 verified = await self.callback_policy.check(request.callback_address, peer)
@@ -194,7 +194,7 @@ class Dispatcher:
         slot = limits.admit(robot, request.continuous.duration_s, size * len(cameras))
         single_shot = request.continuous.single_shot
         try:
-            self.admit(cameras, fused=single_shot)
+            self.admit(cameras, fused=single_shot, caller=robot)
         except BaseException:
             limits.release(robot, slot)
             raise
@@ -235,9 +235,10 @@ class Dispatcher:
         metrics.FORWARDED_BYTES.inc(size * len(cameras))
         return reply, session
 
-    def admit(self, cameras: list[CameraEntry], fused: bool = False) -> None:
+    def admit(self, cameras: list[CameraEntry], fused: bool = False, caller: str = "") -> None:
         """The door, once a request is routed: ResourceExhausted, before anything is forwarded, if a
-        camera it needs has as many forwards waiting as it may, or its link is shedding this one."""
+        camera it needs has as many forwards waiting as it may, or its link is shedding this one
+        (`caller`'s fair part of what it admits: see admission.FairShares)."""
         links = [(c.camera_id, self.forwarder.link(c)) for c in cameras]
         most = self.forwarder.max_queued_forwards
         for camera_id, link in links:
@@ -250,7 +251,7 @@ class Dispatcher:
                     f"(limit {most}); retry in 100 ms",
                     retry_after_s=0.1,
                 )
-        self.door.check_cameras(((camera_id, link.delay.shedder) for camera_id, link in links), fused)
+        self.door.check_cameras(((camera_id, link.delay.shedder) for camera_id, link in links), fused, caller)
 
     def _homography_of(self, camera_id: str) -> Homography | None:
         if camera_id not in self.registry:

@@ -119,7 +119,7 @@ class RobotFacing(detection_pb2_grpc.DetectObjectBoundaryServicer):
         slots: Slots | None,
         stream: _FusedOnStream | None = None,
     ) -> detection_pb2.DetectionReply | None:
-        self._s.door.check_server()  # first: a server past capacity spends nothing more on it
+        self._s.door.check_server(robot)  # first: a server past capacity spends nothing more on it
         request = request_from_pb(message, require_request_id=False)
         if request.report_to_server:
             raise InvalidArgument(REPORT_TO_SERVER_REFUSED)
