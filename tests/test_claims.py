@@ -14,7 +14,7 @@ from hypothesis import strategies as st
 
 from drvs.core.errors import FailedPrecondition, NotFound, PermissionDenied, ResourceExhausted
 from drvs.server import DrvsServer
-from drvs.server.registry import Claims
+from drvs.server.claims import Claims
 from drvs.v1 import registry_pb2, registry_pb2_grpc
 
 from .helpers import register_message

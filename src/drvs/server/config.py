@@ -31,6 +31,7 @@ from drvs.core.errors import InvalidArgument
 from drvs.core.geometry import DEFAULT_MAX_RANGE_M
 from drvs.core.net import host_of, parse_address
 from drvs.server.admission import DEFAULT_TARGET_S
+from drvs.server.claims import DEFAULT_GRACE_S, DEFAULT_MAX_CAMERAS_PER_IDENTITY
 from drvs.server.etcd import Endpoints
 from drvs.server.policy import (
     DEFAULT_FORWARD_BYTES_PER_S,
@@ -40,9 +41,7 @@ from drvs.server.policy import (
     RequestLimits,
 )
 from drvs.server.registry import (
-    DEFAULT_GRACE_S,
     DEFAULT_LEASE_TTL_S,
-    DEFAULT_MAX_CAMERAS_PER_IDENTITY,
     DEFAULT_MAX_FOV_AREA_M2,
     DEFAULT_MAX_FOV_RANGE_M,
     DEFAULT_MIN_POSE_INTERVAL_S,
