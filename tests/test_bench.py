@@ -10,7 +10,8 @@ from typing import Any
 import cv2
 import pytest
 from drvs_bench.common import VTEST, record_scene
-from drvs_bench.load import Sampler, check_load_work, expected_requests, schedule, summarise
+from drvs_bench.load_figures import Sampler, check_load_work, summarise
+from drvs_bench.load_robots import expected_requests, schedule
 from drvs_bench.paper import check_drvs, check_stream, run_mode
 from drvs_bench.service import check_latency_run
 from drvs_bench.stats import QUICK_ROUNDS, WorkMismatch

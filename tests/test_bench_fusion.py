@@ -11,7 +11,8 @@ from typing import Any
 import cv2
 import pytest
 from drvs_bench.common import record_scene
-from drvs_bench.paper import FUSED_TARGETS, check_fused, run_mode, summarise
+from drvs_bench.paper import check_fused, run_mode
+from drvs_bench.paper_figures import FUSED_TARGETS, summarise
 from drvs_bench.stats import WorkMismatch
 
 from drvs.tools.launch import ManagedProcess, start_camera, start_server
