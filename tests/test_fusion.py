@@ -130,7 +130,7 @@ def test_two_cameras_seeing_one_box_give_one_object_more_precise_than_either() -
     assert obj.camera_ids == ("north", "south")
     assert obj.track_id == 1
     assert obj.last_seen == T0 + 0.03
-    assert obj.velocity_xy == (0.0, 0.0) and obj.heading_deg is None
+    assert obj.velocity_xy == (0.0, 0.0) and obj.course_deg is None
     assert obj.score == pytest.approx(0.9)
     # The union of the two views: it covers both, and its bounds and area are the outline's.
     assert obj.outline.covers(a.outline.buffer(-1e-9)) and obj.outline.covers(b.outline.buffer(-1e-9))

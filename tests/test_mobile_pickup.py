@@ -200,7 +200,7 @@ async def test_a_mobile_camera_that_drives_into_a_tracked_region_joins_the_track
     assert len(joined) >= 4
     # The others were not asked, and no snapshot names them.
     assert far.requests.empty() and blind.requests.empty()
-    named = {c for s in shots for c in (*s.camera_ids, *(m.camera_id for m in s.missing_cameras))}
+    named = {c for s in shots for c in (*s.camera_ids, *s.camera_errors)}
     assert named == {"post", "scout"}, named
     assert fixed.requests.get_nowait().request_id == forwarded.request_id
     assert metrics["drvs_mobile_pickups_total"] == 1.0

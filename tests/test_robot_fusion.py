@@ -53,6 +53,9 @@ OBJECT_KEYS = {
 SNAPSHOT_KEYS = {"time", "sequence", "final", "objects", "missing_cameras", "cameras", "uncovered"}
 
 
+LATE_C = "camera camC: no report in time"
+
+
 def box_object(track_id: int, x: float, y: float, t: float, vx: float = 0.0) -> WorldObject:
     from shapely.geometry import box
 
@@ -63,7 +66,7 @@ def box_object(track_id: int, x: float, y: float, t: float, vx: float = 0.0) -> 
         bounds=outline.bounds,
         centroid_xy=(x, y),
         velocity_xy=(vx, 0.0),
-        heading_deg=0.0 if vx else None,
+        course_deg=0.0 if vx else None,
         uncertainty_m=0.02,
         camera_ids=("camA", "camB"),
         last_seen=t,
@@ -114,7 +117,7 @@ class FusingServer(detection_pb2_grpc.DetectObjectBoundaryServicer):
                     snapshot = Snapshot(
                         time=now,
                         objects=(box_object(1, 1.0, 2.0, now),),
-                        missing_cameras=(CameraError("DEADLINE_EXCEEDED", "camera camC: no report in time", "camC"),),
+                        camera_errors={"camC": CameraError("DEADLINE_EXCEEDED", LATE_C, "camC")},
                         camera_ids=("camA", "camB"),
                     )
                     reply = detection_pb2.DetectionReply(request_id=rid, camera_ids=["camA", "camB", "camC"])
@@ -188,11 +191,14 @@ async def test_fused_detect_returns_one_snapshot_and_opens_no_listener(fusing: t
         snapshot = await robot.snapshot(YELLOW, (0, 0, 5, 5), deadline_s=1.5)
         assert isinstance(snapshot, drvs.Snapshot)
         time, objects, missing = snapshot
-        assert (time, objects, missing) == (snapshot.time, snapshot.objects, snapshot.missing_cameras)
+        assert (time, objects, missing) == (snapshot.time, snapshot.objects, tuple(snapshot.camera_errors.values()))
         assert time == 1_700_000_000.0 and snapshot.final and snapshot.camera_ids == ("camA", "camB")
         assert [o.track_id for o in snapshot.objects] == [1]
         assert snapshot.objects[0].centroid_xy == pytest.approx((1.0, 2.0))
-        assert snapshot.missing_cameras == (CameraError("DEADLINE_EXCEEDED", "camera camC: no report in time", "camC"),)
+        late = CameraError("DEADLINE_EXCEEDED", LATE_C, "camC")
+        assert snapshot.camera_errors == {"camC": late}
+        with pytest.warns(DeprecationWarning, match=r"Snapshot\.missing_cameras is deprecated"):
+            assert snapshot.missing_cameras == (late,)
         assert snapshot.request_id == servicer.requests[-1].request_id
         sent = servicer.requests[-1]
         assert sent.fusion.deadline_s == 1.5 and sent.callback_address == "" and not sent.report_to_server
@@ -533,7 +539,7 @@ def near_disc(xy: tuple[float, float] | list[float]) -> float:
 async def test_end_to_end_fused_detect_merges_two_cameras_into_one_object_each(fused_office: Scene) -> None:
     async with DrvsClient.connect(fused_office.address, robot_id="r1") as robot:
         snapshot = await robot.snapshot(YELLOW, REGION)
-        assert snapshot.final and snapshot.missing_cameras == () and set(snapshot.camera_ids) == {"camA", "camB"}
+        assert snapshot.final and not snapshot.camera_errors and set(snapshot.camera_ids) == {"camA", "camB"}
         assert len(snapshot.objects) == len(DISCS)  # each disc once, not once per camera
         for o in snapshot.objects:
             assert o.camera_ids == ("camA", "camB") and near_disc(o.centroid_xy) < 0.03

@@ -38,7 +38,7 @@ async def ask(robot: DrvsClient) -> None:
             try:
                 if fused:
                     snapshot = await robot.snapshot(YELLOW, CAM1_REGION, timeout_s=10)
-                    assert len(snapshot.objects) == 2 and not snapshot.missing_cameras, snapshot
+                    assert len(snapshot.objects) == 2 and not snapshot.camera_errors, snapshot
                 else:
                     result = await robot.detect(YELLOW, CAM1_REGION, timeout_s=10)
                     assert result.complete and len(result.detections) == 2, result

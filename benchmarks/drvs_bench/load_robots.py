@@ -114,14 +114,14 @@ async def robots_worker(args: argparse.Namespace) -> None:
                 record[9] = ",".join(codes) or f"dispatched_to_{len(result.camera_ids)}_cameras"
 
         def classify_snapshot(record: list[Any], snapshot: Snapshot, scheduled: float) -> None:
-            missing = {m.camera_id for m in snapshot.missing_cameras}
+            missing = set(snapshot.camera_errors)
             record[2] = min(CAMERAS, len(set(snapshot.camera_ids) - missing))
-            record[3] = len(snapshot.missing_cameras)
+            record[3] = len(snapshot.camera_errors)
             if not missing and len(snapshot.camera_ids) == CAMERAS:
                 record[4] = round((loop.time() - scheduled) * 1000, 2)
                 record[7] = "complete"
             else:
-                codes = sorted(m.code for m in snapshot.missing_cameras)
+                codes = sorted(m.code for m in snapshot.camera_errors.values())
                 record[7] = "incomplete"
                 record[9] = ",".join(codes) or f"merged_{len(snapshot.camera_ids)}_cameras"
 

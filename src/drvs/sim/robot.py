@@ -200,7 +200,7 @@ class SimRobot(CoverageWatch):
 
     def use_snapshot(self, filter_def: str, request_id: str, snapshot: Snapshot) -> None:
         """One period of a fused track: standing tracks go on the map, moving ones are predicted."""
-        for missing in snapshot.missing_cameras:
+        for missing in snapshot.camera_errors.values():
             self.lose(missing.camera_id, f"{missing.code} {missing.message}")
         for camera_id in snapshot.camera_ids:
             self.regain(camera_id)
@@ -367,7 +367,7 @@ class SimRobot(CoverageWatch):
         )
         found: list[Detection] = []
         for f, snapshot in zip(filters, snapshots, strict=True):
-            for missing in snapshot.missing_cameras:
+            for missing in snapshot.camera_errors.values():
                 self.lose(missing.camera_id, f"{missing.code} {missing.message}")
             for camera_id in snapshot.camera_ids:
                 self.regain(camera_id)
