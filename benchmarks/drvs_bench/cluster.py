@@ -70,13 +70,13 @@ from drvs.robot import DrvsClient
 from drvs.server import DrvsServer
 from drvs.server.config import ServerConfig
 from drvs.sim.scene import FloorPatch, render_view
+from drvs.tools.fakes import register_message
 from drvs.tools.launch import SERVER_READY, ManagedProcess, cpu_seconds, running_etcd, start_etcd, start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2_grpc
 from drvs.wire import _grpc
 
 from .common import YELLOW, bench_process, machine, pyplot, write_result
 from .etcd_writes import fleet_writes
-from .fakes import register_message
 from .helpers import grid_position, one_camera_request, percentile, with_request_id
 from .stats import WorkMismatch, interleaved, publish, rounds
 
