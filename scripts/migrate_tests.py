@@ -233,9 +233,10 @@ def located() -> dict[str, str]:
     return found
 
 
-def rewrite_moved(text: str, folder: str, where: dict[str, str]) -> str:
-    """A moved test module's own references: imports of the shared modules and siblings, fakes, and
-    paths from `__file__` (one folder deeper)."""
+def rewrite_imports(text: str, folder: str, where: dict[str, str]) -> str:
+    """A test module's imports of the shared modules, its siblings and the fakes, as a module in a
+    folder writes them. Idempotent, so it runs over every test module in a folder on every run (an
+    edit merged from a branch that wrote them flat is mended too)."""
     text = re.sub(r"^(\s*)from \.(helpers|fakes|conftest) import", r"\1from tests.\2 import", text, flags=re.M)
     text = re.sub(r"^(\s*)from \.fault_roles import", r"\1from tests.fakes.fault_roles import", text, flags=re.M)
 
@@ -249,6 +250,13 @@ def rewrite_moved(text: str, folder: str, where: dict[str, str]) -> str:
         text = re.sub(r"^(\s*)from drvs_bench\.fakes import", r"\1from drvs.tools.fakes import", text, flags=re.M)
     elif folder not in MAY_IMPORT_BENCHMARKS:
         text = re.sub(r"^(\s*)from drvs_bench\.fakes import", r"\1from tests.fakes import", text, flags=re.M)
+    return text
+
+
+def rewrite_moved(text: str, folder: str, where: dict[str, str]) -> str:
+    """A moved test module's own references: its imports (rewrite_imports) and paths from `__file__`,
+    one folder deeper now (only when it moves: that part is not idempotent)."""
+    text = rewrite_imports(text, folder, where)
     text = re.sub(r"Path\(__file__\)((?:\.resolve\(\))?)\.parents\[1\]", r"Path(__file__)\1.parents[2]", text)
     text = re.sub(r"Path\(__file__\)((?:\.resolve\(\))?)\.parent\.parent\b", r"Path(__file__)\1.parents[2]", text)
     data = "|".join(DATA)
@@ -327,6 +335,16 @@ def main(argv: list[str] | None = None) -> int:
         new = rewrite_moved(text, folder, where)
         if new != text:
             target.write_text(new)
+    moved = set(planned.values())
+    for path in sorted(TESTS.glob("*/**/*.py")):
+        rel = path.relative_to(ROOT).as_posix()
+        if path in moved or rel in SKIP:
+            continue
+        text = path.read_text()
+        new = rewrite_imports(text, path.relative_to(TESTS).parts[0], where)
+        if new != text:
+            path.write_text(new)
+            print(f"mended the imports of {rel}")
     changed = 0
     for path in git_files():
         rel = path.relative_to(ROOT).as_posix()

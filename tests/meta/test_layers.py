@@ -17,7 +17,7 @@ From the bottom up:
   roles      drvs.server, drvs.camera, drvs.robot: each stands on core, wire and live; none imports
              another role, the simulator, the benchmarks or a tool. Of the roles only the camera
              imports a detector.
-  tools      drvs.tools (_entry, the console scripts' launcher; launch, demo, certs, meter), the
+  tools      drvs.tools (_entry, the console scripts' launcher; launch, demo, certs, meter, fakes), the
              simulator (drvs.sim), the benchmarks (drvs_bench): may use everything below, but the
              simulator talks to servers and cameras only over the wire (it starts their processes): of
              the roles it imports drvs.robot alone (its robot is a robot program).

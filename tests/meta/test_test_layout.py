@@ -70,6 +70,11 @@ def test_the_migration_rewrites_a_moved_modules_references(tmp_path: Path) -> No
         'ROLES = Path(__file__).parents[1] / "fakes" / "fault_roles.py"\n'
     )
     assert module.rewrite_moved(text, "benchmarks", {}).count("from drvs_bench.fakes import") == 1
+    # The imports part runs over every module in a folder on every run: a second pass changes nothing.
+    mended = module.rewrite_imports(text, "server", {})
+    assert "from tests.helpers import" in mended and "parents[1]" in mended
+    assert module.rewrite_imports(mended, "server", {}) == mended
+    assert "from drvs.tools.fakes import" in module.rewrite_imports(text, "fakes", {})
     where = {"test_claims.py": "server/test_claims.py"}
     doc = "see tests/test_claims.py and `test_claims.py::test_a` and tests.test_claims; tests/server/test_claims.py"
     once = module.rewrite_references(doc, where)
