@@ -71,6 +71,19 @@ def test_a_snapshots_camera_errors_are_by_camera_and_missing_cameras_is_their_de
     assert Snapshot(2.0).all_seen and Snapshot(2.0).camera_errors == {}
 
 
+def test_the_old_snapshot_keyword_still_builds_and_replaces_the_errors() -> None:
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")  # accepted quietly for one release, as heading_deg= is
+        built = Snapshot(1.0, missing_cameras=(LATE, GONE), request_id="r1")
+        assert built.camera_errors == {"c2": LATE, "c3": GONE} and built.request_id == "r1"
+        assert built == Snapshot(1.0, camera_errors={"c2": LATE, "c3": GONE}, request_id="r1")
+        assert dataclasses.replace(built, missing_cameras=()).camera_errors == {}
+        assert dataclasses.replace(built, sequence=3).camera_errors == built.camera_errors
+    assert [f.name for f in dataclasses.fields(Snapshot)][:3] == ["time", "objects", "camera_errors"]
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        setattr(built, "time", 2.0)  # noqa: B010 (frozen: refused)
+
+
 def test_camera_errors_is_the_same_thing_on_a_detection_result() -> None:
     result = DetectionResult("r1", ("c1", "c2"), skipped={"c3": GONE})
     assert set(result.camera_errors) == {"c1", "c2", "c3"} and result.camera_errors["c3"] == GONE

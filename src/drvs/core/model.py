@@ -385,7 +385,6 @@ def errors_by_camera(errors: Iterable[CameraError]) -> dict[str, CameraError]:
 _WORLD_OBJECT_FIELDS = tuple(f.name for f in dataclasses.fields(WorldObject))
 
 
-@dataclass(frozen=True)
 class Snapshot:
     """The fused answer to a request at one instant: once for a single shot, once per period for a
     continuous request. Unpacks as `time, objects, errors` (errors: the `CameraError`s, as a tuple).
@@ -401,6 +400,9 @@ class Snapshot:
       clear (the server's reply to the request; the same for each snapshot of a track).
     """
 
+    if TYPE_CHECKING:  # a dataclass (see below), which type checkers are told here
+        __dataclass_fields__: ClassVar[dict[str, dataclasses.Field[Any]]]
+
     time: float
     objects: tuple[WorldObject, ...] = ()
     #: In the order the server named them; not hashed (a dict).
@@ -410,6 +412,31 @@ class Snapshot:
     final: bool = True
     request_id: str = ""
     uncovered: tuple[Polygon, ...] = ()
+
+    def __init__(
+        self,
+        time: float,
+        objects: tuple[WorldObject, ...] = (),
+        camera_errors: Mapping[str, CameraError] | None = None,
+        camera_ids: tuple[str, ...] = (),
+        sequence: int = 0,
+        final: bool = True,
+        request_id: str = "",
+        uncovered: tuple[Polygon, ...] = (),
+        *,
+        missing_cameras: Sequence[CameraError] | _Unset = _UNSET,
+    ) -> None:
+        """The dataclass's fields in order. `missing_cameras=` (CameraErrors), camera_errors' old
+        keyword, is accepted for one release, and when given it is the errors (so
+        dataclasses.replace(s, missing_cameras=...) sets them); written out only for it."""
+        if not isinstance(missing_cameras, _Unset):
+            camera_errors = errors_by_camera(missing_cameras)
+        values = (
+            time, objects, {} if camera_errors is None else camera_errors, camera_ids, sequence, final, request_id,
+            uncovered,
+        )  # fmt: skip
+        for f, value in zip(_SNAPSHOT_FIELDS, values, strict=True):
+            object.__setattr__(self, f, value)
 
     @property
     def all_seen(self) -> bool:
@@ -433,6 +460,11 @@ class Snapshot:
         CameraErrors. Typed Any: one iterator cannot give each its own type (read `snapshot.time`,
         `.objects`, `.camera_errors` where a type checker should see them)."""
         return iter((self.time, self.objects, tuple(self.camera_errors.values())))
+
+
+# As WorldObject: a frozen dataclass with the __init__ above (missing_cameras= for one release).
+dataclass(frozen=True, init=False)(Snapshot)
+_SNAPSHOT_FIELDS = tuple(f.name for f in dataclasses.fields(Snapshot))
 
 
 @dataclass(frozen=True)
