@@ -38,8 +38,14 @@ ROOT = Path(__file__).resolve().parents[1]
 TESTS = ROOT / "tests"
 #: What stays in the tests/ root.
 ROOT_FILES = ("__init__.py", "conftest.py", "helpers.py")
-#: The tests' fakes: stand-in processes and set-ups (moved by path, not by the rules below).
-SUPPORT_MOVES = {"fakes.py": "fakes/__init__.py", "fault_roles.py": "fakes/fault_roles.py"}
+#: Every other module in the root is one of the tests' fakes (stand-in processes, set-ups): it goes
+#: to tests/fakes/ (fakes.py itself becomes the package, tests/fakes/__init__.py).
+FAKES = "fakes"
+
+
+def fake_target(name: str) -> str:
+    return f"{FAKES}/__init__.py" if name == f"{FAKES}.py" else f"{FAKES}/{name}"
+
 
 #: Each test module's folder, by name.
 FOLDERS: dict[str, str] = {
@@ -216,9 +222,9 @@ def folder_for(path: Path) -> tuple[str, str]:
 def moves() -> dict[Path, Path]:
     """Every file still to move: tests/x -> tests/folder/x."""
     planned: dict[Path, Path] = {}
-    for name, target in SUPPORT_MOVES.items():
-        if (TESTS / name).is_file():
-            planned[TESTS / name] = TESTS / target
+    for path in sorted(TESTS.glob("*.py")):
+        if path.name not in ROOT_FILES and not path.name.startswith("test_"):
+            planned[path] = TESTS / fake_target(path.name)
     for path in sorted(TESTS.glob("test_*.py")):
         folder, _ = folder_for(path)
         planned[path] = TESTS / folder / path.name
@@ -238,7 +244,8 @@ def rewrite_imports(text: str, folder: str, where: dict[str, str]) -> str:
     folder writes them. Idempotent, so it runs over every test module in a folder on every run (an
     edit merged from a branch that wrote them flat is mended too)."""
     text = re.sub(r"^(\s*)from \.(helpers|fakes|conftest) import", r"\1from tests.\2 import", text, flags=re.M)
-    text = re.sub(r"^(\s*)from \.fault_roles import", r"\1from tests.fakes.fault_roles import", text, flags=re.M)
+    for stem in fake_modules():
+        text = re.sub(rf"^(\s*)from \.{stem} import", rf"\1from tests.{FAKES}.{stem} import", text, flags=re.M)
 
     def sibling(m: re.Match[str]) -> str:
         module = m.group(2)
@@ -263,11 +270,12 @@ def rewrite_moved(text: str, folder: str, where: dict[str, str]) -> str:
     text = re.sub(
         rf'Path\(__file__\)((?:\.resolve\(\))?)\.parent / "({data})"', r'Path(__file__)\1.parents[1] / "\2"', text
     )
-    text = re.sub(
-        r'Path\(__file__\)((?:\.resolve\(\))?)\.with_name\("fault_roles\.py"\)',
-        r'Path(__file__)\1.parents[1] / "fakes" / "fault_roles.py"',
-        text,
-    )
+    for stem in fake_modules():  # a stand-in process found beside the tests, now in tests/fakes
+        text = re.sub(
+            rf'Path\(__file__\)((?:\.resolve\(\))?)\.with_name\("{stem}\.py"\)',
+            rf'Path(__file__)\1.parents[1] / "{FAKES}" / "{stem}.py"',
+            text,
+        )
     return text
 
 
@@ -282,9 +290,19 @@ def rewrite_references(text: str, where: dict[str, str]) -> str:
     text = re.sub(
         rf"\btests\.({modules})\b", lambda m: "tests." + where[m.group(1) + ".py"][:-3].replace("/", "."), text
     )
-    for name, target in SUPPORT_MOVES.items():
-        if (TESTS / target).is_file() and target.endswith(f"/{name}"):
-            text = re.sub(rf"\btests/{re.escape(name)}\b", f"tests/{target}", text)
+    return text
+
+
+def fake_modules() -> list[str]:
+    """The modules in tests/fakes/ but the package itself (fault_roles, ...), by name."""
+    return sorted(p.stem for p in (TESTS / FAKES).glob("*.py") if p.name != "__init__.py")
+
+
+def rewrite_fake_references(text: str) -> str:
+    """References to a fake that stood in the root: tests/x.py and tests.x (`python -m tests.x`)."""
+    for stem in fake_modules():
+        text = re.sub(rf"\btests/{stem}\.py\b", f"tests/{FAKES}/{stem}.py", text)
+        text = re.sub(rf"\btests\.{stem}\b", f"tests.{FAKES}.{stem}", text)
     return text
 
 
@@ -354,7 +372,7 @@ def main(argv: list[str] | None = None) -> int:
             text = path.read_text()
         except UnicodeDecodeError:
             continue
-        new = rewrite_references(text, where)
+        new = rewrite_fake_references(rewrite_references(text, where))
         if new != text:
             path.write_text(new)
             changed += 1

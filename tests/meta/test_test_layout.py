@@ -83,6 +83,11 @@ def test_the_migration_rewrites_a_moved_modules_references(tmp_path: Path) -> No
         "tests/server/test_claims.py"
     )
     assert module.rewrite_references(once, where) == once  # a second pass changes nothing
+    # A stand-in process that stood beside the tests is in tests/fakes now.
+    assert "fault_roles" in module.fake_modules()
+    fake = module.rewrite_fake_references("python tests/fault_roles.py; python -m tests.fault_roles")
+    assert fake == "python tests/fakes/fault_roles.py; python -m tests.fakes.fault_roles"
+    assert module.rewrite_fake_references(fake) == fake
 
 
 def test_a_new_flat_test_is_placed_by_its_name_or_its_imports(tmp_path: Path) -> None:
