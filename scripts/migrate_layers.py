@@ -101,7 +101,7 @@ PACKAGE_DOCS = {
 }
 
 NEW_PACKAGES = tuple(LAYERS)
-SKIP_PREFIXES = ("src/drvs/v1/", "scripts/migrate_layers.py", "tests/test_migrate_layers.py", ".git/")
+SKIP_PREFIXES = ("src/drvs/v1/", "scripts/migrate_layers.py", "tests/meta/test_migrate_layers.py", ".git/")
 SKIP_SUFFIXES = (".png", ".jpg", ".jpeg", ".gif", ".mcap", ".onnx", ".npz", ".npy", ".pb", ".whl", ".mp4", ".avi")
 
 _NAMES = "|".join(sorted((re.escape(old.split(".", 1)[1]) for old in MAPPING), key=len, reverse=True))

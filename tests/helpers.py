@@ -17,8 +17,6 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from drvs_bench.fakes import AckingCamera
-from drvs_bench.fakes import register_message as register_message  # re-exported for the tests
 from numpy.typing import NDArray
 
 from drvs.core.filters import HsvRange
@@ -29,6 +27,8 @@ from drvs.detectors import DEFAULT_MIN_AREA_PX, CameraView, HsvDetector
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import CameraDef, Scenario
 from drvs.sim.scene import FloorPatch, RecordedCamera, record_camera, render_view
+from drvs.tools.fakes import AckingCamera
+from drvs.tools.fakes import register_message as register_message  # re-exported for the tests
 from drvs.tools.launch import ManagedProcess, start_camera, start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
 from drvs.wire import _grpc
@@ -295,7 +295,7 @@ class Scene:
     cameras: dict[str, ManagedProcess]
 
 
-# --- a mobile camera on a rendered floor (tests/test_mobile_camera.py, test_mobile_pickup.py) ----
+# --- a mobile camera on a rendered floor (tests/camera/test_mobile_camera.py, test_mobile_pickup.py) ----
 
 #: 0.8 m up, 0.1 m ahead of the robot's centre, looking forward 30° down, 70° wide.
 MOUNT = Mount(0.1, 0.0, 0.8, 0.0, 30.0, hfov_deg=70.0)

@@ -26,11 +26,10 @@ from typing import Any
 from grpc import aio
 
 from drvs.core.errors import DrvsError, ResourceExhausted
+from drvs.tools.fakes import AckingCamera, register_message, serve_camera
 from drvs.tools.launch import start_server
 from drvs.tools.meter import CountingRelay, MeteredClient
 from drvs.v1 import detection_pb2, registry_pb2_grpc
-
-from .fakes import AckingCamera, register_message, serve_camera
 
 YELLOW = "hsv_014110130035225200"
 # Every camera is fakes.register_message's, at the origin looking along +y: it sees about x -3.8..3.8,

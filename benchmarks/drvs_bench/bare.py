@@ -23,11 +23,11 @@ from typing import Any
 
 from grpc import aio
 
+from drvs.tools.fakes import AckingCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
 from drvs.wire import _grpc
 
 from .common import peak_rss_bytes
-from .fakes import AckingCamera
 from .helpers import one_camera_request, percentile, serve_detection
 
 

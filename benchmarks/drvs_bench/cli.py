@@ -24,7 +24,8 @@ from .workload import add_workload_arguments, workload_main
 
 
 def paper_main(args: argparse.Namespace) -> int:
-    from .paper import FULL_REQUESTS, PEOPLE_FULL_REQUESTS, PEOPLE_QUICK_REQUESTS, QUICK_REQUESTS, run_paper
+    from .paper import run_paper
+    from .paper_figures import FULL_REQUESTS, PEOPLE_FULL_REQUESTS, PEOPLE_QUICK_REQUESTS, QUICK_REQUESTS
     from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch
 
     requests = args.requests or (QUICK_REQUESTS if args.quick else FULL_REQUESTS)

@@ -70,15 +70,15 @@ from drvs.robot import DrvsClient
 from drvs.server import DrvsServer
 from drvs.server.config import ServerConfig
 from drvs.sim.scene import FloorPatch, render_view
+from drvs.tools.fakes import register_message
 from drvs.tools.launch import SERVER_READY, ManagedProcess, cpu_seconds, running_etcd, start_etcd, start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc, registry_pb2_grpc
 from drvs.wire import _grpc
 
 from .common import YELLOW, bench_process, machine, pyplot, write_result
 from .etcd_writes import fleet_writes
-from .fakes import register_message
 from .helpers import grid_position, one_camera_request, percentile, with_request_id
-from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, interleaved, publish
+from .stats import WorkMismatch, interleaved, publish, rounds
 
 #: The bench camera: 3 m up at the origin, looking 40° down along +y, 60° wide.
 HOMOGRAPHY = homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
@@ -227,7 +227,7 @@ async def throughput(quick: bool) -> dict[str, Any]:
     from .service import CAPACITY_NOT_POLICY, ack_server, run_helper
 
     seconds = 2.0 if quick else 8.0
-    n_rounds = QUICK_ROUNDS if quick else FULL_ROUNDS
+    n_rounds = rounds(quick)
     procs: list[Any] = []
     async with running_etcd() as members:
         try:
@@ -393,7 +393,7 @@ async def workers_scaling(quick: bool, workers_list: list[int]) -> dict[str, Any
     cores = os.cpu_count() or 1
     n_acks, n_loads = harness_size(cores)
     seconds = 2.0 if quick else 8.0
-    n_rounds = QUICK_ROUNDS if quick else FULL_ROUNDS
+    n_rounds = rounds(quick)
     procs: list[Any] = []
     async with running_etcd() as members:
         try:

@@ -27,10 +27,9 @@ from drvs.server.config import ServerConfig
 from drvs.server.etcd import Endpoints, EtcdClient
 from drvs.server.registry import DEFAULT_LEASE_TTL_S
 from drvs.server.shared import ROOT
+from drvs.tools.fakes import register_message
 from drvs.tools.launch import running_etcd
 from drvs.v1 import geometry_pb2, registry_pb2, registry_pb2_grpc
-
-from .fakes import register_message
 
 #: The fleet: fixed cameras, mobile ones, and how often a mobile camera sends its pose.
 STATIC, MOBILE = 20, 5

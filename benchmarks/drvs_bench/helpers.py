@@ -17,13 +17,13 @@ from grpc import aio
 from drvs.core.errors import DrvsError
 from drvs.core.geometry import homography_from_pose
 from drvs.robot import DrvsClient
+from drvs.tools.fakes import AckingCamera
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
 from drvs.wire import _grpc
 from drvs.wire._cli import shutdown_event
 from drvs.wire._service import Endpoint
 
 from .common import ALL_REGION, YELLOW, peak_rss_bytes
-from .fakes import AckingCamera
 
 #: Fake cameras sit on a grid this many metres apart; each sees about 6 m in front of it.
 GRID_M = 10.0

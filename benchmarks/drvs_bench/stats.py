@@ -26,6 +26,11 @@ def interleaved(modes: Sequence[T], rounds: int) -> Iterator[tuple[int, T]]:
             yield r, mode
 
 
+def rounds(quick: bool) -> int:
+    """Rounds of a comparison: QUICK_ROUNDS with --quick, else FULL_ROUNDS."""
+    return QUICK_ROUNDS if quick else FULL_ROUNDS
+
+
 def describe(values: Iterable[float]) -> dict[str, Any]:
     """Median, min, max and the spread (max - min) of one figure over the rounds, and the values."""
     vs = [float(v) for v in values]

@@ -211,15 +211,15 @@ async def fused_mode(args: argparse.Namespace) -> dict[str, object]:
             nonlocal snapshots, objects, missing, delivered
             snapshots += 1
             objects += len(snapshot.objects)
-            missing += len(snapshot.missing_cameras)
+            missing += len(snapshot.camera_errors)
             _bump(objects_per_request, len(snapshot.objects))
             # Delivered: one final snapshot that merged every camera the request needs, none missing.
-            if snapshot.final and not snapshot.missing_cameras and len(snapshot.camera_ids) == args.cameras:
+            if snapshot.final and not snapshot.camera_errors and len(snapshot.camera_ids) == args.cameras:
                 delivered += 1
             elif len(failures) < 10:
                 failures.append(
                     f"request {i}: cameras {sorted(snapshot.camera_ids)}, final {snapshot.final}, "
-                    f"missing {[(e.camera_id, e.code) for e in snapshot.missing_cameras]}"
+                    f"missing {[(e.camera_id, e.code) for e in snapshot.camera_errors.values()]}"
                 )
 
         common = await measured(args, ask, tally, failures)
@@ -264,15 +264,15 @@ async def track_mode(args: argparse.Namespace) -> dict[str, object]:
             async for snapshot in opened:
                 snapshots += 1
                 objects += len(snapshot.objects)
-                missing += len(snapshot.missing_cameras)
-                missing_a_camera += bool(snapshot.missing_cameras)
+                missing += len(snapshot.camera_errors)
+                missing_a_camera += bool(snapshot.camera_errors)
                 finals += snapshot.final
                 if len(snapshot.camera_ids) == args.cameras:
                     every_camera += 1
                     objects_every_camera += len(snapshot.objects)
                 _bump(objects_per_snapshot, len(snapshot.objects))
-                if snapshot.missing_cameras and len(failures) < 10:
-                    named = [(e.camera_id, e.code) for e in snapshot.missing_cameras]
+                if snapshot.camera_errors and len(failures) < 10:
+                    named = [(e.camera_id, e.code) for e in snapshot.camera_errors.values()]
                     failures.append(f"snapshot {snapshot.sequence}: missing {named}")
             dropped = opened.dropped
         cpu = time.process_time() - start_cpu

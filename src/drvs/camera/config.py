@@ -11,10 +11,11 @@ import dataclasses
 import math
 import os
 from collections.abc import Mapping
-from dataclasses import MISSING, Field, dataclass, field, fields
+from dataclasses import MISSING, Field, dataclass, fields
 from pathlib import Path
 from typing import Any
 
+from drvs.core import settings
 from drvs.core._files import read_yaml
 from drvs.core.errors import InvalidArgument
 from drvs.core.geometry import DEFAULT_MAX_RANGE_M
@@ -52,41 +53,23 @@ LIVE = "live view (pip install 'drvs[live]'; docs/operations.md)"
 
 
 @dataclass(frozen=True)
-class Setting:
-    """One camera setting's declaration, kept in its CameraConfig field's metadata (see `setting`).
-    `flag`: its drvs-camera flag; `env`: its variable; `limits`: (lowest, highest), inclusive, whole
-    numbers for an int field; `arg_type`: argparse's conversion (None: the text, converted by
-    load_config with its own message); `shared`: the flag is added by drvs.wire._cli's shared helpers
-    (security, logging), not from this declaration. The --config file's key is the field's name."""
+class Setting(settings.Setting):
+    """One camera setting's declaration, kept in its CameraConfig field's metadata (see `setting`):
+    drvs.core.settings' flag, variable, help and group, and the camera's own: `limits`: (lowest,
+    highest), inclusive, whole numbers for an int field; `arg_type`: argparse's conversion (None: the
+    text, converted by load_config with its own message); `shared`: the flag is added by
+    drvs.wire._cli's shared helpers (security, logging), not from this declaration. The --config
+    file's key is the field's name."""
 
-    flag: str | None = None
-    env: str | None = None
     limits: tuple[float, float] | None = None
-    help: str = ""
-    metavar: str | None = None
     arg_type: type | None = None
-    group: str | None = None
     shared: bool = False
-    name: str = ""
     whole: bool = False
-    default: Any = None
 
-    def help_text(self) -> str:
-        """The help with %(env)s filled in (and escaped for argparse)."""
-        return (self.help % {"env": self.env}).replace("%", "%%")
-
-    def add_to(self, parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-        """This setting's flag; not given, it is None (flag > environment > file > default)."""
-        assert self.flag is not None
-        extra: dict[str, Any] = {"dest": self.name, "help": self.help_text()}
+    def flag_options(self) -> dict[str, Any]:
         if isinstance(self.default, bool):
-            extra |= {"action": "store_const", "const": not self.default}
-        else:
-            extra |= {"metavar": self.metavar, "type": self.arg_type}
-        parser.add_argument(self.flag, **extra)
-
-
-_KEY = "drvs.camera.setting"
+            return {"action": "store_const", "const": not self.default}
+        return {"metavar": self.metavar, "type": self.arg_type}
 
 
 def setting(
@@ -102,13 +85,11 @@ def setting(
     shared: bool = False,
     default_factory: Any = MISSING,
 ) -> Any:
-    """A CameraConfig field with its whole declaration (see `Setting`). It returns a dataclass
-    field, so ruff's RUF009 (a call as a default), raised where the type is not known immutable,
-    is a false alarm there."""
-    declared = Setting(flag, env, limits, help, metavar, arg_type, group, shared)
-    if default_factory is not MISSING:
-        return field(default_factory=default_factory, metadata={_KEY: declared})
-    return field(default=default, metadata={_KEY: declared})
+    """A CameraConfig field with its whole declaration (see `Setting`)."""
+    declared = Setting(
+        flag=flag, env=env, help=help, metavar=metavar, group=group, limits=limits, arg_type=arg_type, shared=shared
+    )
+    return settings.field(declared, default, default_factory)
 
 
 @dataclass(frozen=True)
@@ -457,15 +438,12 @@ class CameraConfig:
         return options
 
 
-def _declared(f: Field[Any]) -> Setting:
-    declared: Setting = f.metadata.get(_KEY, Setting())
-    whole = f.type in ("int", "int | None")
-    default = f.default if f.default is not MISSING else None
-    return dataclasses.replace(declared, name=f.name, whole=whole, default=default)
+def _whole(f: Field[Any], declared: Setting) -> Setting:
+    return dataclasses.replace(declared, whole=f.type in ("int", "int | None"))
 
 
 #: Every setting by name, in CameraConfig's order: what the parser, environment, file and checks read.
-SETTINGS: dict[str, Setting] = {f.name: _declared(f) for f in fields(CameraConfig)}
+SETTINGS: dict[str, Setting] = settings.declared(CameraConfig, Setting(), _whole)
 #: Every environment variable a camera node reads, by setting.
 ENVIRONMENT = {s.name: s.env for s in SETTINGS.values() if s.env}
 _FLAGS = {s.name: s.flag for s in SETTINGS.values() if s.flag}
@@ -479,12 +457,7 @@ LIMITS: dict[str, tuple[float, float, bool]] = {
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """drvs-camera's setting flags (all but the shared security ones), in the declared order, each
     in its group (created on first use). Each defaults to None: not given."""
-    groups: dict[str | None, argparse.ArgumentParser | argparse._ArgumentGroup] = {None: parser}
-    for s in SETTINGS.values():
-        if s.flag is not None and not s.shared:
-            if s.group not in groups:
-                groups[s.group] = parser.add_argument_group(s.group)
-            s.add_to(groups[s.group])
+    settings.add_arguments(parser, (s for s in SETTINGS.values() if not s.shared))
 
 
 def check_setting(name: str, value: Any) -> None:

@@ -18,7 +18,7 @@ second thread from the first request that asks for them: every frame while robot
 IDLE_OBSERVE_HZ frames a second after nobody has for IDLE_AFTER_S, so a model stays warm without
 taking CPU (and the GIL) from the requests the camera serves. A camera nobody asks for foreground
 never runs the model: on two cores, feeding it every frame made other robots' colour answers on
-the same camera tens of milliseconds late (tests/test_faults.py).
+the same camera tens of milliseconds late (tests/behaviour/test_faults.py).
 """
 
 from __future__ import annotations

@@ -2,11 +2,13 @@
 
 from __future__ import annotations
 
+import dataclasses
 import functools
 import math
-from collections.abc import Iterator, Sequence
+import warnings
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import overload
+from typing import TYPE_CHECKING, Any, ClassVar, overload
 
 from shapely.geometry import Point, Polygon
 
@@ -270,7 +272,13 @@ class FusionOptions:
         return self.drop_after_s or DEFAULT_FUSION_DROP_AFTER_S
 
 
-@dataclass(frozen=True)
+class _Unset:
+    """A keyword not given (None is a value: no course)."""
+
+
+_UNSET = _Unset()
+
+
 class WorldObject:
     """One physical object as the server's fusion of several cameras sees it, in the map frame.
 
@@ -279,8 +287,9 @@ class WorldObject:
     - `outline`: the fused floor outline (shapely Polygon, metres; empty when outlines were omitted);
       `bounds`: (x0, y0, x1, y1), metres;
     - `centroid_xy`: the precision-weighted (and, when tracked, filtered) centre, metres;
-    - `velocity_xy`: m/s in the map frame, (0, 0) in a single shot; `heading_deg`: the direction of
-      motion, degrees counter-clockwise from +x, None when not moving;
+    - `velocity_xy`: m/s in the map frame, (0, 0) in a single shot; `course_deg`: the direction of
+      motion, degrees counter-clockwise from +x, None when not moving (`heading_deg`, its old name,
+      is deprecated: on a Detection `heading_deg` is a marker's heading, here `marker_heading_deg`);
     - `uncertainty_m`: one standard deviation of the centroid, metres;
     - `camera_ids`: the cameras merged into it in this snapshot (empty: predicted, unseen this period);
     - `last_seen`: capture time of the newest frame that saw it, seconds since the Unix epoch;
@@ -288,12 +297,15 @@ class WorldObject:
       `score`: the best detector confidence merged; `area_m2`: the fused outline's area.
     """
 
+    if TYPE_CHECKING:  # a dataclass (see below), which type checkers are told here
+        __dataclass_fields__: ClassVar[dict[str, dataclasses.Field[Any]]]
+
     track_id: int
     outline: Polygon
     bounds: tuple[float, float, float, float]
     centroid_xy: tuple[float, float]
     velocity_xy: tuple[float, float] = (0.0, 0.0)
-    heading_deg: float | None = None
+    course_deg: float | None = None
     uncertainty_m: float = 0.0
     camera_ids: tuple[str, ...] = ()
     last_seen: float = 0.0
@@ -302,6 +314,48 @@ class WorldObject:
     label: str = ""
     score: float = 0.0
     area_m2: float = 0.0
+
+    def __init__(
+        self,
+        track_id: int,
+        outline: Polygon,
+        bounds: tuple[float, float, float, float],
+        centroid_xy: tuple[float, float],
+        velocity_xy: tuple[float, float] = (0.0, 0.0),
+        course_deg: float | None = None,
+        uncertainty_m: float = 0.0,
+        camera_ids: tuple[str, ...] = (),
+        last_seen: float = 0.0,
+        marker_id: int | None = None,
+        marker_heading_deg: float | None = None,
+        label: str = "",
+        score: float = 0.0,
+        area_m2: float = 0.0,
+        *,
+        heading_deg: float | _Unset | None = _UNSET,
+    ) -> None:
+        """The dataclass's fields in order. `heading_deg=`, course_deg's old keyword, is accepted
+        for one release, and when given it is the course (so dataclasses.replace(o, heading_deg=h)
+        sets it); written out rather than generated only for it."""
+        if not isinstance(heading_deg, _Unset):
+            course_deg = heading_deg
+        values = (
+            track_id, outline, bounds, centroid_xy, velocity_xy, course_deg, uncertainty_m, camera_ids,
+            last_seen, marker_id, marker_heading_deg, label, score, area_m2,
+        )  # fmt: skip
+        for f, value in zip(_WORLD_OBJECT_FIELDS, values, strict=True):
+            object.__setattr__(self, f, value)
+
+    @property
+    def heading_deg(self) -> float | None:
+        """Deprecated (removed next release): `course_deg`, the direction of motion."""
+        warnings.warn(
+            "WorldObject.heading_deg is deprecated: use WorldObject.course_deg (the direction of motion; "
+            "a marker's heading is marker_heading_deg)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return self.course_deg
 
     @property
     def speed_mps(self) -> float:
@@ -314,37 +368,103 @@ class WorldObject:
         return (self.centroid_xy[0] + self.velocity_xy[0] * dt, self.centroid_xy[1] + self.velocity_xy[1] * dt)
 
 
-@dataclass(frozen=True)
+# A frozen dataclass (eq, hash, repr, fields, replace) with the __init__ written above: made by calling
+# dataclass() rather than decorating, so that type checkers take that __init__, heading_deg= included,
+# for its signature and for dataclasses.replace's. Back to @dataclass(frozen=True) with heading_deg gone.
+dataclass(frozen=True, init=False)(WorldObject)
+
+
+def errors_by_camera(errors: Iterable[CameraError]) -> dict[str, CameraError]:
+    """CameraErrors as camera id -> CameraError, in their order (a camera named twice: its first)."""
+    by_camera: dict[str, CameraError] = {}
+    for error in errors:
+        by_camera.setdefault(error.camera_id, error)
+    return by_camera
+
+
+_WORLD_OBJECT_FIELDS = tuple(f.name for f in dataclasses.fields(WorldObject))
+
+
 class Snapshot:
     """The fused answer to a request at one instant: once for a single shot, once per period for a
-    continuous request. Unpacks as `time, objects, missing_cameras`.
+    continuous request. Unpacks as `time, objects, errors` (errors: the `CameraError`s, as a tuple).
 
     - `time`: the instant described, seconds since the Unix epoch;
     - `objects`: the world objects;
-    - `missing_cameras`: a `CameraError` per camera that should have counted and did not;
+    - `camera_errors`: camera id -> `CameraError` for each camera that should have counted and did
+      not (as on a DetectionResult and a Track); `missing_cameras`, the same CameraErrors as a
+      tuple, is deprecated (next release it becomes the camera ids, as on a DetectionResult);
     - `camera_ids`: the cameras whose reports were merged; `sequence`: 0, 1, ...; `final`: the last;
     - `request_id`: the request it answers;
     - `uncovered`: the parts of the region (Polygons, metres) no camera asked sees: not known to be
       clear (the server's reply to the request; the same for each snapshot of a track).
     """
 
+    if TYPE_CHECKING:  # a dataclass (see below), which type checkers are told here
+        __dataclass_fields__: ClassVar[dict[str, dataclasses.Field[Any]]]
+
     time: float
     objects: tuple[WorldObject, ...] = ()
-    missing_cameras: tuple[CameraError, ...] = ()
+    #: In the order the server named them; not hashed (a dict).
+    camera_errors: Mapping[str, CameraError] = field(default_factory=dict, hash=False)
     camera_ids: tuple[str, ...] = ()
     sequence: int = 0
     final: bool = True
     request_id: str = ""
     uncovered: tuple[Polygon, ...] = ()
 
+    def __init__(
+        self,
+        time: float,
+        objects: tuple[WorldObject, ...] = (),
+        camera_errors: Mapping[str, CameraError] | None = None,
+        camera_ids: tuple[str, ...] = (),
+        sequence: int = 0,
+        final: bool = True,
+        request_id: str = "",
+        uncovered: tuple[Polygon, ...] = (),
+        *,
+        missing_cameras: Sequence[CameraError] | _Unset = _UNSET,
+    ) -> None:
+        """The dataclass's fields in order. `missing_cameras=` (CameraErrors), camera_errors' old
+        keyword, is accepted for one release, and when given it is the errors (so
+        dataclasses.replace(s, missing_cameras=...) sets them); written out only for it."""
+        if not isinstance(missing_cameras, _Unset):
+            camera_errors = errors_by_camera(missing_cameras)
+        values = (
+            time, objects, {} if camera_errors is None else camera_errors, camera_ids, sequence, final, request_id,
+            uncovered,
+        )  # fmt: skip
+        for f, value in zip(_SNAPSHOT_FIELDS, values, strict=True):
+            object.__setattr__(self, f, value)
+
     @property
     def all_seen(self) -> bool:
         """True when the whole region was looked at by every camera it needed: only then does no
         object mean nothing there."""
-        return not self.missing_cameras and not self.uncovered
+        return not self.camera_errors and not self.uncovered
 
-    def __iter__(self) -> Iterator[object]:
-        return iter((self.time, self.objects, self.missing_cameras))
+    @property
+    def missing_cameras(self) -> tuple[CameraError, ...]:
+        """Deprecated (removed next release, when `missing_cameras` becomes the camera ids as on
+        DetectionResult): the CameraErrors of `camera_errors`, as a tuple."""
+        warnings.warn(
+            "Snapshot.missing_cameras is deprecated: use Snapshot.camera_errors (camera id -> CameraError)",
+            DeprecationWarning,
+            stacklevel=2,
+        )
+        return tuple(self.camera_errors.values())
+
+    def __iter__(self) -> Iterator[Any]:
+        """`time, objects, errors = snapshot`: a float, a tuple of WorldObjects and a tuple of
+        CameraErrors. Typed Any: one iterator cannot give each its own type (read `snapshot.time`,
+        `.objects`, `.camera_errors` where a type checker should see them)."""
+        return iter((self.time, self.objects, tuple(self.camera_errors.values())))
+
+
+# As WorldObject: a frozen dataclass with the __init__ above (missing_cameras= for one release).
+dataclass(frozen=True, init=False)(Snapshot)
+_SNAPSHOT_FIELDS = tuple(f.name for f in dataclasses.fields(Snapshot))
 
 
 @dataclass(frozen=True)

@@ -109,7 +109,7 @@ class ArucoDetector(Detector):
             # Sub-pixel corners (cornerSubPix): positions, outlines and headings come from them.
             # The window's half-size is 0.8 of a module (a marker cell), so that it stays within
             # the marker's black border and the white around it, whatever the marker's size in
-            # the image. On 50 markers 17-50 px wide, rendered as tests/test_aruco_detector.py
+            # the image. On 50 markers 17-50 px wide, rendered as tests/detectors/test_aruco_detector.py
             # renders them, then blurred, noisy and JPEG compressed, OpenCV's default of 0.3 left
             # corners up to 2.3 px off (3.7 degrees of heading); 0.8 kept them within 0.6 px
             # (0.9 degrees). CORNER_REFINE_CONTOUR placed corners 0.5-0.7 px inside the marker.

@@ -509,7 +509,7 @@ def foxglove_layout() -> str:
     """A Foxglove layout (foxglove-sdk's own `foxglove.layouts`): a 3D panel on the map frame,
     looking down on the floor, with every scene topic and the robot on, beside the raw replies.
     docs/foxglove-layout.json is this, written by `python -m drvs.live.liveview > docs/foxglove-layout.json`
-    (tests/test_liveview.py checks the two agree)."""
+    (tests/live/test_liveview.py checks the two agree)."""
     import foxglove.layouts as fl
 
     topics: dict[str, Any] = {t: fl.BaseRendererSceneUpdateTopicSettings(visible=True) for t in SCENE_TOPICS}

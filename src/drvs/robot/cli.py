@@ -157,7 +157,7 @@ def report_missing(snapshots: list[Snapshot]) -> bool:
     region no camera saw; True if a camera was missing or some of the region went unseen."""
     missing: dict[str, tuple[int, str]] = {}
     for s in snapshots:
-        for m in s.missing_cameras:
+        for m in s.camera_errors.values():
             count, _ = missing.get(m.camera_id, (0, ""))
             missing[m.camera_id] = (count + 1, f"{m.code} {m.message}")
     for camera_id, (count, why) in sorted(missing.items()):

@@ -341,14 +341,14 @@ class DrvsClient(ClientConnection):
         request_id: str | None = None,
     ) -> Snapshot:
         """A fused single shot: the server gathers the cameras' reports itself and answers with one
-        `drvs.core.model.Snapshot` (`time, objects, missing_cameras = snapshot`): each physical object
+        `drvs.core.model.Snapshot` (`time, objects, errors = snapshot`): each physical object
         once, as a `WorldObject`, however many cameras saw it. No listener is used (`track()` gives
         snapshots over time).
 
         - `filter_def`, `region`, `outlines`: what and where, as for subscribe;
         - `deadline_s`: the server answers with what it has this many seconds after it sent the
           request to the cameras, naming the cameras that did not report in time in
-          `snapshot.missing_cameras` (DEADLINE_EXCEEDED); None or 0: the server's default (2 s);
+          `snapshot.camera_errors` (DEADLINE_EXCEEDED); None or 0: the server's default (2 s);
           at most 30;
         - `timeout_s`: how long beyond `deadline_s` to wait for the server's answer; past it
           DeadlineExceeded;
@@ -403,7 +403,7 @@ class DrvsClient(ClientConnection):
           the server's default, 1 s; at most 60);
         - `deadline_s`: how late after its period a camera's report may still count, seconds (None
           or 0: one period; at most 30); a camera without a report in time is in that snapshot's
-          `missing_cameras`;
+          `camera_errors`;
         - `timeout_s`: seconds beyond `duration_s` and the deadline to wait for the final snapshot
           (past it the iteration raises DeadlineExceeded);
         - `rpc_timeout_s`: seconds one attempt waits for the server's first reply (DeadlineExceeded);

@@ -16,7 +16,7 @@ def _r(value: float, digits: int) -> float:
 
 def world_object_json(o: WorldObject) -> dict[str, Any]:
     """One WorldObject as JSON: `track_id`; `centroid` [x, y], `bounds` [x0, y0, x1, y1] and
-    `uncertainty_m` in metres; `velocity` [vx, vy] in m/s; `heading_deg` (direction of motion,
+    `uncertainty_m` in metres; `velocity` [vx, vy] in m/s; `heading_deg` (course_deg: direction of motion,
     degrees counter-clockwise from +x, null when not moving); `cameras` (ids, sorted; empty when
     predicted); `marker_id` (null unless a marker); `label`; `last_seen` (seconds since the Unix
     epoch); `score` in [0, 1]; `area_m2`."""
@@ -25,7 +25,7 @@ def world_object_json(o: WorldObject) -> dict[str, Any]:
         "centroid": [_r(o.centroid_xy[0], 4), _r(o.centroid_xy[1], 4)],
         "bounds": [_r(v, 4) for v in o.bounds],
         "velocity": [_r(o.velocity_xy[0], 4), _r(o.velocity_xy[1], 4)],
-        "heading_deg": None if o.heading_deg is None else _r(o.heading_deg, 2),
+        "heading_deg": None if o.course_deg is None else _r(o.course_deg, 2),
         "uncertainty_m": _r(o.uncertainty_m, 4),
         "cameras": list(o.camera_ids),
         "marker_id": o.marker_id,
@@ -48,7 +48,7 @@ def snapshot_json(snapshot: Snapshot) -> dict[str, Any]:
         "final": snapshot.final,
         "objects": [world_object_json(o) for o in snapshot.objects],
         "missing_cameras": [
-            {"camera_id": m.camera_id, "code": m.code, "message": m.message} for m in snapshot.missing_cameras
+            {"camera_id": m.camera_id, "code": m.code, "message": m.message} for m in snapshot.camera_errors.values()
         ],
         "cameras": list(snapshot.camera_ids),
         "uncovered": [polygon_json(p) for p in snapshot.uncovered],
@@ -75,7 +75,7 @@ def snapshot_table(snapshot: Snapshot) -> list[str]:
     head = f"snapshot #{snapshot.sequence}{' final' if snapshot.final else ''} at {snapshot.time:.3f}: "
     head += f"{len(snapshot.objects)} object(s) from {', '.join(snapshot.camera_ids) or 'no camera'}"
     lines = [head]
-    for m in snapshot.missing_cameras:
+    for m in snapshot.camera_errors.values():
         lines.append(f"  missing {m.camera_id}: {m.code} {m.message}")
     if not snapshot.objects:
         return lines

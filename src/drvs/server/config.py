@@ -10,9 +10,8 @@ Precedence: flag > DRVS_* variable > default.
 Each setting is declared once, as a `ServerConfig` field made by `setting(...)`: its default, flag,
 variable, range, unit and help text. drvs-server's parser (`add_arguments`), the environment
 (`ServerConfig.load`), the range checks (`ServerConfig.validate`) and `DrvsServer(**settings)` all
-read `SETTINGS`, so a new setting is one field here. (A dataclass with field metadata rather than
-pydantic-settings: no new dependency, and the messages, precedence and argparse help people script
-against stay exactly as they were; pydantic would word its own errors and want its own CLI.)
+read `SETTINGS`, so a new setting is one field here. (The declaring itself is drvs.core.settings',
+shared with the camera's settings; why a dataclass with field metadata: see there.)
 """
 
 from __future__ import annotations
@@ -27,10 +26,12 @@ from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
+from drvs.core import settings
 from drvs.core.errors import InvalidArgument
 from drvs.core.geometry import DEFAULT_MAX_RANGE_M
 from drvs.core.net import host_of, parse_address
 from drvs.server.admission import DEFAULT_TARGET_S
+from drvs.server.claims import DEFAULT_GRACE_S, DEFAULT_MAX_CAMERAS_PER_IDENTITY
 from drvs.server.etcd import Endpoints
 from drvs.server.policy import (
     DEFAULT_FORWARD_BYTES_PER_S,
@@ -40,9 +41,7 @@ from drvs.server.policy import (
     RequestLimits,
 )
 from drvs.server.registry import (
-    DEFAULT_GRACE_S,
     DEFAULT_LEASE_TTL_S,
-    DEFAULT_MAX_CAMERAS_PER_IDENTITY,
     DEFAULT_MAX_FOV_AREA_M2,
     DEFAULT_MAX_FOV_RANGE_M,
     DEFAULT_MIN_POSE_INTERVAL_S,
@@ -69,24 +68,17 @@ ETCD_TLS = "TLS to etcd (with --registry etcd://...)"
 
 
 @dataclass(frozen=True)
-class Setting:
-    """One setting's declaration, kept in its ServerConfig field's metadata (see `setting`); name,
-    kind (bool, int, float, str or tuple: a repeatable flag) and default are the field's."""
+class Setting(settings.Setting):
+    """One server setting's declaration, kept in its ServerConfig field's metadata (see `setting`):
+    drvs.core.settings' flag, variable, help and group, and the server's range; name, kind (bool,
+    int, float, str or tuple: a repeatable flag) and default are the field's."""
 
-    flag: str | None = None
-    env: str | None = None
     #: Inclusive (lowest, highest); the lowest itself only if `low_allowed`. None: no range.
     range: tuple[float, float] | None = None
     low_allowed: bool = True
     #: Said after the interval in a range message, e.g. " seconds".
     unit: str = ""
-    #: --help's text: %(default)s (or %(default)g, …) and %(env)s are filled in.
-    help: str = ""
-    metavar: str | None = None
-    group: str | None = None
-    name: str = ""
     kind: type = object
-    default: Any = None
 
     @property
     def integer(self) -> bool:
@@ -107,26 +99,14 @@ class Setting:
             shown = format_number(value) if numeric else repr(value)
             raise InvalidArgument(f"{described(self.name)}: {shown} must be in {interval}{self.unit}")
 
-    def help_text(self) -> str:
-        """The help with its default and variable filled in (and escaped for argparse)."""
-        return (self.help % {"default": self.default, "env": self.env}).replace("%", "%%")
-
-    def add_to(self, parser: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
-        """This setting's flag; not given, it is None (then the variable, then the default)."""
-        assert self.flag is not None
-        extra: dict[str, Any] = {}
+    def flag_options(self) -> dict[str, Any]:
         if self.kind is bool:
-            extra = {"action": "store_const", "const": True}
-        elif self.kind is tuple:
-            extra = {"action": "append", "metavar": self.metavar}
-        else:
-            extra = {"metavar": self.metavar}
-            if self.kind in (int, float):
-                extra["type"] = self.kind
-        parser.add_argument(self.flag, dest=self.name, default=None, help=self.help_text(), **extra)
-
-
-_KEY = "drvs.server.setting"
+            return {"action": "store_const", "const": True}
+        if self.kind is tuple:
+            return {"action": "append", "metavar": self.metavar}
+        if self.kind in (int, float):
+            return {"metavar": self.metavar, "type": self.kind}
+        return {"metavar": self.metavar}
 
 
 def setting(
@@ -142,8 +122,10 @@ def setting(
     group: str | None = None,
 ) -> Any:
     """A ServerConfig field with its whole declaration: flag, variable, range, help, …"""
-    declared = Setting(flag, env, range, low_allowed, unit, help, metavar, group)
-    return dataclasses.field(default=default, metadata={_KEY: declared})
+    declared = Setting(
+        flag=flag, env=env, help=help, metavar=metavar, group=group, range=range, low_allowed=low_allowed, unit=unit
+    )
+    return settings.field(declared, default)
 
 
 @dataclass(frozen=True)
@@ -531,21 +513,16 @@ class ServerConfig:
         return cls(**values)
 
 
-def _declared(field: dataclasses.Field[Any], hint: Any) -> Setting:
-    """A field's Setting, with its name, kind (from the type: float | None is float) and default."""
+def _kind(field: dataclasses.Field[Any], declared: Setting) -> Setting:
+    """A setting with its kind, from its field's type (float | None is float)."""
+    hint = typing.get_type_hints(ServerConfig)[field.name]
     union = typing.get_origin(hint) in (typing.Union, types.UnionType)
     [kind] = [k for k in typing.get_args(hint) if k is not type(None)] if union else [hint]
-    kind = typing.get_origin(kind) or kind
-    declared: Setting = field.metadata.get(_KEY, Setting())
-    return dataclasses.replace(declared, name=field.name, kind=kind, default=field.default)
+    return dataclasses.replace(declared, kind=typing.get_origin(kind) or kind)
 
 
 #: Every setting by name, in ServerConfig's order: what the parser, environment and checks read.
-SETTINGS: dict[str, Setting] = {
-    f.name: _declared(f, hint)
-    for f in dataclasses.fields(ServerConfig)
-    for hint in [typing.get_type_hints(ServerConfig)[f.name]]
-}
+SETTINGS: dict[str, Setting] = settings.declared(ServerConfig, Setting(), _kind)
 #: The DRVS_* environment variables drvs-server reads, by setting (a flag given wins).
 ENVIRONMENT = {s.name: s.env for s in SETTINGS.values() if s.env}
 #: Each setting's command-line flag.
@@ -560,12 +537,7 @@ def described(name: str) -> str:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Every setting's flag, in the declared order, each in its group (created on first use)."""
-    groups: dict[str | None, argparse.ArgumentParser | argparse._ArgumentGroup] = {None: parser}
-    for s in SETTINGS.values():
-        if s.flag is not None:
-            if s.group not in groups:
-                groups[s.group] = parser.add_argument_group(s.group)
-            s.add_to(groups[s.group])
+    settings.add_arguments(parser, SETTINGS.values())
 
 
 def from_arguments(args: argparse.Namespace, environ: Mapping[str, str] = os.environ) -> ServerConfig:

@@ -39,7 +39,7 @@ from shapely.geometry import Polygon
 
 from drvs.core.errors import ResourceExhausted
 from drvs.core.geometry import Homography
-from drvs.core.model import CameraError, DetectionReport, DetectionRequest, Snapshot, WorldObject
+from drvs.core.model import CameraError, DetectionReport, DetectionRequest, Snapshot, WorldObject, errors_by_camera
 from drvs.server.fusion import fuse
 from drvs.server.tracking import Tracker
 from drvs.v1 import detection_pb2
@@ -297,7 +297,7 @@ class SingleShot(FusionSession):
             snapshot = Snapshot(
                 time=max((r.capture_time for r in reports), default=0.0) or time.time(),
                 objects=tuple(objects),
-                missing_cameras=self._missing(),
+                camera_errors=errors_by_camera(self._missing()),
                 camera_ids=tuple(sorted(r.camera_id for r in reports)),
                 sequence=0,
                 final=True,
@@ -474,7 +474,7 @@ class Continuous(FusionSession):
         snapshot = Snapshot(
             time=wall,
             objects=tuple(tracks),
-            missing_cameras=self._missing(late),
+            camera_errors=errors_by_camera(self._missing(late)),
             camera_ids=tuple(sorted(r.camera_id for r in merged)),
             sequence=sequence,
             final=final,

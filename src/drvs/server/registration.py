@@ -17,10 +17,11 @@ from typing import Protocol
 from drvs.core.errors import InvalidArgument, NotFound
 from drvs.core.geometry import Homography
 from drvs.core.model import DEFAULT_FRAME, Pose2, check_frame, check_id
+from drvs.server.claims import Claims
 from drvs.server.config import ServerConfig
 from drvs.server.etcd import Endpoints, EtcdClient
 from drvs.server.forwarding import Forwarder
-from drvs.server.registry import CameraEntry, Claims, Registry
+from drvs.server.registry import CameraEntry, Registry
 from drvs.server.routing import Routing
 from drvs.server.shared import PoseRecord, Record, SharedRegistry, secret_digest
 from drvs.wire import metrics

@@ -20,6 +20,7 @@ from grpc import aio
 from drvs.core.errors import InvalidArgument, Unauthenticated
 from drvs.core.net import format_address, host_of, is_loopback_host
 from drvs.server.admission import Door
+from drvs.server.claims import Claims
 from drvs.server.config import (
     DEFAULT_LISTEN,
     WILDCARDS,
@@ -32,11 +33,7 @@ from drvs.server.listing import camera_info
 from drvs.server.mobile import MobileCameras
 from drvs.server.policy import CallbackPolicy, RequestLimits
 from drvs.server.registration import EtcdBackend, MemoryBackend, RegistryBackend
-from drvs.server.registry import (
-    CameraEntry,
-    Claims,
-    Registry,
-)
+from drvs.server.registry import CameraEntry, Registry
 from drvs.server.routing import Routing
 from drvs.server.servicers import add_servicers
 from drvs.server.shared import SharedRegistry

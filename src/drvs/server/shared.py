@@ -36,8 +36,8 @@ from typing import Any
 from drvs.core.backoff import Backoff
 from drvs.core.errors import DrvsError, FailedPrecondition, ResourceExhausted, Unavailable
 from drvs.core.model import DEFAULT_FRAME
+from drvs.server.claims import Claim
 from drvs.server.etcd import Endpoints, EtcdClient, Event
-from drvs.server.registry import Claim
 from drvs.wire import metrics
 
 log = logging.getLogger("drvs.server.shared")

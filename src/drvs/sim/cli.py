@@ -19,7 +19,7 @@ PROGRESS_PREFIX = "PROGRESS "
 
 
 def robot_main(args: argparse.Namespace) -> int:
-    from drvs.sim.robot import run_robot
+    from drvs.sim.mission import run_robot
 
     setup_logging(args.log_level)
 

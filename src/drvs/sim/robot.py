@@ -18,29 +18,24 @@ import asyncio
 import contextlib
 import dataclasses
 import functools
-import json
 import logging
 import math
 import time
 from collections.abc import Awaitable, Callable, Sequence
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, TypeVar
 
-import grpc
 import shapely
 from shapely.geometry import LineString, Point, Polygon, box
 
 from drvs.core.errors import DrvsError, ResourceExhausted
 from drvs.core.model import Detection, PixelBox, Snapshot, WorldObject
-from drvs.robot import DetectionResult, DrvsClient, Subscription, Track
+from drvs.robot import DrvsClient, Subscription, Track
+from drvs.sim.coverage import CoverageWatch
 from drvs.sim.planner import NoPath, OccupancyGrid, plan_path
 from drvs.sim.predict import STILL_MPS, MovingObstacle, TrackRecord, decide
 from drvs.sim.scenario import Scenario
-from drvs.tools.meter import MeteredClient
 from drvs.v1 import sim_pb2, sim_pb2_grpc
-from drvs.wire import _grpc
 from drvs.wire.convert import polygon_from_pb
-from drvs.wire.security import Security
 
 if TYPE_CHECKING:
     from drvs.sim.robot_view import RobotView
@@ -66,8 +61,6 @@ SAME_OBSTACLE_M = 0.05
 #: region nobody sees), the robot cannot know the way is clear: it creeps at this fraction of its
 #: speed, as it would with its bumper as its only sensor, until a camera looks there again.
 BLIND_SPEED_FRACTION = 0.25
-#: A camera of a continuous request that has sent nothing for this long has stopped looking.
-SILENT_AFTER_S = 3.0
 #: Detectors the robot can find obstacles with: the paper's colours, or anything not empty floor.
 DETECTORS = ("hsv", "foreground")
 #: With `foreground` the robot sees itself: what lies within this much of the floor it has driven
@@ -97,7 +90,7 @@ class MissionFailed(Exception):
     pass
 
 
-class SimRobot:
+class SimRobot(CoverageWatch):
     def __init__(
         self,
         scenario: Scenario,
@@ -207,7 +200,7 @@ class SimRobot:
 
     def use_snapshot(self, filter_def: str, request_id: str, snapshot: Snapshot) -> None:
         """One period of a fused track: standing tracks go on the map, moving ones are predicted."""
-        for missing in snapshot.missing_cameras:
+        for missing in snapshot.camera_errors.values():
             self.lose(missing.camera_id, f"{missing.code} {missing.message}")
         for camera_id in snapshot.camera_ids:
             self.regain(camera_id)
@@ -328,7 +321,7 @@ class SimRobot:
         region = line.buffer(LOOK_AHEAD_M).intersection(box(*self.scenario.bounds))
         return region if isinstance(region, Polygon) else region.convex_hull
 
-    # --- DRVS -------------------------------------------------------------------------------
+    # --- DRVS (coverage: drvs.sim.coverage) ---------------------------------------------------
 
     async def admitted(self, ask: Callable[[], Awaitable[_T]]) -> _T:
         """`ask()`, asked again after a refusal for overload (RESOURCE_EXHAUSTED: the server's door,
@@ -374,98 +367,13 @@ class SimRobot:
         )
         found: list[Detection] = []
         for f, snapshot in zip(filters, snapshots, strict=True):
-            for missing in snapshot.missing_cameras:
+            for missing in snapshot.camera_errors.values():
                 self.lose(missing.camera_id, f"{missing.code} {missing.message}")
             for camera_id in snapshot.camera_ids:
                 self.regain(camera_id)
             found.extend(object_detection(f, o) for o in snapshot.objects)
         self.set_unseen("look", [p for s in snapshots for p in s.uncovered])
         return found
-
-    # --- coverage: where nobody looks, the way is not known to be clear ---------------------
-
-    async def learn_cameras(self) -> None:
-        """Every camera's field of view, so that when one stops the robot knows where."""
-        assert self.drvs is not None
-        self.fields_of_view = {c.camera_id: c.field_of_view for c in await self.drvs.cameras()}
-
-    def check_coverage(self, result: DetectionResult, *, running: bool = False) -> None:
-        """A camera that did not answer (failed, skipped, gone) leaves its floor unseen. `running`:
-        the request is still under way, so only the cameras the server could not ask count."""
-        unseen = shapely.union_all(result.uncovered) if result.uncovered else None
-        errors = result.skipped if running else result.camera_errors
-        for camera_id, error in sorted(errors.items()):
-            self.lose(camera_id, f"{error.code} {error.message}", unseen)
-        for camera_id in result.finished_cameras - set(result.camera_errors):
-            self.regain(camera_id)
-
-    def lose(self, camera_id: str, why: str, area: Polygon | None = None) -> None:
-        if camera_id in self.blind:
-            return
-        area = self.fields_of_view.get(camera_id, area)
-        if area is None or area.is_empty:
-            return
-        self.blind[camera_id] = area
-        self._blind_area = None
-        log.warning("camera %s stopped looking (%s): slowing down where only it looked", camera_id, why)
-        self.coverage_events.append(self._event(camera_id, "lost", why))
-
-    def regain(self, camera_id: str) -> None:
-        if self.blind.pop(camera_id, None) is not None:
-            self._blind_area = None
-            log.info("camera %s looks again", camera_id)
-            self.coverage_events.append(self._event(camera_id, "regained", ""))
-
-    def _event(self, camera_id: str, what: str, why: str) -> dict[str, Any]:
-        return {
-            "t": round(time.monotonic() - self._started, 2),
-            "step": len(self.path_driven) - 1,
-            "camera_id": camera_id,
-            "event": what,
-            "why": why,
-        }
-
-    def set_unseen(self, source: str, parts: Sequence[Polygon]) -> None:
-        """The floor the latest answers of `source` ("look": the single shots along the plan;
-        "watch": the requests watching it while the robot drives) said no camera sees: unknown,
-        not clear, as a blind camera's floor is."""
-        area = shapely.union_all(list(parts)) if parts else None
-        if area is None or area.is_empty:
-            if self.unseen.pop(source, None) is not None:
-                self._blind_area = None
-            return
-        self.unseen[source] = area
-        self._blind_area = None
-
-    def blind_area(self) -> Polygon | None:
-        """Floor that a camera which stopped looking saw and no camera still looking sees, and
-        floor the answers said no camera sees."""
-        if not self.blind and not self.unseen:
-            return None
-        if self._blind_area is None:
-            area = shapely.union_all(list(self.blind.values())) if self.blind else Polygon()
-            seen = [fov for cid, fov in self.fields_of_view.items() if cid not in self.blind]
-            if seen and self.blind:
-                area = area.difference(shapely.union_all(seen))
-            if self.unseen:
-                area = shapely.union_all([area, *self.unseen.values()])
-            shapely.prepare(area)
-            self._blind_area = area
-        return self._blind_area
-
-    def check_silence(self) -> None:
-        """Cameras of the running continuous requests whose report stream broke, or that fell silent."""
-        now = asyncio.get_running_loop().time()
-        for sub, since in self._watching:
-            for camera_id in sub.interrupted:
-                self.lose(camera_id, "its report stream ended")
-            done = sub.result.finished_cameras  # a camera that sent its final report is not silent
-            for camera_id in sub.camera_ids:
-                if camera_id in done:
-                    continue
-                last = sub.last_report_at.get(camera_id, since)
-                if now - last > SILENT_AFTER_S:
-                    self.lose(camera_id, f"no report for {now - last:.1f} s")
 
     async def watch_obstacles(self, region: Polygon) -> None:
         """Algorithm 1's callback: obstacles stream in while the robot drives."""
@@ -751,129 +659,3 @@ def object_detection(filter_def: str, obj: WorldObject, outline: Polygon | None 
         heading_deg=obj.marker_heading_deg,
         label=obj.label,
     )
-
-
-def detection_record(d: Detection) -> dict[str, Any]:
-    record: dict[str, Any] = {
-        "filter_def": d.filter_def,
-        "camera_id": d.camera_id,
-        # Which cameras saw it (a fused object: every camera whose reports it merges).
-        "camera_ids": d.camera_id.split(",") if d.camera_id else [],
-        "bounds": [round(v, 4) for v in d.bounds],
-        "centroid": [round(d.centroid.x, 4), round(d.centroid.y, 4)],
-        "outline": [[round(x, 4), round(y, 4)] for x, y in list(d.outline.exterior.coords)[:-1]],
-    }
-    if d.marker_id is not None:
-        record["marker_id"] = d.marker_id
-    if d.heading_deg is not None:
-        record["heading_deg"] = round(d.heading_deg, 2)
-    return record
-
-
-async def run_robot(
-    world_address: str,
-    server_address: str | None,
-    out_dir: Path,
-    *,
-    progress: Callable[[dict[str, Any]], None],
-    max_time_s: float = 120.0,
-    security: Security | None = None,
-    detector: str = "hsv",
-    delivery: str = "fused",
-    predict: bool = True,
-    live: str | None = None,
-) -> dict[str, Any]:
-    from drvs.sim.scenario import parse_scenario
-
-    cpu_start = time.process_time()
-    async with _grpc.insecure_channel(world_address) as channel:
-        world = sim_pb2_grpc.SimulatedWorldStub(channel)
-        scene = await world.GetScene(sim_pb2.GetSceneRequest(), timeout=10, wait_for_ready=True)
-        scenario = parse_scenario(scene.scenario_yaml, f"world {world_address}")
-        # The robot's two connections pass through counting relays: bytes_to_robot and
-        # wire_bytes_to_robot are what its sockets received (drvs.tools.meter).
-        metered = MeteredClient(server_address, robot_id="sim-robot", security=security) if server_address else None
-        client: DrvsClient | None = None
-        try:
-            if metered is not None:
-                client = await metered.start()
-            robot = SimRobot(
-                scenario,
-                world,
-                client,
-                progress=progress,
-                max_time_s=max_time_s,
-                detector=detector,
-                delivery=delivery,
-                predict=predict,
-            )
-            if live:
-                from drvs.sim.robot_view import RobotView
-
-                robot.view = RobotView(live, scenario.robot.radius)
-                await robot.view.start()
-            mission = getattr(robot, scenario.mission)
-            try:
-                outcome = await mission()
-                failure = None
-            except (MissionFailed, NoPath, grpc.RpcError) as exc:
-                outcome = {"reached_goal": False, "charging_station": None, "candidates": []}
-                failure = str(exc)
-            robot.report_progress(force=True)
-            if robot.view is not None:
-                await robot.view.close()
-            received = metered.payload_bytes()[0] if metered is not None else 0
-            wire_received = metered.ethernet_bytes()[0] if metered is not None else 0
-        finally:
-            if metered is not None:
-                await metered.close()
-    errors = robot.localisation_errors
-    headings = robot.heading_errors
-    result: dict[str, Any] = {
-        "scenario": scenario.name,
-        "mission": scenario.mission,
-        "drvs": client is not None,
-        "detector": detector,
-        "delivery": delivery if client is not None else None,
-        "predict": predict,
-        **outcome,
-        "collisions": robot.collisions,
-        "overload_refusals": robot.overload_refusals,
-        "replans": robot.replans,
-        "path": [[round(x, 4), round(y, 4)] for x, y in robot.path_driven],
-        "planned_paths": [[[round(x, 3), round(y, 3)] for x, y in p] for p in robot.plans],
-        "detections": sorted(
-            (detection_record(d) for d in robot.detections_used), key=lambda r: (r["camera_id"], r["centroid"])
-        ),
-        "contacts": [[[round(x, 4), round(y, 4)] for x, y in list(c.exterior.coords)[:-1]] for c in robot.contacts],
-        "localisation": {
-            "fixes": len(errors),
-            "mean_error_m": round(sum(errors) / len(errors), 4) if errors else None,
-            "max_error_m": round(max(errors), 4) if errors else None,
-            "filter_def": robot.self_filter,
-            "mean_heading_error_deg": round(sum(headings) / len(headings), 3) if headings else None,
-            "max_heading_error_deg": round(max(headings), 3) if headings else None,
-        },
-        "tracks": [r.summary(robot._epoch) for r in robot.tracks.values() if r.snapshots > 1 or r.moving],
-        "wait_steps": robot.wait_steps,
-        "world_time_s": round(robot.world_time_s, 3),
-        "coverage_events": robot.coverage_events,
-        "blind_steps": robot.blind_steps,
-        "reports_rejected": client.reports_rejected if client is not None else 0,
-        "bytes_to_robot": received,
-        "wire_bytes_to_robot": wire_received,
-        "robot_cpu_s": round(time.process_time() - cpu_start, 3),
-        "elapsed_s": round(time.monotonic() - robot._started, 2),
-    }
-    if robot.view is not None:
-        # What the robot published into the live view (0: it could not reach it, and went on without).
-        result["live_view"] = {"url": robot.view.url, "published": robot.view.sent}
-    if failure:
-        result["failure"] = failure
-    await asyncio.to_thread(write_result, out_dir, result)
-    return result
-
-
-def write_result(out_dir: Path, result: dict[str, Any]) -> None:
-    out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "result.json").write_text(json.dumps(result, indent=1) + "\n")

@@ -23,7 +23,7 @@ class Extra:
     modules: tuple[str, ...]
 
 
-#: pyproject.toml's extras but dev (tests/test_extras.py keeps the two in step).
+#: pyproject.toml's extras but dev (tests/meta/test_extras.py keeps the two in step).
 EXTRAS = {
     "sim": Extra("the simulator", ("matplotlib", "foxglove", "mcap", "mcap_protobuf", "websockets")),
     "bench": Extra("the benchmarks", ("matplotlib", "onnx", "foxglove", "mcap", "mcap_protobuf", "websockets")),

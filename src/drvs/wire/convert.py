@@ -27,6 +27,7 @@ from drvs.core.model import (
     Snapshot,
     WorldObject,
     check_frame,
+    errors_by_camera,
 )
 from drvs.v1 import detection_pb2, geometry_pb2, registry_pb2
 
@@ -330,8 +331,8 @@ def world_object_to_pb(
     if outline and not o.outline.is_empty:
         # The exterior ring without its closing point (geometry.polygon_coords), as one array.
         msg.outline_xy.extend(shapely.get_coordinates(o.outline.exterior)[:-1].ravel().tolist())
-    if o.heading_deg is not None:
-        msg.heading_deg = o.heading_deg
+    if o.course_deg is not None:
+        msg.heading_deg = o.course_deg
     if o.marker_id is not None:
         msg.marker_id = o.marker_id
     if o.marker_heading_deg is not None:
@@ -391,7 +392,7 @@ def _world_object(msg: detection_pb2.WorldObject, time: float, cameras: Sequence
         bounds=(b.x_lower, b.y_lower, b.x_upper, b.y_upper),
         centroid_xy=(msg.centroid.x, msg.centroid.y),
         velocity_xy=(msg.velocity.x, msg.velocity.y),
-        heading_deg=msg.heading_deg if msg.HasField("heading_deg") else None,
+        course_deg=msg.heading_deg if msg.HasField("heading_deg") else None,
         uncertainty_m=msg.uncertainty_m,
         camera_ids=camera_ids,
         last_seen=last_seen,
@@ -419,7 +420,7 @@ def snapshot_to_pb(
     cameras = {c: i for i, c in enumerate(s.camera_ids)}
     for o in s.objects:
         world_object_to_pb(o, outlines, msg.objects.add(), time=time, cameras=cameras)
-    for m in s.missing_cameras:
+    for m in s.camera_errors.values():
         msg.missing_cameras.add(camera_id=m.camera_id, code=m.code, message=m.message)
     msg.camera_ids.extend(s.camera_ids)
     return msg
@@ -436,7 +437,7 @@ def snapshot_from_pb(
     return Snapshot(
         time=time,
         objects=tuple(_world_object(o, time, cameras, f"snapshot.objects[{i}]") for i, o in enumerate(msg.objects)),
-        missing_cameras=tuple(CameraError(m.code, m.message, m.camera_id) for m in msg.missing_cameras),
+        camera_errors=errors_by_camera(CameraError(m.code, m.message, m.camera_id) for m in msg.missing_cameras),
         camera_ids=tuple(msg.camera_ids),
         sequence=msg.sequence,
         final=msg.final,

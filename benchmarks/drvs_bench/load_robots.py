@@ -1,0 +1,208 @@
+"""drvs-bench load-robots: the load benchmark's worker process, N robots on an open-loop schedule
+(drvs_bench.load starts these and reads what they write)."""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import signal
+import time
+from pathlib import Path
+from typing import Any
+
+from drvs.core.errors import DrvsError, ResourceExhausted
+from drvs.robot import DetectionResult, DrvsClient, Snapshot
+from drvs.robot.throttle import DEFAULT_K
+
+from .common import ALL_REGION, YELLOW
+
+CAMERAS = 3
+DELIVERIES = ("per-camera", "fused")
+#: Outcomes of one request, in the order they are published.
+OUTCOMES = ("complete", "refused_server", "refused_local", "incomplete", "lost")
+#: A refusal's reason, from its message (diagnostics only: outcomes do not depend on it).
+REFUSAL_REASONS = (
+    ("client-side throttling", "client_throttle"),
+    ("overloaded: the server", "server_loop"),
+    ("overloaded: camera", "camera_link"),
+    ("overloaded: fused delivery", "fused_delivery"),
+    ("busy: camera", "camera_queue"),
+)
+
+
+# --- the worker process: N robots -----------------------------------------------------------------
+
+
+def schedule(robot: int, robots: int, rate: float, end: float) -> list[float]:
+    """A robot's send times, as offsets (s) from the start: robots spread evenly over one period,
+    so the load is smooth, not all of them at once. The coordinator counts the work from it too."""
+    phase = robot / robots / rate
+    offsets = []
+    k = 0
+    while (offset := phase + k / rate) < end:
+        offsets.append(offset)
+        k += 1
+    return offsets
+
+
+def expected_requests(robots: int, rate: float, warmup: float, seconds: float) -> int:
+    """Requests the robots must send after the warm-up: what the counts are checked against."""
+    return sum(1 for g in range(robots) for o in schedule(g, robots, rate, warmup + seconds) if not o < warmup)
+
+
+def refusal_reason(exc: ResourceExhausted) -> str:
+    """What a refusal's message says refused it (REFUSAL_REASONS); `no_retry_hint` for one
+    without a hint (a per-robot budget), `other` for the rest."""
+    text = str(exc)
+    for needle, reason in REFUSAL_REASONS:
+        if needle in text:
+            return reason
+    return "no_retry_hint" if exc.retry_after_s == 0 else "other"
+
+
+async def robots_worker(args: argparse.Namespace) -> None:
+    """`drvs-bench load-robots`: start N robots, say READY, wait for the start time in --go-file,
+    run the schedule, print DONE with one record per request."""
+    loop = asyncio.get_running_loop()
+    fused = args.delivery == "fused"
+    clients = [
+        DrvsClient(
+            args.server,
+            robot_id=f"{args.name}-{i}",
+            listen=None if fused else "127.0.0.1:0",  # a fused robot dials out only
+            throttle_k=args.throttle_k,
+        )
+        for i in range(args.robots)
+    ]
+    for client in clients:
+        await client.start()
+    try:
+        for client in clients:  # connections up, one round each
+            if fused:
+                await client.snapshot(YELLOW, ALL_REGION, timeout_s=10)
+            else:
+                await client.detect(YELLOW, ALL_REGION, timeout_s=10)
+        go = asyncio.Event()
+        loop.add_signal_handler(signal.SIGUSR1, go.set)
+        print("READY", flush=True)
+        await go.wait()  # the coordinator has written the start time (wall clock) into --go-file
+        start_wall = float(await asyncio.to_thread(Path(args.go_file).read_text))
+        start = loop.time() + (start_wall - time.time())
+        end_offset = args.warmup + args.seconds
+        refused_locally_before = sum(c.throttle.refused_locally for c in clients)
+        # Per request: [0] scheduled offset from the start (s), [1] lag of the send behind schedule
+        # (ms), [2] final reports (fused: cameras merged) without error, [3] with error (fused:
+        # missing cameras), [4] the latency from the scheduled send time to the last final report
+        # or the snapshot (ms, or -1 unless complete), [5] the exception the request raised ("" if
+        # none), [6] whether it was scheduled in the warm-up, [7] its outcome (OUTCOMES), [8] the
+        # time from the scheduled send to a refusal (ms, or -1), [9] what: a refusal's reason, an
+        # incomplete request's error codes (comma-separated, one per camera), a lost one's kind.
+        records: list[list[Any]] = []
+
+        def classify_result(record: list[Any], result: DetectionResult, scheduled: float) -> None:
+            record[2] = sum(1 for r in result.reports if r.final and not r.error)
+            record[3] = sum(1 for r in result.reports if r.final and r.error)
+            if result.complete and len(result.camera_ids) == CAMERAS and record[2] == CAMERAS:
+                record[4] = round((loop.time() - scheduled) * 1000, 2)
+                record[7] = "complete"
+            elif result.unfinished_cameras:  # a final report that never came (deadline, stream ended)
+                record[7], record[9] = "lost", "missing_final_report"
+            else:
+                codes = sorted(e.code for e in result.camera_errors.values())
+                record[7] = "incomplete"
+                record[9] = ",".join(codes) or f"dispatched_to_{len(result.camera_ids)}_cameras"
+
+        def classify_snapshot(record: list[Any], snapshot: Snapshot, scheduled: float) -> None:
+            missing = set(snapshot.camera_errors)
+            record[2] = min(CAMERAS, len(set(snapshot.camera_ids) - missing))
+            record[3] = len(snapshot.camera_errors)
+            if not missing and len(snapshot.camera_ids) == CAMERAS:
+                record[4] = round((loop.time() - scheduled) * 1000, 2)
+                record[7] = "complete"
+            else:
+                codes = sorted(m.code for m in snapshot.camera_errors.values())
+                record[7] = "incomplete"
+                record[9] = ",".join(codes) or f"merged_{len(snapshot.camera_ids)}_cameras"
+
+        async def one(client: DrvsClient, offset: float) -> None:
+            scheduled = start + offset
+            sent = loop.time()
+            record: list[Any] = [
+                round(offset, 4),
+                round((sent - scheduled) * 1000, 2),
+                0,
+                0,
+                -1.0,
+                "",
+                offset < args.warmup,
+                "lost",
+                -1.0,
+                "",
+            ]
+            records.append(record)
+            # A local refusal is raised before the call's first await, so no other request of this
+            # client can move the count in between; a server refusal carries a retry hint.
+            refused_before = client.throttle.refused_locally
+            try:
+                if fused:
+                    snapshot = await client.snapshot(YELLOW, ALL_REGION, timeout_s=args.timeout)
+                else:
+                    sub = await client.subscribe(YELLOW, ALL_REGION, timeout_s=args.timeout)
+                    result = await sub.collect()
+            except ResourceExhausted as exc:
+                local = client.throttle.refused_locally > refused_before and exc.retry_after_s == 0
+                record[5] = type(exc).__name__
+                record[7] = "refused_local" if local else "refused_server"
+                record[8] = round((loop.time() - scheduled) * 1000, 2)
+                record[9] = refusal_reason(exc)
+                return
+            except DrvsError as exc:
+                record[5] = record[9] = type(exc).__name__
+                return
+            if fused:
+                classify_snapshot(record, snapshot, scheduled)
+            else:
+                classify_result(record, result, scheduled)
+
+        tasks: list[asyncio.Task[None]] = []
+        # This process's CPU time from the end of the warm-up (it exits before the coordinator's last sample).
+        cpu_at_warmup = [time.process_time()]
+        loop.call_at(start + args.warmup, lambda: cpu_at_warmup.__setitem__(0, time.process_time()))
+
+        async def robot(index: int, client: DrvsClient) -> None:
+            for offset in schedule(args.index_offset + index, args.total_robots, args.rate, end_offset):
+                delay = start + offset - loop.time()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                tasks.append(loop.create_task(one(client, offset)))
+
+        await asyncio.gather(*(robot(i, c) for i, c in enumerate(clients)))
+        await asyncio.gather(*tasks)
+        cpu_s = time.process_time() - cpu_at_warmup[0]
+        wall_s = loop.time() - (start + args.warmup)
+        # The clients' own count of requests they refused over the whole schedule (warm-up included):
+        # the coordinator checks the records' refused_local against it.
+        refused_locally = sum(c.throttle.refused_locally for c in clients) - refused_locally_before
+        done = {"records": records, "cpu_s": cpu_s, "wall_s": wall_s, "refused_locally": refused_locally}
+        print("DONE " + json.dumps(done), flush=True)
+    finally:
+        for client in clients:
+            await client.close()
+
+
+def add_worker_parser(sub: Any) -> None:
+    w = sub.add_parser("load-robots", help="(internal) the load benchmark's robots, one worker process")
+    w.add_argument("--server", required=True)
+    w.add_argument("--name", required=True)
+    w.add_argument("--robots", type=int, required=True)
+    w.add_argument("--index-offset", type=int, default=0)
+    w.add_argument("--total-robots", type=int, required=True)
+    w.add_argument("--rate", type=float, required=True)
+    w.add_argument("--warmup", type=float, required=True)
+    w.add_argument("--seconds", type=float, required=True)
+    w.add_argument("--timeout", type=float, required=True)
+    w.add_argument("--go-file", required=True, help="holds the start time (time.time()) once SIGUSR1 arrives")
+    w.add_argument("--delivery", choices=DELIVERIES, default="per-camera")
+    w.add_argument("--throttle-k", type=float, default=DEFAULT_K, help="DrvsClient's throttle_k (inf: off)")
+    w.set_defaults(func=lambda args: asyncio.run(robots_worker(args)) or 0)
