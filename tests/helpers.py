@@ -12,8 +12,10 @@ import shutil
 import time
 import urllib.request
 from collections.abc import AsyncIterator, Callable, Sequence
+from contextlib import AbstractAsyncContextManager
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -259,12 +261,18 @@ def render(discs: list[Disc], noise_sigma: float = 0.0) -> NDArray[np.uint8]:
     )
 
 
-@contextlib.asynccontextmanager
-async def serving_detection(servicer: detection_pb2_grpc.DetectObjectBoundaryServicer) -> AsyncIterator[str]:
+def serving_detection(servicer: detection_pb2_grpc.DetectObjectBoundaryServicer) -> AbstractAsyncContextManager[str]:
     """A real gRPC server in this process serving `servicer` as DetectObjectBoundary (a camera or
     a server stand-in) on a free loopback port; yields its address, stops it on leaving."""
+    return serving(servicer, detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server)
+
+
+@contextlib.asynccontextmanager
+async def serving(servicer: Any, add: Callable[[Any, Any], None]) -> AsyncIterator[str]:
+    """A real gRPC server in this process serving `servicer`, added by its `add_…_to_server`
+    function, on a free loopback port; yields its address, stops it on leaving."""
     server = _grpc.new_server()
-    detection_pb2_grpc.add_DetectObjectBoundaryServicer_to_server(servicer, server)
+    add(servicer, server)
     port = server.add_insecure_port("127.0.0.1:0")
     await server.start()
     try:

@@ -21,7 +21,7 @@ from drvs.sim.scene import RecordedCamera
 from drvs.tools.launch import start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
 from tests.fakes import start_recorded_camera
-from tests.helpers import CAM1_REGION, YELLOW
+from tests.helpers import CAM1_REGION, YELLOW, serving
 
 
 class _NeverReads(detection_pb2_grpc.CallbackCoordinatesServicer):
@@ -43,15 +43,11 @@ class _NeverReads(detection_pb2_grpc.CallbackCoordinatesServicer):
 async def silent_listener() -> AsyncIterator[str]:
     """A real listener that never reads (see _NeverReads): its address."""
     listener = _NeverReads()
-    server = aio.server()
-    detection_pb2_grpc.add_CallbackCoordinatesServicer_to_server(listener, server)
-    port = server.add_insecure_port("127.0.0.1:0")
-    await server.start()
     try:
-        yield f"127.0.0.1:{port}"
+        async with serving(listener, detection_pb2_grpc.add_CallbackCoordinatesServicer_to_server) as address:
+            yield address
     finally:
         listener.stop.set()
-        await server.stop(None)
 
 
 def _request(i: int, callback: str) -> detection_pb2.DetectionRequest:

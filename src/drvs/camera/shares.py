@@ -80,27 +80,31 @@ class Shares:
             raise ResourceExhausted(
                 f"camera {self.camera_id}: {self.active} requests active; try later", retry_after_s=0.1
             )
-        held = self._robots.held.get(robot, 0)
-        share = self._robots.share(self.max_active)
-        if held >= share:
-            raise ResourceExhausted(
-                f"camera {self.camera_id}: {robot_name(robot)} already has {held} requests active here "
-                f"(its share: {share}); wait for their reports"
-            )
+        self._within(
+            self._robots,
+            robot,
+            f"{robot_name(robot)} already has {{held}} requests active here",
+            "wait for their reports",
+        )
         if callback:
-            held = self._callbacks.held.get(callback, 0)
-            share = self._callbacks.share(self.max_active)
-            if held >= share:
-                raise ResourceExhausted(
-                    f"camera {self.camera_id}: callback_address {callback} already has {held} requests' "
-                    f"reports pending here (its share: {share}); is it reading them?"
-                )
+            self._within(
+                self._callbacks,
+                callback,
+                f"callback_address {callback} already has {{held}} requests' reports pending here",
+                "is it reading them?",
+            )
         running = self._continuous.held.get(robot, 0)
         if continuous and running >= self.max_continuous:
             raise ResourceExhausted(
                 f"camera {self.camera_id}: continuous: {running} continuous requests already "
                 f"running for {robot_name(robot)} (limit {self.max_continuous}); wait for one to end or cancel one"
             )
+
+    def _within(self, counts: _Counts, key: Hashable, holds: str, advice: str) -> None:
+        held, share = counts.held.get(key, 0), counts.share(self.max_active)
+        if held >= share:
+            said = holds.format(held=held)
+            raise ResourceExhausted(f"camera {self.camera_id}: {said} (its share: {share}); {advice}")
 
     def hold(self, job: asyncio.Task[None], robot: Robot, callback: str, continuous: bool) -> None:
         """Count a started request's `job` until it is done."""
