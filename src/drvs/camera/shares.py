@@ -80,19 +80,10 @@ class Shares:
             raise ResourceExhausted(
                 f"camera {self.camera_id}: {self.active} requests active; try later", retry_after_s=0.1
             )
-        self._within(
-            self._robots,
-            robot,
-            f"{robot_name(robot)} already has {{held}} requests active here",
-            "wait for their reports",
-        )
+        self._within(self._robots, robot, robot_name(robot), "requests active here", "wait for their reports")
         if callback:
-            self._within(
-                self._callbacks,
-                callback,
-                f"callback_address {callback} already has {{held}} requests' reports pending here",
-                "is it reading them?",
-            )
+            who = f"callback_address {callback}"
+            self._within(self._callbacks, callback, who, "requests' reports pending here", "is it reading them?")
         running = self._continuous.held.get(robot, 0)
         if continuous and running >= self.max_continuous:
             raise ResourceExhausted(
@@ -100,11 +91,12 @@ class Shares:
                 f"running for {robot_name(robot)} (limit {self.max_continuous}); wait for one to end or cancel one"
             )
 
-    def _within(self, counts: _Counts, key: Hashable, holds: str, advice: str) -> None:
+    def _within(self, counts: _Counts, key: Hashable, who: str, holding: str, advice: str) -> None:
         held, share = counts.held.get(key, 0), counts.share(self.max_active)
         if held >= share:
-            said = holds.format(held=held)
-            raise ResourceExhausted(f"camera {self.camera_id}: {said} (its share: {share}); {advice}")
+            raise ResourceExhausted(
+                f"camera {self.camera_id}: {who} already has {held} {holding} (its share: {share}); {advice}"
+            )
 
     def hold(self, job: asyncio.Task[None], robot: Robot, callback: str, continuous: bool) -> None:
         """Count a started request's `job` until it is done."""
