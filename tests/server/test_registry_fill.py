@@ -97,6 +97,19 @@ async def test_a_burst_from_one_identity_is_refused_before_it_fills_etcd(tmp_pat
             detail = found["RESOURCE_EXHAUSTED"][0]
             assert "registrations: token:yard made more than 60 a minute" in detail
             assert "--registration-rate" in detail and "retry in" in detail
+            # Over its rate, a caller is refused before anything is done for it: its registration
+            # is not read from etcd, nor its field of view computed (nor found wrong).
+            broken = register_message("cam-broken")
+            del broken.homography.m[:]
+            broken.homography.m.extend([0.0] * 9)
+            async with aio.insecure_channel(address) as channel:
+                stub = registry_pb2_grpc.RegisterVisionServiceStub(channel)
+                with pytest.raises(aio.AioRpcError) as refused:
+                    await stub.Register(broken, metadata=bearer(YARD_TOKEN))
+                assert refused.value.code() == grpc.StatusCode.RESOURCE_EXHAUSTED, refused.value.details()
+                with pytest.raises(aio.AioRpcError) as invalid:  # another identity is told what is wrong
+                    await stub.Register(broken, metadata=bearer(LOBBY_TOKEN))
+                assert invalid.value.code() == grpc.StatusCode.INVALID_ARGUMENT, invalid.value.details()
             # etcd has room: a camera with its own identity registers.
             lobby = register_message("lobby-cam")
             async with aio.insecure_channel(address) as channel:

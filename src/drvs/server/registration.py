@@ -317,6 +317,7 @@ class EtcdBackend(_Backend):
         every server (this one at once) routes to it."""
         shared = self._shared()
         camera_id, owner, quota = self._registrant(registration, who, peer)
+        shared.registrations.check(quota)  # a caller over its rate costs no etcd read and no field of view
         previous = await shared.get(camera_id)
         self.claims.adopt(camera_id, previous.claim() if previous is not None else None)
         self.claims.check_register(

@@ -217,7 +217,15 @@ class WriteRate:
         self.rate_hz = rate / per_s
         self._buckets: OrderedDict[str, tuple[float, float]] = OrderedDict()
 
+    def check(self, identity: str) -> None:
+        """Raise as `take` would, counting nothing: a caller over its rate is refused before any
+        work is done for it (an etcd read, a field of view computed), not after."""
+        self._count(identity, 0.0)
+
     def take(self, identity: str) -> None:
+        self._count(identity, 1.0)
+
+    def _count(self, identity: str, cost: float) -> None:
         now = self._clock()
         tokens, last = self._buckets.pop(identity, (self.burst, now))
         tokens = min(self.burst, tokens + (now - last) * self.rate_hz)
@@ -232,7 +240,7 @@ class WriteRate:
                     f"retry in {wait:g} s",
                     retry_after_s=wait,
                 )
-            tokens -= 1.0
+            tokens -= cost
         finally:
             self._buckets[identity] = (tokens, now)
             while len(self._buckets) > MAX_TRACKED_WRITERS:
