@@ -78,7 +78,8 @@ def listen(args: argparse.Namespace) -> int:
     while min(counts.values()) < args.count:
         waitset.wait(duration(seconds=1))
         for endpoint in publications.take(64):
-            if endpoint.topic_name.removeprefix("rt") in wanted and str(endpoint.key) not in seen:
+            topic_name = getattr(endpoint, "topic_name", None)  # None: a writer gone (disposed)
+            if topic_name and topic_name.removeprefix("rt") in wanted and str(endpoint.key) not in seen:
                 seen.add(str(endpoint.key))
                 topic = endpoint.topic_name
                 emit({"writer": {"topic": topic, "type": endpoint.type_name, "qos": qos_json(endpoint.qos)}})

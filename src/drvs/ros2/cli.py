@@ -21,6 +21,7 @@ import sys
 
 from drvs.core.errors import DrvsError, InvalidArgument, Unavailable
 from drvs.core.model import DEFAULT_FRAME, MAX_RATE_HZ
+from drvs.core.object_types import object_type
 from drvs.robot.cli import ENV_SERVER, check_seconds, parse_numbers
 from drvs.robot.client import DEFAULT_TRACK_RATE_HZ, DrvsClient, RetryPolicy
 from drvs.ros2.convert import DEFAULT_CLOUD_STEP_M, DEFAULT_HEIGHT_M, Style, region_from_points
@@ -87,6 +88,7 @@ def domain_id(given: int | None) -> int:
 
 
 def check_args(args: argparse.Namespace) -> None:
+    object_type(args.filter)  # an unknown or malformed filter is refused before anything connects
     check_seconds(args.rate, "--rate", 0, MAX_RATE_HZ, open_low=True)
     check_seconds(args.duration, "--duration", 0, math.inf, open_low=False)
     args.domain_id = domain_id(args.domain_id)

@@ -154,7 +154,6 @@ def obstacles(snapshot: Snapshot, style: Style, hdr: Any) -> Any:
         covariance[0] = covariance[4] = o.uncertainty_m**2
         out.append(
             idl("nav2_dynamic_msgs/msg/Obstacle")(
-                header=hdr,
                 uuid=idl("unique_identifier_msgs/msg/UUID")(uuid=list(track_uuid(snapshot.request_id, o.track_id))),
                 score=float(o.score),
                 position=_point(o.centroid_xy[0], o.centroid_xy[1], h / 2),
