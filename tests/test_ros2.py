@@ -229,9 +229,14 @@ async def test_a_peer_process_sees_the_track_on_ros2_topics_as_rmw_cyclonedds_wr
         assert {shown[("drvs/label", i)].text for i in ids} == {f"#{i} {YELLOW}" for i in ids}
         assert all(m.action == 0 for m in array.markers)  # nothing ended
 
+    answered = 0
     for diagnostics in samples["/diagnostics"]:
         levels = {s.name: (s.level, s.message) for s in diagnostics.status}
-        assert levels == {"drvs: camera cam1": (0, "answered"), "drvs: region": (0, "the whole region is seen")}
+        assert levels.pop("drvs: region") == (0, "the whole region is seen")
+        # cam1 answered, or (a period its report came too late for) is not named: never a WARN.
+        assert levels in ({"drvs: camera cam1": (0, "answered")}, {}), levels
+        answered += bool(levels)
+    assert answered
 
 
 @pytest.mark.slow
@@ -250,8 +255,8 @@ async def test_the_region_topic_moves_the_track_ended_tracks_are_deleted_and_bli
             "--domain-id", str(domain),
         ) as ros2:  # fmt: skip
 
-            async def until(topic: str, check: Callable[[Any], bool], timeout: float = 30) -> Any:
-                """The first sample on `topic`, from now on, that passes `check`."""
+            async def until(topic: str, check: Callable[[Any], bool], timeout: float = 30, start: int = -1) -> Any:
+                """The first sample on `topic` that passes `check`, from the peer's line `start` (default: now)."""
                 pattern = f'"topic": "{topic}"'
 
                 def scan(line: str) -> Any:
@@ -260,7 +265,8 @@ async def test_the_region_topic_moves_the_track_ended_tracks_are_deleted_and_bli
                         return message if check(message) else None
                     return None
 
-                return await listener.wait_for(scan, f"a {topic} sample as wanted", timeout, start=len(listener.lines))
+                begin = len(listener.lines) if start < 0 else start
+                return await listener.wait_for(scan, f"a {topic} sample as wanted", timeout, start=begin)
 
             first = await until("/drvs/objects", lambda m: len(m.detections) == 2)
             before = {d.id for d in first.detections}
@@ -271,16 +277,17 @@ async def test_the_region_topic_moves_the_track_ended_tracks_are_deleted_and_bli
             await ros2.wait_for_line(r"/drvs/region: refused.*at least three points", timeout=10)
             await until("/drvs/objects", lambda m: len(m.detections) == 2)
 
+            changed = len(listener.lines)
             async with peer(
                 env, "region", "--domain", str(domain), "--points", "1.0,2.5,2.0,2.5,2.0,3.5,1.0,3.5"
             ) as ok:
                 assert await ok.wait(timeout=30) == 0, ok.tail()
             await ros2.wait_for_line("region changed to POLYGON", timeout=10)
-            one = await until("/drvs/objects", lambda m: len(m.detections) == 1)
+            one = await until("/drvs/objects", lambda m: len(m.detections) == 1, start=changed)
             p = one.detections[0].results[0].pose.pose.position
             assert math.dist((p.x, p.y), (1.5, 3.0)) < 0.05
             # The tracks of the old region are deleted from RViz: each id of theirs no longer shown.
-            deleting = await until("/drvs/markers", lambda m: any(k.action == 2 for k in m.markers))
+            deleting = await until("/drvs/markers", lambda m: any(k.action == 2 for k in m.markers), start=changed)
             deleted = {(k.ns, k.id) for k in deleting.markers if k.action == 2}
             still = {(k.ns, k.id) for k in deleting.markers if k.action == 0}
             assert deleted and not deleted & still and {str(i) for _, i in deleted} <= before
