@@ -172,10 +172,14 @@ def _color(r: float, g: float, b: float, a: float = 1.0) -> Any:
 class MarkerState:
     """visualization_msgs/MarkerArray for RViz, snapshot after snapshot: per track an outline
     (LINE_STRIP), a label (TEXT_VIEW_FACING "#id type") and, while it moves, a velocity arrow (one
-    second of motion); a DELETE for each marker shown before whose track (or motion) has ended."""
+    second of motion); a DELETE for each marker shown before whose track (or motion) has ended.
+    `ns_suffix` follows each namespace (the rosbag2 export keeps each request's apart)."""
 
-    def __init__(self) -> None:
+    def __init__(self, ns_suffix: str = "") -> None:
         self.shown: set[tuple[str, int]] = set()
+        self.outline_ns, self.label_ns, self.velocity_ns = (
+            ns + ns_suffix for ns in (OUTLINE_NS, LABEL_NS, VELOCITY_NS)
+        )
 
     def markers(self, snapshot: Snapshot, style: Style, hdr: Any) -> Any:
         marker = idl("visualization_msgs/msg/Marker")
@@ -185,24 +189,24 @@ class MarkerState:
             h = style.height(o)
             ring = [_point(x, y, 0.02) for x, y in _outline(o).exterior.coords]
             out.append(
-                marker(header=hdr, ns=OUTLINE_NS, id=o.track_id, type=LINE_STRIP, action=ADD, pose=_pose(0, 0, 0),
+                marker(header=hdr, ns=self.outline_ns, id=o.track_id, type=LINE_STRIP, action=ADD, pose=_pose(0, 0, 0),
                        scale=_vector(0.03, 0, 0), color=_color(0.1, 0.9, 0.2), points=ring)
             )  # fmt: skip
             cx, cy = o.centroid_xy
             out.append(
-                marker(header=hdr, ns=LABEL_NS, id=o.track_id, type=TEXT_VIEW_FACING, action=ADD,
+                marker(header=hdr, ns=self.label_ns, id=o.track_id, type=TEXT_VIEW_FACING, action=ADD,
                        pose=_pose(cx, cy, h + 0.1), scale=_vector(0, 0, 0.2), color=_color(1, 1, 1),
                        text=f"#{o.track_id} {style.object_type(o)}")
             )  # fmt: skip
-            now |= {(OUTLINE_NS, o.track_id), (LABEL_NS, o.track_id)}
+            now |= {(self.outline_ns, o.track_id), (self.label_ns, o.track_id)}
             if o.speed_mps > 0:
                 vx, vy = o.velocity_xy
                 out.append(
-                    marker(header=hdr, ns=VELOCITY_NS, id=o.track_id, type=ARROW, action=ADD, pose=_pose(0, 0, 0),
+                    marker(header=hdr, ns=self.velocity_ns, id=o.track_id, type=ARROW, action=ADD, pose=_pose(0, 0, 0),
                            scale=_vector(0.05, 0.1, 0.1), color=_color(1.0, 0.6, 0.0),
                            points=[_point(cx, cy, h / 2), _point(cx + vx, cy + vy, h / 2)])
                 )  # fmt: skip
-                now.add((VELOCITY_NS, o.track_id))
+                now.add((self.velocity_ns, o.track_id))
         for ns, track_id in sorted(self.shown - now):
             out.append(marker(header=hdr, ns=ns, id=track_id, action=DELETE))
         self.shown = now
