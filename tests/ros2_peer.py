@@ -21,7 +21,7 @@ import json
 import sys
 from typing import Any
 
-from cyclonedds._clayer import ddspy_take  # type: ignore[import-not-found]
+from cyclonedds._clayer import ddspy_take
 from cyclonedds.builtin import BuiltinDataReader, BuiltinTopicDcpsPublication
 from cyclonedds.core import DDSStatus, InstanceState, ReadCondition, SampleState, ViewState, WaitSet
 from cyclonedds.domain import DomainParticipant

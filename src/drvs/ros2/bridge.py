@@ -34,7 +34,7 @@ from drvs.ros2.convert import (
     region_from_msg,
     snapshot_messages,
 )
-from drvs.ros2.dds import Node
+from drvs.ros2.dds import Node, write
 
 log = logging.getLogger("drvs.ros2")
 
@@ -99,7 +99,7 @@ class Publisher:
         for topic, message in snapshot_messages(
             snapshot, self.style, self.markers, at, self.prefix, with_diagnostics=self._diagnostics_due(snapshot)
         ):
-            self.writers[topic].write(message)
+            write(self.writers[topic], message)
         self.published += 1
 
 

@@ -6,19 +6,20 @@ both build their messages here.
 
 from __future__ import annotations
 
+import functools
 import math
-import struct
 import uuid
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from typing import Any
 
+import numpy as np
 from shapely.geometry import Polygon
 from shapely.geometry.polygon import orient
 
 from drvs.core.errors import InvalidArgument
 from drvs.core.model import Snapshot, WorldObject
-from drvs.ros2.types import idl
+from drvs.ros2.types import message_class, ros
 
 #: Height of an object whose type --height does not name, metres (the floor outline has none).
 DEFAULT_HEIGHT_M = 1.0
@@ -59,11 +60,11 @@ class Style:
 def stamp(t: float) -> Any:
     """builtin_interfaces/Time for `t` seconds."""
     ns = round(t * 1e9)
-    return idl("builtin_interfaces/msg/Time")(sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+    return ros("builtin_interfaces/msg/Time", sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
 
 
 def header(t: float, frame_id: str) -> Any:
-    return idl("std_msgs/msg/Header")(stamp=stamp(t), frame_id=frame_id)
+    return ros("std_msgs/msg/Header", stamp=stamp(t), frame_id=frame_id)
 
 
 def track_uuid(request_id: str, track_id: int) -> bytes:
@@ -71,18 +72,19 @@ def track_uuid(request_id: str, track_id: int) -> bytes:
     return uuid.uuid5(TRACK_UUID_NAMESPACE, f"{request_id}/{track_id}").bytes
 
 
+# The hottest small messages are made by their rosbags classes directly, every field given
+# (ros() fills in defaults: a step a snapshot's hundreds of points need not take).
 def _point(x: float, y: float, z: float = 0.0) -> Any:
-    return idl("geometry_msgs/msg/Point")(x=float(x), y=float(y), z=float(z))
+    return message_class("geometry_msgs/msg/Point")(x=float(x), y=float(y), z=float(z))
 
 
 def _vector(x: float, y: float, z: float = 0.0) -> Any:
-    return idl("geometry_msgs/msg/Vector3")(x=float(x), y=float(y), z=float(z))
+    return message_class("geometry_msgs/msg/Vector3")(x=float(x), y=float(y), z=float(z))
 
 
 def _pose(x: float, y: float, z: float) -> Any:
-    return idl("geometry_msgs/msg/Pose")(
-        position=_point(x, y, z), orientation=idl("geometry_msgs/msg/Quaternion")(w=1.0)
-    )
+    identity = message_class("geometry_msgs/msg/Quaternion")(x=0.0, y=0.0, z=0.0, w=1.0)
+    return message_class("geometry_msgs/msg/Pose")(position=_point(x, y, z), orientation=identity)
 
 
 def _outline(o: WorldObject) -> Polygon:
@@ -100,37 +102,46 @@ def detections(snapshot: Snapshot, style: Style, hdr: Any) -> Any:
     for o in snapshot.objects:
         x0, y0, x1, y1 = o.bounds
         h = style.height(o)
-        covariance = [0.0] * 36
+        covariance = np.zeros(36)
         covariance[0] = covariance[7] = o.uncertainty_m**2
-        result = idl("vision_msgs/msg/ObjectHypothesisWithPose")(
-            hypothesis=idl("vision_msgs/msg/ObjectHypothesis")(class_id=style.object_type(o), score=float(o.score)),
-            pose=idl("geometry_msgs/msg/PoseWithCovariance")(
-                pose=_pose(o.centroid_xy[0], o.centroid_xy[1], 0.0), covariance=covariance
+        result = ros(
+            "vision_msgs/msg/ObjectHypothesisWithPose",
+            hypothesis=ros("vision_msgs/msg/ObjectHypothesis", class_id=style.object_type(o), score=float(o.score)),
+            pose=ros(
+                "geometry_msgs/msg/PoseWithCovariance",
+                pose=_pose(o.centroid_xy[0], o.centroid_xy[1], 0.0),
+                covariance=covariance,
             ),
         )
-        bbox = idl("vision_msgs/msg/BoundingBox3D")(
-            center=_pose((x0 + x1) / 2, (y0 + y1) / 2, h / 2), size=_vector(x1 - x0, y1 - y0, h)
+        bbox = ros(
+            "vision_msgs/msg/BoundingBox3D",
+            center=_pose((x0 + x1) / 2, (y0 + y1) / 2, h / 2),
+            size=_vector(x1 - x0, y1 - y0, h),
         )
-        out.append(idl("vision_msgs/msg/Detection3D")(header=hdr, results=[result], bbox=bbox, id=str(o.track_id)))
-    return idl("vision_msgs/msg/Detection3DArray")(header=hdr, detections=out)
+        out.append(ros("vision_msgs/msg/Detection3D", header=hdr, results=[result], bbox=bbox, id=str(o.track_id)))
+    return ros("vision_msgs/msg/Detection3DArray", header=hdr, detections=out)
 
 
-def outline_points(o: WorldObject, step_m: float) -> list[tuple[float, float]]:
+def outline_points(o: WorldObject, step_m: float) -> np.ndarray[Any, np.dtype[np.float64]]:
     """Points every `step_m` metres (or closer) along the object's outline, corners included,
-    the closing point left out."""
-    ring = _outline(o).exterior.segmentize(step_m)
-    return [(x, y) for x, y in list(ring.coords)[:-1]]
+    the closing point left out: an (n, 2) array of x, y."""
+    return np.asarray(_outline(o).exterior.segmentize(step_m).coords)[:-1, :2]
 
 
 def obstacle_cloud(snapshot: Snapshot, style: Style, hdr: Any) -> Any:
     """sensor_msgs/PointCloud2 of x, y, z float32 points along every outline, at half the object's
     height: what Nav2's obstacle and voxel layers mark (docs/ros2.md)."""
-    points = [(x, y, style.height(o) / 2) for o in snapshot.objects for x, y in outline_points(o, style.cloud_step_m)]
+    parts = [np.zeros((0, 3))]
+    for o in snapshot.objects:
+        xy = outline_points(o, style.cloud_step_m)
+        parts.append(np.column_stack([xy, np.full(len(xy), style.height(o) / 2)]))
+    points = np.concatenate(parts).astype("<f4")
     fields = [
-        idl("sensor_msgs/msg/PointField")(name=n, offset=4 * i, datatype=FLOAT32, count=1) for i, n in enumerate("xyz")
+        ros("sensor_msgs/msg/PointField", name=n, offset=4 * i, datatype=FLOAT32, count=1) for i, n in enumerate("xyz")
     ]
-    data = struct.pack(f"<{3 * len(points)}f", *(v for p in points for v in p))
-    return idl("sensor_msgs/msg/PointCloud2")(
+    data = points.reshape(-1).view(np.uint8)
+    return ros(
+        "sensor_msgs/msg/PointCloud2",
         header=hdr,
         height=1,
         width=len(points),
@@ -150,11 +161,15 @@ def obstacles(snapshot: Snapshot, style: Style, hdr: Any) -> Any:
     for o in snapshot.objects:
         x0, y0, x1, y1 = o.bounds
         h = style.height(o)
-        covariance = [0.0] * 9
+        covariance = np.zeros(9)
         covariance[0] = covariance[4] = o.uncertainty_m**2
         out.append(
-            idl("nav2_dynamic_msgs/msg/Obstacle")(
-                uuid=idl("unique_identifier_msgs/msg/UUID")(uuid=list(track_uuid(snapshot.request_id, o.track_id))),
+            ros(
+                "nav2_dynamic_msgs/msg/Obstacle",
+                uuid=ros(
+                    "unique_identifier_msgs/msg/UUID",
+                    uuid=np.frombuffer(track_uuid(snapshot.request_id, o.track_id), np.uint8),
+                ),
                 score=float(o.score),
                 position=_point(o.centroid_xy[0], o.centroid_xy[1], h / 2),
                 velocity=_vector(*o.velocity_xy),
@@ -162,11 +177,11 @@ def obstacles(snapshot: Snapshot, style: Style, hdr: Any) -> Any:
                 position_covariance=covariance,
             )
         )
-    return idl("nav2_dynamic_msgs/msg/ObstacleArray")(header=hdr, obstacles=out)
+    return ros("nav2_dynamic_msgs/msg/ObstacleArray", header=hdr, obstacles=out)
 
 
 def _color(r: float, g: float, b: float, a: float = 1.0) -> Any:
-    return idl("std_msgs/msg/ColorRGBA")(r=r, g=g, b=b, a=a)
+    return message_class("std_msgs/msg/ColorRGBA")(r=r, g=g, b=b, a=a)
 
 
 class MarkerState:
@@ -182,7 +197,7 @@ class MarkerState:
         )
 
     def markers(self, snapshot: Snapshot, style: Style, hdr: Any) -> Any:
-        marker = idl("visualization_msgs/msg/Marker")
+        marker = functools.partial(ros, "visualization_msgs/msg/Marker")
         out = []
         now: set[tuple[str, int]] = set()
         for o in snapshot.objects:
@@ -210,15 +225,15 @@ class MarkerState:
         for ns, track_id in sorted(self.shown - now):
             out.append(marker(header=hdr, ns=ns, id=track_id, action=DELETE))
         self.shown = now
-        return idl("visualization_msgs/msg/MarkerArray")(markers=out)
+        return ros("visualization_msgs/msg/MarkerArray", markers=out)
 
 
 def diagnostics(snapshot: Snapshot, hdr: Any, name: str = "drvs") -> Any:
     """diagnostic_msgs/DiagnosticArray: a WARN per camera missing from the snapshot (its code and
     why), an OK per camera that answered, and one for the region: WARN with the square metres no
     camera sees when some floor is uncovered, else OK."""
-    kv = idl("diagnostic_msgs/msg/KeyValue")
-    status = idl("diagnostic_msgs/msg/DiagnosticStatus")
+    kv = functools.partial(ros, "diagnostic_msgs/msg/KeyValue")
+    status = functools.partial(ros, "diagnostic_msgs/msg/DiagnosticStatus")
     out = [
         status(level=WARN, name=f"{name}: camera {m.camera_id}", hardware_id=m.camera_id,
                message=f"{m.code}: {m.message}", values=[kv(key="code", value=m.code)])
@@ -237,7 +252,7 @@ def diagnostics(snapshot: Snapshot, hdr: Any, name: str = "drvs") -> Any:
     message = f"{unseen:.1f} m² of the region no camera sees" if snapshot.uncovered else "the whole region is seen"
     level = WARN if snapshot.uncovered else OK
     out.append(status(level=level, name=f"{name}: region", message=message, values=region_values))
-    return idl("diagnostic_msgs/msg/DiagnosticArray")(header=hdr, status=out)
+    return ros("diagnostic_msgs/msg/DiagnosticArray", header=hdr, status=out)
 
 
 def region_from_points(points: Iterable[tuple[float, float]], what: str) -> Polygon:

@@ -14,10 +14,12 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+from collections.abc import Callable
 from importlib import resources
 from types import new_class
 from typing import Any
 
+import numpy as np
 from cyclonedds.idl import IdlStruct
 from cyclonedds.idl import types as _idl_types
 from rosbags.interfaces import Nodetype
@@ -156,7 +158,62 @@ def idl(ros_type: str) -> Any:
         raise KeyError(f"{ros_type}: not among the shipped message types ({', '.join(sorted(idl_types()))})") from None
 
 
-def to_cdr(message: IdlStruct) -> bytes:
+#: numpy dtypes of the ROS 2 base types rosbags keeps arrays of as numpy arrays.
+DTYPES = {
+    "bool": np.bool_, "byte": np.uint8, "char": np.uint8, "int8": np.int8, "uint8": np.uint8, "int16": np.int16,
+    "uint16": np.uint16, "int32": np.int32, "uint32": np.uint32, "int64": np.int64, "uint64": np.uint64,
+    "float32": np.float32, "float64": np.float64,
+}  # fmt: skip
+
+
+def _rosbags_default(node: tuple[Any, Any]) -> Callable[[], Any]:
+    """A factory of the default value of one field of a rosbags message."""
+    kind, detail = node
+    if kind == Nodetype.BASE:
+        name = detail[0]
+        return str if name == "string" else (bool if name == "bool" else (float if "float" in name else int))
+    if kind == Nodetype.NAME:
+        return functools.partial(ros, detail)
+    (inner_kind, inner), size = detail
+    if inner_kind == Nodetype.BASE and inner[0] in DTYPES:
+        n = size if kind == Nodetype.ARRAY else 0
+        return functools.partial(np.zeros, n, DTYPES[inner[0]])
+    if kind == Nodetype.ARRAY:
+        element = _rosbags_default((inner_kind, inner))
+        return lambda: [element() for _ in range(size)]
+    return list
+
+
+@functools.cache
+def _rosbags_fields(ros_type: str) -> tuple[type, tuple[tuple[str, Callable[[], Any]], ...]]:
+    store = typestore()
+    if ros_type not in msg_files():
+        raise KeyError(f"{ros_type}: not among the shipped message types ({', '.join(sorted(msg_files()))})")
+    fields = tuple((name, _rosbags_default(node)) for name, node in store.fielddefs[ros_type][1])
+    return store.types[ros_type], fields
+
+
+def message_class(ros_type: str) -> Any:
+    """rosbags' class of a shipped type (every field must then be given)."""
+    return _rosbags_fields(ros_type)[0]
+
+
+def ros(ros_type: str, **values: Any) -> Any:
+    """A message of `ros_type` as rosbags' class for it, every field not given at its default (0,
+    "", False, empty, a default nested message); arrays of numbers are numpy arrays, as rosbags
+    keeps them. What the bridge publishes and the rosbag2 export writes (to_cdr)."""
+    cls, fields = _rosbags_fields(ros_type)
+    for name, default in fields:
+        if name not in values:
+            values[name] = default()
+    return cls(**values)
+
+
+def to_cdr(message: Any) -> bytes:
     """A message as ROS 2 serializes it: XCDR1 (plain CDR), little-endian, with the 4-byte
-    encapsulation header `00 01 00 00`: what goes on the DDS wire and into a rosbag2."""
-    return bytes(message.serialize(use_version_2=False))
+    encapsulation header `00 01 00 00`: what goes on the DDS wire and into a rosbag2. A rosbags
+    message (ros()) is serialized by rosbags, an IDL struct (idl()) by Cyclone: the same bytes
+    (tests/test_ros2_convert.py)."""
+    if isinstance(message, IdlStruct):
+        return bytes(message.serialize(use_version_2=False))
+    return bytes(typestore().serialize_cdr(message, message.__msgtype__))
