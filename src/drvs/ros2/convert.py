@@ -9,7 +9,7 @@ from __future__ import annotations
 import functools
 import math
 import uuid
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -195,31 +195,46 @@ class MarkerState:
         self.outline_ns, self.label_ns, self.velocity_ns = (
             ns + ns_suffix for ns in (OUTLINE_NS, LABEL_NS, VELOCITY_NS)
         )
+        # The fields no marker here sets, made once and shared (messages are serialized, never
+        # changed): a marker made field by field from defaults costs several times more.
+        self._unset = {
+            name: value
+            for name, value in vars(ros("visualization_msgs/msg/Marker")).items()
+            if name in ("lifetime", "frame_locked", "colors", "texture_resource", "texture", "uv_coordinates",
+                        "mesh_resource", "mesh_file", "mesh_use_embedded_materials")
+        }  # fmt: skip
+        self._defaults = {**vars(ros("visualization_msgs/msg/Marker")), **self._unset}
+        # And the constant poses, scales and colours of each kind of marker.
+        self._origin = _pose(0, 0, 0)
+        self._outline = {"scale": _vector(0.03, 0, 0), "color": _color(0.1, 0.9, 0.2)}
+        self._label = {"scale": _vector(0, 0, 0.2), "color": _color(1, 1, 1)}
+        self._arrow = {"scale": _vector(0.05, 0.1, 0.1), "color": _color(1.0, 0.6, 0.0)}
+
+    def _marker(self, **fields: Any) -> Any:
+        return message_class("visualization_msgs/msg/Marker")(**{**self._defaults, **fields})
 
     def markers(self, snapshot: Snapshot, style: Style, hdr: Any) -> Any:
-        marker = functools.partial(ros, "visualization_msgs/msg/Marker")
+        marker = self._marker
         out = []
         now: set[tuple[str, int]] = set()
         for o in snapshot.objects:
             h = style.height(o)
             ring = [_point(x, y, 0.02) for x, y in _outline(o).exterior.coords]
             out.append(
-                marker(header=hdr, ns=self.outline_ns, id=o.track_id, type=LINE_STRIP, action=ADD, pose=_pose(0, 0, 0),
-                       scale=_vector(0.03, 0, 0), color=_color(0.1, 0.9, 0.2), points=ring)
+                marker(header=hdr, ns=self.outline_ns, id=o.track_id, type=LINE_STRIP, action=ADD, pose=self._origin,
+                       points=ring, **self._outline)
             )  # fmt: skip
             cx, cy = o.centroid_xy
             out.append(
                 marker(header=hdr, ns=self.label_ns, id=o.track_id, type=TEXT_VIEW_FACING, action=ADD,
-                       pose=_pose(cx, cy, h + 0.1), scale=_vector(0, 0, 0.2), color=_color(1, 1, 1),
-                       text=f"#{o.track_id} {style.object_type(o)}")
+                       pose=_pose(cx, cy, h + 0.1), text=f"#{o.track_id} {style.object_type(o)}", **self._label)
             )  # fmt: skip
             now |= {(self.outline_ns, o.track_id), (self.label_ns, o.track_id)}
             if o.speed_mps > 0:
                 vx, vy = o.velocity_xy
                 out.append(
-                    marker(header=hdr, ns=self.velocity_ns, id=o.track_id, type=ARROW, action=ADD, pose=_pose(0, 0, 0),
-                           scale=_vector(0.05, 0.1, 0.1), color=_color(1.0, 0.6, 0.0),
-                           points=[_point(cx, cy, h / 2), _point(cx + vx, cy + vy, h / 2)])
+                    marker(header=hdr, ns=self.velocity_ns, id=o.track_id, type=ARROW, action=ADD, pose=self._origin,
+                           points=[_point(cx, cy, h / 2), _point(cx + vx, cy + vy, h / 2)], **self._arrow)
                 )  # fmt: skip
                 now.add((self.velocity_ns, o.track_id))
         for ns, track_id in sorted(self.shown - now):
@@ -300,16 +315,14 @@ def output_topics(prefix: str) -> dict[str, str]:
 
 def snapshot_messages(
     snapshot: Snapshot, style: Style, markers: MarkerState, at: float, prefix: str, *, with_diagnostics: bool = True
-) -> list[tuple[str, Any]]:
+) -> Iterator[tuple[str, Any]]:
     """(topic, message) for everything one snapshot publishes, stamped `at` (seconds in the robot's
-    clock): objects, obstacles, tracks, markers and, `with_diagnostics`, /diagnostics."""
+    clock), each made when it is asked for (the bridge writes one before it makes the next):
+    objects first, then obstacles, tracks, markers and, `with_diagnostics`, /diagnostics."""
     hdr = header(at, style.frame_id)
-    out = [
-        (f"{prefix}/objects", detections(snapshot, style, hdr)),
-        (f"{prefix}/obstacles", obstacle_cloud(snapshot, style, hdr)),
-        (f"{prefix}/tracks", obstacles(snapshot, style, hdr)),
-        (f"{prefix}/markers", markers.markers(snapshot, style, hdr)),
-    ]
+    yield f"{prefix}/objects", detections(snapshot, style, hdr)
+    yield f"{prefix}/obstacles", obstacle_cloud(snapshot, style, hdr)
+    yield f"{prefix}/tracks", obstacles(snapshot, style, hdr)
+    yield f"{prefix}/markers", markers.markers(snapshot, style, hdr)
     if with_diagnostics:
-        out.append((DIAGNOSTICS_TOPIC[0], diagnostics(snapshot, hdr)))
-    return out
+        yield DIAGNOSTICS_TOPIC[0], diagnostics(snapshot, hdr)
