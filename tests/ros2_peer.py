@@ -9,6 +9,8 @@ speaks plain Cyclone DDS as rmw_cyclonedds does and knows nothing of the bridge:
     region  --domain N --frame-id F --points X0,Y0,X1,Y1,...
         publishes one geometry_msgs/PolygonStamped on /drvs/region once a reader matches, waits
         for it to be acknowledged, prints {"sent": true} and exits.
+    clock   --domain N --start S
+        publishes rosgraph_msgs/Clock on /clock as a simulator does, S, S+1, ... s, until stopped.
 
 The readers' types are drvs.ros2.types' (a DDS reader needs the type to match the writer); the
 bytes are printed raw, for the test to decode with rosbags.
@@ -19,6 +21,7 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+import time
 from typing import Any
 
 from cyclonedds._clayer import ddspy_take
@@ -111,6 +114,22 @@ def region(args: argparse.Namespace) -> int:
     return 0
 
 
+def clock(args: argparse.Namespace) -> int:
+    """Publish rosgraph_msgs/Clock on /clock, best effort as a simulator does, from --start seconds
+    on, a tick about every 10 ms, at a real-time factor of 1, until stopped."""
+    participant = DomainParticipant(args.domain)
+    kind = idl("rosgraph_msgs/msg/Clock")
+    writer = DataWriter(participant, Topic(participant, "rt/clock", kind), SENSOR_QOS)
+    emit({"clock": True})
+    began = time.monotonic_ns()
+    while True:
+        ns = round(args.start * 1e9) + time.monotonic_ns() - began
+        message = kind()
+        message.clock.sec, message.clock.nanosec = divmod(ns, 1_000_000_000)
+        writer.write(message)
+        time.sleep(0.01)  # a simulator's tick: pacing, not synchronisation
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="ros2_peer")
     sub = p.add_subparsers(dest="command", required=True)
@@ -123,8 +142,11 @@ def main(argv: list[str] | None = None) -> int:
     b.add_argument("--domain", type=int, required=True)
     b.add_argument("--frame-id", default="map")
     b.add_argument("--points", required=True)
+    c = sub.add_parser("clock")
+    c.add_argument("--domain", type=int, required=True)
+    c.add_argument("--start", type=float, default=1000.0)
     args = p.parse_args(argv)
-    return listen(args) if args.command == "listen" else region(args)
+    return {"listen": listen, "region": region, "clock": clock}[args.command](args)
 
 
 if __name__ == "__main__":

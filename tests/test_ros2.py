@@ -318,6 +318,41 @@ async def test_the_region_topic_moves_the_track_ended_tracks_are_deleted_and_bli
         await listener.stop()
 
 
+@pytest.mark.slow
+@pytest.mark.office_cameras("cam1")
+async def test_sim_time_stamps_with_the_clock_topic_and_a_sensor_data_subscriber_matches(
+    office: Office, dds: tuple[dict[str, str], int]
+) -> None:
+    """--use-sim-time: the stamps follow /clock (a simulator's, from 1000 s on), not the wall clock;
+    a best-effort subscriber (rclcpp's SensorDataQoS) matches the reliable writers."""
+    env, domain = dds
+    wanted = {"/drvs/objects": TOPICS["/drvs/objects"]}
+    async with (
+        peer(env, "clock", "--domain", str(domain), "--start", "1000") as sim,
+        peer(env, *listen_args(domain, 3, wanted), "--sensor") as listener,
+    ):
+        await sim.wait_for_line('"clock"', timeout=30)
+        await listener.wait_for_line('"ready"', timeout=30)
+        async with bridge(
+            env, "--server", office.address, "--filter", YELLOW, "--region", box_args(CAM1_SEEN), "--rate", "5",
+            "--domain-id", str(domain), "--use-sim-time",
+        ) as ros2:  # fmt: skip
+            try:
+                assert await listener.wait(timeout=60) == 0, listener.tail()
+            finally:
+                await ros2.stop()
+        await sim.stop()
+    stamps = [
+        seconds(decode("/drvs/objects", bytes.fromhex(line["payload"])).header.stamp)
+        for line in json_lines(listener)
+        if "payload" in line
+    ]
+    assert len(stamps) == 3
+    # The first may predate the first /clock message (wall time, with a warning); the rest are sim time.
+    assert all(1000 <= t < 1000 + 120 for t in stamps[1:]), stamps  # the clock's start plus this test's run
+    assert stamps[1:] == sorted(stamps[1:])
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
