@@ -381,6 +381,27 @@ async def test_bad_input_exits_2_naming_what_is_wrong(
     assert not any("Traceback" in line for line in ros2.lines), ros2.tail()
 
 
+async def test_a_dds_configuration_cyclone_refuses_exits_2_before_any_network_wait(
+    dds: tuple[dict[str, str], int],
+) -> None:
+    env, domain = dds
+    env = {**env, "CYCLONEDDS_URI": CYCLONE_LOOPBACK.replace('name="lo"', 'name="nosuch0"')}
+    async with bridge(
+        env,
+        "--server",
+        f"127.0.0.1:{free_port()}",
+        "--filter",
+        YELLOW,
+        "--region",
+        "0,0,1,1",
+        "--domain-id",
+        str(domain),
+    ) as ros2:
+        assert await ros2.wait(timeout=30) == 2, ros2.tail()
+    assert any("drvs-ros2: Cyclone DDS would not start" in line and "CYCLONEDDS_URI" in line for line in ros2.lines)
+    assert not any("not reachable" in line for line in ros2.lines)  # it never tried the server
+
+
 async def test_a_server_that_is_down_exits_4(dds: tuple[dict[str, str], int]) -> None:
     env, domain = dds
     port = free_port()

@@ -4,9 +4,10 @@
               [--frame-id map] [--domain-id N] [--topic-prefix /drvs] [--qos reliable|sensor]
               [--height TYPE=M ...] [--use-sim-time]
 
-Exit codes: 0 stopped (SIGINT/SIGTERM, or --duration over), 2 bad arguments or a request the
-server refused (the message names what), 4 no server answers (or the track was lost before its
-first snapshot), 130 interrupted before it started.
+Exit codes: 0 stopped (SIGINT/SIGTERM, or --duration over); 2 bad arguments, a request the
+server refused (the message names what) or a DDS configuration Cyclone refuses (CYCLONEDDS_URI);
+4 no server answers (or the track was lost before its first snapshot); 130 interrupted while
+starting.
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ import math
 import os
 import re
 import sys
+
+from cyclonedds.core import DDSException
 
 from drvs.core.errors import DrvsError, InvalidArgument, Unavailable
 from drvs.core.model import DEFAULT_FRAME, MAX_RATE_HZ
@@ -116,6 +119,12 @@ async def run(args: argparse.Namespace) -> int:
     from drvs.ros2.dds import Node
 
     following = Following(args.filter, region, args.rate, args.duration, args.drop_after, args.deadline)
+    try:
+        node = Node(args.domain_id)  # DDS first: a bad CYCLONEDDS_URI is said before any network wait
+    except DDSException as exc:
+        raise InvalidArgument(
+            f"Cyclone DDS would not start on domain {args.domain_id} ({exc}): check CYCLONEDDS_URI"
+        ) from None
     stop = shutdown_event()
     async with DrvsClient.connect(
         args.server,
@@ -124,7 +133,6 @@ async def run(args: argparse.Namespace) -> int:
         retry=RetryPolicy.retries(args.retries),
         frame=args.frame or DEFAULT_FRAME,
     ) as client:
-        node = Node(args.domain_id)
         publisher = Publisher(node, style, args.topic_prefix, args.qos, SimClock() if args.use_sim_time else None)
         bridge = Bridge(client, node, publisher, following, echo=args.json)
         running = asyncio.ensure_future(bridge.run())
