@@ -15,6 +15,7 @@ import json
 import math
 import os
 import random
+import re
 import socket
 import sys
 from collections.abc import Callable, Iterator
@@ -131,6 +132,10 @@ async def test_a_peer_process_sees_the_track_on_ros2_topics_as_rmw_cyclonedds_wr
             finally:
                 await ros2.stop()
                 print(ros2.tail())
+    # Stopped (SIGTERM), the bridge closed its track: the camera stops the request (its forward id
+    # is the robot's request id, ':' and a counter).
+    request_id = (await ros2.wait_for_line(r"track (\S+) over POLYGON", timeout=1)).group(1)
+    await office.cameras["cam1"].wait_for_line(rf"request {re.escape(request_id)}:[0-9a-f]+ cancelled", timeout=10)
     published = {round(s["time"] * 1e9): s for s in json_lines(ros2) if "objects" in s}
     assert published, ros2.tail()
     lines = json_lines(listener)

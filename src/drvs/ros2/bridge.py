@@ -198,7 +198,13 @@ class Bridge:
         while (left := ends - loop.time()) > 0:
             follow = asyncio.ensure_future(self._follow(self.following.region, min(left, MAX_DURATION_S)))
             change = asyncio.ensure_future(self._regions.get())
-            done, _ = await asyncio.wait({follow, change}, return_when=asyncio.FIRST_COMPLETED)
+            try:
+                done, _ = await asyncio.wait({follow, change}, return_when=asyncio.FIRST_COMPLETED)
+            except asyncio.CancelledError:  # stopped: the track is closed at the server on the way out
+                for task in (follow, change):
+                    task.cancel()
+                await asyncio.gather(follow, change, return_exceptions=True)
+                raise
             if change in done:
                 follow.cancel()
                 await asyncio.gather(follow, return_exceptions=True)
