@@ -1,7 +1,8 @@
 """drvs-bench: `paper` (the paper's comparison), `service` (DRVS's own costs), `load` (many robots at
 once), `detectors` (each detector's costs and accuracy), `fusion` (fused delivery: accuracy, tracking,
 the server's cost), `mobile` (what mobile cameras cost routing), `cluster` (several servers on etcd),
-`liveview` (what the live view and recording cost the office); the rest are the benchmarks'
+`liveview` (what the live view and recording cost the office), `ros2` (what drvs-ros2 adds between a
+snapshot and a ROS 2 subscriber); the rest are the benchmarks'
 internal processes."""
 
 from __future__ import annotations
@@ -20,6 +21,7 @@ from .helpers import add_helper_parsers
 from .liveview import add_liveview_parser
 from .load import add_load_parser
 from .mobile import add_mobile_parser
+from .ros2 import add_ros2_parser
 from .workload import add_workload_arguments, workload_main
 
 
@@ -155,6 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     add_mobile_parser(sub)
     add_cluster_parser(sub)
     add_liveview_parser(sub)
+    add_ros2_parser(sub)
     add_helper_parsers(sub)
     add_bare_parsers(sub)
     r = sub.add_parser("robot", help="(internal) the paper benchmark's robot process")

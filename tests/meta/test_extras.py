@@ -68,7 +68,7 @@ def pyproject_extras() -> dict[str, list[Requirement]]:
 
 def test_the_launcher_knows_every_extra_and_the_modules_it_installs() -> None:
     extras = pyproject_extras()
-    assert set(extras) == set(EXTRAS) == {"sim", "bench", "certs", "etcd", "live"}
+    assert set(extras) == set(EXTRAS) == {"sim", "bench", "certs", "etcd", "live", "ros2"}
     modules_of: dict[str, set[str]] = {}
     for module, owners in importlib.metadata.packages_distributions().items():
         for dist in owners:
@@ -106,7 +106,7 @@ def test_every_console_script_is_a_role_or_goes_through_the_launcher() -> None:
     roles = {name: value for name, value in scripts.items() if not value.startswith("drvs.tools._entry:")}
     assert roles == ROLE_SCRIPTS
     assert set(scripts) - set(roles) == {
-        "drvs-office", "drvs-sim", "drvs-demo", "drvs-bench", "drvs-certs", "drvs-replay"
+        "drvs-office", "drvs-sim", "drvs-demo", "drvs-bench", "drvs-certs", "drvs-replay", "drvs-ros2"
     }  # fmt: skip
 
 
@@ -118,6 +118,11 @@ def test_every_console_script_is_a_role_or_goes_through_the_launcher() -> None:
         ("drvs-bench", "onnx", "drvs-bench: needs the benchmarks: pip install 'drvs[bench]'"),
         ("drvs-certs", "cryptography", "drvs-certs: needs the certificate tooling: pip install 'drvs[certs]'"),
         ("drvs-replay", "mcap", "drvs-replay: needs the live view and recordings: pip install 'drvs[live]'"),
+        (
+            "drvs-ros2",
+            "cyclonedds",
+            "drvs-ros2: needs the ROS 2 bridge (Cyclone DDS, rosbags): pip install 'drvs[ros2]'",
+        ),
     ],
 )
 def test_a_part_whose_extra_is_missing_names_the_extra(command: str, missing: str, message: str) -> None:

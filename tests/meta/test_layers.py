@@ -17,6 +17,9 @@ From the bottom up:
   roles      drvs.server, drvs.camera, drvs.robot: each stands on core, wire and live; none imports
              another role, the simulator, the benchmarks or a tool. Of the roles only the camera
              imports a detector.
+  ros2       drvs.ros2: the `ros2` extra: drvs-ros2 (a robot program publishing a track on ROS 2
+             topics) and the rosbag2 export. Stands on core, wire, live and drvs.robot; nothing imports
+             it but the tools, and drvs-replay's --rosbag2, lazily (LAZY_UPWARD).
   tools      drvs.tools (_entry, the console scripts' launcher; launch, demo, certs, meter, fakes), the
              simulator (drvs.sim), the benchmarks (drvs_bench): may use everything below, but the
              simulator talks to servers and cameras only over the wire (it starts their processes): of
@@ -48,6 +51,7 @@ SOURCES = {"drvs": ROOT / "src" / "drvs", "drvs_bench": ROOT / "benchmarks" / "d
 CORE = "drvs.core"
 WIRE = "drvs.wire"
 LIVE = "drvs.live"
+ROS2 = "drvs.ros2"
 ROLES = ("drvs.server", "drvs.camera", "drvs.robot")
 SIMULATOR = "drvs.sim"
 BENCHMARKS = "drvs_bench"
@@ -62,11 +66,17 @@ MAY_IMPORT = {
     "live": {"core", "wire", "live", "generated"},
     "role": {"core", "wire", "live", "generated", "detectors"},
     "facade": {"core", "wire", "drvs.robot"},
+    "ros2": {"core", "wire", "live", "ros2", "generated", "drvs.robot"},
 }
+#: Imports against the layers' order, inside a function only (run when that option is used), and why.
+LAZY_UPWARD = {("drvs.live.replay", "drvs.ros2"): "drvs-replay --rosbag2 hands the recording to the ros2 extra"}
 #: Third-party packages that only tools may import: matplotlib draws the office's map and the plots.
 TOOL_ONLY_LIBRARIES = ("matplotlib",)
 #: The extras' libraries, imported at module level only in their folder (and by the tools).
-EXTRA_LIBRARIES = {"foxglove": LIVE, "mcap": LIVE, "mcap_protobuf": LIVE, "websockets": LIVE, "aetcd": None}
+EXTRA_LIBRARIES = {
+    "foxglove": LIVE, "mcap": LIVE, "mcap_protobuf": LIVE, "websockets": LIVE, "aetcd": None,
+    "cyclonedds": ROS2, "rosbags": ROS2,
+}  # fmt: skip
 DETECTORS = "drvs.detectors"
 #: Core modules outside drvs.detectors that may import it, and why.
 DETECTOR_USERS = {"drvs.core.frames": "the frame sources' newest frame is a drvs.detectors Frame"}
@@ -96,7 +106,7 @@ def layer(module: str) -> str:
     for role in ROLES:
         if under(module, role):
             return role
-    for package, name in ((CORE, "core"), (DETECTORS, "detectors"), (WIRE, "wire"), (LIVE, "live")):
+    for package, name in ((CORE, "core"), (DETECTORS, "detectors"), (WIRE, "wire"), (LIVE, "live"), (ROS2, "ros2")):
         if under(module, package):
             return name
     if any(under(module, tool) for tool in TOOLS):
@@ -218,6 +228,8 @@ def violations(imports: list[Import]) -> list[str]:
             continue
         if not drvs_target or target == FACADE:
             continue
+        if imp.lazy and (imp.module, target) in LAZY_UPWARD:
+            continue
         wanted = layer(target)
         if wanted == "flat":
             bad.append(f"{imp}: {target} stands flat in src/drvs: every module lives in a layer's folder")
@@ -230,6 +242,9 @@ def violations(imports: list[Import]) -> list[str]:
                 f"{imp}: detectors are for cameras: the rest parses filter_defs with drvs.core.object_types "
                 "and imports no detector plug-in"
             )
+        elif source == "ros2" and wanted in ROLES:
+            if wanted != "drvs.robot":
+                bad.append(f"{imp}: the ROS 2 bridge is a robot program: of the roles it imports drvs.robot alone")
         elif source in ROLES and wanted in ROLES:
             if wanted != source:
                 bad.append(f"{imp}: a role imports no other role")
@@ -300,6 +315,11 @@ def test_the_rules_catch_each_kind_of_crossing() -> None:
         ("drvs.camera.node", "drvs.model"): "deprecated alias",  # migrate_layers: keep
         ("drvs.model", "drvs.wire.security"): "its new module only",  # migrate_layers: keep
         ("drvs.camera.node", "drvs.stray"): "flat in src/drvs",
+        ("drvs.ros2.bridge", "drvs.server.server"): "drvs.robot alone",
+        ("drvs.robot.client", "drvs.ros2.dds"): "not ros2",
+        ("drvs.live.replay", "drvs.ros2.bag"): "not ros2",
+        ("drvs.live.liveview", "drvs.ros2"): "not ros2",
+        ("drvs.robot.client", "cyclonedds"): "an extra's library",
     }
     for (module, target), why in cases.items():
         (message,) = violations([Import(module, target, 1)])
@@ -327,9 +347,15 @@ def test_the_rules_catch_each_kind_of_crossing() -> None:
         ("drvs.core.frames", "drvs.detectors.base"),
         ("drvs.sim.scenario", "drvs.detectors.aruco"),
         ("drvs.model", "drvs.core.model"),  # migrate_layers: keep
+        ("drvs.ros2.bridge", "drvs.robot.client"),
+        ("drvs.ros2.bridge", "drvs.wire._cli"),
+        ("drvs.ros2.dds", "cyclonedds.domain"),
+        ("drvs_bench.ros2", "drvs.ros2.bridge"),
     ]
     assert violations([Import(m, t, 1) for m, t in allowed]) == []
     assert violations([Import("drvs.camera.liveview", "foxglove.channels", 1, lazy=True)]) == []
+    assert violations([Import("drvs.live.replay", "drvs.ros2", 1, lazy=True)]) == []
+    assert violations([Import("drvs.live.replay", "drvs.ros2", 1, lazy=False)])  # lazily only
 
 
 def test_no_module_imports_across_the_layers() -> None:

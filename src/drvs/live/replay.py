@@ -3,6 +3,7 @@ a Foxglove live view, or say what it holds.
 
     drvs-replay FILE.mcap [--foxglove [HOST:]PORT] [--speed X] [--loop] [--no-wait]
     drvs-replay --summary FILE.mcap [--json]
+    drvs-replay FILE.mcap --rosbag2 OUT/     (drvs.ros2.bag; pip install 'drvs[ros2]')
 
 Playing: a live view on ws://HOST:PORT (default 127.0.0.1:8765; port 0 picks a free one, and the
 line `drvs-replay: live view on ws://HOST:PORT` says which) advertises one channel per recorded
@@ -631,14 +632,10 @@ def parser() -> argparse.ArgumentParser:
         metavar="[HOST:]PORT",
         help=f"where the live view listens: ws://HOST:PORT (default {DEFAULT_LISTEN}; port 0 picks a free one)",
     )
-    p.add_argument(
-        "--speed",
-        type=float,
-        default=None,
-        metavar="X",
-        help="play X times as fast as recorded (default 1; 0: as fast as possible)",
-    )
+    speed = "play X times as fast as recorded (default 1; 0: as fast as possible)"
+    p.add_argument("--speed", type=float, default=None, metavar="X", help=speed)
     p.add_argument("--loop", action="store_true", help="start again at the end, until Ctrl-C")
+    p.add_argument("--rosbag2", type=Path, metavar="OUT", help="write its fused snapshots as a rosbag2 (drvs[ros2])")
     p.add_argument(
         "--no-wait", dest="wait", action="store_false", help="start at once, not when a client first subscribes"
     )
@@ -670,6 +667,10 @@ def main(argv: list[str] | None = None) -> int:
     if threading.current_thread() is threading.main_thread():
         previous = signal.signal(signal.SIGTERM, _interrupt)
     try:
+        if args.rosbag2:  # the ros2 extra's exporter (tests/meta/test_layers.py, LAZY_UPWARD)
+            from drvs.ros2 import rosbag2
+
+            return rosbag2(args)
         if args.summary:
             return summarise(args.file, args.json)
         from drvs.live.liveview import parse_listen, require

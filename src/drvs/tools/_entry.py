@@ -30,6 +30,7 @@ EXTRAS = {
     "certs": Extra("the certificate tooling", ("cryptography",)),
     "etcd": Extra("the etcd client (drvs-server --registry etcd://...)", ("aetcd",)),
     "live": Extra("the live view and recordings", ("foxglove", "mcap", "mcap_protobuf", "websockets")),
+    "ros2": Extra("the ROS 2 bridge (Cyclone DDS, rosbags)", ("cyclonedds", "rosbags")),
 }
 
 
@@ -81,3 +82,7 @@ def certs() -> int:
 
 def replay() -> int:
     return run("drvs-replay", "live", "drvs.live.replay")
+
+
+def ros2() -> int:
+    return run("drvs-ros2", "ros2", "drvs.ros2.cli")

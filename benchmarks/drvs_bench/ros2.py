@@ -1,0 +1,259 @@
+"""drvs-bench ros2: what drvs-ros2 adds between a snapshot and a ROS 2 subscriber.
+
+The bridge's publishing half (drvs.ros2.bridge.Publisher: every topic's message built from the
+snapshot, serialized and written through Cyclone DDS) runs in this process; a subscriber runs in
+its own process (`python -m drvs_bench.ros2 subscriber`), a plain Cyclone DDS reader of
+/drvs/objects with ROS 2's default QoS that takes each sample (its bytes, as the DDS layer hands
+them to a ROS 2 subscription) and notes the monotonic clock then. CLOCK_MONOTONIC is one clock for
+every process of the host, so
+
+- latency = the subscriber's time of taking the sample - this process's time just before
+  Publisher.publish(snapshot) was called: conversion, serialization, DDS on loopback and the
+  subscriber's wake-up and take; p50 and p99 per round;
+- CPU per snapshot = this process's CPU time (every thread: Cyclone's own too) over the
+  publishing phase divided by the snapshots; and, apart, the publishing thread's alone per call.
+
+Each round publishes SNAPSHOTS snapshots (QUICK_SNAPSHOTS with --quick) of OBJECTS moving objects
+(16-corner outlines, every topic: objects, obstacles, tracks, markers, diagnostics) at RATE_HZ,
+made before the clock starts. Cyclone is confined to loopback (the tests' configuration) on a
+random domain. Targets: p99 latency <= 2 ms, CPU <= 0.5 ms per snapshot; verdicts over the rounds.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import random
+import struct
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+from typing import Any
+
+from shapely.geometry import Point
+
+from drvs.core.model import CameraError, Snapshot, WorldObject
+
+from .common import machine, pyplot, write_result
+from .helpers import percentile
+from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, publish, verdict
+
+OBJECTS = 20
+SNAPSHOTS = 1000
+QUICK_SNAPSHOTS = 150
+RATE_HZ = 50.0
+TARGETS = {"latency_p99_ms": 2.0, "cpu_ms_per_snapshot": 0.5}
+TOPIC = "/drvs/objects"
+CYCLONE_LOOPBACK = (
+    '<CycloneDDS xmlns="https://cdds.io/config"><Domain Id="any"><General><Interfaces>'
+    '<NetworkInterface name="lo"/></Interfaces><AllowMulticast>false</AllowMulticast></General>'
+    "<Discovery><ParticipantIndex>auto</ParticipantIndex><MaxAutoParticipantIndex>32</MaxAutoParticipantIndex>"
+    '<Peers><Peer Address="127.0.0.1"/></Peers></Discovery></Domain></CycloneDDS>'
+)
+
+
+def snapshots(count: int, start: float) -> list[Snapshot]:
+    """`count` snapshots of OBJECTS people walking at 1 m/s, 1/RATE_HZ apart from `start`."""
+    rng = random.Random(1)
+    heading = [rng.uniform(0, 2 * math.pi) for _ in range(OBJECTS)]
+    out = []
+    for n in range(count):
+        t = start + n / RATE_HZ
+        objects = []
+        for i in range(OBJECTS):
+            vx, vy = math.cos(heading[i]), math.sin(heading[i])
+            x, y = (i % 5) * 2.0 + vx * n / RATE_HZ, (i // 5) * 2.0 + vy * n / RATE_HZ
+            outline = Point(x, y).buffer(0.25, quad_segs=4)  # 16 corners
+            objects.append(
+                WorldObject(i + 1, outline, outline.bounds, (x, y), (vx, vy), math.degrees(heading[i]), 0.05,
+                            ("cam1", "cam2"), t, label="person", score=0.9, area_m2=outline.area)
+            )  # fmt: skip
+        missing = {"cam3": CameraError("UNAVAILABLE", "camera cam3: gone", "cam3")} if n % 50 == 0 else {}
+        out.append(Snapshot(t, tuple(objects), missing, ("cam1", "cam2"), n, False, "bench"))
+    return out
+
+
+def subscriber(domain: int, count: int) -> int:
+    """The subscriber process: take `count` samples of /drvs/objects (as the DDS layer under a ROS 2
+    subscription hands them over: serialized bytes; rclcpp's own deserialization is C++, Cyclone's
+    Python one would time this process, not the bridge), then print one JSON object {stamp ns:
+    monotonic ns when taken}. Prints "ready" once its reader exists."""
+    from cyclonedds._clayer import ddspy_take
+    from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet
+    from cyclonedds.util import duration
+
+    from drvs.ros2.dds import Node
+
+    node = Node(domain)
+    reader = node.reader(TOPIC, "vision_msgs/msg/Detection3DArray")
+    waitset = WaitSet(node.participant)
+    ANY = SampleState.Any | ViewState.Any | InstanceState.Any
+    waitset.attach(ReadCondition(reader, ANY))
+    print("ready", flush=True)
+    taken: dict[int, int] = {}
+    deadline = time.monotonic() + 120
+    while len(taken) < count and time.monotonic() < deadline:
+        waitset.wait(duration(seconds=1))
+        for payload, info in ddspy_take(reader._ref, ANY, 64):
+            now = time.monotonic_ns()
+            if info.valid_data:  # header.stamp: the first field, after the 4-byte encapsulation
+                sec, nanosec = struct.unpack_from("<iI", payload, 4)
+                taken[sec * 10**9 + nanosec] = now
+    print(json.dumps(taken), flush=True)
+    return 0
+
+
+def one_round(domain: int, count: int, env: dict[str, str]) -> dict[str, Any]:
+    from cyclonedds.core import DDSStatus, WaitSet
+    from cyclonedds.util import duration
+
+    from drvs.ros2.bridge import Publisher
+    from drvs.ros2.convert import Style
+    from drvs.ros2.dds import Node
+
+    node = Node(domain)
+    publisher = Publisher(node, Style(heights={"person": 1.8}), "/drvs")
+    writer = publisher.writers[TOPIC]
+    sub = subprocess.Popen(
+        [sys.executable, "-m", "drvs_bench.ros2", "subscriber", "--domain", str(domain), "--count", str(count)],
+        stdout=subprocess.PIPE, text=True, env=env,
+    )  # fmt: skip
+    try:
+        assert sub.stdout is not None
+        if sub.stdout.readline().strip() != "ready":
+            raise WorkMismatch("ros2: the subscriber did not start")
+        writer.set_status_mask(DDSStatus.PublicationMatched)
+        waitset = WaitSet(node.participant)
+        waitset.attach(writer)
+        until = time.monotonic() + 30
+        while not writer.get_publication_matched_status().current_count:  # type: ignore[no-untyped-call]
+            if time.monotonic() > until:
+                raise WorkMismatch("ros2: the subscriber never matched the writer")
+            waitset.wait(duration(milliseconds=200))
+        made = snapshots(count, time.time())
+        sent: dict[int, int] = {}
+        thread_ns: list[int] = []
+        cpu0 = time.process_time_ns()
+        for n, snapshot in enumerate(made):
+            next_at = time.monotonic() + 1 / RATE_HZ
+            stamp = round(snapshot.time * 1e9)
+            t0 = time.monotonic_ns()
+            c0 = time.thread_time_ns()
+            publisher.publish(snapshot)
+            thread_ns.append(time.thread_time_ns() - c0)
+            sent[stamp] = t0
+            if n + 1 < count:
+                time.sleep(max(0.0, next_at - time.monotonic()))  # pacing at RATE_HZ, not synchronisation
+        cpu_ns = time.process_time_ns() - cpu0
+        out, _ = sub.communicate(timeout=120)
+    finally:
+        if sub.poll() is None:
+            sub.kill()
+            sub.wait()
+    taken = {int(k): v for k, v in json.loads(out.strip().splitlines()[-1]).items()}
+    if set(taken) != set(sent):
+        raise WorkMismatch(f"ros2: the subscriber took {len(taken)} of {len(sent)} snapshots")
+    latencies = [(taken[s] - sent[s]) / 1e6 for s in sent]
+    return {
+        "snapshots": count,
+        "latency_p50_ms": percentile(latencies, 50),
+        "latency_p99_ms": percentile(latencies, 99),
+        "latency_max_ms": max(latencies),
+        "cpu_ms_per_snapshot": cpu_ns / count / 1e6,
+        "publish_thread_cpu_ms_p50": percentile([n / 1e6 for n in thread_ns], 50),
+    }
+
+
+def run_ros2(out: Path, quick: bool, rounds: int) -> dict[str, Any]:
+    count = QUICK_SNAPSHOTS if quick else SNAPSHOTS
+    runs = []
+    with tempfile.TemporaryDirectory(prefix="drvs-bench-ros2-") as tmp:
+        config = Path(tmp) / "cyclonedds.xml"
+        config.write_text(CYCLONE_LOOPBACK)
+        os.environ["CYCLONEDDS_URI"] = config.as_uri()  # before this process's first participant
+        env = dict(os.environ)
+        env["PYTHONPATH"] = os.pathsep.join([p for p in sys.path if p])
+        for r in range(rounds):
+            runs.append(one_round(random.randint(100, 230), count, env))
+            print(f"round {r + 1}/{rounds}: {runs[-1]}", file=sys.stderr, flush=True)
+    result: dict[str, Any] = {
+        "machine": machine(), "rounds": rounds, "objects": OBJECTS, "rate_hz": RATE_HZ, "runs": runs,
+    }  # fmt: skip
+    for key in (
+        "latency_p50_ms",
+        "latency_p99_ms",
+        "latency_max_ms",
+        "cpu_ms_per_snapshot",
+        "publish_thread_cpu_ms_p50",
+    ):
+        publish(result, key, [r[key] for r in runs])
+    result["targets"] = {
+        key: {"target": target, "verdict": verdict([r[key] for r in runs], target, higher_is_better=False)}
+        for key, target in TARGETS.items()
+    }
+    write_result(result, out, "ros2", _plot)
+    return result
+
+
+def _plot(result: dict[str, Any], out: Path) -> None:
+    plt = pyplot()
+    fig, axes = plt.subplots(1, 2, figsize=(9, 3.6))
+    for ax, key, label in (
+        (axes[0], "latency_p99_ms", "p99 latency, snapshot to subscriber (ms)"),
+        (axes[1], "cpu_ms_per_snapshot", "bridge CPU per snapshot (ms)"),
+    ):
+        values = [r[key] for r in result["runs"]]
+        ax.plot(range(1, len(values) + 1), values, "o-")
+        ax.axhline(TARGETS[key], color="#c33", linestyle="--", label="target")
+        ax.set_xlabel("round")
+        ax.set_title(label, fontsize=9)
+        ax.set_ylim(bottom=0)
+        ax.legend()
+    fig.suptitle(f"drvs-ros2, {result['objects']} objects a snapshot at {result['rate_hz']:g} Hz")
+    fig.tight_layout()
+    fig.savefig(out / "ros2.png", dpi=100)
+    plt.close(fig)
+
+
+def ros2_main(args: argparse.Namespace) -> int:
+    rounds = args.rounds or (QUICK_ROUNDS if args.quick else FULL_ROUNDS)
+    if rounds < 1:
+        print("drvs-bench ros2: --rounds must be > 0", file=sys.stderr)
+        return 2
+    out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
+    try:
+        result = run_ros2(out, args.quick, rounds)
+    except WorkMismatch as exc:
+        print(f"drvs-bench ros2: FAILED: {exc}", file=sys.stderr)
+        return 1
+    summary = {k: v for k, v in result.items() if k.endswith(("_ms", "_snapshot", "_spread", "_p50"))}
+    summary["targets"] = {k: v["verdict"] for k, v in result["targets"].items()}
+    print(json.dumps(summary, indent=1))
+    print(f"written: {out / 'ros2.json'}, {out / 'ros2.png'}")
+    return 0
+
+
+def add_ros2_parser(sub: Any) -> None:
+    p = sub.add_parser("ros2", help="what drvs-ros2 adds: snapshot-to-subscriber latency and CPU per snapshot")
+    p.add_argument("--quick", action="store_true", help=f"a smoke run: {QUICK_ROUNDS} rounds of {QUICK_SNAPSHOTS}")
+    p.add_argument("--rounds", type=int, default=0, help=f"rounds (full: {FULL_ROUNDS} of {SNAPSHOTS} snapshots)")
+    p.add_argument("--out", type=Path, default=None)
+    p.set_defaults(func=ros2_main)
+
+
+def main(argv: list[str] | None = None) -> int:
+    """`python -m drvs_bench.ros2 subscriber --domain N --count K`: the benchmark's subscriber."""
+    p = argparse.ArgumentParser(prog="drvs_bench.ros2")
+    p.add_argument("role", choices=["subscriber"])
+    p.add_argument("--domain", type=int, required=True)
+    p.add_argument("--count", type=int, required=True)
+    args = p.parse_args(argv)
+    return subscriber(args.domain, args.count)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

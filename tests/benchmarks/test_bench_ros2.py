@@ -1,0 +1,33 @@
+"""drvs-bench ros2 --quick end to end: the bridge's publishing half and a subscriber process on
+loopback Cyclone; every snapshot reaches the subscriber, the figures and verdicts are written.
+No timing is asserted: the targets are the benchmark's verdicts, not tests."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+from drvs_bench.cli import main
+
+pytestmark = pytest.mark.bench
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+def test_ros2_bench_quick_writes_its_figures_and_verdicts(tmp_path: Path) -> None:
+    assert main(["ros2", "--quick", "--rounds", "1", "--out", str(tmp_path)]) == 0
+    result = json.loads((tmp_path / "ros2.json").read_text())
+    assert (tmp_path / "ros2.png").is_file() and result["rounds"] == 1 and result["objects"] == 20
+    (run,) = result["runs"]
+    assert run["snapshots"] == 150  # every one taken by the subscriber (else WorkMismatch, exit 1)
+    assert 0 < run["latency_p50_ms"] <= run["latency_p99_ms"] <= run["latency_max_ms"]
+    assert run["cpu_ms_per_snapshot"] > 0 and run["publish_thread_cpu_ms_p50"] > 0
+    for key in ("latency_p99_ms", "cpu_ms_per_snapshot"):
+        assert result[f"{key}_spread"] == [run[key], run[key]]
+        assert result["targets"][key]["verdict"] in ("met", "missed", "spread crosses target")
+
+
+def test_ros2_bench_refuses_zero_rounds(tmp_path: Path) -> None:
+    assert main(["ros2", "--rounds", "-1", "--out", str(tmp_path)]) == 2
+    assert not (tmp_path / "ros2.json").exists()
