@@ -10,8 +10,9 @@ what fixes it, and a robot that asks for the missing type hears FAILED_PRECONDIT
 from __future__ import annotations
 
 import math
-import os
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import pytest
 import yaml
@@ -23,15 +24,7 @@ from drvs.sim.scene import RecordedCamera
 from drvs.tools.launch import ManagedProcess, camera_ready, start_server
 
 from .fakes import start_recorded_camera
-from .helpers import CAM1_REGION, MAX_RANGE, OBJECTS, YELLOW, metrics_port, scrape
-
-CV2_WITHOUT = Path(__file__).parent / "data" / "cv2_without"
-
-
-def without(*names: str) -> dict[str, str]:
-    """An environment whose Python's cv2 lacks `names` (see tests/data/cv2_without)."""
-    path = os.pathsep.join([str(CV2_WITHOUT), os.environ.get("PYTHONPATH", "")])
-    return {**os.environ, "PYTHONPATH": path, "DRVS_TEST_CV2_WITHOUT": ",".join(names)}
+from .helpers import CAM1_REGION, MAX_RANGE, OBJECTS, YELLOW, metrics_port, scrape, without
 
 
 def test_a_backend_says_what_is_missing_and_what_fixes_it() -> None:
@@ -44,11 +37,11 @@ def test_a_backend_says_what_is_missing_and_what_fixes_it() -> None:
     assert absent is not None and "needs the Python module drvs_no_such_module, which does not import" in absent
 
 
-def assert_found_yellow(detections: tuple[object, ...]) -> None:
+def assert_found_yellow(detections: Sequence[Any]) -> None:
     yellow = [o for o in OBJECTS if o.filter_def == YELLOW and o.center[0] < 5]
     assert len(detections) == len(yellow), detections
     for d in detections:
-        assert min(math.dist(d.centroid_xy, o.center) for o in yellow) < 0.15  # type: ignore[attr-defined]
+        assert min(math.dist(d.centroid_xy, o.center) for o in yellow) < 0.15
 
 
 async def test_a_camera_without_contrib_opencv_serves_hsv_and_refuses_people_and_aruco_by_name(

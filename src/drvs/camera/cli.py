@@ -14,6 +14,7 @@ import numpy as np
 
 from drvs.camera.aruco import DEFAULT_DICTIONARY, BoardSpec, board_image, find_correspondences
 from drvs.camera.calibration import fit_homography, load_points, save_calibration
+from drvs.camera.check import check_main
 from drvs.camera.config import DEFAULT_FOXGLOVE_FPS, ENVIRONMENT, add_arguments, load_config
 from drvs.camera.node import CameraNode
 from drvs.camera.source import FrameSource, VideoSource, plugin_source
@@ -32,7 +33,8 @@ def build_parser() -> argparse.ArgumentParser:
     e = ENVIRONMENT
     p = argparse.ArgumentParser(
         prog="drvs-camera",
-        description="Run a DRVS camera node. Also: drvs-camera snapshot | calibrate | fov (each with --help).",
+        description="Run a DRVS camera node. Also: drvs-camera check | snapshot | calibrate | calibrate-aruco | "
+        "aruco-board | fov (each with --help); check (or --check) takes the same settings as the node.",
         epilog="Every setting can also come from a DRVS_* environment variable or a --config YAML file whose keys "
         "are the setting names: " + ", ".join(f"{k} ({v})" for k, v in e.items()) + ".",
     )
@@ -75,7 +77,7 @@ async def run(node: CameraNode, metrics_port: int | None = None, metrics_host: s
     return 0
 
 
-SUBCOMMANDS = ("run", "snapshot", "calibrate", "calibrate-aruco", "aruco-board", "fov")
+SUBCOMMANDS = ("run", "check", "snapshot", "calibrate", "calibrate-aruco", "aruco-board", "fov")
 
 
 def parse_size(text: str, name: str = "--image-size") -> tuple[int, int]:
@@ -287,8 +289,11 @@ def fov_main(argv: list[str]) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     argv = join_negative_values(sys.argv[1:] if argv is None else argv, ("--board-origin",))
+    if "--check" in argv and (not argv or argv[0] not in SUBCOMMANDS[2:]):
+        argv = ["check", *(a for a in argv if a not in ("--check", "run"))]
     if argv and argv[0] in SUBCOMMANDS[1:]:
         commands = {
+            "check": check_main,
             "snapshot": snapshot_main,
             "calibrate": calibrate_main,
             "calibrate-aruco": calibrate_aruco_main,

@@ -37,6 +37,16 @@ class BuiltDetectors:
             runner.close()
 
 
+def build_detector(prefix: str, view: CameraView, options: Mapping[str, Any] | None) -> Detector:
+    """One configured detector built for `view`; DetectorUnavailable when this process cannot run it,
+    other DrvsErrors (InvalidArgument, FailedPrecondition) when its configuration is refused."""
+    cls = REGISTRY[prefix]
+    missing = cls.unavailable()
+    if missing is not None:
+        raise missing
+    return cls(view, options)
+
+
 def build_detectors(
     prefixes: Iterable[str], view: CameraView, options: Mapping[str, Mapping[str, Any]]
 ) -> BuiltDetectors:
@@ -45,13 +55,8 @@ def build_detectors(
     built = BuiltDetectors()
     try:
         for prefix in prefixes:
-            cls = REGISTRY[prefix]
-            missing = cls.unavailable()
-            if missing is not None:
-                built.unavailable[prefix] = missing
-                continue
             try:
-                runner = cls(view, options.get(prefix))
+                runner = build_detector(prefix, view, options.get(prefix))
             except DetectorUnavailable as exc:
                 built.unavailable[prefix] = exc
                 continue
