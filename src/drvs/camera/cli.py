@@ -11,6 +11,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from drvs.camera.aruco import DEFAULT_DICTIONARY, BoardSpec, board_image, find_correspondences
 from drvs.camera.calibration import fit_homography, load_points, save_calibration
@@ -99,6 +100,45 @@ async def grab_one(spec: str, timeout_s: float, source: FrameSource | None = Non
         await asyncio.to_thread(source.stop)
 
 
+#: The most frames `snapshot --frames` takes (a median over more changes nothing a camera sees).
+MAX_SNAPSHOT_FRAMES = 100
+#: How often `grab_frames` looks for a newer frame.
+FRAME_POLL_S = 0.005
+
+
+async def grab_frames(source: FrameSource, count: int, timeout_s: float) -> list[Frame]:
+    """`count` successive frames of a source (each newer than the last), each within `timeout_s`."""
+    source.start()
+    try:
+        frames = [await source.wait_first_frame(timeout_s)]
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        while len(frames) < count:
+            frame = source.latest()
+            if frame is not None and frame.sequence != frames[-1].sequence:
+                frames.append(frame)
+                deadline = loop.time() + timeout_s
+            elif loop.time() > deadline:
+                raise DrvsError(
+                    f"--frames {count}: the source gave {len(frames)} and then no new one in {timeout_s:g} s"
+                )
+            else:
+                await asyncio.sleep(FRAME_POLL_S)
+        return frames
+    finally:
+        await asyncio.to_thread(source.stop)
+
+
+def median_picture(frames: list[Frame]) -> NDArray[np.uint8]:
+    """The per-pixel median of frames (the frame itself for one): noise and jitter averaged out."""
+    if len(frames) == 1:
+        return frames[0].image
+    sizes = {f.size for f in frames}
+    if len(sizes) > 1:
+        raise DrvsError(f"--frames: the source changed its frame size while the snapshot was taken: {sorted(sizes)}")
+    return np.asarray(np.median(np.stack([f.image for f in frames]), axis=0).round(), dtype=np.uint8)
+
+
 def check_writable(path: Path, name: str = "--out") -> None:
     """Refuse, before any frame is grabbed, an image path that cannot be written."""
     if path.is_dir():
@@ -124,11 +164,21 @@ def snapshot_main(argv: list[str]) -> int:
     p.add_argument("--id", help="camera id (needed for a sim:// source without --config)")
     p.add_argument("--out", required=True, help="image file to write (PNG: lossless)")
     p.add_argument("--timeout", type=float, default=15.0, help="seconds to wait for a frame")
+    p.add_argument(
+        "--frames",
+        type=int,
+        default=1,
+        metavar="N",
+        help=f"save the per-pixel median of N successive frames (1-{MAX_SNAPSHOT_FRAMES}; default 1): a picture "
+        "of the empty floor without one frame's noise",
+    )
     args = p.parse_args(argv)
     setup_logging("WARNING")
     out = Path(args.out)
     code = 2  # bad flags or config, refused before a frame is grabbed
     try:
+        if not 1 <= args.frames <= MAX_SNAPSHOT_FRAMES:
+            raise DrvsError(f"--frames: {args.frames} must be 1-{MAX_SNAPSHOT_FRAMES}")
         check_writable(out)
         spec, camera_id = args.source, args.id or "snapshot"
         resolution, fps = None, None
@@ -140,13 +190,16 @@ def snapshot_main(argv: list[str]) -> int:
             raise DrvsError("give --source SRC or --config FILE")
         source = make_source(spec, camera_id, loop_file=False, resolution=resolution, fps=fps)
         code = 1  # found only now: the source gives no frame, or the file cannot be written
-        frame = asyncio.run(grab_one(spec, args.timeout, source))
-        if not cv2.imwrite(str(out), frame.image):
+        frames = asyncio.run(grab_frames(source, args.frames, args.timeout))
+        picture = median_picture(frames)
+        if not cv2.imwrite(str(out), picture):
             raise DrvsError(f"--out {out}: OpenCV could not write it")
     except (DrvsError, OSError, cv2.error) as exc:
         print(f"drvs-camera snapshot: {exc}", file=sys.stderr)
         return code
-    print(f"{out}: {frame.size[0]}x{frame.size[1]} from {spec}")
+    width, height = frames[0].size
+    median = f" (the median of {len(frames)} frames)" if len(frames) > 1 else ""
+    print(f"{out}: {width}x{height} from {spec}{median}")
     return 0
 
 
