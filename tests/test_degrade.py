@@ -116,3 +116,29 @@ async def test_a_camera_whose_model_file_is_absent_serves_its_other_types(
         if camera is not None:
             assert await camera.stop() == 0, camera.output()[-3000:]
         await server.stop()
+
+
+async def test_a_camera_that_could_serve_nothing_stops_at_start_saying_why(
+    recorded: dict[str, RecordedCamera],
+) -> None:
+    rec = recorded["cam1"]
+    args = ["--id", "nothing", "--source", str(rec.video), "--homography", str(rec.homography_file)]
+    camera = ManagedProcess.entry_point(
+        "nothing",
+        "drvs-camera",
+        *args,
+        "--server",
+        "127.0.0.1:1",
+        "--detectors",
+        "people",
+        env=without("HOGDescriptor"),
+    )
+    await camera.start()
+    try:
+        code = await camera.wait(timeout=60)
+    finally:
+        await camera.stop()
+    assert code == 1 and "Traceback" not in camera.output(), camera.output()
+    assert (
+        "camera nothing cannot start: detectors: camera nothing would serve no object type (people: " in camera.output()
+    )

@@ -411,7 +411,7 @@ class CameraNode(Lifecycle):
         if not self.kinds:
             built.close()
             why = "; ".join(f"{p}: {e}" for p, e in self.unavailable.items())
-            raise FailedPrecondition(
+            raise (FailedPrecondition if why else InvalidArgument)(
                 f"detectors: camera {self.camera_id} would serve no object type" + (f" ({why})" if why else "")
             )
 
