@@ -19,9 +19,10 @@ from drvs_bench.detectors_foreground import (
     score,
     view,
 )
+from shapely.geometry import Polygon
 
 from drvs.camera.cli import snapshot_main
-from drvs.detectors import FrameAnalysis, parse_object_type
+from drvs.detectors import Frame, FrameAnalysis, parse_object_type
 from drvs.detectors.foreground import NOISE_FRAMES, ForegroundDetector
 from drvs.sim.scene import write_video
 
@@ -53,6 +54,34 @@ def test_on_a_tiled_floor_with_markers_and_tape_only_the_box_is_found_over_100_r
     # The same frames without the texture-aware model: the larger marker is an object in most of them.
     assert found["plain"] == 100 and len(false["plain"]) >= 50, len(false["plain"])
     assert any(abs(x + 0.40) < 0.2 and abs(y - 3.20) < 0.2 for _, x, y in false["plain"]), false["plain"][:5]
+
+
+def test_on_the_tiled_floor_light_and_shadows_are_not_objects(tmp_path: Path) -> None:
+    """The building's light rising 30 % (the yellow tape then clips in the red channel) and falling
+    to 70 %, and a cast shadow over the marker and the tape (40-50 % darker, also under changed
+    light): nothing is found. Without the edge model the marker alone is an object in most frames."""
+    background = str(background_picture(tmp_path / "empty.png"))
+    detectors = {
+        "texture": ForegroundDetector(view(), {"background": background}),
+        "plain": ForegroundDetector(view(), {"background": background}, texture_noise=False),
+    }
+    cam = FloorCamera(draw_floor(with_box=False), seed=9)
+    shadow = Polygon([(-1.5, 2.0), (1.0, 2.0), (1.5, 5.0), (-1.0, 5.0)])
+    looks = [{"gain": float(g)} for g in (*np.linspace(1.0, 1.3, 20), *np.linspace(1.3, 0.7, 30))]
+    looks += [
+        {"gain": g, "shadow": shadow, "darken": d} for d, g in ((0.4, 0.7), (0.5, 0.7), (0.45, 1.0), (0.5, 1.2))
+    ] * 3
+    found: dict[str, list[tuple[int, float, float]]] = {"texture": [], "plain": []}
+    for sequence, look in enumerate(looks, 1):
+        frame = Frame(cam.image(**look), 1_700_000_000.0 + sequence / 15, sequence)
+        for name, det in detectors.items():
+            det.observe(frame)
+            found[name] += [
+                (sequence, round(d.centroid_xy[0], 2), round(d.centroid_xy[1], 2))
+                for d in det.find(FrameAnalysis(frame), FOREGROUND)
+            ]
+    assert found["texture"] == [], found["texture"]
+    assert len({s for s, _, _ in found["plain"]}) >= len(looks) // 2, found["plain"][:5]
 
 
 def test_snapshot_frames_saves_the_median_of_n_frames(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

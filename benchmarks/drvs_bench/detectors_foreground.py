@@ -131,7 +131,9 @@ class FloorCamera:
         self._warp = double @ np.linalg.inv(camera().matrix) @ to_floor
         self.sequence = 0
 
-    def image(self) -> NDArray[np.uint8]:
+    def image(self, gain: float = 1.0, shadow: Polygon | None = None, darken: float = 0.45) -> NDArray[np.uint8]:
+        """A frame; `gain` scales the whole image (the building's light), `shadow` darkens a floor
+        region by `darken` with a soft edge of a few pixels, every channel alike."""
         dx, dy = self.rng.normal(0.0, self.jitter_px, 2) * 2  # at twice the resolution
         shift = np.array([[1, 0, dx], [0, 1, dy], [0, 0, 1]])
         width, height = SIZE
@@ -140,7 +142,13 @@ class FloorCamera:
             borderMode=cv2.BORDER_CONSTANT, borderValue=(190, 185, 180),
         )  # fmt: skip
         small = cv2.resize(big, SIZE, interpolation=cv2.INTER_AREA).astype(np.float32)
-        image = np.asarray(cv2.GaussianBlur(small, (0, 0), LENS_BLUR_PX), dtype=np.float32)
+        image = np.asarray(cv2.GaussianBlur(small, (0, 0), LENS_BLUR_PX), dtype=np.float32) * np.float32(gain)
+        if shadow is not None:
+            hard = np.zeros((height, width), dtype=np.float32)
+            ring = camera().inverse().apply(np.asarray(shadow.exterior.coords)[:-1])
+            cv2.fillPoly(hard, [np.round(ring).astype(np.int32)], 1.0)
+            soft = np.asarray(cv2.GaussianBlur(hard, (0, 0), 3.0), dtype=np.float32)
+            image *= (1.0 - darken * soft)[:, :, None]
         image += self.rng.normal(0.0, self.noise_sigma, image.shape).astype(np.float32)
         pixels = np.clip(np.round(image), 0, 255).astype(np.uint8)
         ok, jpeg = cv2.imencode(".jpg", pixels, [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY])

@@ -65,6 +65,9 @@ CHROMA_THRESHOLD = 0.06
 #: (also MOG2's shadow threshold).
 BRIGHTNESS_HIGH = 1.15
 SHADOW_MIN_BRIGHTNESS = 0.35
+#: A working pixel with a channel at this level or above is clipped by the sensor (after the 3x3
+#: median filter and the scaling down, a clipped patch still reads 255).
+CLIP_LEVEL = 250
 #: Where the empty floor's picture has texture (local standard deviation of grey, in TEXTURE_PX
 #: windows at the working scale, above TEXTURE_MIN_STD grey levels: well above sensor noise there),
 #: a frame whose texture no longer correlates with it (normalised cross-correlation below
@@ -155,6 +158,7 @@ class ForegroundDetector(Detector):
         self._reference: NDArray[np.float32] | None = None
         self._reference_norm2: NDArray[np.float32] | None = None
         self._reference_brightness: NDArray[np.float32] | None = None
+        self._reference_peak = np.zeros(self._work[::-1], np.float32)
         self._reference_gray = self._reference_mean = self._reference_std = np.zeros(self._work[::-1], np.float32)
         self._textured = np.zeros(self._work[::-1], dtype=bool)
         #: Where the picture has strong gradients, and each channel's tolerance there (grey levels).
@@ -199,6 +203,7 @@ class ForegroundDetector(Detector):
         self._reference = work.astype(np.float32) + 1.0
         self._reference_norm2 = np.asarray(cv2.transform(cv2.multiply(self._reference, self._reference), _SUM))
         self._reference_brightness = work[self._sample].astype(np.float32).sum(axis=1) + 3.0
+        self._reference_peak = work.max(axis=2).astype(np.float32)
         gray = _gray(self._reference)
         self._reference_gray = gray
         self._reference_mean = _box(gray)
@@ -370,9 +375,13 @@ class ForegroundDetector(Detector):
         if motion is not None:
             found |= motion
         if self._reference is not None:
-            explained = self._explained(work, gain) if self.texture_noise else None
-            if explained is not None:
-                found[explained] = 0  # the motion model's pixels too: jitter moves edges between frames
+            # A channel the sensor clipped says only "at least this bright": where the floor's picture,
+            # in this frame's light, would clip too (bright tape as the light rises), the pixel is
+            # taken for floor by every cue, motion too.
+            explained = (work.max(axis=2) >= CLIP_LEVEL) & (self._reference_peak * np.float32(gain) >= CLIP_LEVEL)
+            if self.texture_noise:
+                explained |= self._explained(work, gain)
+            found[explained] = 0  # the motion model's pixels too: jitter moves edges between frames
             found |= self._static(work, gain, explained)
         found[~self._fov] = 0
         # An opening by an even kernel: erode and dilate about opposite corners, or it shifts the mask.
