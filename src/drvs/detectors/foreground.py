@@ -21,6 +21,12 @@ too (a shadow or a change of light scales texture, an object hides it). The pric
 without texture, an object of exactly the floor's hue and a little darker is a shadow to this
 detector while it stands still.
 
+The floor's own edges: a printed marker, tape and tile joints in the picture never come back at
+quite the same pixels (sub-pixel jitter between frames, JPEG ringing, noise), so where the picture
+has strong gradients a pixel that differs from it by no more than the source's own frame-to-frame
+noise there (learnt per pixel from the first frames observed) is floor, for every cue (see
+GRADIENT_MIN). So is a pixel the sensor clipped where the picture, in this light, would clip too.
+
 All the pixel work runs at a reduced scale (at most `WORK_WIDTH` pixels wide); outlines are traced
 on the mask brought back to the frame's size.
 """
