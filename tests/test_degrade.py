@@ -16,6 +16,7 @@ from typing import Any
 
 import pytest
 import yaml
+from drvs_bench.onnx_models import COLOUR_CLASSES, colour_box_model
 
 from drvs.core.errors import FailedPrecondition
 from drvs.detectors import OPENCV_CONTRIB_FIX, Backend
@@ -81,7 +82,7 @@ async def test_a_camera_without_contrib_opencv_serves_hsv_and_refuses_people_and
         await server.stop()
 
 
-async def test_a_camera_whose_model_file_is_absent_serves_its_other_types(
+async def test_a_camera_whose_model_file_is_absent_serves_its_other_types_and_models(
     recorded: dict[str, RecordedCamera], tmp_path: Path
 ) -> None:
     rec = recorded["cam1"]
@@ -96,18 +97,21 @@ async def test_a_camera_whose_model_file_is_absent_serves_its_other_types(
             "listen": "127.0.0.1:0",
             "max_range_m": float(MAX_RANGE),
             "detectors": ["hsv", "model"],
-            "models": {"boxes": {"path": "boxes.onnx", "classes": ["box"]}},  # relative to the config file
+            "models": {  # paths relative to the config file
+                "boxes": {"path": "boxes.onnx", "classes": ["box"]},
+                "colours": {"path": str(colour_box_model(tmp_path / "colours.onnx")), "classes": list(COLOUR_CLASSES)},
+            },
         }
         (tmp_path / "cam.yaml").write_text(yaml.safe_dump(config))
         camera = await ManagedProcess.entry_point(
             "nomodel", "drvs-camera", "--config", str(tmp_path / "cam.yaml")
         ).start()
         await camera_ready(camera, "nomodel")
-        (line,) = [line for line in camera.lines if "detector model unavailable" in line]
-        assert f"models: boxes: {tmp_path / 'boxes.onnx'}: no such file" in line, line
+        (line,) = [line for line in camera.lines if "unavailable" in line]
+        assert f"detector model_boxes unavailable: models: boxes: {tmp_path / 'boxes.onnx'}: no such file" in line
         async with DrvsClient(address, robot_id="r1") as robot:
             (listed,) = await robot.cameras()
-            assert listed.detector_kinds == ("hsv",)
+            assert set(listed.detector_kinds) == {"hsv", "model_colours"}
             colour = await robot.detect(YELLOW, CAM1_REGION, timeout_s=20)
             assert_found_yellow(colour.detections)
             with pytest.raises(FailedPrecondition, match=r"filter_def: no camera serves 'model_boxes'"):

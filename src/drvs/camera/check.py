@@ -151,5 +151,8 @@ def _detectors(config: CameraConfig, view: CameraView | None, report: Report) ->
                 report.ok(what, f"ready, serves {', '.join(kinds)}")
             else:
                 report.ok(what, "ready, serves nothing (no models: configured)")
+            for kind, why in runner.unavailable_kinds().items():
+                fix = f". Fix: {why.fix}" if why.fix else ""
+                report.fail(f"{what} {kind}", f"unavailable (the camera would serve without it): {why.reason}{fix}")
         finally:
             runner.close()

@@ -30,6 +30,7 @@ class BuiltDetectors:
 
     runners: dict[str, Detector] = field(default_factory=dict)
     kinds: dict[str, Detector] = field(default_factory=dict)
+    #: By prefix (the whole detector), or by kind (one of a detector's kinds, e.g. one model).
     unavailable: dict[str, DetectorUnavailable] = field(default_factory=dict)
 
     def close(self) -> None:
@@ -63,6 +64,7 @@ def build_detectors(
             built.runners[prefix] = runner
             for kind in runner.kinds():
                 built.kinds[kind] = runner
+            built.unavailable.update(runner.unavailable_kinds())
     except BaseException:
         built.close()
         raise
@@ -71,15 +73,16 @@ def build_detectors(
 
 def log_detectors(camera_id: str, built: BuiltDetectors) -> None:
     """The start log's word on each detector (once), and the availability gauge."""
-    for prefix, why in built.unavailable.items():
+    for name, why in built.unavailable.items():
         log.warning(
             "camera %s: detector %s unavailable: %s%s; the camera serves its other object types",
             camera_id,
-            prefix,
+            name,
             why.reason,
             f". Fix: {why.fix}" if why.fix else "",
         )
-        metrics.DETECTOR_AVAILABLE.labels(prefix).set(0)
+        if name in REGISTRY:
+            metrics.DETECTOR_AVAILABLE.labels(name).set(0)
     for prefix in built.runners:
         metrics.DETECTOR_AVAILABLE.labels(prefix).set(1)
     log.info("camera %s serves %s", camera_id, ", ".join(built.kinds) or "nothing")

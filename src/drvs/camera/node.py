@@ -455,7 +455,7 @@ class CameraNode(Lifecycle):
         wanted = object_type(request.filter_def)
         runner = self.kinds.get(wanted.kind)
         if runner is None:
-            why = self.unavailable.get(wanted.prefix)
+            why = self.unavailable.get(wanted.kind) or self.unavailable.get(wanted.prefix)
             served = ", ".join(self.kinds) or "nothing"
             raise (InvalidArgument if why is None else FailedPrecondition)(
                 f"filter_def: camera {self.camera_id} does not serve {wanted.kind!r} (it serves {served})"

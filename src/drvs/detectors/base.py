@@ -390,6 +390,11 @@ class Detector(ABC):
         """The routing kinds this instance serves (what the camera registers)."""
         return (self.prefix,)
 
+    def unavailable_kinds(self) -> dict[str, DetectorUnavailable]:
+        """Kinds this instance was configured for but cannot serve, and why (a model whose file is
+        absent, while the detector's other models serve); the camera logs them at start."""
+        return {}
+
     def check(self, object_type: ObjectType) -> None:
         """Refuse (InvalidArgument) a well-formed type this camera's instance cannot serve."""
         return None

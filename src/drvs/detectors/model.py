@@ -402,12 +402,25 @@ class ModelDetector(Detector):
         self.refuse_unknown_options("models")
         self.specs = parse_models(self.options.get("models"))
         self.models: dict[str, LoadedModel] = {}
+        #: Configured models whose file is absent (or that onnxruntime cannot run here), and why:
+        #: the others serve. All of them absent: the detector is unavailable.
+        self.missing: dict[str, DetectorUnavailable] = {}
         try:
             for name, spec in self.specs.items():
-                self.models[name] = load_model(spec)
+                try:
+                    self.models[name] = load_model(spec)
+                except DetectorUnavailable as exc:
+                    self.missing[name] = exc
         except BaseException:
             self.close()
             raise
+        if self.missing and not self.models:
+            first = next(iter(self.missing.values()))
+            raise (
+                DetectorUnavailable("model", "; ".join(e.reason for e in self.missing.values()), first.fix)
+                if len(self.missing) > 1
+                else first
+            )
 
     @classmethod
     def parse(cls, filter_def: str) -> ObjectType:
@@ -415,6 +428,9 @@ class ModelDetector(Detector):
 
     def kinds(self) -> tuple[str, ...]:
         return tuple(PREFIX + name for name in self.models)
+
+    def unavailable_kinds(self) -> dict[str, DetectorUnavailable]:
+        return {PREFIX + name: why for name, why in self.missing.items()}
 
     def check(self, object_type: ObjectType) -> None:
         name, label = object_type.params
