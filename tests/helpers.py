@@ -352,3 +352,12 @@ class CapturingCamera(AckingCamera):
     async def batch(self, requests: Sequence[detection_pb2.DetectionRequest]) -> None:
         for message in requests:
             self.requests.put_nowait(message)
+
+
+CV2_WITHOUT = Path(__file__).parent / "data" / "cv2_without"
+
+
+def without(*names: str) -> dict[str, str]:
+    """An environment whose Python's cv2 lacks `names` (see tests/data/cv2_without)."""
+    path = os.pathsep.join([str(CV2_WITHOUT), os.environ.get("PYTHONPATH", "")])
+    return {**os.environ, "PYTHONPATH": path, "DRVS_TEST_CV2_WITHOUT": ",".join(names)}

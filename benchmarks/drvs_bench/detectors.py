@@ -55,6 +55,7 @@ from drvs.sim.scene import write_video
 from drvs.tools.launch import ManagedProcess, start_camera, start_server
 
 from .common import IMAGE_SIZE, cpu_seconds, machine, peak_rss_bytes, pyplot
+from .detectors_foreground import floor_lines, floor_scene
 from .service import CAPACITY_NOT_POLICY
 from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, check_work, interleaved, publish
 
@@ -889,6 +890,9 @@ async def run_detectors(out_dir: Path, quick: bool, only: Sequence[str] | None =
                 accuracy = await asyncio.to_thread(check, work)
                 if accuracy is not None:
                     per[prefix]["accuracy"] = accuracy
+        if "foreground" in all_inputs:
+            say("foreground on a tiled floor with markers and tape")
+            per["foreground"]["floor_scene"] = await asyncio.to_thread(floor_scene, work.tmp, quick)
         result["detectors"] = per
         result["left_out"] = left_out
         say("done")
@@ -933,6 +937,7 @@ def accuracy_lines(per: Mapping[str, Any]) -> list[str]:
     fg = per.get("foreground", {}).get("accuracy")
     if fg:
         lines += [f"foreground (office): {fg['found']} found, {fg['missed']} missed, {fg['false']} false", ""]
+    lines += floor_lines(per.get("foreground", {}).get("floor_scene"))
     people = per.get("people", {}).get("accuracy")
     if people:
         lines.append("people (vtest.avi, hand-marked feet):")

@@ -448,6 +448,10 @@ async def test_detectors_benchmark_smoke(tmp_path: Path) -> None:
     assert aruco["heading_error_deg"]["median"] < 5
     fg = result["detectors"]["foreground"]["accuracy"]
     assert fg["found"] + fg["missed"] == sum(c["obstacles_in_view"] for c in fg["per_camera"].values()) >= 5
+    floor = result["detectors"]["foreground"]["floor_scene"]
+    assert floor["rounds"] == 2 and floor["requests_per_round"] == 25
+    texture, plain = (floor["background_1_frames"][m] for m in ("texture_noise", "plain"))
+    assert texture["box_found_fraction"] == 1.0 and plain["false_per_100_requests"] > texture["false_per_100_requests"]
     if "people" in result["detectors"]:
         people = result["detectors"]["people"]["accuracy"]
         assert 0 < people["native_768x576"]["recall"] <= 1 and 0 < people["native_768x576"]["precision"] <= 1

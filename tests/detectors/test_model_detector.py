@@ -47,7 +47,7 @@ from drvs.camera.config import load_config
 from drvs.core.errors import FailedPrecondition, InvalidArgument
 from drvs.core.filters import object_type
 from drvs.core.geometry import FieldOfView, homography_from_pose
-from drvs.detectors import CameraView, Frame, FrameAnalysis
+from drvs.detectors import CameraView, DetectorUnavailable, Frame, FrameAnalysis
 from drvs.detectors.model import ModelDetector, ModelSpec, letterbox, parse_models
 from drvs.robot import DrvsClient
 from drvs.sim.scene import FloorPatch, record_camera, render_view
@@ -497,3 +497,17 @@ async def test_camera_with_a_broken_model_stops_at_start(tmp_path: Path) -> None
         f"camera badcam cannot start: models: imagenet: {tmp_path / 'classifier.onnx'}: output [1, 1000] is not a "
         "YOLO detection output for the 2 classes configured" in camera.output()
     ), camera.output()
+
+
+def test_a_model_whose_file_is_absent_leaves_the_others_serving(tmp_path: Path) -> None:
+    present = {"path": str(colour_box_model(tmp_path / "m.onnx")), "classes": CLASSES}
+    absent = {"path": str(tmp_path / "gone.onnx"), "classes": ["box"]}
+    det = ModelDetector(view(), {"models": {"colours": present, "boxes": absent}})
+    assert det.kinds() == ("model_colours",)
+    (why,) = det.unavailable_kinds().values()
+    assert list(det.unavailable_kinds()) == ["model_boxes"]
+    assert str(why) == f"models: boxes: {tmp_path / 'gone.onnx'}: no such file"
+    assert sorted(d.label for d in find(det, "model_colours", analysis(patches()))) == ["blue", "red"]
+    # Every model absent: the detector is unavailable, each named.
+    with pytest.raises(DetectorUnavailable, match=r"^models: boxes: .*gone\.onnx: no such file; models: more: "):
+        ModelDetector(view(), {"models": {"boxes": absent, "more": {**absent, "path": str(tmp_path / "x.onnx")}}})

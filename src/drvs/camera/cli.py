@@ -11,9 +11,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from drvs.camera.aruco import DEFAULT_DICTIONARY, BoardSpec, board_image, find_correspondences
 from drvs.camera.calibration import fit_homography, load_points, save_calibration
+from drvs.camera.check import check_main
 from drvs.camera.config import DEFAULT_FOXGLOVE_FPS, ENVIRONMENT, add_arguments, load_config
 from drvs.camera.node import CameraNode
 from drvs.camera.source import FrameSource, VideoSource, plugin_source
@@ -32,7 +34,8 @@ def build_parser() -> argparse.ArgumentParser:
     e = ENVIRONMENT
     p = argparse.ArgumentParser(
         prog="drvs-camera",
-        description="Run a DRVS camera node. Also: drvs-camera snapshot | calibrate | fov (each with --help).",
+        description="Run a DRVS camera node. Also: drvs-camera check | snapshot | calibrate | calibrate-aruco | "
+        "aruco-board | fov (each with --help); check (or --check) takes the same settings as the node.",
         epilog="Every setting can also come from a DRVS_* environment variable or a --config YAML file whose keys "
         "are the setting names: " + ", ".join(f"{k} ({v})" for k, v in e.items()) + ".",
     )
@@ -75,7 +78,7 @@ async def run(node: CameraNode, metrics_port: int | None = None, metrics_host: s
     return 0
 
 
-SUBCOMMANDS = ("run", "snapshot", "calibrate", "calibrate-aruco", "aruco-board", "fov")
+SUBCOMMANDS = ("run", "check", "snapshot", "calibrate", "calibrate-aruco", "aruco-board", "fov")
 
 
 def parse_size(text: str, name: str = "--image-size") -> tuple[int, int]:
@@ -95,6 +98,45 @@ async def grab_one(spec: str, timeout_s: float, source: FrameSource | None = Non
         return await source.wait_first_frame(timeout_s)
     finally:
         await asyncio.to_thread(source.stop)
+
+
+#: The most frames `snapshot --frames` takes (a median over more changes nothing a camera sees).
+MAX_SNAPSHOT_FRAMES = 100
+#: How often `grab_frames` looks for a newer frame.
+FRAME_POLL_S = 0.005
+
+
+async def grab_frames(source: FrameSource, count: int, timeout_s: float) -> list[Frame]:
+    """`count` successive frames of a source (each newer than the last), each within `timeout_s`."""
+    source.start()
+    try:
+        frames = [await source.wait_first_frame(timeout_s)]
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + timeout_s
+        while len(frames) < count:
+            frame = source.latest()
+            if frame is not None and frame.sequence != frames[-1].sequence:
+                frames.append(frame)
+                deadline = loop.time() + timeout_s
+            elif loop.time() > deadline:
+                raise DrvsError(
+                    f"--frames {count}: the source gave {len(frames)} and then no new one in {timeout_s:g} s"
+                )
+            else:
+                await asyncio.sleep(FRAME_POLL_S)
+        return frames
+    finally:
+        await asyncio.to_thread(source.stop)
+
+
+def median_picture(frames: list[Frame]) -> NDArray[np.uint8]:
+    """The per-pixel median of frames (the frame itself for one): noise and jitter averaged out."""
+    if len(frames) == 1:
+        return frames[0].image
+    sizes = {f.size for f in frames}
+    if len(sizes) > 1:
+        raise DrvsError(f"--frames: the source changed its frame size while the snapshot was taken: {sorted(sizes)}")
+    return np.asarray(np.median(np.stack([f.image for f in frames]), axis=0).round(), dtype=np.uint8)
 
 
 def check_writable(path: Path, name: str = "--out") -> None:
@@ -122,11 +164,21 @@ def snapshot_main(argv: list[str]) -> int:
     p.add_argument("--id", help="camera id (needed for a sim:// source without --config)")
     p.add_argument("--out", required=True, help="image file to write (PNG: lossless)")
     p.add_argument("--timeout", type=float, default=15.0, help="seconds to wait for a frame")
+    p.add_argument(
+        "--frames",
+        type=int,
+        default=1,
+        metavar="N",
+        help=f"save the per-pixel median of N successive frames (1-{MAX_SNAPSHOT_FRAMES}; default 1): a picture "
+        "of the empty floor without one frame's noise",
+    )
     args = p.parse_args(argv)
     setup_logging("WARNING")
     out = Path(args.out)
     code = 2  # bad flags or config, refused before a frame is grabbed
     try:
+        if not 1 <= args.frames <= MAX_SNAPSHOT_FRAMES:
+            raise DrvsError(f"--frames: {args.frames} must be 1-{MAX_SNAPSHOT_FRAMES}")
         check_writable(out)
         spec, camera_id = args.source, args.id or "snapshot"
         resolution, fps = None, None
@@ -138,13 +190,16 @@ def snapshot_main(argv: list[str]) -> int:
             raise DrvsError("give --source SRC or --config FILE")
         source = make_source(spec, camera_id, loop_file=False, resolution=resolution, fps=fps)
         code = 1  # found only now: the source gives no frame, or the file cannot be written
-        frame = asyncio.run(grab_one(spec, args.timeout, source))
-        if not cv2.imwrite(str(out), frame.image):
+        frames = asyncio.run(grab_frames(source, args.frames, args.timeout))
+        picture = median_picture(frames)
+        if not cv2.imwrite(str(out), picture):
             raise DrvsError(f"--out {out}: OpenCV could not write it")
     except (DrvsError, OSError, cv2.error) as exc:
         print(f"drvs-camera snapshot: {exc}", file=sys.stderr)
         return code
-    print(f"{out}: {frame.size[0]}x{frame.size[1]} from {spec}")
+    width, height = frames[0].size
+    median = f" (the median of {len(frames)} frames)" if len(frames) > 1 else ""
+    print(f"{out}: {width}x{height} from {spec}{median}")
     return 0
 
 
@@ -287,8 +342,11 @@ def fov_main(argv: list[str]) -> int:
 
 def main(argv: list[str] | None = None) -> int:
     argv = join_negative_values(sys.argv[1:] if argv is None else argv, ("--board-origin",))
+    if "--check" in argv and (not argv or argv[0] not in SUBCOMMANDS[2:]):
+        argv = ["check", *(a for a in argv if a not in ("--check", "run"))]
     if argv and argv[0] in SUBCOMMANDS[1:]:
         commands = {
+            "check": check_main,
             "snapshot": snapshot_main,
             "calibrate": calibrate_main,
             "calibrate-aruco": calibrate_aruco_main,

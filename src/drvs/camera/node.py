@@ -29,6 +29,7 @@ from drvs.detectors import (
     REGISTRY,
     CameraView,
     Detector,
+    DetectorUnavailable,
     Frame,
     FrameAnalysis,
     ObjectType,
@@ -51,6 +52,7 @@ from .config import (
     DEFAULT_MAX_FRAME_AGE_S,
     check_settings,
 )
+from .detectors import build_detectors, log_detectors, run_detector
 from .liveview import CameraLiveView, check_fps
 from .poses import open_pose_source
 from .prefetch import Analyses
@@ -144,6 +146,8 @@ class CameraNode(Lifecycle):
         #: Running detector instances by prefix, and by the routing kinds they serve.
         self.runners: dict[str, Detector] = {}
         self.kinds: dict[str, Detector] = {}
+        #: Configured detectors this process cannot run (a backend missing, a model file absent), and why.
+        self.unavailable: dict[str, DetectorUnavailable] = {}
         #: Heavy searches running now, by key: the analysis (frame) each is finding objects in.
         self._heavy_running: dict[str, FrameAnalysis] = {}
         self.heartbeat_s = heartbeat_s
@@ -397,15 +401,17 @@ class CameraNode(Lifecycle):
     # --- detectors ---------------------------------------------------------------------------
 
     def _start_detectors(self, view: CameraView) -> None:
-        """Build every configured detector; one that cannot run stops the camera here, at start."""
-        for prefix in self.detectors:
-            runner = REGISTRY[prefix](view, self.detector_options.get(prefix))
-            self.runners[prefix] = runner
-            for kind in runner.kinds():
-                self.kinds[kind] = runner
+        """Build every configured detector this process can run (drvs.camera.detectors); one whose
+        configuration is wrong stops the camera here, at start."""
+        built = build_detectors(self.detectors, view, self.detector_options)
+        self.runners, self.kinds, self.unavailable = built.runners, built.kinds, built.unavailable
+        log_detectors(self.camera_id, built)
         if not self.kinds:
-            raise InvalidArgument(f"detectors: camera {self.camera_id} would serve no object type")
-        log.info("camera %s serves %s", self.camera_id, ", ".join(self.kinds))
+            built.close()
+            why = "; ".join(f"{p}: {e}" for p, e in self.unavailable.items())
+            raise (FailedPrecondition if why else InvalidArgument)(
+                f"detectors: camera {self.camera_id} would serve no object type" + (f" ({why})" if why else "")
+            )
 
     async def _find(self, runner: Detector, analysis: FrameAnalysis, wanted: ObjectType) -> tuple[Detection, ...]:
         """The frame's objects of the key, found once: a request that arrives while another is
@@ -414,7 +420,8 @@ class CameraNode(Lifecycle):
         if pending is None:
             loop = asyncio.get_running_loop()
             pool = self._heavy_pool if runner.heavy else None
-            pending = loop.run_in_executor(pool, analysis.found, wanted.key, lambda: _run(runner, analysis, wanted))
+            search = functools.partial(run_detector, runner, analysis, wanted)
+            pending = loop.run_in_executor(pool, analysis.found, wanted.key, search)
             analysis.pending[wanted.key] = pending
             if runner.heavy:
                 self._heavy_running[wanted.key] = analysis
@@ -433,7 +440,7 @@ class CameraNode(Lifecycle):
         wanted = object_type(filter_def)
         runner = self.kinds.get(wanted.kind)
         if runner is not None and not runner.heavy:
-            analysis.found(wanted.key, lambda: _run(runner, analysis, wanted))
+            analysis.found(wanted.key, lambda: run_detector(runner, analysis, wanted))
 
     # --- serving requests --------------------------------------------------------------------
 
@@ -446,9 +453,11 @@ class CameraNode(Lifecycle):
         wanted = object_type(request.filter_def)
         runner = self.kinds.get(wanted.kind)
         if runner is None:
-            raise InvalidArgument(
-                f"filter_def: camera {self.camera_id} does not serve {wanted.kind!r} "
-                f"(it serves {', '.join(self.kinds) or 'nothing'})"
+            why = self.unavailable.get(wanted.kind) or self.unavailable.get(wanted.prefix)
+            served = ", ".join(self.kinds) or "nothing"
+            raise (InvalidArgument if why is None else FailedPrecondition)(
+                f"filter_def: camera {self.camera_id} does not serve {wanted.kind!r} (it serves {served})"
+                + (f"; {wanted.prefix}: {why.reason}" if why else "")
             )
         runner.check(wanted)
         robot: Robot = ("robot", requester) if requester else request.callback_address
@@ -570,16 +579,6 @@ class CameraNode(Lifecycle):
         if self.live is not None:
             self.live.show(request.request_id, detections)
         return report(capture_time=frame.capture_time, detections=tuple(detections), camera_pose=pose)
-
-
-def _run(runner: Detector, analysis: FrameAnalysis, wanted: ObjectType) -> tuple[Detection, ...]:
-    """One search of a frame, counted and timed per detector (drvs_detector_runs_total)."""
-    started = time.perf_counter()
-    try:
-        return runner.find(analysis, wanted)
-    finally:
-        metrics.DETECTOR_RUNS.labels(runner.prefix).inc()
-        metrics.DETECTOR_SECONDS.labels(runner.prefix).inc(time.perf_counter() - started)
 
 
 #: What a camera answers on the robot-facing methods of the service it shares with the server.

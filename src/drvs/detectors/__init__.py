@@ -17,10 +17,13 @@ from drvs.core.object_types import PLUGIN_GROUP
 from .aruco import ArucoDetector as ArucoDetector
 from .base import (
     DEFAULT_MIN_AREA_PX,
+    OPENCV_CONTRIB_FIX,
     OUTLINE_TOLERANCE_PX,
     REGISTRY,
+    Backend,
     CameraView,
     Detector,
+    DetectorUnavailable,
     Frame,
     FrameAnalysis,
     ObjectType,
@@ -41,10 +44,13 @@ from .foreground import ForegroundDetector  # noqa: F401  (registers "foreground
 __all__ = [
     "DEFAULT_MIN_AREA_PX",
     "DETECTOR_KINDS",
+    "OPENCV_CONTRIB_FIX",
     "OUTLINE_TOLERANCE_PX",
     "REGISTRY",
+    "Backend",
     "CameraView",
     "Detector",
+    "DetectorUnavailable",
     "Frame",
     "FrameAnalysis",
     "HsvDetector",

@@ -17,6 +17,7 @@ read left to right), measured between the mapped corners and so free of the pers
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import threading
 from collections.abc import Mapping
@@ -37,8 +38,12 @@ from drvs.core.object_types import parse_marker_type as parse_marker_type
 from .base import CameraView, Detector, FrameAnalysis, ObjectType, register
 
 
+@functools.cache
 def _check_dictionaries() -> None:
-    """The grammar's dictionary table (drvs.core.object_types, which imports no OpenCV) is this cv2's:
+    """(Once, when the first detector is built: an OpenCV without cv2.aruco must still import this
+    module, so that a camera can say the detector is unavailable and serve the others.)
+
+    The grammar's dictionary table (drvs.core.object_types, which imports no OpenCV) is this cv2's:
     each name (OpenCV's DICT_ constant's, lower case, "aruco_" dropped) is that constant, of that size.
     A dictionary a later OpenCV adds is not offered until the table names it."""
     for attr in dir(cv2.aruco):
@@ -54,9 +59,6 @@ def _check_dictionaries() -> None:
             raise RuntimeError(
                 f"ArUco {name}: OpenCV has {size} markers, drvs.core.object_types {DICTIONARY_SIZES[name]}"
             )
-
-
-_check_dictionaries()
 
 
 def heading_deg(corners_floor: NDArray[np.float64]) -> float:
@@ -90,6 +92,7 @@ class ArucoDetector(Detector):
 
     def __init__(self, view: CameraView, options: Mapping[str, Any] | None = None) -> None:
         super().__init__(view, options)
+        _check_dictionaries()
         # cv2.aruco.ArucoDetector objects are built once per thread and dictionary: find() for
         # different keys (and for one key on two frames) may run at once on different threads,
         # and OpenCV does not promise that one detector object may be used concurrently.

@@ -26,7 +26,7 @@ import shapely
 from numpy.typing import NDArray
 from shapely.geometry import Polygon
 
-from drvs.core.errors import InvalidArgument
+from drvs.core.errors import FailedPrecondition, InvalidArgument
 from drvs.core.geometry import FieldOfView, Homography
 from drvs.core.model import Detection, PixelBox
 from drvs.core.object_types import MAX_FILTER_DEF_LENGTH as MAX_FILTER_DEF_LENGTH
@@ -273,6 +273,74 @@ def select(found: Sequence[Detection], region: Polygon | None) -> list[Detection
     return [d for d in found if region.intersects(d.outline)]
 
 
+#: The command that puts back OpenCV's contrib build when another package's plain cv2 replaced it
+#: (opencv-python-headless, which many vision packages pull in, installs over the same cv2 files).
+OPENCV_CONTRIB_FIX = (
+    "pip uninstall -y opencv-python-headless opencv-python && "
+    "pip install --force-reinstall 'opencv-contrib-python-headless>=4.9,<6'"
+)
+
+
+@dataclass(frozen=True)
+class Backend:
+    """Something a detector needs of this Python that a camera host may lack: an attribute of an
+    installed module (`cv2.HOGDescriptor`, `cv2.aruco`), or a module (`onnxruntime`)."""
+
+    #: The module, and the attribute of it ("" for the module itself).
+    module: str
+    attribute: str
+    #: What it is, in an operator's words, and the command that installs it.
+    what: str
+    fix: str
+
+    @property
+    def name(self) -> str:
+        return f"{self.module}.{self.attribute}" if self.attribute else self.module
+
+    def missing(self) -> str | None:
+        """None when this process has it; else why not (one sentence, without the fix)."""
+        import importlib
+
+        try:
+            module = importlib.import_module(self.module)
+        except ImportError as exc:
+            return f"{self.what} needs the Python module {self.module}, which does not import here ({exc})"
+        if self.attribute and getattr(module, self.attribute, None) is None:
+            where = getattr(module, "__file__", None) or "?"
+            version = getattr(module, "__version__", "")
+            build = f"{self.module} {version} ({where})" if version else f"{self.module} ({where})"
+            return f"{self.what} is missing: {build} has no {self.attribute}"
+        return None
+
+
+#: What the built-in detectors need beyond the base install's always-present parts, by prefix.
+#: OpenCV's HOG people detector and ArUco are in the contrib build (OpenCV 5), which a plain
+#: opencv-python-headless installed over it removes.
+BUILTIN_BACKENDS: dict[str, tuple[Backend, ...]] = {
+    "aruco": (Backend("cv2", "aruco", "OpenCV's ArUco module (cv2.aruco, in the contrib build)", OPENCV_CONTRIB_FIX),),
+    "people": (
+        Backend(
+            "cv2",
+            "HOGDescriptor",
+            "OpenCV's HOG people detector (cv2.HOGDescriptor, in the contrib build)",
+            OPENCV_CONTRIB_FIX,
+        ),
+    ),
+}
+
+
+class DetectorUnavailable(FailedPrecondition):
+    """This process cannot run a detector, through no fault of the camera's configuration: a backend
+    it needs is not installed, or a file it needs is absent. A camera serves its other detectors;
+    `drvs-camera check` lists it as unavailable with `reason` and `fix`."""
+
+    def __init__(self, prefix: str, reason: str, fix: str = "") -> None:
+        self.prefix = prefix
+        self.reason = reason
+        self.fix = fix
+        super().__init__(reason + (f"; fix: {fix}" if fix else ""))
+
+
 class Detector(ABC):
     """A detector plug-in: subclass, set `prefix`, implement `parse` and `find`, and `@register`.
 
@@ -291,6 +359,17 @@ class Detector(ABC):
     heavy: ClassVar[bool] = False
     #: Sees every frame through `observe` (a background model), not only frames requests look at.
     observes: ClassVar[bool] = False
+    #: What it needs that a camera host may lack (a plug-in lists its own; built-ins: BUILTIN_BACKENDS).
+    backends: ClassVar[tuple[Backend, ...]] = ()
+
+    @classmethod
+    def unavailable(cls) -> DetectorUnavailable | None:
+        """Why this process cannot run the detector (the first backend it lacks), or None."""
+        for backend in (*BUILTIN_BACKENDS.get(cls.prefix, ()), *cls.backends):
+            reason = backend.missing()
+            if reason is not None:
+                return DetectorUnavailable(cls.prefix, reason, backend.fix)
+        return None
 
     def __init__(self, view: CameraView, options: Mapping[str, Any] | None = None) -> None:
         self.view = view
@@ -310,6 +389,11 @@ class Detector(ABC):
     def kinds(self) -> tuple[str, ...]:
         """The routing kinds this instance serves (what the camera registers)."""
         return (self.prefix,)
+
+    def unavailable_kinds(self) -> dict[str, DetectorUnavailable]:
+        """Kinds this instance was configured for but cannot serve, and why (a model whose file is
+        absent, while the detector's other models serve); the camera logs them at start."""
+        return {}
 
     def check(self, object_type: ObjectType) -> None:
         """Refuse (InvalidArgument) a well-formed type this camera's instance cannot serve."""

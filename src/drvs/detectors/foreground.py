@@ -21,6 +21,12 @@ too (a shadow or a change of light scales texture, an object hides it). The pric
 without texture, an object of exactly the floor's hue and a little darker is a shadow to this
 detector while it stands still.
 
+The floor's own edges: a printed marker, tape and tile joints in the picture never come back at
+quite the same pixels (sub-pixel jitter between frames, JPEG ringing, noise), so where the picture
+has strong gradients a pixel that differs from it by no more than the source's own frame-to-frame
+noise there (learnt per pixel from the first frames observed) is floor, for every cue (see
+GRADIENT_MIN). So is a pixel the sensor clipped where the picture, in this light, would clip too.
+
 All the pixel work runs at a reduced scale (at most `WORK_WIDTH` pixels wide); outlines are traced
 on the mask brought back to the frame's size.
 """
@@ -65,6 +71,9 @@ CHROMA_THRESHOLD = 0.06
 #: (also MOG2's shadow threshold).
 BRIGHTNESS_HIGH = 1.15
 SHADOW_MIN_BRIGHTNESS = 0.35
+#: A working pixel with a channel at this level or above is clipped by the sensor (after the 3x3
+#: median filter and the scaling down, a clipped patch still reads 255).
+CLIP_LEVEL = 250
 #: Where the empty floor's picture has texture (local standard deviation of grey, in TEXTURE_PX
 #: windows at the working scale, above TEXTURE_MIN_STD grey levels: well above sensor noise there),
 #: a frame whose texture no longer correlates with it (normalised cross-correlation below
@@ -79,6 +88,27 @@ TEXTURE_FADED = 0.7
 #: pixels thick in the frame), closings join an object's parts.
 OPEN_PX = 2
 CLOSE_PX = 5
+#: The floor's own high-contrast features (marker and tape edges, tile joints) in the empty floor's
+#: picture: where its gradient (the largest of the channels', grey levels per working pixel,
+#: Scharr's, dilated by a pixel since edges move) is above GRADIENT_MIN, a frame may differ from
+#: the picture by the source's own frame-to-frame noise there and still be floor: sub-pixel jitter
+#: between frames, JPEG ringing, sensor noise, and a thin joint the median filter half erases in one
+#: frame and not the next all change an edge's pixels by far more than the flat floor's. The noise
+#: is learnt per pixel and channel from the first NOISE_FRAMES frames observed: the NOISE_QUANTILE
+#: of the absolute differences between consecutive frames (lighting gain taken out), as a normal
+#: sigma; a pixel is floor when every channel is within NOISE_K sigmas of the picture. A high
+#: quantile, not the median: the large jitters are rare, and a thing that crosses the view while
+#: the noise is learnt raises the tolerance only on the floor's edges, where it applies. Before
+#: that, and as the least it may be after, it is assumed from the picture: sensor noise of
+#: PRIOR_NOISE grey levels, and edges moving by PRIOR_JITTER_PX working pixels.
+GRADIENT_MIN = 6.0
+NOISE_FRAMES = 16
+NOISE_QUANTILE = 0.9
+NOISE_K = 4.0
+PRIOR_NOISE = 3.0
+PRIOR_JITTER_PX = 0.25
+#: The NOISE_QUANTILE of a normal variable's absolute value, in sigmas.
+_QUANTILE_SIGMAS = 1.645
 #: Frames whose motion masks are kept for requests that ask about them a little later.
 MASK_CACHE = 4
 #: Sums a float image's three channels (cv2.transform is ten times faster than numpy's sum).
@@ -111,9 +141,13 @@ class ForegroundDetector(Detector):
     example = FOREGROUND
     observes = True
 
-    def __init__(self, view: CameraView, options: Mapping[str, Any] | None = None) -> None:
+    def __init__(
+        self, view: CameraView, options: Mapping[str, Any] | None = None, *, texture_noise: bool = True
+    ) -> None:
         super().__init__(view, options)
         self.refuse_unknown_options("background")
+        #: The texture-aware noise model (a camera always has it; False is kept to measure it against).
+        self.texture_noise = texture_noise
         self._work = _work_size(view.image_size)
         work_w, work_h = self._work
         self._fov = cv2.resize(view.fov_mask, self._work, interpolation=cv2.INTER_NEAREST) > 0
@@ -130,8 +164,15 @@ class ForegroundDetector(Detector):
         self._reference: NDArray[np.float32] | None = None
         self._reference_norm2: NDArray[np.float32] | None = None
         self._reference_brightness: NDArray[np.float32] | None = None
+        self._reference_peak = np.zeros(self._work[::-1], np.float32)
         self._reference_gray = self._reference_mean = self._reference_std = np.zeros(self._work[::-1], np.float32)
         self._textured = np.zeros(self._work[::-1], dtype=bool)
+        #: Where the picture has strong gradients, and each channel's tolerance there (grey levels).
+        self._edges = np.zeros(self._work[::-1], dtype=bool)
+        self._tolerance = np.zeros((*self._work[::-1], 3), dtype=np.float32)
+        self._noise_frames: list[NDArray[np.float32]] = []
+        #: Whether the tolerance is the source's measured noise (False: assumed from the picture).
+        self.noise_learnt = False
         self._target_brightness: float | None = None
         background = self.options.get("background")
         if background is not None:
@@ -168,12 +209,41 @@ class ForegroundDetector(Detector):
         self._reference = work.astype(np.float32) + 1.0
         self._reference_norm2 = np.asarray(cv2.transform(cv2.multiply(self._reference, self._reference), _SUM))
         self._reference_brightness = work[self._sample].astype(np.float32).sum(axis=1) + 3.0
+        self._reference_peak = work.max(axis=2).astype(np.float32)
         gray = _gray(self._reference)
         self._reference_gray = gray
         self._reference_mean = _box(gray)
         variance = _box(gray * gray) - self._reference_mean * self._reference_mean
         self._reference_std = np.sqrt(np.maximum(variance, 0.0))
         self._textured = self._reference_std > TEXTURE_MIN_STD
+        self._edge_model(self._reference)
+
+    def _edge_model(self, reference: NDArray[np.float32]) -> None:
+        """The strong-gradient pixels of the picture, and the tolerance there assumed before any
+        frame's noise is measured: sensor noise and PRIOR_JITTER_PX of movement along the gradient."""
+        grow = np.ones((3, 3), np.uint8)
+        # Replicated borders: a tile joint along the image's edge has its gradient there too.
+        gx = cv2.Scharr(reference, cv2.CV_32F, 1, 0, scale=1.0 / 32, borderType=cv2.BORDER_REPLICATE)
+        gy = cv2.Scharr(reference, cv2.CV_32F, 0, 1, scale=1.0 / 32, borderType=cv2.BORDER_REPLICATE)
+        gradient = np.asarray(cv2.dilate(cv2.magnitude(gx, gy), grow), dtype=np.float32)  # an edge moves
+        self._edges = gradient.max(axis=2) > GRADIENT_MIN
+        prior = np.sqrt(np.float32(PRIOR_NOISE**2) + (np.float32(PRIOR_JITTER_PX) * gradient) ** 2)
+        self._tolerance = (np.float32(NOISE_K) * prior).astype(np.float32)
+
+    def _learn_noise(self, work: NDArray[np.uint8], gain: float) -> None:
+        """Collect the first NOISE_FRAMES frames (levelled); then the tolerance is their noise."""
+        self._noise_frames.append(work.astype(np.float32) / np.float32(gain))
+        if len(self._noise_frames) < NOISE_FRAMES:
+            return
+        stack = np.stack(self._noise_frames)
+        self._noise_frames = []
+        differences = np.abs(np.diff(stack, axis=0))
+        sigma = np.quantile(differences, NOISE_QUANTILE, axis=0).astype(np.float32) / np.float32(_QUANTILE_SIGMAS)
+        # The next frame's jitter may put an edge's pixel where its neighbour's noise was measured.
+        sigma = np.asarray(cv2.dilate(sigma, np.ones((3, 3), np.uint8)), dtype=np.float32)
+        # Never below the assumption (a few frames may all have had small jitters); a noisier source raises it.
+        self._tolerance = np.maximum(self._tolerance, np.float32(NOISE_K) * sigma)
+        self.noise_learnt = True
 
     @classmethod
     def parse(cls, filter_def: str) -> ObjectType:
@@ -206,8 +276,11 @@ class ForegroundDetector(Detector):
         mask = self._subtractor.apply(levelled, learningRate=learning_rate)
         return np.asarray(cv2.threshold(mask, 200, 255, cv2.THRESH_BINARY)[1], dtype=np.uint8)
 
-    def _static(self, work: NDArray[np.uint8], gain: float) -> NDArray[np.uint8]:
-        """Pixels that differ from the empty floor in a way no shadow or lighting change explains."""
+    def _static(
+        self, work: NDArray[np.uint8], gain: float, explained: NDArray[np.bool_] | None = None
+    ) -> NDArray[np.uint8]:
+        """Pixels that differ from the empty floor in a way no shadow or lighting change explains,
+        nor (`explained`, the texture-aware model's) the source's own noise on the floor's edges."""
         assert self._reference is not None and self._reference_norm2 is not None
         frame = work.astype(np.float32) + 1.0
         dot = cv2.transform(cv2.multiply(frame, self._reference), _SUM)  # |F| |R| cos(angle)
@@ -218,6 +291,8 @@ class ForegroundDetector(Detector):
         # Brightness along the floor's colour, relative to the floor's, after the global gain.
         brightness = dot / (ref2 * np.float32(gain))
         changed = hue_changed | (brightness > BRIGHTNESS_HIGH) | (brightness < SHADOW_MIN_BRIGHTNESS)
+        if explained is not None:
+            changed &= ~explained
         if self._textured.any():
             # Where the floor has texture, a shadow or a change of light keeps it (scaled), and an
             # object hides it: the floor's texture no longer correlates with the frame's.
@@ -229,13 +304,35 @@ class ForegroundDetector(Detector):
             # Only where the texture has faded too (relative to the local brightness): a shadow's
             # edge inside a window decorrelates it as well, but adds contrast rather than hiding it.
             faded = std * self._reference_mean < TEXTURE_FADED * self._reference_std * mean
-            hidden: Any = np.asarray(self._textured & (correlation < TEXTURE_MIN_CORRELATION) & faded, dtype=np.uint8)
+            hidden: Any = self._textured & (correlation < TEXTURE_MIN_CORRELATION) & faded
+            if explained is not None:
+                hidden &= ~explained  # before it grows: the floor's edges, moved by noise, seed nothing
+            hidden = np.asarray(hidden, dtype=np.uint8)
             # Windows that straddle an object's edge see the edge's contrast, not faded texture: the
             # found region stops some pixels inside the object (3 at the working scale, measured on a
             # rendered disc). Grow it back by that much, speckle removed first.
+            # Windows that reach over the image's border see part of the floor twice (reflected), and
+            # a frame's jitter changes both parts: no texture judgement there.
+            edge = TEXTURE_PX // 2 + 1
+            hidden[:edge], hidden[-edge:], hidden[:, :edge], hidden[:, -edge:] = 0, 0, 0, 0
             hidden = cv2.dilate(cv2.morphologyEx(hidden, cv2.MORPH_OPEN, self._texture_open), self._texture_grow)
             changed |= hidden > 0
         return np.asarray(changed, dtype=np.uint8) * np.uint8(255)
+
+    def _explained(self, work: NDArray[np.uint8], gain: float) -> NDArray[np.bool_]:
+        """Pixels on the picture's strong gradients that differ from it, in every channel, by no
+        more than the tolerance there: the floor's own edges, moved by the source's noise."""
+        assert self._reference is not None
+        with self._lock:
+            tolerance = self._tolerance
+        scale = np.float32(1.0 / gain)
+        levelled = np.multiply(work, scale, dtype=np.float32)
+        levelled += scale  # the picture is kept plus one
+        excess = cv2.subtract(cv2.absdiff(levelled, self._reference), tolerance)
+        # The worst channel's excess (OpenCV's reduce over each pixel's three values: numpy's max over
+        # the last axis took three times as long).
+        worst = cv2.reduce(excess.reshape(-1, 3), 1, cv2.REDUCE_MAX).reshape(self._edges.shape)
+        return np.asarray(self._edges & (worst <= 0), dtype=bool)
 
     def _prepared(self, frame: Frame) -> tuple[NDArray[np.uint8], float]:
         """The frame's working image and gain (computed by observe when it has seen the frame)."""
@@ -254,6 +351,8 @@ class ForegroundDetector(Detector):
             gain = self._gain(work)
             rate = 1.0 / (self._observed + 1) if self._observed < WARMUP_FRAMES else 1.0 / HISTORY_FRAMES
             mask = self._motion(work, gain, rate)
+            if self.texture_noise and self._reference is not None and not self.noise_learnt:
+                self._learn_noise(work, gain)
             self._observed += 1
             self._frames[frame.sequence] = (frame.image, work, gain)
             self._masks[frame.sequence] = mask
@@ -282,7 +381,14 @@ class ForegroundDetector(Detector):
         if motion is not None:
             found |= motion
         if self._reference is not None:
-            found |= self._static(work, gain)
+            # A channel the sensor clipped says only "at least this bright": where the floor's picture,
+            # in this frame's light, would clip too (bright tape as the light rises), the pixel is
+            # taken for floor by every cue, motion too.
+            explained = (work.max(axis=2) >= CLIP_LEVEL) & (self._reference_peak * np.float32(gain) >= CLIP_LEVEL)
+            if self.texture_noise:
+                explained |= self._explained(work, gain)
+            found[explained] = 0  # the motion model's pixels too: jitter moves edges between frames
+            found |= self._static(work, gain, explained)
         found[~self._fov] = 0
         # An opening by an even kernel: erode and dilate about opposite corners, or it shifts the mask.
         opened = cv2.dilate(cv2.erode(found, self._open, anchor=(0, 0)), self._open, anchor=(OPEN_PX - 1, OPEN_PX - 1))

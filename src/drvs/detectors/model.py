@@ -61,11 +61,13 @@ from drvs.core.errors import FailedPrecondition, InvalidArgument
 from drvs.core.model import Detection, PixelBox
 from drvs.core.object_types import CLASS_NAME_RE, MODEL_NAME_RE, MODEL_PREFIX, parse_model
 
-from .base import CameraView, Detector, FrameAnalysis, ObjectType, register
+from .base import CameraView, Detector, DetectorUnavailable, FrameAnalysis, ObjectType, register
 
 #: Model names (no '_', which separates the class) and class names (which may hold '_': a class
 #: is everything after the second '_') are the grammar's, drvs.core.object_types.
 PREFIX = MODEL_PREFIX
+#: What installs the runtime that runs the models (a base dependency, so only a damaged install lacks it).
+ONNXRUNTIME_FIX = "pip install 'onnxruntime>=1.17,<2'"
 #: A camera registers at most 16 object types in all; models leave room for the built-ins.
 MAX_MODELS = 8
 MAX_CLASSES = 1000
@@ -257,11 +259,17 @@ def _first_line(exc: BaseException) -> str:
 
 def load_model(spec: ModelSpec) -> LoadedModel:
     """Open, check and run a model once; FailedPrecondition names the path and what is wrong."""
-    import onnxruntime as ort  # only cameras with models pay for onnxruntime
-
+    try:
+        import onnxruntime as ort  # only cameras with models pay for onnxruntime
+    except ImportError as exc:
+        raise DetectorUnavailable(
+            "model", f"models: {spec.name}: onnxruntime does not import ({exc})", ONNXRUNTIME_FIX
+        ) from None
     path = spec.path
     if not path.exists():
-        raise _fail(spec, "no such file")
+        # Not the configuration's fault, nor the camera's: the file is not there (yet). The camera
+        # serves its other detectors, and says so.
+        raise DetectorUnavailable("model", f"models: {spec.name}: {path}: no such file")
     if not path.is_file():
         raise _fail(spec, "not a file")
     try:
@@ -394,12 +402,25 @@ class ModelDetector(Detector):
         self.refuse_unknown_options("models")
         self.specs = parse_models(self.options.get("models"))
         self.models: dict[str, LoadedModel] = {}
+        #: Configured models whose file is absent (or that onnxruntime cannot run here), and why:
+        #: the others serve. All of them absent: the detector is unavailable.
+        self.missing: dict[str, DetectorUnavailable] = {}
         try:
             for name, spec in self.specs.items():
-                self.models[name] = load_model(spec)
+                try:
+                    self.models[name] = load_model(spec)
+                except DetectorUnavailable as exc:
+                    self.missing[name] = exc
         except BaseException:
             self.close()
             raise
+        if self.missing and not self.models:
+            first = next(iter(self.missing.values()))
+            raise (
+                DetectorUnavailable("model", "; ".join(e.reason for e in self.missing.values()), first.fix)
+                if len(self.missing) > 1
+                else first
+            )
 
     @classmethod
     def parse(cls, filter_def: str) -> ObjectType:
@@ -407,6 +428,9 @@ class ModelDetector(Detector):
 
     def kinds(self) -> tuple[str, ...]:
         return tuple(PREFIX + name for name in self.models)
+
+    def unavailable_kinds(self) -> dict[str, DetectorUnavailable]:
+        return {PREFIX + name: why for name, why in self.missing.items()}
 
     def check(self, object_type: ObjectType) -> None:
         name, label = object_type.params

@@ -35,6 +35,12 @@ DETECTOR_RUNS = Counter(
 DETECTOR_SECONDS = Counter(
     "drvs_detector_seconds_total", "Seconds a camera node spent searching frames, by detector", ["detector"]
 )
+DETECTOR_AVAILABLE = Gauge(
+    "drvs_detector_available",
+    "A camera node's configured detectors: 1 ready (its object types are served and registered), 0 unavailable "
+    "(a backend it needs is not installed, or a file it needs is absent; the start log says which and why)",
+    ["detector"],
+)
 REPORTS = Counter(
     "drvs_reports_sent_total", "Reports a camera node sent to robots, by outcome (sent or dropped)", ["outcome"]
 )
