@@ -16,7 +16,7 @@ interleaved rounds (stats.FULL_ROUNDS, QUICK_ROUNDS with --quick):
 - **accuracy** where there is ground truth: markers rendered at known floor poses in the office's
   camera views (position error in cm, heading error in degrees), obstacles of colours no `hsv`
   filter matches in the office against an empty-floor background image (found, missed, false),
-  people against hand-marked feet (precision, recall).
+  people against hand-marked feet (precision, recall, feet error; drvs_bench.detectors_people).
 
 A detector this branch does not have is reported under `missing`, one without inputs here under
 `no_inputs`: neither is a crash. Every run's work is checked (stats.check_work): a request that was
@@ -54,7 +54,8 @@ from drvs.sim.scenario import CameraDef, ColorDef, ObjectDef, Scenario, load_sce
 from drvs.sim.scene import write_video
 from drvs.tools.launch import ManagedProcess, start_camera, start_server
 
-from .common import IMAGE_SIZE, cpu_seconds, machine, peak_rss_bytes, pyplot
+from .common import IMAGE_SIZE, VTEST, cpu_seconds, machine, peak_rss_bytes, pyplot
+from .detectors_people import accuracy_people, people_inputs, people_lines
 from .service import CAPACITY_NOT_POLICY
 from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, check_work, interleaved, publish
 
@@ -317,66 +318,6 @@ def foreground_inputs(work: Work) -> DetectorInputs:
         "foreground", "foreground", options={"background": background}, camera_config={"background": background},
         min_found=4, warm_frames=frames[-6:],
     )  # fmt: skip
-
-
-#: Debian's opencv-doc ships OpenCV's sample footage of people walking (768x576).
-VTEST = Path("/usr/share/doc/opencv-doc/examples/data/vtest.avi")
-#: Feet marked by hand on frames of VTEST (tests/data, by the people detector's author).
-VTEST_FEET = Path(__file__).resolve().parents[2] / "tests" / "data" / "vtest_feet.json"
-#: The people tests' plausible pose for the footage (8 m up, 35 degrees down, 60 degree lens): the
-#: same pose at 640x480 gives the same view, scaled.
-VTEST_POSE = ((0.0, 0.0, 8.0), 90.0, 35.0, 60.0)
-VTEST_RANGE_M = 40.0
-#: The people tests' setting for this footage at 768x576 (min_height_px 85), and scaled to 640x480.
-PEOPLE_NATIVE = {"min_height_px": 85}
-PEOPLE_TUNED = {"min_height_px": round(85 * 480 / 576)}
-
-
-def vtest_frames(indices: Sequence[int], resize: bool = True) -> dict[int, NDArray[np.uint8]]:
-    """Frames of vtest.avi by index, resized to 640x480 (resize=False: as recorded, 768x576)."""
-    if not VTEST.is_file():
-        raise NoInputs(f"{VTEST} is absent (apt-get install opencv-doc)")
-    wanted = set(indices)
-    out: dict[int, NDArray[np.uint8]] = {}
-    cap = cv2.VideoCapture(str(VTEST))
-    try:
-        index = 0
-        while len(out) < len(wanted):
-            ok, image = cap.read()
-            if not ok:
-                raise NoInputs(f"{VTEST} ended at frame {index}; wanted up to {max(wanted)}")
-            if index in wanted:
-                if resize:
-                    image = cv2.resize(image, IMAGE_SIZE, interpolation=cv2.INTER_AREA)
-                out[index] = np.asarray(image, dtype=np.uint8)
-            index += 1
-    finally:
-        cap.release()
-    return out
-
-
-def vtest_homography() -> Homography:
-    from drvs.core.geometry import homography_from_pose
-
-    position, yaw, pitch, hfov = VTEST_POSE
-    return homography_from_pose(position, yaw, pitch, hfov, IMAGE_SIZE)
-
-
-def people_inputs(work: Work) -> DetectorInputs:
-    indices = [5 * i for i in range(work.frames)]
-    frames = vtest_frames(indices)
-    return DetectorInputs(
-        prefix="people",
-        filter_def="people",
-        frames=[frames[i] for i in indices],
-        homography=vtest_homography(),
-        max_range_m=VTEST_RANGE_M,
-        # As a camera runs it: drvs-camera has no setting for the people detector's options.
-        options=None,
-        camera_config={},
-        frames_are=f"real footage: {VTEST} (Debian opencv-doc), every 5th frame from 0, resized to 640x480",
-        min_found=0,
-    )
 
 
 def model_inputs(work: Work) -> DetectorInputs:
@@ -749,77 +690,6 @@ def accuracy_foreground(work: Work) -> dict[str, Any]:
     }
 
 
-#: The people tests' rule: a detection matches a marked person when its feet are within this
-#: fraction of its box height of the marked feet (greedy, strongest first, each person once).
-MATCH_FRACTION = 0.12
-
-
-def accuracy_people(work: Work) -> dict[str, Any]:
-    """Precision and recall on the hand-marked frames of vtest.avi, resized to 640x480 (the marks
-    scaled with them), with the camera's default options and with the people tests' setting."""
-    truth = json.loads(VTEST_FEET.read_text())
-    if work.quick:  # a smoke run: four of the marked frames, two settings
-        truth["frames"] = truth["frames"][:4]
-    native_size = (int(truth["image_size"][0]), int(truth["image_size"][1]))
-    settings: dict[str, Any] = {}
-    runs = (("camera_default", None, IMAGE_SIZE), ("tuned", PEOPLE_TUNED, IMAGE_SIZE),
-            ("native_768x576", PEOPLE_NATIVE, native_size))  # fmt: skip
-    for name, options, size in runs[::2] if work.quick else runs:
-        sx, sy = size[0] / native_size[0], size[1] / native_size[1]
-        marks = {f["index"]: [(p["feet"][0] * sx, p["feet"][1] * sy) for p in f["people"]] for f in truth["frames"]}
-        images = vtest_frames(list(marks), resize=size != native_size)
-        position, yaw, pitch, hfov = VTEST_POSE
-        from drvs.core.geometry import homography_from_pose
-
-        homography = homography_from_pose(position, yaw, pitch, hfov, size)
-        view = CameraView(homography, FieldOfView.compute(homography, size, VTEST_RANGE_M), size)
-        to_image = homography.inverse()
-        wanted = parse_object_type("people")
-        det = REGISTRY["people"](view, options)
-        true = false = missed = 0
-        errors: list[float] = []
-        times: list[float] = []
-        for index, feet in marks.items():
-            t0 = time.perf_counter()
-            found = det.narrow(det.find(FrameAnalysis(Frame(images[index], 0.0, index)), wanted), wanted)
-            times.append((time.perf_counter() - t0) * 1000)
-            free = list(range(len(feet)))
-            for d in sorted(found, key=lambda d: -d.score):
-                u, v = to_image.apply([list(d.ground_contact_xy)])[0]
-                near = [(math.dist((u, v), feet[j]), j) for j in free]
-                near = [(e, j) for e, j in near if e <= MATCH_FRACTION * d.pixel_box.height]
-                if not near:
-                    false += 1
-                    continue
-                error, j = min(near)
-                free.remove(j)
-                true += 1
-                errors.append(error)
-            missed += len(free)
-        det.close()
-        settings[name] = {
-            "image_size": list(size),
-            "options": options or {},
-            "true": true,
-            "false": false,
-            "missed": missed,
-            "precision": true / max(1, true + false),
-            "recall": true / max(1, true + missed),
-            "feet_error_px": spread(errors),
-            "find_ms_median": statistics.median(times),
-        }
-    people = sum(len(f["people"]) for f in truth["frames"])
-    return {
-        "what": f"{len(truth['frames'])} frames of {VTEST} with {people} people whose feet were marked by hand "
-        f"({VTEST_FEET.name}), resized to 640x480 (native: as recorded); a detection is true when its feet "
-        f"(ground contact mapped back to the image) are within {MATCH_FRACTION} of its box height of a marked "
-        "person's, greedy, strongest first. camera_default: as drvs-camera runs it (no setting for its options); "
-        "tuned: the people tests' min_height_px 85 at 768x576, scaled; native_768x576: the people tests' own "
-        "setting and size. find_ms_median: one pass over the marked frames, not interleaved rounds",
-        **settings,
-    }
-
-
 #: Accuracy by detector prefix, against ground truth.
 ACCURACY: dict[str, Callable[[Work], dict[str, Any] | None]] = {
     "aruco": accuracy_aruco,
@@ -935,14 +805,7 @@ def accuracy_lines(per: Mapping[str, Any]) -> list[str]:
         lines += [f"foreground (office): {fg['found']} found, {fg['missed']} missed, {fg['false']} false", ""]
     people = per.get("people", {}).get("accuracy")
     if people:
-        lines.append("people (vtest.avi, hand-marked feet):")
-        for name, entry in people.items():
-            if isinstance(entry, dict) and "precision" in entry:
-                size = "x".join(str(v) for v in entry["image_size"])
-                lines.append(
-                    f"  {name} ({size}): precision {entry['precision']:.2f}, recall {entry['recall']:.2f}, "
-                    f"{entry['find_ms_median']:.0f} ms"
-                )
+        lines += people_lines(people)
     return lines
 
 
@@ -996,4 +859,4 @@ def write_outputs(result: dict[str, Any], out: Path) -> None:
     (out / "detectors.json").write_text(json.dumps(result, indent=1) + "\n")
 
 
-__all__ = ["WorkMismatch", "run_detectors"]
+__all__ = ["VTEST", "WorkMismatch", "run_detectors"]

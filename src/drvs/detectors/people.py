@@ -6,18 +6,18 @@ upright pedestrians; `cv2.HOGDescriptor_getDefaultPeopleDetector`) ships inside 
 (the contrib build in OpenCV 5): nothing is downloaded, and it runs on any CPU. It looks for
 upright people in a 64 x 128 pixel window (a person about 96 px tall in it).
 
-How it searches (see `plan_bands`): the camera's floor homography is also a camera pose
+How it searches (see `plan_passes`): the camera's floor homography is also a camera pose
 (`drvs.core.upright`: its height above the floor, its tilt, its focal length), so a person
 `person_height_m` tall (1.7 m) standing with their feet at image row v appears h(v) pixels tall,
-in a HOG box h(v) / PERSON_IN_WINDOW tall. The rows where feet can be (the field of view) are cut
-into horizontal bands over which that box grows by at most BAND_GROWTH; each band's crop (its feet
-rows, the box above them and the margin below) is resized so the smallest box it expects fills
-HOG's 128 px window, and searched over only the pyramid levels that cover the boxes it expects.
+in a HOG box h(v) / PERSON_IN_WINDOW tall. The search runs HOG's window at a short series of
+sizes (SEARCH_STEP apart); each size only over the horizontal strip of the frame that holds the
+boxes of that size whose feet are on rows where a person is about that tall, resized so the size
+fills HOG's 128 px window, one `HOGDescriptor.detect` per size (side by side on OpenCV's threads).
 Rows whose person would be a box smaller than MIN_BOX_PX are not searched (HOG does not find
-people that small even upsampled). A detection whose box is not within `height_tolerance` of
+people that small even upsampled; see MIN_BOX_PX). A detection whose box is not within `height_tolerance` of
 what its feet's row expects is dropped: a box of the wrong size for where it stands is not a
 person standing there. With `min_height_px` set (the camera's --people-min-height), the whole
-frame is searched at every scale from that height up, without the geometry, as before it had any;
+frame is searched at every scale from that height up (detectMultiScale), without the geometry;
 likewise when the homography is not a camera above the floor (logged once).
 
 Measured on real footage (OpenCV's vtest.avi, hand-marked feet in tests/data/vtest_feet.json):
@@ -96,6 +96,10 @@ PYRAMID_SCALE = 1.1
 #: size check drops what a lower margin lets in: on vtest.avi no false detection at 0.4).
 GROUP_MIN_HITS = 1
 GEOMETRY_MIN_MARGIN = 0.4
+#: Each pass's crop reaches this many of HOG's pixels (at the pass's scale) beyond the boxes whose
+#: feet are on its rows, above and below (two of its 8 px strides: with one, 2 of the 57 people on
+#: vtest.avi are lost at 768x576).
+PASS_MARGIN = 16.0
 #: HOG pads each crop (replicating its edge) for windows partly out of the frame at its sides.
 PASS_PADDING = (8, 0)
 #: Boxes overlapping a stronger one by more than this (intersection over union) are the same person.
@@ -166,8 +170,9 @@ def plan_passes(view: CameraView, lo: np.ndarray[Any, Any], hi: np.ndarray[Any, 
         near = rows[in_view & (lo / spread <= box) & (box <= hi * spread)]
         if len(near):
             first, last = int(near.min()), int(near.max())
-            top = max(0, math.floor(first - FEET_FRACTION * box) - PADDING[1])
-            bottom = min(height, math.ceil(last + (1.0 - FEET_FRACTION) * box) + PADDING[1])
+            margin = PASS_MARGIN * box / HOG_WINDOW_PX  # a window's stride or two, in the frame's pixels
+            top = max(0, math.floor(first - FEET_FRACTION * box - margin))
+            bottom = min(height, math.ceil(last + (1.0 - FEET_FRACTION) * box + margin))
             passes.append(Pass(box, (first, last), (left, top, right, bottom)))
         box *= step
 
