@@ -46,6 +46,8 @@ PEOPLE_TUNED = {"min_height_px": round(85 * 480 / 576)}
 #: The people tests' rule: a detection matches a marked person when its feet are within this
 #: fraction of its box height of the marked feet (greedy, strongest first, each person once).
 MATCH_FRACTION = 0.12
+#: Runs of `find` per frame in the timed rounds, of which the fastest counts.
+FIND_REPEATS = 3
 #: Targets at the camera's defaults, at both sizes.
 TARGETS = {"recall": 0.85, "precision": 0.9, "feet_error_m_max": 0.5, "ms_over_old_default": 0.6}
 
@@ -141,15 +143,22 @@ def _score(det: Detector, size: tuple[int, int], images: dict[int, Any], marks: 
     }
 
 
-def _find_ms(det: Detector, images: dict[int, Any]) -> float:
-    """Median ms of `find` over the frames (one new FrameAnalysis each)."""
+def _find_ms(det: Detector, images: dict[int, Any]) -> tuple[float, float]:
+    """ms of `find` per frame (one new FrameAnalysis each), wall clock and this process's CPU (all
+    its threads): the median over the frames of each frame's fastest of FIND_REPEATS (the machine is
+    shared; the fastest run is the one least disturbed)."""
     wanted = parse_object_type("people")
-    times = []
+    wall, cpu = [], []
     for index, image in images.items():
-        t0 = time.perf_counter()
-        det.find(FrameAnalysis(Frame(image, 0.0, index)), wanted)
-        times.append((time.perf_counter() - t0) * 1000)
-    return statistics.median(times)
+        best_wall = best_cpu = math.inf
+        for _ in range(FIND_REPEATS):
+            w0, c0 = time.perf_counter(), time.process_time()
+            det.find(FrameAnalysis(Frame(image, 0.0, index)), wanted)
+            best_wall = min(best_wall, (time.perf_counter() - w0) * 1000)
+            best_cpu = min(best_cpu, (time.process_time() - c0) * 1000)
+        wall.append(best_wall)
+        cpu.append(best_cpu)
+    return statistics.median(wall), statistics.median(cpu)
 
 
 def accuracy_people(work: Work) -> dict[str, Any]:
@@ -191,19 +200,28 @@ def accuracy_people(work: Work) -> dict[str, Any]:
         rounds = QUICK_ROUNDS if work.quick else FULL_ROUNDS
         timed = ("camera_default", "old_default", "camera_default_768x576", "old_default_768x576")
         ms: dict[str, list[float]] = {name: [] for name in timed}
+        cpu_ms: dict[str, list[float]] = {name: [] for name in timed}
         for _r, name in interleaved(timed, rounds):
             images = data["640x480" if runs[name][1] == IMAGE_SIZE else "768x576"][0]
-            ms[name].append(_find_ms(detectors[name], images))
+            wall, cpu = _find_ms(detectors[name], images)
+            ms[name].append(wall)
+            cpu_ms[name].append(cpu)
     finally:
         for det in detectors.values():
             det.close()
     for name, values in ms.items():
         publish(out[name], "find_ms", values)
+        publish(out[name], "find_cpu_ms", cpu_ms[name])
     targets: dict[str, Any] = {}
     for suffix, label in (("", "640x480"), ("_768x576", "768x576")):
         new, old = out[f"camera_default{suffix}"], out[f"old_default{suffix}"]
         ratio = [n / o for n, o in zip(ms[f"camera_default{suffix}"], ms[f"old_default{suffix}"], strict=True)]
         publish(new, "find_ms_over_old_default", ratio)
+        publish(
+            new,
+            "find_cpu_ms_over_old_default",
+            [n / o for n, o in zip(cpu_ms[f"camera_default{suffix}"], cpu_ms[f"old_default{suffix}"], strict=True)],
+        )
         targets[label] = {
             "recall": {"value": new["recall"], "target": TARGETS["recall"],
                        "verdict": verdict([new["recall"]], TARGETS["recall"])},
@@ -216,6 +234,8 @@ def accuracy_people(work: Work) -> dict[str, Any]:
                                     "spread": new["find_ms_over_old_default_spread"],
                                     "target": TARGETS["ms_over_old_default"],
                                     "verdict": verdict(ratio, TARGETS["ms_over_old_default"], higher_is_better=False)},
+            "cpu_ms_over_old_default": {"value": new["find_cpu_ms_over_old_default"],
+                                        "spread": new["find_cpu_ms_over_old_default_spread"]},
             "old_default_recall": old["recall"],
         }  # fmt: skip
     people = sum(len(f["people"]) for f in truth["frames"])
@@ -226,9 +246,10 @@ def accuracy_people(work: Work) -> dict[str, Any]:
         f"image) are within {MATCH_FRACTION} of its box height of a marked person's, greedy, strongest first. "
         "camera_default: the camera's defaults (the search by the homography's geometry); old_default: the "
         "whole-frame scan at min_height_px 128 (the camera's default before the geometry); tuned / native_768x576: "
-        "the people tests' min_height_px 85 at 768x576 (scaled at 640x480). find_ms: median ms of find per marked "
-        "frame, the geometry and the old default interleaved in each round; find_ms_over_old_default: their ratio "
-        "within each round",
+        "the people tests' min_height_px 85 at 768x576 (scaled at 640x480). find_ms: ms of find per marked frame "
+        f"(each frame's fastest of {FIND_REPEATS} runs, the median over the frames), the geometry and the old default "
+        "interleaved in each round; find_cpu_ms: the same in this process's CPU time (all threads: both searches use "
+        "OpenCV's threads); *_over_old_default: their ratio within each round",
         "rounds": rounds,
         **out,
         "targets": targets,
