@@ -124,13 +124,14 @@ def _circle(
 def walkers(rng: np.random.Generator) -> list[Walker]:
     """Three pairs whose discs pass PASS_GAP_M apart, centre to centre (their edges overlap by
     0.14 m): circling (they meet every 7 s or so), crossing at 60 degrees (every half period), head on
-    (every half period). Speeds up to 0.5-0.9 m/s; the timing varies from round to round."""
+    (every half period); the pairs' paths keep apart from each other's. Speeds up to 0.5-1 m/s; the
+    timing varies from round to round."""
     out = []
-    # Circling (3.6, 6.4): radii 1.15 and 1.45 m, opposite directions.
-    omega = float(rng.uniform(0.42, 0.5))
+    # Circling (3.2, 6.4): radii 1.0 and 1.3 m, opposite directions.
+    omega = float(rng.uniform(0.45, 0.55))
     start = float(rng.uniform(0, 2 * math.pi))
-    out.append(Walker("circle-in", _circle((3.6, 6.4), 1.15, omega, start)))
-    out.append(Walker("circle-out", _circle((3.6, 6.4), 1.15 + PASS_GAP_M, -omega, start + 0.9)))
+    out.append(Walker("circle-in", _circle((3.2, 6.4), 1.0, omega, start)))
+    out.append(Walker("circle-out", _circle((3.2, 6.4), 1.0 + PASS_GAP_M, -omega, start + 0.9)))
     # Crossing at 60 degrees around (6.6, 3.2): 4 m segments through it, crossed at full speed
     # (pi * 4 m / period); the second disc reaches the crossing point PASS_GAP_M / sin(60) / speed
     # later, so they pass about PASS_GAP_M apart.
@@ -143,12 +144,12 @@ def walkers(rng: np.random.Generator) -> list[Walker]:
     d2 = (2.0 * math.cos(math.radians(60)), 2.0 * math.sin(math.radians(60)))
     out.append(Walker("x-a", _segment((c[0] - d1[0], c[1] - d1[1]), (c[0] + d1[0], c[1] + d1[1]), period, phase)))
     out.append(Walker("x-b", _segment((c[0] - d2[0], c[1] - d2[1]), (c[0] + d2[0], c[1] + d2[1]), period, phase - lag)))
-    # Head on around (6.8, 7.2): 3.6 m segments, PASS_GAP_M apart, opposite directions.
+    # Head on around (6.85, 7.2): 3.3 m segments, PASS_GAP_M apart, opposite directions.
     period = float(rng.uniform(10.0, 12.0))
     phase = float(rng.uniform(0, 1))
     y0, y1 = 7.2 - PASS_GAP_M / 2, 7.2 + PASS_GAP_M / 2
-    out.append(Walker("head-a", _segment((5.0, y0), (8.6, y0), period, phase)))
-    out.append(Walker("head-b", _segment((8.6, y1), (5.0, y1), period, phase)))
+    out.append(Walker("head-a", _segment((5.2, y0), (8.5, y0), period, phase)))
+    out.append(Walker("head-b", _segment((8.5, y1), (5.2, y1), period, phase)))
     return out
 
 
