@@ -276,6 +276,7 @@ def test_bad_input_is_refused_and_changes_nothing() -> None:
         ({"accel_mps2": -1.0}, r"^accel_mps2: -1\.0 must be a positive finite number"),
         ({"floor_sigma_m": math.nan}, r"^floor_sigma_m: nan must be a finite number >= 0"),
         ({"max_tracks": 0}, r"^max_tracks: 0 must be a positive integer"),
+        ({"merges": 1}, r"^merges: 1 must be True or False"),
     ],
 )
 def test_bad_settings_are_refused(kwargs: dict[str, float], message: str) -> None:

@@ -100,8 +100,6 @@ class _Track:
     seen_xy: tuple[float, float]
     #: Its floor area when it was an object of its own (a running mean; what a merged blob is weighed against).
     area_m2: float = 0.0
-    #: Held by a merged blob this period (coasting on its motion, not corrected by the blob).
-    merged: bool = False
 
     def state(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         x = np.asarray(self.kf.statePost, dtype=np.float64).reshape(4)
@@ -138,6 +136,8 @@ class Tracker:
         self.drop_after_s = float(drop_after_s)
         self.accel_mps2 = float(accel_mps2)
         self.floor_sigma_m = float(floor_sigma_m)
+        if not isinstance(merges, bool):
+            raise InvalidArgument(f"merges: {merges!r} must be True or False")
         self.max_tracks = max_tracks
         self.merges = merges
         self._tracks: list[_Track] = []
@@ -168,8 +168,6 @@ class Tracker:
         blobs = self._merged_blobs(objects) if self.merges else {}
         seen: set[int] = set(blobs)
         matched: set[int] = set()
-        for t in self._tracks:
-            t.merged = False
         for ti, oi in self._associate(objects, seen):
             self._observed(self._tracks[ti], objects[oi], now)
             seen.add(oi)
@@ -180,8 +178,8 @@ class Tracker:
             for ti in held:
                 t = self._tracks[ti]
                 if t.track_id not in matched:
-                    t.merged, t.seen_at = True, now
-                    t.last = replace(t.last, camera_ids=objects[oi].camera_ids)
+                    t.seen_at = now
+                    t.last = replace(t.last, camera_ids=objects[oi].camera_ids, last_seen=objects[oi].last_seen)
                     matched.add(t.track_id)
         fresh = sorted((i for i in range(len(objects)) if i not in seen), key=lambda i: -objects[i].score)
         if self.merges:
@@ -211,14 +209,21 @@ class Tracker:
         merged (the id says which one it is)."""
         if len(self._tracks) < 2:
             return {}
-        predicted = [shapely.Point(t.state()[0][:2]) for t in self._tracks]
+        xy = np.array([t.state()[0][:2] for t in self._tracks])
         blobs: dict[int, list[int]] = {}
         for oi, o in enumerate(objects):
             key = _type_key(o)
             if key[0] == "marker" or o.outline.is_empty or o.area_m2 <= 0:
                 continue
-            near = o.outline.buffer(MERGE_MARGIN_M)
-            held = [ti for ti, t in enumerate(self._tracks) if t.key == key and near.contains(predicted[ti])]
+            x0, y0, x1, y1 = o.outline.bounds
+            m = MERGE_MARGIN_M
+            inside = np.flatnonzero(
+                (xy[:, 0] >= x0 - m) & (xy[:, 0] <= x1 + m) & (xy[:, 1] >= y0 - m) & (xy[:, 1] <= y1 + m)
+            )
+            if len(inside) < 2:  # the bounds first: the outline's test is the costly one
+                continue
+            near = o.outline.buffer(m)
+            held = [int(ti) for ti in inside if self._tracks[ti].key == key and near.contains(shapely.Point(xy[ti]))]
             if len(held) >= 2 and o.area_m2 >= MERGE_AREA_RATIO * max(self._tracks[ti].area_m2 for ti in held):
                 blobs[oi] = held
         return blobs
@@ -332,10 +337,15 @@ def _fragment(o: WorldObject, tracked: Sequence[WorldObject]) -> bool:
     key = _type_key(o)
     if key[0] == "marker" or o.outline.is_empty:
         return False
-    return any(
-        _type_key(t) == key and not t.outline.is_empty and o.outline.distance(t.outline) <= FRAGMENT_MARGIN_M
-        for t in tracked
-    )
+    x0, y0, x1, y1 = o.outline.bounds
+    m = FRAGMENT_MARGIN_M
+    for t in tracked:
+        if _type_key(t) != key or t.outline.is_empty:
+            continue
+        a0, b0, a1, b1 = t.outline.bounds
+        if a0 <= x1 + m and x0 <= a1 + m and b0 <= y1 + m and y0 <= b1 + m and o.outline.distance(t.outline) <= m:
+            return True
+    return False
 
 
 def _check(objects: Sequence[WorldObject], at: float) -> None:
