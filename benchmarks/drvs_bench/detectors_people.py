@@ -143,22 +143,33 @@ def _score(det: Detector, size: tuple[int, int], images: dict[int, Any], marks: 
     }
 
 
-def _find_ms(det: Detector, images: dict[int, Any]) -> tuple[float, float]:
-    """ms of `find` per frame (one new FrameAnalysis each), wall clock and this process's CPU (all
-    its threads): the median over the frames of each frame's fastest of FIND_REPEATS (the machine is
-    shared; the fastest run is the one least disturbed)."""
+def _timed_find(det: Detector, image: Any, index: int) -> tuple[float, float]:
+    """One `find` (a new FrameAnalysis): ms of wall clock and of this process's CPU (all its threads)."""
     wanted = parse_object_type("people")
-    wall, cpu = [], []
+    w0, c0 = time.perf_counter(), time.process_time()
+    det.find(FrameAnalysis(Frame(image, 0.0, index)), wanted)
+    return (time.perf_counter() - w0) * 1000, (time.process_time() - c0) * 1000
+
+
+def _paired_ms(new: Detector, old: Detector, images: dict[int, Any]) -> dict[str, float]:
+    """The two detectors side by side on each frame: FIND_REPEATS runs of each, alternating which goes
+    first, each one's fastest counted (the machine is shared: the fastest run is the least
+    disturbed). Medians over the frames of each one's ms (wall and CPU) and of the per-frame ratios
+    new / old: a frame's two searches run milliseconds apart, under the same load."""
+    per: dict[str, list[float]] = {k: [] for k in ("new_wall", "old_wall", "new_cpu", "old_cpu")}
     for index, image in images.items():
-        best_wall = best_cpu = math.inf
-        for _ in range(FIND_REPEATS):
-            w0, c0 = time.perf_counter(), time.process_time()
-            det.find(FrameAnalysis(Frame(image, 0.0, index)), wanted)
-            best_wall = min(best_wall, (time.perf_counter() - w0) * 1000)
-            best_cpu = min(best_cpu, (time.process_time() - c0) * 1000)
-        wall.append(best_wall)
-        cpu.append(best_cpu)
-    return statistics.median(wall), statistics.median(cpu)
+        best = dict.fromkeys(per, math.inf)
+        for rep in range(FIND_REPEATS):
+            for name, det in (("new", new), ("old", old)) if rep % 2 == 0 else (("old", old), ("new", new)):
+                wall, cpu = _timed_find(det, image, index)
+                best[f"{name}_wall"] = min(best[f"{name}_wall"], wall)
+                best[f"{name}_cpu"] = min(best[f"{name}_cpu"], cpu)
+        for key, value in best.items():
+            per[key].append(value)
+    out = {key: statistics.median(values) for key, values in per.items()}
+    out["wall_ratio"] = statistics.median(n / o for n, o in zip(per["new_wall"], per["old_wall"], strict=True))
+    out["cpu_ratio"] = statistics.median(n / o for n, o in zip(per["new_cpu"], per["old_cpu"], strict=True))
+    return out
 
 
 def accuracy_people(work: Work) -> dict[str, Any]:
@@ -198,30 +209,25 @@ def accuracy_people(work: Work) -> dict[str, Any]:
             if options is None:
                 out[name]["passes"] = len(getattr(detectors[name], "passes", None) or ())
         rounds = QUICK_ROUNDS if work.quick else FULL_ROUNDS
-        timed = ("camera_default", "old_default", "camera_default_768x576", "old_default_768x576")
-        ms: dict[str, list[float]] = {name: [] for name in timed}
-        cpu_ms: dict[str, list[float]] = {name: [] for name in timed}
-        for _r, name in interleaved(timed, rounds):
-            images = data["640x480" if runs[name][1] == IMAGE_SIZE else "768x576"][0]
-            wall, cpu = _find_ms(detectors[name], images)
-            ms[name].append(wall)
-            cpu_ms[name].append(cpu)
+        pairs = {"": ("camera_default", "old_default"), "_768x576": ("camera_default_768x576", "old_default_768x576")}
+        timed: dict[str, list[dict[str, float]]] = {suffix: [] for suffix in pairs}
+        for _r, suffix in interleaved(list(pairs), rounds):
+            new, old = pairs[suffix]
+            images = data["640x480" if runs[new][1] == IMAGE_SIZE else "768x576"][0]
+            timed[suffix].append(_paired_ms(detectors[new], detectors[old], images))
     finally:
         for det in detectors.values():
             det.close()
-    for name, values in ms.items():
-        publish(out[name], "find_ms", values)
-        publish(out[name], "find_cpu_ms", cpu_ms[name])
     targets: dict[str, Any] = {}
     for suffix, label in (("", "640x480"), ("_768x576", "768x576")):
         new, old = out[f"camera_default{suffix}"], out[f"old_default{suffix}"]
-        ratio = [n / o for n, o in zip(ms[f"camera_default{suffix}"], ms[f"old_default{suffix}"], strict=True)]
+        got = timed[suffix]
+        for entry, who in ((new, "new"), (old, "old")):
+            publish(entry, "find_ms", [g[f"{who}_wall"] for g in got])
+            publish(entry, "find_cpu_ms", [g[f"{who}_cpu"] for g in got])
+        ratio = [g["wall_ratio"] for g in got]
         publish(new, "find_ms_over_old_default", ratio)
-        publish(
-            new,
-            "find_cpu_ms_over_old_default",
-            [n / o for n, o in zip(cpu_ms[f"camera_default{suffix}"], cpu_ms[f"old_default{suffix}"], strict=True)],
-        )
+        publish(new, "find_cpu_ms_over_old_default", [g["cpu_ratio"] for g in got])
         targets[label] = {
             "recall": {"value": new["recall"], "target": TARGETS["recall"],
                        "verdict": verdict([new["recall"]], TARGETS["recall"])},
@@ -246,10 +252,11 @@ def accuracy_people(work: Work) -> dict[str, Any]:
         f"image) are within {MATCH_FRACTION} of its box height of a marked person's, greedy, strongest first. "
         "camera_default: the camera's defaults (the search by the homography's geometry); old_default: the "
         "whole-frame scan at min_height_px 128 (the camera's default before the geometry); tuned / native_768x576: "
-        "the people tests' min_height_px 85 at 768x576 (scaled at 640x480). find_ms: ms of find per marked frame "
-        f"(each frame's fastest of {FIND_REPEATS} runs, the median over the frames), the geometry and the old default "
-        "interleaved in each round; find_cpu_ms: the same in this process's CPU time (all threads: both searches use "
-        "OpenCV's threads); *_over_old_default: their ratio within each round",
+        "the people tests' min_height_px 85 at 768x576 (scaled at 640x480). find_ms: ms of find per marked frame, the "
+        f"geometry and the old default side by side on each frame ({FIND_REPEATS} runs each, alternating which goes "
+        "first, each one's fastest counted), the median over the frames, per round; find_cpu_ms: the same in this "
+        "process's CPU time (all threads: both searches use OpenCV's threads); *_over_old_default: the median over "
+        "the frames of each frame's ratio, per round",
         "rounds": rounds,
         **out,
         "targets": targets,
