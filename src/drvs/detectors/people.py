@@ -267,9 +267,10 @@ class PeopleDetector(Detector):
     Each detection: label "person"; `pixel_box` the HOG box (clipped to the image); the
     ground-contact point the feet, at the box's horizontal centre and FEET_FRACTION of its height
     (the box's bottom edge is below the feet); the score the SVM's margin w (how far the window is
-    on the person side of the decision boundary; detections need w >= MIN_MARGIN) squashed into
-    [0, 1) as w / (1 + w): 0 on the boundary, 0.41 at the threshold, 0.5 at margin 1, 0.75 at 3
-    (the median true detection on vtest.avi), towards 1 for clear people.
+    on the person side of the decision boundary; detections need w >= GEOMETRY_MIN_MARGIN when
+    searched by geometry, MIN_MARGIN over the whole frame) squashed into [0, 1) as w / (1 + w): 0 on
+    the boundary, 0.29 and 0.41 at the thresholds, 0.5 at margin 1, 0.75 at 3 (the median true
+    detection on vtest.avi), towards 1 for clear people.
 
     The outline is the person's footprint on the floor, not the image box mapped: everything above
     the feet is in the air, and mapping it through the floor homography would smear the person
