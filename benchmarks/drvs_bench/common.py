@@ -31,9 +31,10 @@ ALL_REGION = (-6.0, 0.0, 46.0, 10.0)
 #: Real footage of people walking (Debian's opencv-doc; ./run test installs it where it can).
 VTEST = Path("/usr/share/doc/opencv-doc/examples/data/vtest.avi")
 #: The people cameras (drvs-bench paper's people modes) play vtest.avi at its own 10 fps, scaled
-#: to IMAGE_SIZE, with a plausible pose (8 m up, 35 degrees down, 60 degree lens), 100 m along x
-#: from the colour scene: no request for one floor reaches the other's cameras.
-PEOPLE_POSE = ((100.0, 0.0, 8.0), 90.0, 35.0, 60.0)
+#: to IMAGE_SIZE, with the pose fitted to its people (5.6 m up, 26 degrees down, 60 degree lens:
+#: tests/detectors/test_people.py's; the people detector searches by it), 100 m along x from the colour
+#: scene: no request for one floor reaches the other's cameras.
+PEOPLE_POSE = ((100.0, 0.0, 5.6), 90.0, 26.0, 60.0)
 PEOPLE_MAX_RANGE_M = 40.0
 #: Covers the people cameras' fields of view (and nothing of the colour scene's).
 PEOPLE_REGION = (60.0, 0.0, 140.0, 60.0)

@@ -16,7 +16,7 @@ interleaved rounds (stats.FULL_ROUNDS, QUICK_ROUNDS with --quick):
 - **accuracy** where there is ground truth: markers rendered at known floor poses in the office's
   camera views (position error in cm, heading error in degrees), obstacles of colours no `hsv`
   filter matches in the office against an empty-floor background image (found, missed, false),
-  people against hand-marked feet (precision, recall).
+  people against hand-marked feet (precision, recall, feet error; drvs_bench.detectors_people).
 
 A detector this branch does not have is reported under `missing`, one without inputs here under
 `no_inputs`: neither is a crash. Every run's work is checked (stats.check_work): a request that was
@@ -41,26 +41,23 @@ from typing import Any
 
 import cv2
 import numpy as np
-import yaml
 from numpy.typing import NDArray
-from shapely.geometry import Polygon, box
+from shapely.geometry import box
 
 from drvs.core.geometry import FieldOfView, Homography
 from drvs.core.homography_file import save_homography
 from drvs.detectors import REGISTRY, CameraView, Detector, Frame, FrameAnalysis, parse_object_type
-from drvs.robot import DrvsClient
 from drvs.sim.render import CameraRenderer
 from drvs.sim.scenario import CameraDef, ColorDef, ObjectDef, Scenario, load_scenario
 from drvs.sim.scene import write_video
-from drvs.tools.launch import ManagedProcess, start_camera, start_server
 
-from .common import IMAGE_SIZE, cpu_seconds, machine, peak_rss_bytes, pyplot
+from .common import IMAGE_SIZE, VTEST, machine, pyplot
+from .detectors_cameras import RATE_HZ, measure_cameras, measure_memory
 from .detectors_foreground import floor_lines, floor_scene
-from .service import CAPACITY_NOT_POLICY
+from .detectors_markers import draw_markers, marker_poses
+from .detectors_people import accuracy_people, people_inputs, people_lines
 from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, check_work, interleaved, publish
 
-#: The request rate of the camera CPU comparison.
-RATE_HZ = 10.0
 #: Frames of each detector's video (it loops at 20 fps) and frames `find` is timed on per round.
 FULL_FRAMES, QUICK_FRAMES = 40, 8
 FULL_TIMED, QUICK_TIMED = 12, 3
@@ -157,93 +154,6 @@ def office_frames(
     return [renderer.render(None, v) for v in versions]
 
 
-@dataclass(frozen=True)
-class MarkerPose:
-    """An ArUco marker lying face up on the floor: its centre, side (m) and heading as the aruco
-    detector reports it: degrees counter-clockwise from +x to the marker's x axis (its printed top
-    edge read left to right)."""
-
-    marker_id: int
-    x: float
-    y: float
-    heading_deg: float
-    side_m: float
-
-    def corners(self) -> NDArray[np.float64]:
-        """Floor corners of the black square: top-left, top-right, bottom-right, bottom-left."""
-        t = math.radians(self.heading_deg)
-        right = np.array([math.cos(t), math.sin(t)])
-        up = np.array([-math.sin(t), math.cos(t)])  # seen from above, counter-clockwise of the top edge
-        c = np.array([self.x, self.y])
-        h = self.side_m / 2
-        return np.array([c + h * (up - right), c + h * (up + right), c - h * (up - right), c - h * (up + right)])
-
-
-def draw_markers(
-    image: NDArray[np.uint8],
-    homography: Homography,
-    markers: Sequence[MarkerPose],
-    dictionary: str = "DICT_4X4_50",
-    rng: np.random.Generator | None = None,
-) -> NDArray[np.uint8]:
-    """The frame with printed markers (black on white paper, a one-module white margin) warped onto
-    the floor through the camera's homography, then sensor noise over the paper."""
-    out = image.copy()
-    height, width = out.shape[:2]
-    to_image = homography.inverse()
-    aruco = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
-    modules = aruco.markerSize + 2
-    px = 20 * modules
-    paper = np.zeros((height, width), dtype=np.uint8)
-    for m in markers:
-        marker = cv2.aruco.generateImageMarker(aruco, m.marker_id, px)
-        margin = px // modules
-        printed = cv2.copyMakeBorder(marker, margin, margin, margin, margin, cv2.BORDER_CONSTANT, value=255)
-        # Paper is not 255 and ink is not 0 under office light.
-        printed = (30 + printed.astype(np.float32) * (185 / 255)).astype(np.uint8)
-        outer = replace(m, side_m=m.side_m * (modules + 2) / modules).corners()
-        dst = to_image.apply(outer).astype(np.float32)
-        size = printed.shape[0]
-        src = np.array([[0, 0], [size, 0], [size, size], [0, size]], dtype=np.float32)
-        warp = cv2.getPerspectiveTransform(src, dst)
-        layer = cv2.warpPerspective(printed, warp, (width, height), flags=cv2.INTER_AREA)
-        mask = cv2.warpPerspective(np.full_like(printed, 255), warp, (width, height), flags=cv2.INTER_NEAREST)
-        paper[mask > 0] = 255
-        out[mask > 0] = layer[mask > 0][:, None]
-    gen = rng if rng is not None else np.random.default_rng(0)
-    noise = gen.normal(0.0, 3.0, out.shape).astype(np.float32)
-    noisy = np.clip(out.astype(np.float32) + noise, 0, 255).astype(np.uint8)
-    out[paper > 0] = noisy[paper > 0]
-    return out
-
-
-def marker_poses(
-    camera: CameraDef, scenario: Scenario, side_m: float, spacing_m: float, first_id: int = 0, limit: int = 50
-) -> list[MarkerPose]:
-    """Markers on a grid over the floor a camera sees (clear of walls, objects and the image edge),
-    each at another heading."""
-    fov = FieldOfView.compute(camera.homography, camera.resolution, camera.max_range_m)
-    to_image = camera.homography.inverse()
-    taken = [w.buffer(0.1) for w in scenario.walls] + [o.shape.buffer(0.1) for o in scenario.objects]
-    x0, y0, x1, y1 = fov.floor.bounds
-    poses: list[MarkerPose] = []
-    headings = (0.0, 37.0, 95.0, 160.0, 215.0, 290.0, 330.0, 120.0)
-    margin = side_m * 0.8
-    image_box = box(8, 8, camera.resolution[0] - 8, camera.resolution[1] - 8)
-    for gy in np.arange(y0 + margin, y1, spacing_m):
-        for gx in np.arange(x0 + margin, x1, spacing_m):
-            pose = MarkerPose(first_id + len(poses), float(gx), float(gy), headings[len(poses) % len(headings)], side_m)
-            outline = Polygon(pose.corners()).buffer(side_m / 3)
-            if not fov.floor.contains(outline) or any(t.intersects(outline) for t in taken):
-                continue
-            if not image_box.contains(Polygon(to_image.apply(np.asarray(outline.exterior.coords)))):
-                continue
-            poses.append(pose)
-            if len(poses) >= limit:
-                return poses
-    return poses
-
-
 # --- per-detector inputs ------------------------------------------------------------------------
 
 
@@ -318,66 +228,6 @@ def foreground_inputs(work: Work) -> DetectorInputs:
         "foreground", "foreground", options={"background": background}, camera_config={"background": background},
         min_found=4, warm_frames=frames[-6:],
     )  # fmt: skip
-
-
-#: Debian's opencv-doc ships OpenCV's sample footage of people walking (768x576).
-VTEST = Path("/usr/share/doc/opencv-doc/examples/data/vtest.avi")
-#: Feet marked by hand on frames of VTEST (tests/data, by the people detector's author).
-VTEST_FEET = Path(__file__).resolve().parents[2] / "tests" / "data" / "vtest_feet.json"
-#: The people tests' plausible pose for the footage (8 m up, 35 degrees down, 60 degree lens): the
-#: same pose at 640x480 gives the same view, scaled.
-VTEST_POSE = ((0.0, 0.0, 8.0), 90.0, 35.0, 60.0)
-VTEST_RANGE_M = 40.0
-#: The people tests' setting for this footage at 768x576 (min_height_px 85), and scaled to 640x480.
-PEOPLE_NATIVE = {"min_height_px": 85}
-PEOPLE_TUNED = {"min_height_px": round(85 * 480 / 576)}
-
-
-def vtest_frames(indices: Sequence[int], resize: bool = True) -> dict[int, NDArray[np.uint8]]:
-    """Frames of vtest.avi by index, resized to 640x480 (resize=False: as recorded, 768x576)."""
-    if not VTEST.is_file():
-        raise NoInputs(f"{VTEST} is absent (apt-get install opencv-doc)")
-    wanted = set(indices)
-    out: dict[int, NDArray[np.uint8]] = {}
-    cap = cv2.VideoCapture(str(VTEST))
-    try:
-        index = 0
-        while len(out) < len(wanted):
-            ok, image = cap.read()
-            if not ok:
-                raise NoInputs(f"{VTEST} ended at frame {index}; wanted up to {max(wanted)}")
-            if index in wanted:
-                if resize:
-                    image = cv2.resize(image, IMAGE_SIZE, interpolation=cv2.INTER_AREA)
-                out[index] = np.asarray(image, dtype=np.uint8)
-            index += 1
-    finally:
-        cap.release()
-    return out
-
-
-def vtest_homography() -> Homography:
-    from drvs.core.geometry import homography_from_pose
-
-    position, yaw, pitch, hfov = VTEST_POSE
-    return homography_from_pose(position, yaw, pitch, hfov, IMAGE_SIZE)
-
-
-def people_inputs(work: Work) -> DetectorInputs:
-    indices = [5 * i for i in range(work.frames)]
-    frames = vtest_frames(indices)
-    return DetectorInputs(
-        prefix="people",
-        filter_def="people",
-        frames=[frames[i] for i in indices],
-        homography=vtest_homography(),
-        max_range_m=VTEST_RANGE_M,
-        # As a camera runs it: drvs-camera has no setting for the people detector's options.
-        options=None,
-        camera_config={},
-        frames_are=f"real footage: {VTEST} (Debian opencv-doc), every 5th frame from 0, resized to 640x480",
-        min_found=0,
-    )
 
 
 def model_inputs(work: Work) -> DetectorInputs:
@@ -478,148 +328,6 @@ def measure_find(all_inputs: Mapping[str, DetectorInputs], rounds: int, timed: i
             # Side by side: this detector's find over hsv's in the same round (the machine drifts less
             # within a round than between runs).
             publish(entry, "find_ms_over_hsv", [f[prefix]["find_ms"] / f["hsv"]["find_ms"] for f in per_round])
-
-
-# --- camera CPU at 10 requests a second, and peak RSS -------------------------------------------
-
-
-async def start_detector_camera(
-    camera_id: str, inputs: DetectorInputs, address: str, detectors: Sequence[str], config: Mapping[str, Any],
-    directory: Path,
-) -> ManagedProcess:  # fmt: skip
-    """A real drvs-camera on the inputs' video, running `detectors` with `config` (options)."""
-    assert inputs.video is not None and inputs.homography_file is not None
-    # Cost, not policy: a frame up to 30 s old still serves (the default, 2 s, refuses requests when
-    # the shared machine starves the camera's reader thread; a full run failed on it once).
-    args = ["--max-range", f"{inputs.max_range_m:g}", "--detectors", ",".join(detectors), "--max-frame-age", "30"]
-    if config:
-        path = directory / f"{camera_id}.config.yaml"
-        path.write_text(yaml.safe_dump(dict(config), sort_keys=False))
-        args += ["--config", str(path)]
-    return await start_camera(camera_id, inputs.video, inputs.homography_file, address, *args)
-
-
-async def paced_requests(
-    client: DrvsClient, filter_def: str, region: tuple[float, ...], rate: float, seconds: float, camera_ids: set[str],
-    what: str,
-) -> float:  # fmt: skip
-    """Single-shot requests at `rate` for `seconds` (none: an idle wait), each checked to be answered
-    in full by exactly `camera_ids`; returns the wall time until the last one was answered."""
-    loop = asyncio.get_running_loop()
-    t0 = loop.time()
-    n = int(rate * seconds)
-    if n == 0:
-        await asyncio.sleep(seconds)
-        return loop.time() - t0
-    tasks = []
-    for i in range(n):
-        delay = t0 + i / rate - loop.time()
-        if delay > 0:
-            await asyncio.sleep(delay)
-        tasks.append(loop.create_task(client.detect(filter_def, region, timeout_s=600, outlines=False)))
-    results = await asyncio.gather(*tasks)
-    wall = loop.time() - t0
-    got: dict[str, float] = {
-        "requests": n,
-        "complete": sum(
-            1
-            for res in results
-            if res.complete and set(res.camera_ids) == camera_ids and res.finished_cameras == camera_ids
-        ),
-        "error_reports": sum(1 for res in results for rep in res.reports if rep.error),
-    }
-    errors = sorted({rep.error[:200] for res in results for rep in res.reports if rep.error})[:3]
-    check_work(what + (f" (errors: {errors})" if errors else ""), {"complete": n, "error_reports": 0}, got)
-    return wall
-
-
-async def measure_cameras(
-    all_inputs: Mapping[str, DetectorInputs], rounds: int, seconds: float, directory: Path, out: dict[str, Any]
-) -> None:
-    """One camera per detector, idle and at 10 requests a second in turn, every round."""
-    procs: list[ManagedProcess] = []
-    try:
-        server, address = await start_server(*CAPACITY_NOT_POLICY)
-        procs.append(server)
-        cams: dict[str, ManagedProcess] = {}
-        for prefix, inputs in all_inputs.items():
-            cams[prefix] = await start_detector_camera(
-                f"det-{prefix}", inputs, address, [prefix], inputs.camera_config, directory
-            )
-            procs.append(cams[prefix])
-        modes = [(prefix, rate) for prefix in all_inputs for rate in (0.0, RATE_HZ)]
-        per_round: list[dict[tuple[str, float], dict[str, float]]] = [{} for _ in range(rounds)]
-        async with DrvsClient(address, listen="127.0.0.1:0") as client:
-            for prefix, inputs in all_inputs.items():  # warm-up, not counted: first requests of each type
-                await paced_requests(client, inputs.filter_def, inputs.region(), 5.0, 0.6, {f"det-{prefix}"},
-                                     f"camera {prefix}: warm-up")  # fmt: skip
-            for r, (prefix, rate) in interleaved(modes, rounds):
-                inputs, pid = all_inputs[prefix], cams[prefix].pid
-                c0 = cpu_seconds(pid)
-                wall = await paced_requests(
-                    client, inputs.filter_def, inputs.region(), rate, seconds, {f"det-{prefix}"},
-                    f"camera {prefix} at {rate:g} requests/s, round {r + 1}",
-                )  # fmt: skip
-                cpu = cpu_seconds(pid) - c0
-                per_round[r][(prefix, rate)] = {"cpu_s": cpu, "wall_s": wall, "requests": rate * seconds}
-                print(f"drvs-bench detectors: camera {prefix} at {rate:g}/s, round {r + 1}: {cpu / wall:.3f} cores",
-                      file=sys.stderr, flush=True)  # fmt: skip
-        for prefix in all_inputs:
-            entry = out.setdefault(prefix, {})
-            idle = [f[(prefix, 0.0)] for f in per_round]
-            busy = [f[(prefix, RATE_HZ)] for f in per_round]
-            publish(entry, "camera_cpu_idle_cores", [m["cpu_s"] / m["wall_s"] for m in idle])
-            publish(entry, "camera_cpu_10hz_cores", [m["cpu_s"] / m["wall_s"] for m in busy])
-            publish(entry, "camera_cpu_10hz_over_idle", [
-                (b["cpu_s"] / b["wall_s"]) / (i["cpu_s"] / i["wall_s"]) for b, i in zip(busy, idle, strict=True)
-            ])  # fmt: skip
-            # Requests answered per second of wall time (until the last answer): under 10, the camera
-            # could not keep up and requests queued for its detector threads.
-            publish(entry, "camera_answered_per_s", [b["requests"] / b["wall_s"] for b in busy])
-            publish(entry, "camera_marginal_cpu_ms_per_request", [
-                (b["cpu_s"] - i["cpu_s"] / i["wall_s"] * b["wall_s"]) / b["requests"] * 1000
-                for b, i in zip(busy, idle, strict=True)
-            ])  # fmt: skip
-    finally:
-        for p in reversed(procs):
-            await p.stop()
-
-
-async def measure_memory(
-    all_inputs: Mapping[str, DetectorInputs], rounds: int, directory: Path, out: dict[str, Any]
-) -> None:
-    """Peak RSS of a camera with every detector loaded against one with only hsv, side by side: both
-    on the office video, both given requests of every type they serve before VmHWM is read."""
-    office = all_inputs["hsv"]
-    config: dict[str, Any] = {}
-    for inputs in all_inputs.values():
-        config.update(inputs.camera_config)
-    every = list(all_inputs)
-    all_rss, hsv_rss = [], []
-    for r in range(rounds):
-        procs: list[ManagedProcess] = []
-        try:
-            server, address = await start_server(*CAPACITY_NOT_POLICY)
-            procs.append(server)
-            hsv_cam = await start_detector_camera("rss-hsv", office, address, ["hsv"], {}, directory)
-            procs.append(hsv_cam)
-            all_cam = await start_detector_camera("rss-all", office, address, every, config, directory)
-            procs.append(all_cam)
-            async with DrvsClient(address, listen="127.0.0.1:0") as client:
-                for prefix, inputs in all_inputs.items():
-                    expected = {"rss-all", "rss-hsv"} if prefix == "hsv" else {"rss-all"}
-                    await paced_requests(client, inputs.filter_def, office.region(), 5.0, 1.0, expected,
-                                         f"memory: {prefix} requests, round {r + 1}")  # fmt: skip
-            all_rss.append(peak_rss_bytes(all_cam.pid))
-            hsv_rss.append(peak_rss_bytes(hsv_cam.pid))
-        finally:
-            for p in reversed(procs):
-                await p.stop()
-    memory: dict[str, Any] = {"all_detectors": every}
-    publish(memory, "camera_peak_rss_bytes_all", all_rss)
-    publish(memory, "camera_peak_rss_bytes_hsv", hsv_rss)
-    publish(memory, "camera_rss_all_over_hsv", [a / h for a, h in zip(all_rss, hsv_rss, strict=True)])
-    out["memory"] = memory
 
 
 # --- accuracy -----------------------------------------------------------------------------------
@@ -750,77 +458,6 @@ def accuracy_foreground(work: Work) -> dict[str, Any]:
     }
 
 
-#: The people tests' rule: a detection matches a marked person when its feet are within this
-#: fraction of its box height of the marked feet (greedy, strongest first, each person once).
-MATCH_FRACTION = 0.12
-
-
-def accuracy_people(work: Work) -> dict[str, Any]:
-    """Precision and recall on the hand-marked frames of vtest.avi, resized to 640x480 (the marks
-    scaled with them), with the camera's default options and with the people tests' setting."""
-    truth = json.loads(VTEST_FEET.read_text())
-    if work.quick:  # a smoke run: four of the marked frames, two settings
-        truth["frames"] = truth["frames"][:4]
-    native_size = (int(truth["image_size"][0]), int(truth["image_size"][1]))
-    settings: dict[str, Any] = {}
-    runs = (("camera_default", None, IMAGE_SIZE), ("tuned", PEOPLE_TUNED, IMAGE_SIZE),
-            ("native_768x576", PEOPLE_NATIVE, native_size))  # fmt: skip
-    for name, options, size in runs[::2] if work.quick else runs:
-        sx, sy = size[0] / native_size[0], size[1] / native_size[1]
-        marks = {f["index"]: [(p["feet"][0] * sx, p["feet"][1] * sy) for p in f["people"]] for f in truth["frames"]}
-        images = vtest_frames(list(marks), resize=size != native_size)
-        position, yaw, pitch, hfov = VTEST_POSE
-        from drvs.core.geometry import homography_from_pose
-
-        homography = homography_from_pose(position, yaw, pitch, hfov, size)
-        view = CameraView(homography, FieldOfView.compute(homography, size, VTEST_RANGE_M), size)
-        to_image = homography.inverse()
-        wanted = parse_object_type("people")
-        det = REGISTRY["people"](view, options)
-        true = false = missed = 0
-        errors: list[float] = []
-        times: list[float] = []
-        for index, feet in marks.items():
-            t0 = time.perf_counter()
-            found = det.narrow(det.find(FrameAnalysis(Frame(images[index], 0.0, index)), wanted), wanted)
-            times.append((time.perf_counter() - t0) * 1000)
-            free = list(range(len(feet)))
-            for d in sorted(found, key=lambda d: -d.score):
-                u, v = to_image.apply([list(d.ground_contact_xy)])[0]
-                near = [(math.dist((u, v), feet[j]), j) for j in free]
-                near = [(e, j) for e, j in near if e <= MATCH_FRACTION * d.pixel_box.height]
-                if not near:
-                    false += 1
-                    continue
-                error, j = min(near)
-                free.remove(j)
-                true += 1
-                errors.append(error)
-            missed += len(free)
-        det.close()
-        settings[name] = {
-            "image_size": list(size),
-            "options": options or {},
-            "true": true,
-            "false": false,
-            "missed": missed,
-            "precision": true / max(1, true + false),
-            "recall": true / max(1, true + missed),
-            "feet_error_px": spread(errors),
-            "find_ms_median": statistics.median(times),
-        }
-    people = sum(len(f["people"]) for f in truth["frames"])
-    return {
-        "what": f"{len(truth['frames'])} frames of {VTEST} with {people} people whose feet were marked by hand "
-        f"({VTEST_FEET.name}), resized to 640x480 (native: as recorded); a detection is true when its feet "
-        f"(ground contact mapped back to the image) are within {MATCH_FRACTION} of its box height of a marked "
-        "person's, greedy, strongest first. camera_default: as drvs-camera runs it (no setting for its options); "
-        "tuned: the people tests' min_height_px 85 at 768x576, scaled; native_768x576: the people tests' own "
-        "setting and size. find_ms_median: one pass over the marked frames, not interleaved rounds",
-        **settings,
-    }
-
-
 #: Accuracy by detector prefix, against ground truth.
 ACCURACY: dict[str, Callable[[Work], dict[str, Any] | None]] = {
     "aruco": accuracy_aruco,
@@ -940,14 +577,7 @@ def accuracy_lines(per: Mapping[str, Any]) -> list[str]:
     lines += floor_lines(per.get("foreground", {}).get("floor_scene"))
     people = per.get("people", {}).get("accuracy")
     if people:
-        lines.append("people (vtest.avi, hand-marked feet):")
-        for name, entry in people.items():
-            if isinstance(entry, dict) and "precision" in entry:
-                size = "x".join(str(v) for v in entry["image_size"])
-                lines.append(
-                    f"  {name} ({size}): precision {entry['precision']:.2f}, recall {entry['recall']:.2f}, "
-                    f"{entry['find_ms_median']:.0f} ms"
-                )
+        lines += people_lines(people)
     return lines
 
 
@@ -1001,4 +631,4 @@ def write_outputs(result: dict[str, Any], out: Path) -> None:
     (out / "detectors.json").write_text(json.dumps(result, indent=1) + "\n")
 
 
-__all__ = ["WorkMismatch", "run_detectors"]
+__all__ = ["VTEST", "WorkMismatch", "run_detectors"]

@@ -14,6 +14,9 @@ region, and through the wire format and back, as the server receives it), then
 - tracking: three discs moving on straight lines at constant speed, crossing in the overlap one
   after the other, handed over from one camera to the other; id switches and fragmentations
   (CLEAR MOT's definitions), and the velocity error (m/s) once a track is 1 s old.
+- crossings (drvs_bench.fusion_crossings): four miscalibrated cameras, three pairs of discs passing
+  within a body width again and again (one blob for a few frames each time), 5 Hz; the tracker with
+  and without its merge handling on the same fused objects, scored with motmetrics (IDF1, MOTA) at 1 m.
 - cost (networked, needs the server's fused delivery): a drvs-server and two drvs-camera
   processes on videos of the overlap; a robot process asks single shots at 30 Hz, per-camera
   delivery and fused delivery interleaved run by run; the server's CPU per request and the
@@ -44,6 +47,7 @@ from drvs.core.model import WorldObject
 
 from .common import YELLOW, machine, pyplot, write_result
 from .fusion_cost import run_cost
+from .fusion_crossings import crossings_targets, plot_crossings, run_part
 from .fusion_scene import CALIBRATION_ERROR, REGION, Cameras, Disc, fusion_scenario
 from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, publish, verdict
 
@@ -70,6 +74,8 @@ MIN_TRACK_GAP_M = 0.15
 CAMERA_B_LAG_S = 0.025
 #: A track's velocity is scored once it has followed its disc for this long (the filter converging).
 VELOCITY_SETTLE_S = 1.0
+#: The benchmark's parts, in the order they run.
+PARTS = ("accuracy", "tracking", "crossings", "cost")
 #: The targets: (key, target, higher is better). Each is met only when every round meets it.
 TARGETS: dict[str, tuple[float, bool]] = {
     "accuracy_duplicates": (0.0, False),
@@ -438,7 +444,7 @@ def targets(out: dict[str, Any]) -> dict[str, Any]:
 async def run_fusion(
     out: Path,
     quick: bool,
-    parts: Sequence[str] = ("accuracy", "tracking", "cost"),
+    parts: Sequence[str] = PARTS,
     rounds: int = 0,
     cost_requests: int = 0,
 ) -> dict[str, Any]:
@@ -506,9 +512,11 @@ async def run_fusion(
             "only frames in which some camera sees the whole disc count",
             "runs": tracking_runs,
         }
+    if "crossings" in parts:
+        result["crossings"] = await asyncio.to_thread(run_part, result, rounds, quick)
     if "cost" in parts:
         result["cost"] = await run_cost(result, rounds, quick, cost_requests)
-    result["targets"] = targets(result)
+    result["targets"] = {**targets(result), **crossings_targets(result)}
     result["machine"] = machine()
     await asyncio.to_thread(write_outputs, result, out)
     return result
@@ -516,6 +524,7 @@ async def run_fusion(
 
 def write_outputs(result: dict[str, Any], out: Path) -> None:
     write_result(result, out, "fusion", plot)
+    plot_crossings(result, out)
 
 
 def plot(result: dict[str, Any], out: Path) -> None:
@@ -598,9 +607,6 @@ def plot(result: dict[str, Any], out: Path) -> None:
     plt.close(fig)
 
 
-PARTS = ("accuracy", "tracking", "cost")
-
-
 def fusion_main(args: argparse.Namespace) -> int:
     parts = [p.strip() for p in args.parts.split(",") if p.strip()]
     unknown = [p for p in parts if p not in PARTS]
@@ -620,7 +626,7 @@ def fusion_main(args: argparse.Namespace) -> int:
     summary: dict[str, Any] = {
         k: (round(v, 4) if isinstance(v, float) else v)
         for k, v in result.items()
-        if k.startswith(("accuracy_", "tracking_")) and not k.endswith(("_median", "_spread", "_runs"))
+        if k.startswith(("accuracy_", "tracking_", "crossings_")) and not k.endswith(("_median", "_spread", "_runs"))
     }
     if "cost" in result:
         summary["cost"] = {

@@ -9,6 +9,7 @@ import dataclasses
 from collections.abc import Sequence
 
 import numpy as np
+import shapely
 from numpy.typing import NDArray
 from shapely.geometry import Point, Polygon, box
 
@@ -79,13 +80,25 @@ class Disc:
 
 
 class Cameras:
-    """The scene's two cameras as camera nodes: render, detect, report (and through the wire)."""
+    """The scene's cameras as camera nodes: render, detect, report (and through the wire)."""
 
-    def __init__(self, seed: int, miscalibrated: bool = False) -> None:
+    def __init__(
+        self,
+        seed: int,
+        miscalibrated: bool = False,
+        scenario: Scenario | None = None,
+        calibration_error: tuple[float, float] = CALIBRATION_ERROR,
+        region: tuple[float, float, float, float] = REGION,
+        exact_error: bool = False,
+    ) -> None:
         """miscalibrated: each camera's homography (what it detects with and registers with the server)
-        comes from a pose off the true one by CALIBRATION_ERROR (drawn from the seed); the pixels come
-        from the true pose, as a real camera's do whatever its calibration says."""
-        self.scenario = fusion_scenario()
+        comes from a pose off the true one by `calibration_error` (degrees, metres; drawn from the seed);
+        the pixels come from the true pose, as a real camera's do whatever its calibration says.
+        exact_error: the error is `calibration_error` in size, not its standard deviation: the position off
+        by that many metres in a random direction, yaw and pitch each by that many degrees, up or down.
+        scenario: another scene than this module's two cameras (its yellow colour is the discs'), with
+        the request's `region`."""
+        self.scenario = scenario or fusion_scenario()
         self.yellow = self.scenario.colors["yellow"].bgr
         self.cameras: list[CameraDef] = list(self.scenario.cameras)
         self.renderers = [ObjectsRenderer(self.scenario, cam, seed=seed + k) for k, cam in enumerate(self.cameras)]
@@ -95,9 +108,16 @@ class Cameras:
         for cam in self.cameras:
             h = cam.homography
             if miscalibrated:
-                degrees, metres = CALIBRATION_ERROR
-                x, y, z = (v + float(rng.normal(0.0, metres)) for v in cam.position)
-                yaw, pitch = (v + float(rng.normal(0.0, degrees)) for v in (cam.yaw_deg, cam.pitch_deg))
+                degrees, metres = calibration_error
+                if exact_error:
+                    shift = rng.normal(0.0, 1.0, 3)
+                    x, y, z = (
+                        v + float(d) for v, d in zip(cam.position, shift / np.linalg.norm(shift) * metres, strict=True)
+                    )
+                    yaw, pitch = (v + degrees * float(rng.choice([-1.0, 1.0])) for v in (cam.yaw_deg, cam.pitch_deg))
+                else:
+                    x, y, z = (v + float(rng.normal(0.0, metres)) for v in cam.position)
+                    yaw, pitch = (v + float(rng.normal(0.0, degrees)) for v in (cam.yaw_deg, cam.pitch_deg))
                 h = homography_from_pose((x, y, z), yaw, pitch, cam.hfov_deg, cam.resolution)
             fov = FieldOfView.compute(h, cam.resolution, cam.max_range_m)
             view = CameraView(h, fov, cam.resolution, camera_id=cam.id)
@@ -105,13 +125,12 @@ class Cameras:
             self.homographies[cam.id] = h
         self.fovs = {cam.id: cam.field_of_view.floor for cam in self.cameras}
         self.wanted = object_type(YELLOW)
-        self.region = box(*REGION)
+        self.region = box(*region)
         self.version = 0
 
     @property
     def overlap(self) -> Polygon:
-        a, b = self.fovs.values()
-        result: Polygon = a.intersection(b)
+        result: Polygon = shapely.intersection_all(list(self.fovs.values()))
         return result
 
     def homography_of(self, camera_id: str) -> Homography | None:

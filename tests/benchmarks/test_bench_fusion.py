@@ -82,6 +82,27 @@ async def test_fusion_cost_smoke(tmp_path: Path) -> None:
     assert cost["fused_over_per_camera_server_cpu"] > 0
 
 
+@pytest.mark.bench
+@pytest.mark.slow
+@pytest.mark.timeout(240)
+async def test_fusion_crossings_keep_identities_through_merges(tmp_path: Path) -> None:
+    """One quick round of the crossings scene on rendered pixels: every pair of discs merged into one
+    blob and parted again, more than once; the tracker as it is keeps every identity through it (no
+    switch) where the same fused objects, associated one track per object, swap or renew some. The
+    IDF1 and MOTA targets are the benchmark's verdicts, not asserted here."""
+    result = await _bench(tmp_path, "fusion", "--quick", "--parts", "crossings", "--rounds", "1", timeout=220)
+    (run,) = result["crossings"]["runs"]
+    assert run["discs"] == 6 and run["frames_a_disc_unseen"] == 0
+    assert min(run["pairs_merged_frames"]) >= 2 and max(run["pairs_closest_m"]) < 0.44
+    assert run["merges_num_unique_objects"] == 6 and run["merges_num_switches"] == 0
+    assert run["nearest_num_switches"] > 0 and run["merges_idf1"] > run["nearest_idf1"]
+    for key in ("merges_idf1", "merges_mota", "nearest_idf1", "nearest_mota"):
+        assert 0 < result[f"crossings_{key}"] == run[key] <= 1
+    assert set(result["targets"]) >= {"crossings_merges_idf1", "crossings_merges_mota"}
+    image = cv2.imread(str(tmp_path / "fusion_crossings.png"))
+    assert image is not None and image.shape[0] > 200
+
+
 def test_fused_work_check_fires_when_fused_work_is_missing() -> None:
     run = {"requests": 10, "requests_delivered": 10, "snapshots": 10, "missing_cameras": 0, "refused_requests": 0}
     check_fused("drvs_boxes_fused", {**run, "objects": 30}, 10, 3)  # the work as it should be: passes
@@ -158,8 +179,11 @@ async def test_paper_fused_mode_on_a_real_run(tmp_path: Path) -> None:
 @pytest.mark.parametrize(
     ("args", "message"),
     [
-        (["--parts", "accuracy,speed"], "drvs-bench fusion: --parts: speed: name some of accuracy, tracking, cost"),
-        (["--parts", ","], "drvs-bench fusion: --parts: none: name some of accuracy, tracking, cost"),
+        (
+            ["--parts", "accuracy,speed"],
+            "drvs-bench fusion: --parts: speed: name some of accuracy, tracking, crossings, cost",
+        ),
+        (["--parts", ","], "drvs-bench fusion: --parts: none: name some of accuracy, tracking, crossings, cost"),
         (["--rounds", "-1"], "drvs-bench fusion: --rounds and --requests must be >= 0 (0: the default)"),
         (["--requests", "-5"], "drvs-bench fusion: --rounds and --requests must be >= 0 (0: the default)"),
     ],

@@ -145,6 +145,8 @@ def test_capture_detector_and_heartbeat_settings(tmp_path: Path) -> None:
     # Detector settings reach the detectors: a flag, the environment, the file, in that order.
     people = load_config({"people_min_height_px": "85"}, {"DRVS_CAMERA_DETECT_WORKERS": "3"}, cfg)
     assert people.detector_options() == {"people": {"min_height_px": 85.0}} and people.detect_workers == 3
+    both = load_config({"people_height_m": "1.6"}, {"DRVS_CAMERA_PEOPLE_MIN_HEIGHT": "90"}, cfg)
+    assert both.detector_options() == {"people": {"min_height_px": 90.0, "person_height_m": 1.6}}
     assert load_config(NO_FLAGS, {}, cfg).detector_options() == {}
 
 

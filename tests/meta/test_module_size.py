@@ -14,11 +14,7 @@ MAX_LINES = 700
 #: A generated module says so in its first lines.
 GENERATED_MARKS = ("DO NOT EDIT",)
 #: Modules allowed past MAX_LINES for now, relative to ROOT, and why.
-ALLOWED = {
-    # The detector benchmark is being split by job in a parallel branch (its scenes, its runs and
-    # its figures); drop it from here when that lands.
-    "benchmarks/drvs_bench/detectors.py": "being split elsewhere",
-}
+ALLOWED: dict[str, str] = {}
 
 
 def generated(path: Path) -> bool:

@@ -210,16 +210,21 @@ class CameraConfig:
         metavar="FILE",
         help="picture of the empty floor (drvs-camera snapshot) for the foreground detector (%(env)s)",
     )
-    #: The people detector's smallest person, pixels tall (None: its default, 128, HOG's window).
+    #: The people detector's smallest person, pixels tall (None: its default, the search by geometry).
     people_min_height_px: float | None = setting(
         None,
         flag="--people-min-height",
         env="DRVS_CAMERA_PEOPLE_MIN_HEIGHT",
         limits=(32.0, 1024.0),
         metavar="PX",
-        help="people: the smallest person to find, pixels tall, 32-1024; below 128 costs more CPU "
-        "(default 128; %(env)s)",
+        help="people: search the whole frame for people from this many pixels tall, 32-1024; below 128 costs "
+        "more CPU (default: search by the homography's geometry; %(env)s)",
     )
+    #: How tall the people detector's search by geometry expects people to be (None: 1.7 m).
+    people_height_m: float | None = setting(
+        None, flag="--people-height", env="DRVS_CAMERA_PEOPLE_HEIGHT", limits=(0.5, 2.5), metavar="M",
+        help="people: how tall people are, metres, for the search by geometry (default 1.7; %(env)s)",
+    )  # fmt: skip
     #: Heartbeat interval; by default a third of the lease the server grants.
     heartbeat_s: float | None = setting(
         None,
@@ -434,7 +439,9 @@ class CameraConfig:
         if self.models:
             options["model"] = {"models": self.models}
         if self.people_min_height_px is not None:
-            options["people"] = {"min_height_px": self.people_min_height_px}
+            options.setdefault("people", {})["min_height_px"] = self.people_min_height_px
+        if self.people_height_m is not None:
+            options.setdefault("people", {})["person_height_m"] = self.people_height_m
         return options
 
 

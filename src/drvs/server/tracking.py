@@ -18,6 +18,17 @@ feeds it each period's `drvs.server.fusion.fuse` output. docs/fusion.md explains
   H P H' + R), gated at the chi-square 99.9 % bound for 2 degrees of freedom (13.8). Only objects
   of the track's type are candidates (same marker id, or same label). A marker with an id is
   assigned by id: the gate does not apply to it (the id already says which track it is).
+- Merged blobs (OC-SORT's lesson: keep a track on its own motion through an occlusion and
+  re-associate it by that motion, not by the occluder's centroid). Two objects passing within a body
+  width are one blob to every camera for a while. An object whose outline holds the predicted
+  centroids of two or more tracks of its type, and whose area is at least MERGE_AREA_RATIO times the
+  larger one's own (what one alone would not fill), holds those tracks: they coast through it on
+  their prediction (seen, with its camera_ids, their uncertainty growing), never corrected by its
+  centroid, which is neither's; it opens no track. Where the objects part, each track takes the
+  object its motion predicts (the gated Mahalanobis assignment above, over the coasted covariance).
+  An object touching one already tracked this period (within FRAGMENT_MARGIN_M, same type) is a
+  piece of it (a camera's partial view at its view's edge, left out of the fused object by its
+  calibration error): it opens no track either. `merges=False` turns both off (one track per object).
 - Life cycle: a track is confirmed at once (no hidden tentative state: the robot sees every object
   the cameras saw). A track with no object in a period is reported predicted to that period's
   time, with camera_ids=() and its last_seen unchanged; one unseen for `drop_after_s` (in the
@@ -32,11 +43,12 @@ feeds it each period's `drvs.server.fusion.fuse` output. docs/fusion.md explains
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Collection, Sequence
 from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
+import shapely
 from numpy.typing import NDArray
 from scipy.optimize import linear_sum_assignment
 from shapely import affinity
@@ -56,6 +68,15 @@ DEFAULT_ACCEL_MPS2 = 1.0
 DEFAULT_FLOOR_SIGMA_M = 0.03
 #: Initial speed uncertainty of a new track (1 sigma, m/s): a brisk walk.
 INITIAL_SPEED_SIGMA_MPS = 1.5
+
+#: A merged blob: its outline (grown by this margin, m) holds two tracks' predicted centroids, and its
+#: area is at least this many times the larger one's own.
+MERGE_MARGIN_M = 0.1
+MERGE_AREA_RATIO = 1.2
+#: An object whose outline is this close to an object tracked in the same period is a piece of it.
+FRAGMENT_MARGIN_M = 0.05
+#: Weight of the newest area in a track's running mean of its own area.
+AREA_WEIGHT = 0.2
 
 _UNMATCHED = 1e9
 _H = np.array([[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0]], dtype=np.float64)
@@ -77,6 +98,8 @@ class _Track:
     seen_at: float
     #: The centroid the last seen outline belongs to, to move the outline with the prediction.
     seen_xy: tuple[float, float]
+    #: Its floor area when it was an object of its own (a running mean; what a merged blob is weighed against).
+    area_m2: float = 0.0
 
     def state(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
         x = np.asarray(self.kf.statePost, dtype=np.float64).reshape(4)
@@ -90,7 +113,8 @@ class Tracker:
 
     Tracks are confirmed at once (no hidden tentative state), survive misses up to drop_after_s
     (reported with camera_ids=() meanwhile), and keep their id through a camera hand-over. Markers
-    with an id are assigned by id. The module docstring says why these choices.
+    with an id are assigned by id. Tracks coast through a blob that holds two or more of them
+    (`merges`, default on). The module docstring says why these choices.
     """
 
     def __init__(
@@ -100,6 +124,7 @@ class Tracker:
         accel_mps2: float = DEFAULT_ACCEL_MPS2,
         floor_sigma_m: float = DEFAULT_FLOOR_SIGMA_M,
         max_tracks: int = MAX_TRACKS,
+        merges: bool = True,
     ) -> None:
         for name, value in (("drop_after_s", drop_after_s), ("accel_mps2", accel_mps2)):
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value > 0):
@@ -111,7 +136,10 @@ class Tracker:
         self.drop_after_s = float(drop_after_s)
         self.accel_mps2 = float(accel_mps2)
         self.floor_sigma_m = float(floor_sigma_m)
+        if not isinstance(merges, bool):
+            raise InvalidArgument(f"merges: {merges!r} must be True or False")
         self.max_tracks = max_tracks
+        self.merges = merges
         self._tracks: list[_Track] = []
         self._next_id = 1
         self._time: float | None = None
@@ -137,15 +165,25 @@ class Tracker:
         self._tracks = [t for t in self._tracks if now - t.seen_at < self.drop_after_s - 1e-9]
         for t in self._tracks:
             self._predict(t, dt)
-        seen: set[int] = set()
+        blobs = self._merged_blobs(objects) if self.merges else {}
+        seen: set[int] = set(blobs)
         matched: set[int] = set()
-        for ti, oi in self._associate(objects):
-            t, o = self._tracks[ti], objects[oi]
-            self._correct(t, o)
-            t.last, t.seen_at, t.seen_xy = o, now, o.centroid_xy
+        for ti, oi in self._associate(objects, seen):
+            self._observed(self._tracks[ti], objects[oi], now)
             seen.add(oi)
-            matched.add(t.track_id)
+            matched.add(self._tracks[ti].track_id)
+        for oi, held in blobs.items():
+            # A blob holding tracks that found no object of their own: they coast through it on their
+            # motion, seen (its cameras see them) but not corrected by its centroid, which is neither's.
+            for ti in held:
+                t = self._tracks[ti]
+                if t.track_id not in matched:
+                    t.seen_at = now
+                    t.last = replace(t.last, camera_ids=objects[oi].camera_ids, last_seen=objects[oi].last_seen)
+                    matched.add(t.track_id)
         fresh = sorted((i for i in range(len(objects)) if i not in seen), key=lambda i: -objects[i].score)
+        if self.merges:
+            fresh = [oi for oi in fresh if not _fragment(objects[oi], [objects[i] for i in seen])]
         for oi in fresh:
             if len(self._tracks) >= self.max_tracks:
                 break
@@ -155,6 +193,40 @@ class Tracker:
         out = [self._report(t, t.track_id in matched) for t in self._tracks]
         out.sort(key=lambda o: o.track_id)
         return out
+
+    def _observed(self, t: _Track, o: WorldObject, now: float) -> None:
+        """An object of its own assigned to the track: correct the filter, remember it."""
+        self._correct(t, o)
+        t.last, t.seen_at, t.seen_xy = o, now, o.centroid_xy
+        if o.area_m2 > 0:
+            t.area_m2 = o.area_m2 if t.area_m2 <= 0 else (1 - AREA_WEIGHT) * t.area_m2 + AREA_WEIGHT * o.area_m2
+
+    def _merged_blobs(self, objects: Sequence[WorldObject]) -> dict[int, list[int]]:
+        """Objects that are two or more tracked objects merged into one blob: {object index: the
+        indices of the tracks it holds}. A blob's outline holds the predicted centroids of two or more
+        tracks of its type (within MERGE_MARGIN_M), and its area is at least MERGE_AREA_RATIO times
+        the largest of theirs: what one of them alone would not fill. Markers with an id are never
+        merged (the id says which one it is)."""
+        if len(self._tracks) < 2:
+            return {}
+        xy = np.array([t.state()[0][:2] for t in self._tracks])
+        blobs: dict[int, list[int]] = {}
+        for oi, o in enumerate(objects):
+            key = _type_key(o)
+            if key[0] == "marker" or o.outline.is_empty or o.area_m2 <= 0:
+                continue
+            x0, y0, x1, y1 = o.outline.bounds
+            m = MERGE_MARGIN_M
+            inside = np.flatnonzero(
+                (xy[:, 0] >= x0 - m) & (xy[:, 0] <= x1 + m) & (xy[:, 1] >= y0 - m) & (xy[:, 1] <= y1 + m)
+            )
+            if len(inside) < 2:  # the bounds first: the outline's test is the costly one
+                continue
+            near = o.outline.buffer(m)
+            held = [int(ti) for ti in inside if self._tracks[ti].key == key and near.contains(shapely.Point(xy[ti]))]
+            if len(held) >= 2 and o.area_m2 >= MERGE_AREA_RATIO * max(self._tracks[ti].area_m2 for ti in held):
+                blobs[oi] = held
+        return blobs
 
     # -- filter -------------------------------------------------------------------------------
 
@@ -170,7 +242,7 @@ class Tracker:
         r = self._measurement_var(o)
         v = INITIAL_SPEED_SIGMA_MPS**2
         kf.errorCovPost = np.diag([r, r, v, v]).astype(np.float64)
-        track = _Track(self._next_id, kf, _type_key(o), o, now, o.centroid_xy)
+        track = _Track(self._next_id, kf, _type_key(o), o, now, o.centroid_xy, area_m2=o.area_m2)
         self._next_id += 1
         return track
 
@@ -199,9 +271,10 @@ class Tracker:
         t.kf.errorCovPre = t.kf.errorCovPost.copy()
         t.kf.correct(np.array([[o.centroid_xy[0]], [o.centroid_xy[1]]], dtype=np.float64))
 
-    def _associate(self, objects: Sequence[WorldObject]) -> list[tuple[int, int]]:
+    def _associate(self, objects: Sequence[WorldObject], skip: Collection[int] = ()) -> list[tuple[int, int]]:
         """(track index, object index) pairs: the assignment minimising the summed squared
-        Mahalanobis distance, over the pairs of one type within the gate (markers: any distance)."""
+        Mahalanobis distance, over the pairs of one type within the gate (markers: any distance);
+        objects in `skip` take no part."""
         if not self._tracks or not objects:
             return []
         xy = np.array([o.centroid_xy for o in objects], dtype=np.float64)
@@ -226,6 +299,8 @@ class Tracker:
             else:
                 ok = same & (d2 <= GATE_CHI2)
             cost[ti] = np.where(ok, d2, _UNMATCHED)
+        if skip:
+            cost[:, sorted(skip)] = _UNMATCHED
         rows, cols = linear_sum_assignment(cost)
         return [(r_, c) for r_, c in zip(rows.tolist(), cols.tolist(), strict=True) if cost[r_, c] < _UNMATCHED]
 
@@ -248,10 +323,29 @@ class Tracker:
             bounds=(x0 + dx, y0 + dy, x1 + dx, y1 + dy),
             centroid_xy=(cx, cy),
             velocity_xy=(vx, vy),
-            heading_deg=heading,
+            course_deg=heading,
             uncertainty_m=sigma,
             camera_ids=last.camera_ids if seen_now else (),
         )
+
+
+def _fragment(o: WorldObject, tracked: Sequence[WorldObject]) -> bool:
+    """Is `o` a piece of an object already tracked this period: of its type, its outline touching
+    (within FRAGMENT_MARGIN_M) that object's? A camera that sees part of an object at its view's
+    edge, placed a little off by its calibration, can leave that part out of the fused object: it
+    is not a new object. Markers with an id never are."""
+    key = _type_key(o)
+    if key[0] == "marker" or o.outline.is_empty:
+        return False
+    x0, y0, x1, y1 = o.outline.bounds
+    m = FRAGMENT_MARGIN_M
+    for t in tracked:
+        if _type_key(t) != key or t.outline.is_empty:
+            continue
+        a0, b0, a1, b1 = t.outline.bounds
+        if a0 <= x1 + m and x0 <= a1 + m and b0 <= y1 + m and y0 <= b1 + m and o.outline.distance(t.outline) <= m:
+            return True
+    return False
 
 
 def _check(objects: Sequence[WorldObject], at: float) -> None:

@@ -1,4 +1,4 @@
-"""The console scripts of DRVS's optional parts (pyproject.toml's extras: sim, bench, certs, etcd, live).
+"""The console scripts of DRVS's optional parts (pyproject.toml's extras: sim, bench, certs, etcd, live, ros2).
 
 Each checks that its extra's libraries are installed, then imports its module and runs its `main`;
 when one is missing it says which extra to install (`drvs-office: needs the simulator: pip install
@@ -26,7 +26,9 @@ class Extra:
 #: pyproject.toml's extras but dev (tests/meta/test_extras.py keeps the two in step).
 EXTRAS = {
     "sim": Extra("the simulator", ("matplotlib", "foxglove", "mcap", "mcap_protobuf", "websockets")),
-    "bench": Extra("the benchmarks", ("matplotlib", "onnx", "foxglove", "mcap", "mcap_protobuf", "websockets")),
+    "bench": Extra(
+        "the benchmarks", ("matplotlib", "onnx", "motmetrics", "foxglove", "mcap", "mcap_protobuf", "websockets")
+    ),
     "certs": Extra("the certificate tooling", ("cryptography",)),
     "etcd": Extra("the etcd client (drvs-server --registry etcd://...)", ("aetcd",)),
     "live": Extra("the live view and recordings", ("foxglove", "mcap", "mcap_protobuf", "websockets")),
