@@ -11,7 +11,6 @@ import argparse
 import asyncio
 import json
 import sys
-import time
 from pathlib import Path
 
 from .bare import add_bare_parsers
@@ -22,13 +21,14 @@ from .liveview import add_liveview_parser
 from .load import add_load_parser
 from .mobile import add_mobile_parser
 from .ros2 import add_ros2_parser
+from .stats import measured, out_dir
 from .workload import add_workload_arguments, workload_main
 
 
 def paper_main(args: argparse.Namespace) -> int:
     from .paper import run_paper
     from .paper_figures import FULL_REQUESTS, PEOPLE_FULL_REQUESTS, PEOPLE_QUICK_REQUESTS, QUICK_REQUESTS
-    from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch
+    from .stats import FULL_ROUNDS, QUICK_ROUNDS
 
     requests = args.requests or (QUICK_REQUESTS if args.quick else FULL_REQUESTS)
     rounds = args.rounds or (QUICK_ROUNDS if args.quick else FULL_ROUNDS)
@@ -36,11 +36,9 @@ def paper_main(args: argparse.Namespace) -> int:
     if requests < 1 or rounds < 1 or not args.rate > 0 or people < 1:
         print("drvs-bench paper: --requests, --rounds, --people-requests and --rate must be > 0", file=sys.stderr)
         return 2
-    out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
-    try:
-        result = asyncio.run(run_paper(out, requests, args.rate, rounds, people, args.fused))
-    except WorkMismatch as exc:
-        print(f"drvs-bench paper: FAILED: {exc}", file=sys.stderr)
+    out = out_dir(args.out)
+    result = measured("paper", lambda: asyncio.run(run_paper(out, requests, args.rate, rounds, people, args.fused)))
+    if result is None:
         return 1
     summary: dict[str, object] = {
         k: v
@@ -67,7 +65,7 @@ def paper_main(args: argparse.Namespace) -> int:
 def service_main(args: argparse.Namespace) -> int:
     from .service import run_service
 
-    out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
+    out = out_dir(args.out)
     result = asyncio.run(run_service(out, args.quick))
     # The medians (every figure's spread and rounds are in service.json) and the verdicts.
     keys = [
@@ -91,7 +89,6 @@ def detectors_main(args: argparse.Namespace) -> int:
     from drvs.detectors import REGISTRY
 
     from .detectors import INPUTS, run_detectors
-    from .stats import WorkMismatch
 
     only = [d.strip() for d in args.detectors.split(",") if d.strip()] if args.detectors else None
     unknown = [d for d in only or [] if d not in REGISTRY and d not in INPUTS]
@@ -99,11 +96,9 @@ def detectors_main(args: argparse.Namespace) -> int:
         print(f"drvs-bench detectors: --detectors: {', '.join(unknown) or 'none'}: name some of "
               f"{', '.join(dict.fromkeys([*REGISTRY, *INPUTS]))}", file=sys.stderr)  # fmt: skip
         return 2
-    out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
-    try:
-        result = asyncio.run(run_detectors(out, args.quick, only))
-    except WorkMismatch as exc:
-        print(f"drvs-bench detectors: FAILED: {exc}", file=sys.stderr)
+    out = out_dir(args.out)
+    result = measured("detectors", lambda: asyncio.run(run_detectors(out, args.quick, only)))
+    if result is None:
         return 1
     # The medians (every figure's spread and rounds are in detectors.json) and the accuracy.
     summary: dict[str, object] = {}

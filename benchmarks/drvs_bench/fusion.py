@@ -49,7 +49,7 @@ from .common import YELLOW, machine, pyplot, write_result
 from .fusion_cost import run_cost
 from .fusion_crossings import crossings_targets, plot_crossings, run_part
 from .fusion_scene import CALIBRATION_ERROR, REGION, Cameras, Disc, fusion_scenario
-from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, publish, verdict
+from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, measured, out_dir, publish, verdict
 
 #: Accuracy: placements per round, and discs per placement wholly inside both views (each
 #: placement has one more disc, across one view's edge: place_edge_disc).
@@ -617,11 +617,9 @@ def fusion_main(args: argparse.Namespace) -> int:
     if args.rounds < 0 or args.requests < 0:
         print("drvs-bench fusion: --rounds and --requests must be >= 0 (0: the default)", file=sys.stderr)
         return 2
-    out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
-    try:
-        result = asyncio.run(run_fusion(out, args.quick, parts, args.rounds, args.requests))
-    except WorkMismatch as exc:
-        print(f"drvs-bench fusion: FAILED: {exc}", file=sys.stderr)
+    out = out_dir(args.out)
+    result = measured("fusion", lambda: asyncio.run(run_fusion(out, args.quick, parts, args.rounds, args.requests)))
+    if result is None:
         return 1
     summary: dict[str, Any] = {
         k: (round(v, 4) if isinstance(v, float) else v)

@@ -23,7 +23,6 @@ import asyncio
 import json
 import sys
 import tempfile
-import time
 from operator import itemgetter
 from pathlib import Path
 from typing import Any
@@ -32,7 +31,7 @@ from drvs.live.foxglove_client import FoxgloveClient
 from drvs.tools.launch import ManagedProcess, free_ports
 
 from .common import machine, pyplot, write_result
-from .stats import WorkMismatch, interleaved, per_round_ratio, publish
+from .stats import WorkMismatch, interleaved, measured, out_dir, per_round_ratio, publish
 
 MODES = ("off", "record", "live")
 #: Each round is three 25 s offices: 3 rounds take about 4 minutes.
@@ -144,11 +143,9 @@ def liveview_main(args: argparse.Namespace) -> int:
     if rounds < 1:
         print("drvs-bench liveview: --rounds must be > 0", file=sys.stderr)
         return 2
-    out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
-    try:
-        result = asyncio.run(run_liveview(out, rounds))
-    except WorkMismatch as exc:
-        print(f"drvs-bench liveview: FAILED: {exc}", file=sys.stderr)
+    out = out_dir(args.out)
+    result = measured("liveview", lambda: asyncio.run(run_liveview(out, rounds)))
+    if result is None:
         return 1
     summary = {
         k: result[k]

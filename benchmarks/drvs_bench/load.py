@@ -73,7 +73,7 @@ from .load_figures import (
 from .load_robots import CAMERAS, DELIVERIES, add_worker_parser
 from .load_robots import expected_requests as expected_requests
 from .load_robots import schedule as schedule
-from .stats import interleaved
+from .stats import interleaved, out_dir
 
 #: The capacity the last full sweep found on the 2-core development machine (docs/benchmarks.md,
 #: "Where the limit is": 12 robots at 30 Hz, 360 requests a second, lost nothing): the knee.
@@ -265,7 +265,7 @@ async def run_sweep(out: Path, base: str, start: int, most: int, settings: dict[
 
 
 def load_main(args: argparse.Namespace) -> int:
-    out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
+    out = out_dir(args.out)
     multiples: list[float] = []
     if args.overload:
         try:

@@ -40,7 +40,7 @@ from drvs.core.model import CameraError, Snapshot, WorldObject
 
 from .common import machine, pyplot, write_result
 from .helpers import percentile
-from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, publish, verdict
+from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, measured, out_dir, publish, verdict
 
 OBJECTS = 20
 SNAPSHOTS = 1000
@@ -224,11 +224,9 @@ def ros2_main(args: argparse.Namespace) -> int:
     if rounds < 1:
         print("drvs-bench ros2: --rounds must be > 0", file=sys.stderr)
         return 2
-    out = args.out or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
-    try:
-        result = run_ros2(out, args.quick, rounds)
-    except WorkMismatch as exc:
-        print(f"drvs-bench ros2: FAILED: {exc}", file=sys.stderr)
+    out = out_dir(args.out)
+    result = measured("ros2", lambda: run_ros2(out, args.quick, rounds))
+    if result is None:
         return 1
     summary = {k: v for k, v in result.items() if k.endswith(("_ms", "_snapshot", "_spread", "_p50"))}
     summary["targets"] = {k: v["verdict"] for k, v in result["targets"].items()}

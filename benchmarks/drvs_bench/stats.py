@@ -9,7 +9,10 @@ modes interleaved (A B C A B C …) for several rounds and publish, for each fig
 from __future__ import annotations
 
 import statistics
+import sys
+import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
+from pathlib import Path
 from typing import Any, Literal, TypeVar
 
 T = TypeVar("T")
@@ -24,6 +27,21 @@ def interleaved(modes: Sequence[T], rounds: int) -> Iterator[tuple[int, T]]:
     for r in range(rounds):
         for mode in modes:
             yield r, mode
+
+
+def out_dir(given: Path | None) -> Path:
+    """Where a benchmark writes: --out, else a new bench-YYYYmmdd-HHMMSS folder here."""
+    return given or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
+
+
+def measured(name: str, work: Callable[[], T]) -> T | None:
+    """`work()`'s result, or None when its work check failed (WorkMismatch), said on stderr as
+    `drvs-bench NAME: FAILED: …` (the benchmark then exits 1)."""
+    try:
+        return work()
+    except WorkMismatch as exc:
+        print(f"drvs-bench {name}: FAILED: {exc}", file=sys.stderr)
+        return None
 
 
 def rounds(quick: bool) -> int:
