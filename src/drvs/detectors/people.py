@@ -61,11 +61,12 @@ WINDOW_CELLS = HOG_WINDOW_PX // HOG_CELL_PX
 #: Cell sizes searched on the frame's own pixels. A box 16 c px tall is HOG's window with c px
 #: cells: the same descriptor (the same 105 blocks of 2 x 2 cells, each 9 orientation bins, L2-Hys
 #: normalised, so the same SVM applies) as an 8 px cell window on the frame resized by 8 / c,
-#: without resampling the frame, so the pass costs the frame's pixels, not (8 / c)^2 as many. The
-#: gradient is then taken over pixels 8 / c times larger, relative to a cell, than the detector was
-#: trained on: cells of 5-7 px (boxes of 80-112 px) keep that within 1.6; 4 px cells (64 px boxes,
-#: twice the trained gradient scale) are upsampled as before (on vtest.avi they found one person
-#: fewer and put a far person's feet 0.6 m off, for 0.1 of the old default's time less).
+#: without resampling the frame, so the pass costs the frame's pixels, not (8 / c)^2 as many. A
+#: size within half a pixel a cell of one (boxes of 72-119 px) runs so, its strip resized by at most
+#: 10 %. The gradient is then taken over pixels 8 / c times larger, relative to a cell, than the
+#: detector was trained on: cells of 5-7 px keep that within 1.6; 4 px cells (64 px boxes, twice
+#: the trained gradient scale) are upsampled as before (on vtest.avi they found one person fewer
+#: and put a far person's feet 0.6 m off, for 0.1 of the old default's time less).
 NATIVE_CELLS_PX = (5, 6, 7)
 DEFAULT_MIN_HEIGHT_PX = HOG_WINDOW_PX
 MIN_HEIGHT_RANGE_PX = (32.0, 1024.0)
