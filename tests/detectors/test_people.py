@@ -28,6 +28,7 @@ from drvs.core.geometry import FieldOfView, Homography, homography_from_pose
 from drvs.core.homography_file import save_homography
 from drvs.core.model import Detection
 from drvs.detectors import CameraView, Frame, FrameAnalysis, parse_object_type
+from drvs.detectors import people as people_module
 from drvs.detectors.people import PeopleDetector
 from drvs.robot import DrvsClient
 from drvs.sim.scene import write_video
@@ -227,6 +228,49 @@ def test_by_default_it_searches_by_geometry_and_finds_the_marked_people(marked: 
         summary = f"{size}: {s.true} true, {s.false} false, {s.missed} missed, floor errors {s.floor_errors}"
         assert s.precision >= 0.9 and s.recall >= 0.85, summary
         assert statistics.median(s.floor_errors) <= 0.2 and max(s.floor_errors) <= 0.5, summary
+
+
+def test_every_floor_row_is_searched_at_the_size_nearest_its_own() -> None:
+    """Each row where a person's box is at least MIN_BOX_PX over half a step is some pass's feet row,
+    at the searched size nearest (in ratio) to the box a 1.7 m person has there: none is left
+    between two sizes, the step from under HOG's window to over it included."""
+    for size in (SIZE, (640, 480)):
+        position, yaw, pitch, hfov = POSE
+        h = homography_from_pose(position, yaw, pitch, hfov, size)
+        v = CameraView(h, FieldOfView.compute(h, size, MAX_RANGE_M), size, camera_id="vtest")
+        detector = PeopleDetector(v)
+        assert detector.passes and detector._expected is not None
+        sizes = [p.box_px for p in detector.passes]
+        assert sizes == sorted(sizes) and sizes[0] == people_module.MIN_BOX_PX
+        top = math.ceil(v.field_of_view.image.bounds[1])
+        for row in range(top, size[1]):
+            expected = float(detector._expected[row])
+            if expected < people_module.MIN_BOX_PX / math.sqrt(people_module.SEARCH_STEP):
+                continue
+            covering = [p.box_px for p in detector.passes if p.feet_rows[0] <= row <= p.feet_rows[1]]
+            nearest = min(sizes, key=lambda b: abs(math.log(b / expected)))
+            assert nearest in covering, (size, row, expected, covering)
+        detector.close()
+
+
+def test_a_window_of_smaller_cells_describes_what_the_resized_window_does(marked: list[Marked]) -> None:
+    """A box 16 c px tall searched with c px cells on the frame's own pixels gives nearly the
+    descriptor HOG's 8 px cells give on the frame resized by 8 / c (the same blocks, bins and
+    normalisation: so the same SVM applies), and the SVM's margins on the two agree."""
+    gray = cv2.cvtColor(next(m for m in marked if m.index == 320).image, cv2.COLOR_BGR2GRAY)
+    svm = np.asarray(cv2.HOGDescriptor.getDefaultPeopleDetector(), dtype=np.float32).ravel()
+    for cell in people_module.NATIVE_CELLS_PX:
+        small, full = people_module._hog(cell), people_module._hog()
+        crop = gray[150:150 + 16 * cell * 2, 100:100 + 8 * cell * 6]  # fmt: skip
+        stride = (cell, cell)
+        native = np.asarray(small.compute(crop, winStride=stride)).reshape(-1, svm.size - 1)
+        resized = cv2.resize(crop, None, fx=8 / cell, fy=8 / cell, interpolation=cv2.INTER_LINEAR)
+        eight = np.asarray(full.compute(resized, winStride=(8, 8))).reshape(-1, svm.size - 1)
+        assert native.shape == eight.shape and len(native) > 50
+        cosines = np.sum(native * eight, axis=1) / (np.linalg.norm(native, axis=1) * np.linalg.norm(eight, axis=1))
+        margins = np.stack([native @ svm[:-1] + svm[-1], eight @ svm[:-1] + svm[-1]])
+        assert np.median(cosines) >= 0.95, (cell, np.median(cosines))
+        assert np.corrcoef(margins)[0, 1] >= 0.95, (cell, np.corrcoef(margins)[0, 1])
 
 
 def test_a_box_the_wrong_size_for_where_it_stands_is_no_person(marked: list[Marked]) -> None:

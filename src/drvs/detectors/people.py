@@ -11,8 +11,11 @@ How it searches (see `plan_passes`): the camera's floor homography is also a cam
 `person_height_m` tall (1.7 m) standing with their feet at image row v appears h(v) pixels tall,
 in a HOG box h(v) / PERSON_IN_WINDOW tall. The search runs HOG's window at a short series of
 sizes (SEARCH_STEP apart); each size only over the horizontal strip of the frame that holds the
-boxes of that size whose feet are on rows where a person is about that tall, resized so the size
-fills HOG's 128 px window, one `HOGDescriptor.detect` per size (side by side on OpenCV's threads).
+boxes of that size whose feet are on rows where a person is nearer that size than any other
+searched, one `HOGDescriptor.detect` per size (side by side on OpenCV's threads, the costliest
+first). A size of 80-112 px is searched on the frame's own pixels with HOG's cells shrunk to a
+sixteenth of it (NATIVE_CELLS_PX: the same descriptor and SVM, none of the upsampling's cost);
+the others on the strip resized so the size fills HOG's 128 px window.
 Rows whose person would be a box smaller than MIN_BOX_PX are not searched (HOG does not find
 people that small even upsampled; see MIN_BOX_PX). A detection whose box is not within `height_tolerance` of
 what its feet's row expects is dropped: a box of the wrong size for where it stands is not a
@@ -28,6 +31,7 @@ docs/object-types.md for the figures.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from collections.abc import Mapping
@@ -50,6 +54,20 @@ log = logging.getLogger(__name__)
 
 #: HOG's detection window height: with min_height_px at this, frames are searched as they are.
 HOG_WINDOW_PX = 128
+#: HOG's cell (8 x 8 px), and the window's height in cells: the default people detector's window is
+#: 8 x 16 cells, its blocks 2 x 2 cells moved a cell at a time.
+HOG_CELL_PX = 8
+WINDOW_CELLS = HOG_WINDOW_PX // HOG_CELL_PX
+#: Cell sizes searched on the frame's own pixels. A box 16 c px tall is HOG's window with c px
+#: cells: the same descriptor (the same 105 blocks of 2 x 2 cells, each 9 orientation bins, L2-Hys
+#: normalised, so the same SVM applies) as an 8 px cell window on the frame resized by 8 / c,
+#: without resampling the frame, so the pass costs the frame's pixels, not (8 / c)^2 as many. A
+#: size within half a pixel a cell of one (boxes of 72-119 px) runs so, its strip resized by at most
+#: 10 %. The gradient is then taken over pixels 8 / c times larger, relative to a cell, than the
+#: detector was trained on: cells of 5-7 px keep that within 1.6; 4 px cells (64 px boxes, twice
+#: the trained gradient scale) are upsampled as before (on vtest.avi they found one person fewer
+#: and put a far person's feet 0.6 m off, for 0.1 of the old default's time less).
+NATIVE_CELLS_PX = (5, 6, 7)
 DEFAULT_MIN_HEIGHT_PX = HOG_WINDOW_PX
 MIN_HEIGHT_RANGE_PX = (32.0, 1024.0)
 #: Where the feet are in a HOG box, as a fraction of its height from the top: the box has margin
@@ -69,11 +87,12 @@ DEFAULT_PERSON_HEIGHT_M = 1.7
 PERSON_HEIGHT_RANGE_M = (0.5, 2.5)
 DEFAULT_HEIGHT_TOLERANCE = 0.3
 HEIGHT_TOLERANCE_RANGE = (0.05, 1.0)
-#: The window sizes searched: a geometric series from MIN_BOX_PX, of ratio SEARCH_STEP while the
-#: crops are upsampled (boxes under HOG's 128 px: the costly passes) and FINE_STEP after (cheap,
-#: downsampled); each size is searched on the rows where the expected box is within the square
-#: root of the step of it (times SEARCH_SPREAD; 1: neighbouring sizes' rows just meet), so every
-#: row gets a size within half a step of its own. Chosen on vtest.avi's 57 marked people: finer
+#: The window sizes searched: a geometric series from MIN_BOX_PX, of ratio SEARCH_STEP under HOG's
+#: 128 px (the passes that cost the most per frame pixel) and FINE_STEP from there (cheap,
+#: downsampled); each size is searched on the rows whose expected box is nearer to it than to the
+#: sizes beside it (between the geometric means of neighbours, widened by SEARCH_SPREAD; 1:
+#: neighbouring sizes' rows just meet), so every row gets the size nearest its own, within half a
+#: step (the step from under 128 px to over it included). Chosen on vtest.avi's 57 marked people: finer
 #: steps below 128 px (1.15-1.2) found up to 3 more for 15-50 % more time, coarser ones (1.3-1.4)
 #: lost 2-4; the man filling basketball1.png's height is found only with the finer step above
 #: 128 px (his box is 0.93 of what his row expects, between two 1.25 sizes).
@@ -112,8 +131,14 @@ MIN_MARGIN = 0.7
 Box = tuple[float, float, float, float, float]
 
 
-def _hog() -> cv2.HOGDescriptor:
-    hog = cv2.HOGDescriptor()
+def _hog(cell_px: int = HOG_CELL_PX) -> cv2.HOGDescriptor:
+    """OpenCV's default people detector with `cell_px` pixel cells (HOG_CELL_PX: its own window)."""
+    if cell_px == HOG_CELL_PX:
+        hog = cv2.HOGDescriptor()
+    else:
+        c = cell_px
+        # Gamma correction and the blocks' Gaussian weight (its sigma a quarter of the block) as the default's.
+        hog = cv2.HOGDescriptor((WINDOW_CELLS // 2 * c, WINDOW_CELLS * c), (2 * c, 2 * c), (c, c), (c, c), 9)
     hog.setSVMDetector(np.asarray(cv2.HOGDescriptor.getDefaultPeopleDetector(), dtype=np.float32))
     return hog
 
@@ -130,8 +155,24 @@ class Pass:
     crop: tuple[int, int, int, int]
 
     @property
+    def cell_px(self) -> int:
+        """HOG's cell size for this pass: one of NATIVE_CELLS_PX when the size is nearest a window
+        of that many pixels a cell (the crop then resized by at most a few per cent), else
+        HOG_CELL_PX (the crop resized to HOG's own window)."""
+        cell = round(self.box_px / WINDOW_CELLS)
+        return cell if cell in NATIVE_CELLS_PX else HOG_CELL_PX
+
+    @property
     def factor(self) -> float:
-        return HOG_WINDOW_PX / self.box_px
+        """How much the crop is resized by: the box to the window's height at the pass's cell size."""
+        return WINDOW_CELLS * self.cell_px / self.box_px
+
+    @property
+    def cells(self) -> float:
+        """How many HOG cells the resized crop holds: what the pass costs (the windows it scores and
+        the blocks it bins are both so many, at a stride of one cell)."""
+        x0, y0, x1, y1 = self.crop
+        return (x1 - x0) * (y1 - y0) * (self.factor / self.cell_px) ** 2
 
 
 def expected_box_px(
@@ -150,9 +191,20 @@ def expected_box_px(
     return lo, hi
 
 
+def search_sizes(smallest: float, biggest: float) -> list[float]:
+    """The window sizes searched: from `smallest`, SEARCH_STEP apart under HOG_WINDOW_PX and
+    FINE_STEP apart from there, up to the first at or beyond `biggest`."""
+    sizes = [smallest]
+    while sizes[-1] < biggest:
+        sizes.append(sizes[-1] * (SEARCH_STEP if sizes[-1] < HOG_WINDOW_PX else FINE_STEP))
+    return sizes
+
+
 def plan_passes(view: CameraView, lo: np.ndarray[Any, Any], hi: np.ndarray[Any, Any]) -> list[Pass]:
-    """The window sizes to search (SEARCH_STEP, FINE_STEP from MIN_BOX_PX), each over the rows where
-    feet can be (in the field of view) and a person's expected box is within half a step of it."""
+    """The window sizes to search (`search_sizes` from MIN_BOX_PX), each over the rows where feet can
+    be (in the field of view) and a person's expected box is nearer to it than to the sizes beside
+    it (the geometric means between neighbours, times SEARCH_SPREAD; the smallest and the biggest
+    reach half their step outwards): every row of the floor is searched at the size nearest its own."""
     width, height = view.image_size
     fx0, fy0, fx1, fy1 = view.field_of_view.image.bounds
     rows = np.arange(height)
@@ -160,22 +212,22 @@ def plan_passes(view: CameraView, lo: np.ndarray[Any, Any], hi: np.ndarray[Any, 
     if not in_view.any():
         return []
     left, right = max(0, math.floor(fx0) - PADDING[0]), min(width, math.ceil(fx1) + PADDING[0])
+    sizes = search_sizes(MIN_BOX_PX, float(np.max(hi[in_view])))
+    if len(sizes) == 1:  # one size: it covers half a step either side
+        sizes.append(sizes[0] * SEARCH_STEP)
+    bounds = [sizes[0] ** 1.5 / sizes[1] ** 0.5]
+    bounds += [math.sqrt(a * b) for a, b in itertools.pairwise(sizes)]
+    bounds += [sizes[-1] ** 1.5 / sizes[-2] ** 0.5]
     passes: list[Pass] = []
-    box = MIN_BOX_PX
-    biggest = float(np.max(hi[in_view]))
-    while True:
-        step = SEARCH_STEP if box < HOG_WINDOW_PX else FINE_STEP
-        spread = math.sqrt(step) * SEARCH_SPREAD
-        if box > biggest * spread:
-            return passes
-        near = rows[in_view & (lo / spread <= box) & (box <= hi * spread)]
+    for box, below, above in zip(sizes, bounds, bounds[1:], strict=False):
+        near = rows[in_view & (lo <= above * SEARCH_SPREAD) & (hi >= below / SEARCH_SPREAD)]
         if len(near):
             first, last = int(near.min()), int(near.max())
             margin = PASS_MARGIN * box / HOG_WINDOW_PX  # a window's stride or two, in the frame's pixels
             top = max(0, math.floor(first - FEET_FRACTION * box - margin))
             bottom = min(height, math.ceil(last + (1.0 - FEET_FRACTION) * box + margin))
             passes.append(Pass(box, (first, last), (left, top, right, bottom)))
-        box *= step
+    return passes
 
 
 def group(boxes: list[Box], min_hits: int, eps: float = 0.2) -> list[Box]:
@@ -240,15 +292,25 @@ def _resized(image: np.ndarray[Any, Any], factor: float) -> np.ndarray[Any, Any]
     return cv2.resize(image, None, fx=factor, fy=factor, interpolation=interpolation)
 
 
-def _hits(hog: cv2.HOGDescriptor, gray: np.ndarray[Any, Any], p: Pass) -> list[Box]:
+def _hits(hogs: Mapping[int, cv2.HOGDescriptor], gray: np.ndarray[Any, Any], p: Pass) -> list[Box]:
     """Every window of one pass where the SVM says person (margin > 0), in the frame's pixels."""
     x0, y0, x1, y1 = p.crop
+    cell = p.cell_px
     work = _resized(gray[y0:y1, x0:x1], p.factor)
-    if work.shape[0] < HOG_WINDOW_PX or work.shape[1] < HOG_WINDOW_PX // 2:
+    if work.shape[0] < WINDOW_CELLS * cell or work.shape[1] < WINDOW_CELLS // 2 * cell:
         return []
-    points, weights = hog.detect(work, hitThreshold=0.0, winStride=WIN_STRIDE, padding=PASS_PADDING)
+    stride = (WIN_STRIDE[0] * cell // HOG_CELL_PX, WIN_STRIDE[1] * cell // HOG_CELL_PX)
+    if cell == HOG_CELL_PX:
+        pad = 0
+        points, weights = hogs[cell].detect(work, hitThreshold=0.0, winStride=stride, padding=PASS_PADDING)
+    else:
+        # HOG aligns its padding to a power of two, which a 5-7 px stride is not: the crop is padded
+        # here instead, by PASS_PADDING in cells, reflecting its edge as HOG does.
+        pad = PASS_PADDING[0] * cell // HOG_CELL_PX
+        work = cv2.copyMakeBorder(work, 0, 0, pad, pad, cv2.BORDER_REFLECT_101)
+        points, weights = hogs[cell].detect(work, hitThreshold=0.0, winStride=stride, padding=(0, 0))
     w = p.box_px / 2.0
-    return [(x0 + float(u) / p.factor, y0 + float(v) / p.factor, w, p.box_px, float(m))
+    return [(x0 + float(u - pad) / p.factor, y0 + float(v) / p.factor, w, p.box_px, float(m))
             for (u, v), m in zip(np.reshape(points, (-1, 2)), np.ravel(weights), strict=True)]  # fmt: skip
 
 
@@ -321,10 +383,14 @@ class PeopleDetector(Detector):
                 self.passes = plan_passes(view, lo, hi)
                 self.camera_height_m = geometry.camera_height_m
         self._hog = _hog()
+        #: The descriptor per cell size the passes use (HOG_CELL_PX: the one above).
+        self._hogs = {HOG_CELL_PX: self._hog} | {p.cell_px: _hog(p.cell_px) for p in self.passes or ()}
         #: The passes run side by side on OpenCV's threads (cv2.setNumThreads), as detectMultiScale
         #: runs its pyramid's levels: one HOGDescriptor serves concurrent detect calls.
         threads = min(cv2.getNumThreads(), len(self.passes or ()))
         self._pool = ThreadPoolExecutor(threads, thread_name_prefix="people") if threads > 1 else None
+        #: The order the pool takes the passes in: the costliest first, so the threads end together.
+        self._by_cost = sorted(self.passes or (), key=lambda p: -p.cells)
 
     def close(self) -> None:
         if self._pool is not None:
@@ -352,9 +418,10 @@ class PeopleDetector(Detector):
             ]
             return suppress(boxes, MIN_MARGIN)
         if self._pool is None:
-            hits = [h for p in self.passes for h in _hits(self._hog, gray, p)]
+            hits = [h for p in self.passes for h in _hits(self._hogs, gray, p)]
         else:
-            hits = [h for part in self._pool.map(lambda p: _hits(self._hog, gray, p), self.passes) for h in part]
+            parts = self._pool.map(lambda p: _hits(self._hogs, gray, p), self._by_cost)
+            hits = [h for part in parts for h in part]
         return suppress([b for b in group(hits, GROUP_MIN_HITS) if self.plausible(b)], GEOMETRY_MIN_MARGIN)
 
     def plausible(self, box: Box) -> bool:
