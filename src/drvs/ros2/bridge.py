@@ -25,6 +25,7 @@ from drvs.core.errors import InvalidArgument, Unavailable
 from drvs.core.model import MAX_DURATION_S, Snapshot
 from drvs.robot.client import DrvsClient
 from drvs.robot.snapshots import snapshot_json
+from drvs.ros2.cdr import snapshot_payloads
 from drvs.ros2.convert import (
     CLOCK_TOPIC,
     REGION_TYPE,
@@ -32,9 +33,8 @@ from drvs.ros2.convert import (
     Style,
     output_topics,
     region_from_msg,
-    snapshot_messages,
 )
-from drvs.ros2.dds import Node, write
+from drvs.ros2.dds import Node, write_cdr
 
 log = logging.getLogger("drvs.ros2")
 
@@ -96,10 +96,10 @@ class Publisher:
 
     def publish(self, snapshot: Snapshot) -> None:
         at = snapshot.time if self.clock is None else self.clock.stamp(snapshot.time)
-        for topic, message in snapshot_messages(
+        for topic, payload in snapshot_payloads(
             snapshot, self.style, self.markers, at, self.prefix, with_diagnostics=self._diagnostics_due(snapshot)
         ):
-            write(self.writers[topic], message)
+            write_cdr(self.writers[topic], payload)
         self.published += 1
 
 

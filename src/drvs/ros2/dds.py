@@ -18,7 +18,7 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
-from drvs.ros2.types import dds_topic_name, idl, to_cdr
+from drvs.ros2.types import dds_topic_name, idl
 
 #: --qos: reliable (what ROS 2's default profile asks: a default and a sensor-data subscriber both
 #: match it) or sensor (best effort, as rclcpp's SensorDataQoS).
@@ -65,12 +65,16 @@ class Node:
         return DataReader(self.participant, self._topic(ros_topic, ros_type), qos(profile))
 
 
-def write(writer: DataWriter[Any], message: Any) -> None:
-    """Publish a message (drvs.ros2.types.ros(), or an IDL struct) on the writer's topic, serialized
-    once by to_cdr: rosbags' generated serializer is several times faster than Cyclone's Python one
-    and gives the same bytes. Padded to 4 bytes as DataWriter.write pads what it serializes."""
-    payload = to_cdr(message)
-    payload += bytes(-len(payload) % 4)
+def write_cdr(writer: DataWriter[Any], payload: bytes | bytearray) -> None:
+    """Publish a message already serialized as ROS 2 CDR (encapsulation header first: to_cdr,
+    drvs.ros2.cdr), handed to Cyclone as it is: what DataWriter.write does after serializing (with
+    Cyclone's pure-Python serializer, several times slower), padded to 4 bytes as it pads. A
+    bytearray is padded in place."""
+    if len(payload) % 4:
+        if isinstance(payload, bytearray):
+            payload += bytes(-len(payload) % 4)
+        else:
+            payload = payload + bytes(-len(payload) % 4)
     code = ddspy_write(writer._ref, payload)
     if code < 0:
         raise DDSException(code, f"writing on {writer.topic.name}")
