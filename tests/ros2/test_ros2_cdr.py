@@ -125,3 +125,14 @@ def test_strings_are_their_utf8_with_a_nul_after_their_length() -> None:
     assert cdr_string("") == b"\x01\x00\x00\x00\x00"
     assert cdr_string("ü") == b"\x03\x00\x00\x00\xc3\xbc\x00"
     assert math.isclose(len(cdr_string("🤖")), 4 + 4 + 1)
+
+
+def test_only_the_topics_asked_for_are_made_and_the_markers_follow_all_the_same() -> None:
+    rng = random.Random(5)
+    style, reference, encoded = Style(), MarkerState(), MarkerState()
+    for snapshot in snapshots(rng):
+        want = {t: to_cdr(m) for t, m in snapshot_messages(snapshot, style, reference, snapshot.time, "/d")}
+        asked = set(rng.sample(sorted(want), rng.randint(0, len(want))))
+        got = dict(snapshot_payloads(snapshot, style, encoded, snapshot.time, "/d", topics=asked))
+        assert set(got) == asked and all(bytes(p) == want[t] for t, p in got.items())
+        assert encoded.shown == reference.shown

@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import functools
 import struct
-from collections.abc import Iterator, Sequence
+from collections.abc import Container, Iterator, Sequence
 from typing import Any
 
 import numpy as np
@@ -110,7 +110,10 @@ class Geometry:
         objects = snapshot.objects
         self.heights = [style.height(o) for o in objects]
         self.types = [style.object_type(o) for o in objects]
-        self.rings = shapely.get_exterior_ring([outline(o) for o in objects])
+        outlines = np.array([o.outline for o in objects], dtype=object)
+        if shapely.is_empty(outlines).any():  # outlines left out: their bounds (convert.outline)
+            outlines = np.array([outline(o) for o in objects], dtype=object)
+        self.rings = shapely.get_exterior_ring(outlines)
 
     def ring_points(self, step_m: float | None) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
         """Every object's outline ring as one (k, 2) array of x, y, closing points included (every
@@ -266,16 +269,33 @@ def markers_cdr(snapshot: Snapshot, geo: Geometry, hdr: bytes, state: MarkerStat
 
 
 def snapshot_payloads(
-    snapshot: Snapshot, style: Style, markers: MarkerState, at: float, prefix: str, *, with_diagnostics: bool = True
+    snapshot: Snapshot,
+    style: Style,
+    markers: MarkerState,
+    at: float,
+    prefix: str,
+    *,
+    with_diagnostics: bool = True,
+    topics: Container[str] | None = None,
 ) -> Iterator[tuple[str, bytes | bytearray]]:
     """(topic, CDR payload) for everything one snapshot publishes: the bytes of
     convert.snapshot_messages' messages serialized by rosbags, in the same order, each made when
-    asked for (objects first)."""
-    hdr = header_cdr(at, style.frame_id)
-    geo = Geometry(snapshot, style)
-    yield f"{prefix}/objects", detections_cdr(snapshot, geo, hdr)
-    yield f"{prefix}/obstacles", obstacle_cloud_cdr(geo, hdr, style.cloud_step_m)
-    yield f"{prefix}/tracks", obstacles_cdr(snapshot, geo, hdr)
-    yield f"{prefix}/markers", markers_cdr(snapshot, geo, hdr, markers)
-    if with_diagnostics:  # about once a second: rosbags' message and serializer
+    asked for (objects first). With `topics`, only those are made (`markers` follows the snapshot
+    all the same, so the deletions stay right when /markers is read again)."""
+    names = [f"{prefix}/{name}" for name in ("objects", "obstacles", "tracks", "markers")]
+    made = [topics is None or name in topics for name in names]
+    if any(made):
+        hdr = header_cdr(at, style.frame_id)
+        geo = Geometry(snapshot, style)
+        if made[0]:
+            yield names[0], detections_cdr(snapshot, geo, hdr)
+        if made[1]:
+            yield names[1], obstacle_cloud_cdr(geo, hdr, style.cloud_step_m)
+        if made[2]:
+            yield names[2], obstacles_cdr(snapshot, geo, hdr)
+        if made[3]:
+            yield names[3], markers_cdr(snapshot, geo, hdr, markers)
+    if not made[3]:
+        markers.ended(snapshot)
+    if with_diagnostics and (topics is None or DIAGNOSTICS_TOPIC[0] in topics):  # about once a second: rosbags
         yield DIAGNOSTICS_TOPIC[0], to_cdr(diagnostics(snapshot, header(at, style.frame_id)))

@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Any
 
 from cyclonedds._clayer import ddspy_write  # the call DataWriter.write makes with what it serialized
-from cyclonedds.core import DDSException
+from cyclonedds.core import DDSException, Listener
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.pub import DataWriter
 from cyclonedds.qos import Policy, Qos
@@ -58,8 +58,10 @@ class Node:
             self._topics[name] = Topic(self.participant, name, idl(ros_type))
         return self._topics[name]
 
-    def writer(self, ros_topic: str, ros_type: str, profile: str = "reliable") -> DataWriter[Any]:
-        return DataWriter(self.participant, self._topic(ros_topic, ros_type), qos(profile))
+    def writer(
+        self, ros_topic: str, ros_type: str, profile: str = "reliable", listener: Listener | None = None
+    ) -> DataWriter[Any]:
+        return DataWriter(self.participant, self._topic(ros_topic, ros_type), qos(profile), listener)
 
     def reader(self, ros_topic: str, ros_type: str, profile: str = "reliable") -> DataReader[Any]:
         return DataReader(self.participant, self._topic(ros_topic, ros_type), qos(profile))
