@@ -5,9 +5,10 @@ Python message objects a snapshot of 20 objects needs there.
 Why by hand: building those objects and walking them with rosbags' generated serializer cost about
 2.5 ms of CPU a snapshot (docs/benchmarks.md, "drvs-bench ros2"), five times the bridge's budget.
 The per-object layouts of /drvs/objects, /drvs/obstacles, /drvs/tracks and /drvs/markers are fixed
-but for strings and point sequences, so each is written here as a few byte strings per object: the
-numbers of all objects computed at once with numpy and shapely's vectorised functions, constant
-parts (default fields, a marker kind's scale and colour) packed once. /diagnostics, sent about
+but for strings and point sequences, so each is written here as a few byte strings per object:
+an object's numbers in one precompiled struct, the outlines' points of all objects at once with
+shapely's vectorised functions and numpy, constant parts (default fields, a marker kind's scale and
+colour) packed once. Cyclone DDS is handed the finished bytes (drvs.ros2.dds.write_cdr). /diagnostics, sent about
 once a second, stays with rosbags (convert.diagnostics + types.to_cdr).
 
 How it is checked: convert.py's rosbags messages are the definition. tests/ros2/test_ros2_cdr.py
