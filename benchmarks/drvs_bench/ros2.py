@@ -9,7 +9,9 @@ taken. CLOCK_MONOTONIC is one clock for every process of the host, so
 
 - latency = the subscriber's time of taking the sample - this process's time just before
   Publisher.publish(snapshot) was called: conversion, serialization, DDS on loopback and the
-  subscriber's wake-up and take; p50 and p99 per round;
+  subscriber's wake-up and take; p50 and p99 per round; split at the sample's source timestamp
+  (the wall clock when Cyclone wrote it) into the bridge's share (objects_written: the call's
+  start to the write of /drvs/objects, p50 and p99) and the delivery's (DDS and the subscriber);
 - CPU per snapshot = this process's CPU time (every thread: Cyclone's own too) over the
   publishing phase divided by the snapshots; and, apart, the publishing thread's alone per call
   (p50, p99) and the publish call's wall time (p99: what the bridge itself adds to the tail,
@@ -93,8 +95,8 @@ def subscriber(domain: int, count: int) -> int:
     ROS 2 subscription hands them over: serialized bytes (rclcpp's own deserialization is C++,
     Cyclone's Python one would time this process, not the bridge). Once it has `count` samples of
     /drvs/objects (or none came for QUIET_S seconds) it prints one JSON object: {"taken": {stamp
-    ns: monotonic ns when taken}, "others": {topic: samples taken}}. Prints "ready" once its
-    readers exist."""
+    ns: [monotonic ns when taken, the sample's source timestamp ns]}, "others": {topic: samples
+    taken}}. Prints "ready" once its readers exist."""
     from cyclonedds._clayer import ddspy_take
     from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet
     from cyclonedds.util import duration
@@ -110,7 +112,7 @@ def subscriber(domain: int, count: int) -> int:
         waitset.attach(ReadCondition(reader, ANY))
     objects = readers.pop(TOPIC)
     print("ready", flush=True)
-    taken: dict[int, int] = {}
+    taken: dict[int, tuple[int, int]] = {}
     others = dict.fromkeys(readers, 0)
     deadline = last = time.monotonic() + 120
     while len(taken) < count and time.monotonic() < min(deadline, last + QUIET_S):
@@ -120,7 +122,7 @@ def subscriber(domain: int, count: int) -> int:
             last = now / 1e9
             if info.valid_data:  # header.stamp: the first field, after the 4-byte encapsulation
                 sec, nanosec = struct.unpack_from("<iI", payload, 4)
-                taken[sec * 10**9 + nanosec] = now
+                taken[sec * 10**9 + nanosec] = (now, info.source_timestamp)
         for topic, reader in readers.items():
             others[topic] += sum(info.valid_data for _, info in ddspy_take(reader._ref, ANY, 64))
     print(json.dumps({"taken": taken, "others": others}), flush=True)
@@ -156,19 +158,19 @@ def one_round(domain: int, count: int, env: dict[str, str]) -> dict[str, Any]:
                 raise WorkMismatch("ros2: the subscriber never matched every writer")
             waitset.wait(duration(milliseconds=200))
         made = snapshots(count, time.time())
-        sent: dict[int, int] = {}
+        sent: dict[int, tuple[int, int]] = {}
         thread_ns: list[int] = []
         call_ns: list[int] = []
         cpu0 = time.process_time_ns()
         for n, snapshot in enumerate(made):
             next_at = time.monotonic() + 1 / RATE_HZ
             stamp = round(snapshot.time * 1e9)
-            t0 = time.monotonic_ns()
+            t0, wall0 = time.monotonic_ns(), time.time_ns()
             c0 = time.thread_time_ns()
             publisher.publish(snapshot)
             thread_ns.append(time.thread_time_ns() - c0)
             call_ns.append(time.monotonic_ns() - t0)
-            sent[stamp] = t0
+            sent[stamp] = (t0, wall0)
             if n + 1 < count:
                 time.sleep(max(0.0, next_at - time.monotonic()))  # pacing at RATE_HZ, not synchronisation
         cpu_ns = time.process_time_ns() - cpu0
@@ -178,17 +180,24 @@ def one_round(domain: int, count: int, env: dict[str, str]) -> dict[str, Any]:
             sub.kill()
             sub.wait()
     said = json.loads(out.strip().splitlines()[-1])
-    taken = {int(k): v for k, v in said["taken"].items()}
+    taken = {int(k): (v[0], v[1]) for k, v in said["taken"].items()}
     lost = len(set(sent) - set(taken))
     if set(taken) - set(sent) or lost > count * MAX_LOST:
         raise WorkMismatch(f"ros2: the subscriber took {len(set(taken) & set(sent))} of {len(sent)} snapshots")
-    latencies = [(taken[s] - sent[s]) / 1e6 for s in sent if s in taken]
+    both = [s for s in sent if s in taken]
+    latencies = [(taken[s][0] - sent[s][0]) / 1e6 for s in both]
+    # Cyclone stamps a sample with the wall clock as it is written: the bridge's share of the latency.
+    written = [(taken[s][1] - sent[s][1]) / 1e6 for s in both]
+    delivered = [lat - w for lat, w in zip(latencies, written, strict=True)]
     return {
         "snapshots": count,
         "lost": lost,
         "latency_p50_ms": percentile(latencies, 50),
         "latency_p99_ms": percentile(latencies, 99),
         "latency_max_ms": max(latencies),
+        "objects_written_ms_p50": percentile(written, 50),
+        "objects_written_ms_p99": percentile(written, 99),
+        "delivery_ms_p99": percentile(delivered, 99),
         "cpu_ms_per_snapshot": cpu_ns / count / 1e6,
         "publish_thread_cpu_ms_p50": percentile([n / 1e6 for n in thread_ns], 50),
         "publish_thread_cpu_ms_p99": percentile([n / 1e6 for n in thread_ns], 99),
@@ -216,6 +225,9 @@ def run_ros2(out: Path, quick: bool, rounds: int) -> dict[str, Any]:
         "latency_p50_ms",
         "latency_p99_ms",
         "latency_max_ms",
+        "objects_written_ms_p50",
+        "objects_written_ms_p99",
+        "delivery_ms_p99",
         "cpu_ms_per_snapshot",
         "publish_thread_cpu_ms_p50",
         "publish_thread_cpu_ms_p99",
