@@ -20,8 +20,13 @@ def test_ros2_bench_quick_writes_its_figures_and_verdicts(tmp_path: Path) -> Non
     result = json.loads((tmp_path / "ros2.json").read_text())
     assert (tmp_path / "ros2.png").is_file() and result["rounds"] == 1 and result["objects"] == 20
     (run,) = result["runs"]
-    assert run["snapshots"] == 150  # every one taken by the subscriber (else WorkMismatch, exit 1)
+    assert run["snapshots"] == 150 and 0 <= run["lost"] <= 1  # at most 1 % lost (else WorkMismatch, exit 1)
+    others = run["other_topics_taken"]  # the subscriber reads every topic, so every one is made
+    assert set(others) == {"/drvs/obstacles", "/drvs/tracks", "/drvs/markers", "/diagnostics"}
+    assert min(others.values()) > 0 and run["publish_thread_cpu_ms_p50"] <= run["publish_thread_cpu_ms_p99"]
     assert 0 < run["latency_p50_ms"] <= run["latency_p99_ms"] <= run["latency_max_ms"]
+    # The bridge's share (call start to Cyclone's write of /drvs/objects) is a part of the latency.
+    assert 0 < run["objects_written_ms_p50"] <= run["objects_written_ms_p99"] <= run["latency_max_ms"]
     assert run["cpu_ms_per_snapshot"] > 0 and run["publish_thread_cpu_ms_p50"] > 0
     for key in ("latency_p99_ms", "cpu_ms_per_snapshot"):
         assert result[f"{key}_spread"] == [run[key], run[key]]

@@ -414,3 +414,59 @@ async def test_a_server_that_is_down_exits_4(dds: tuple[dict[str, str], int]) ->
     ) as ros2:
         assert await ros2.wait(timeout=60) == 4, ros2.tail()
     assert any(line.startswith("drvs-ros2: ") and f"127.0.0.1:{port}" in line for line in ros2.lines), ros2.tail()
+
+
+def test_the_bridge_makes_only_the_topics_a_subscriber_reads(
+    dds: tuple[dict[str, str], int], monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from cyclonedds._clayer import ddspy_take
+    from cyclonedds.core import InstanceState, ReadCondition, SampleState, ViewState, WaitSet
+    from cyclonedds.util import duration
+    from shapely.geometry import box
+
+    from drvs.core.model import Snapshot, WorldObject
+    from drvs.ros2.bridge import Publisher
+    from drvs.ros2.convert import Style
+    from drvs.ros2.dds import Node
+
+    env, domain = dds
+    monkeypatch.setenv("CYCLONEDDS_URI", env["CYCLONEDDS_URI"])  # read when the domain is made
+    ANY = SampleState.Any | ViewState.Any | InstanceState.Any
+    publisher = Publisher(Node(domain), Style())
+    subscriber = Node(domain)
+    waitset = WaitSet(subscriber.participant)
+    readers: dict[str, Any] = {}
+
+    def read(topic: str) -> None:
+        readers[topic] = subscriber.reader(topic, TOPICS[topic])
+        waitset.attach(ReadCondition(readers[topic], ANY))
+        for _ in range(50):  # the bridge's writer sees the new reader (its publication-matched status)
+            if publisher.matched[topic]:
+                return
+            waitset.wait(duration(milliseconds=100))
+        raise AssertionError(f"{topic}: the bridge's writer never matched the reader")
+
+    def published(t: float, *track_ids: int) -> dict[str, Any]:
+        objects = tuple(WorldObject(i, box(i, 0, i + 1, 1), (i, 0, i + 1, 1), (i + 0.5, 0.5)) for i in track_ids)
+        publisher.publish(Snapshot(t, objects, {}, ("cam1",), 0, False, "req"))
+        taken: dict[str, Any] = {}
+        for _ in range(50):
+            for topic, reader in readers.items():
+                taken.update(
+                    (topic, decode(topic, payload))
+                    for payload, info in ddspy_take(reader._ref, ANY, 8)
+                    if info.valid_data
+                )
+            if len(taken) == len(readers):
+                return taken
+            waitset.wait(duration(milliseconds=100))
+        raise AssertionError(f"only {sorted(taken)} arrived")
+
+    assert not any(publisher.matched.values())
+    read("/drvs/objects")
+    assert [t for t, n in publisher.matched.items() if n] == ["/drvs/objects"]
+    assert [d.id for d in published(1.0, 1, 2)["/drvs/objects"].detections] == ["1", "2"]
+    read("/drvs/markers")  # joins late: the markers of track 2, ended meanwhile unread, are deleted
+    markers = published(2.0, 1)["/drvs/markers"].markers
+    assert [(m.ns, m.id) for m in markers if m.action == 2] == [("drvs/label", 2), ("drvs/outline", 2)]
+    assert not [t for t, n in publisher.matched.items() if n and t not in readers]

@@ -27,8 +27,9 @@ from rosbags.rosbag2 import StoragePlugin, Writer
 
 from drvs.core.errors import DrvsError, InvalidArgument
 from drvs.live.replay import EXIT_BROKEN, EXIT_OK, EXIT_UNREADABLE, PROG, messages, open_recording
-from drvs.ros2.convert import MarkerState, Style, output_topics, snapshot_messages
-from drvs.ros2.types import to_cdr, typestore
+from drvs.ros2.cdr import snapshot_payloads
+from drvs.ros2.convert import MarkerState, Style, output_topics
+from drvs.ros2.types import typestore
 from drvs.v1 import detection_pb2
 from drvs.wire.convert import polygon_from_pb, snapshot_from_pb
 
@@ -94,10 +95,10 @@ def export(recording: Path, out: Path, *, frame_id: str = "map", prefix: str = "
                 if not reply.HasField("snapshot"):
                     continue
                 snapshot = snapshot_from_pb(reply.snapshot, rid, requests.uncovered.get(rid, ()))
-                for topic, ros_message in snapshot_messages(
+                for topic, payload in snapshot_payloads(
                     snapshot, requests.style(rid), requests.marker_state(rid), snapshot.time, prefix
                 ):
-                    writer.write(connections[topic], message.log_time, to_cdr(ros_message))
+                    writer.write(connections[topic], message.log_time, bytes(payload))
                     written[topic] += 1
         if rec.error is not None:
             raise Broken(rec.broken().removeprefix(f"{PROG}: ") + "; no bag written")

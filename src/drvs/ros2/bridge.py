@@ -25,6 +25,7 @@ from drvs.core.errors import InvalidArgument, Unavailable
 from drvs.core.model import MAX_DURATION_S, Snapshot
 from drvs.robot.client import DrvsClient
 from drvs.robot.snapshots import snapshot_json
+from drvs.ros2.cdr import snapshot_payloads
 from drvs.ros2.convert import (
     CLOCK_TOPIC,
     REGION_TYPE,
@@ -32,9 +33,8 @@ from drvs.ros2.convert import (
     Style,
     output_topics,
     region_from_msg,
-    snapshot_messages,
 )
-from drvs.ros2.dds import Node, write
+from drvs.ros2.dds import Node, write_cdr
 
 log = logging.getLogger("drvs.ros2")
 
@@ -77,7 +77,13 @@ class Publisher:
         self.prefix = prefix
         self.clock = clock
         self.markers = MarkerState()
-        self.writers = {topic: node.writer(topic, kind, profile) for topic, kind in output_topics(prefix).items()}
+        #: Per topic, the subscribers matched now (Cyclone's publication-matched status): a topic
+        #: none reads is not made.
+        self.matched = dict.fromkeys(output_topics(prefix), 0)
+        self.writers = {
+            topic: node.writer(topic, kind, profile, _on_matched(self.matched, topic))
+            for topic, kind in output_topics(prefix).items()
+        }
         self._diagnosed: tuple[Any, ...] = ()
         self._diagnosed_at = -math.inf
         self.published = 0
@@ -96,11 +102,22 @@ class Publisher:
 
     def publish(self, snapshot: Snapshot) -> None:
         at = snapshot.time if self.clock is None else self.clock.stamp(snapshot.time)
-        for topic, message in snapshot_messages(
-            snapshot, self.style, self.markers, at, self.prefix, with_diagnostics=self._diagnostics_due(snapshot)
-        ):
-            write(self.writers[topic], message)
+        read = {topic for topic, count in self.matched.items() if count}
+        for topic, payload in snapshot_payloads(
+            snapshot, self.style, self.markers, at, self.prefix, with_diagnostics=self._diagnostics_due(snapshot),
+            topics=read,
+        ):  # fmt: skip
+            write_cdr(self.writers[topic], payload)
         self.published += 1
+
+
+def _on_matched(counts: dict[str, int], topic: str) -> Listener:
+    """A DDS listener keeping `counts[topic]` at the writer's matched subscribers (Cyclone's thread)."""
+
+    def matched(writer: Any, status: Any) -> None:
+        counts[topic] = status.current_count
+
+    return Listener(on_publication_matched=matched)  # type: ignore[no-untyped-call]
 
 
 def _on_data(loop: asyncio.AbstractEventLoop, handle: Callable[[Any], None]) -> Listener:

@@ -32,6 +32,12 @@ ARROW, LINE_STRIP, TEXT_VIEW_FACING = 0, 4, 9
 ADD, DELETE = 0, 2
 #: The marker namespaces: one marker of each per track, its id the track id.
 OUTLINE_NS, LABEL_NS, VELOCITY_NS = "drvs/outline", "drvs/label", "drvs/velocity"
+#: Each marker kind's scale (x, y, z) and colour (r, g, b, a); outlines are drawn this high, metres,
+#: and labels this far above the object's height.
+OUTLINE_LOOK = ((0.03, 0.0, 0.0), (0.1, 0.9, 0.2, 1.0))
+LABEL_LOOK = ((0.0, 0.0, 0.2), (1.0, 1.0, 1.0, 1.0))
+ARROW_LOOK = ((0.05, 0.1, 0.1), (1.0, 0.6, 0.0, 1.0))
+OUTLINE_Z_M, LABEL_RAISE_M = 0.02, 0.1
 #: diagnostic_msgs/DiagnosticStatus levels.
 OK, WARN = 0, 1
 #: Where a track's UUID (nav2_dynamic_msgs/Obstacle.uuid) is made: uuid5 of "<request_id>/<track_id>".
@@ -87,7 +93,7 @@ def _pose(x: float, y: float, z: float) -> Any:
     return message_class("geometry_msgs/msg/Pose")(position=_point(x, y, z), orientation=identity)
 
 
-def _outline(o: WorldObject) -> Polygon:
+def outline(o: WorldObject) -> Polygon:
     """The object's floor outline, or its bounds when outlines were left out."""
     if not o.outline.is_empty:
         return o.outline
@@ -125,7 +131,7 @@ def detections(snapshot: Snapshot, style: Style, hdr: Any) -> Any:
 def outline_points(o: WorldObject, step_m: float) -> np.ndarray[Any, np.dtype[np.float64]]:
     """Points every `step_m` metres (or closer) along the object's outline, corners included,
     the closing point left out: an (n, 2) array of x, y."""
-    return np.asarray(_outline(o).exterior.segmentize(step_m).coords)[:-1, :2]
+    return np.asarray(outline(o).exterior.segmentize(step_m).coords)[:-1, :2]
 
 
 def obstacle_cloud(snapshot: Snapshot, style: Style, hdr: Any) -> Any:
@@ -180,7 +186,7 @@ def obstacles(snapshot: Snapshot, style: Style, hdr: Any) -> Any:
     return ros("nav2_dynamic_msgs/msg/ObstacleArray", header=hdr, obstacles=out)
 
 
-def _color(r: float, g: float, b: float, a: float = 1.0) -> Any:
+def _color(r: float, g: float, b: float, a: float) -> Any:
     return message_class("std_msgs/msg/ColorRGBA")(r=r, g=g, b=b, a=a)
 
 
@@ -206,20 +212,33 @@ class MarkerState:
         self._defaults = {**vars(ros("visualization_msgs/msg/Marker")), **self._unset}
         # And the constant poses, scales and colours of each kind of marker.
         self._origin = _pose(0, 0, 0)
-        self._outline = {"scale": _vector(0.03, 0, 0), "color": _color(0.1, 0.9, 0.2)}
-        self._label = {"scale": _vector(0, 0, 0.2), "color": _color(1, 1, 1)}
-        self._arrow = {"scale": _vector(0.05, 0.1, 0.1), "color": _color(1.0, 0.6, 0.0)}
+        self._outline, self._label, self._arrow = (
+            {"scale": _vector(*scale), "color": _color(*color)}
+            for scale, color in (OUTLINE_LOOK, LABEL_LOOK, ARROW_LOOK)
+        )
 
     def _marker(self, **fields: Any) -> Any:
         return message_class("visualization_msgs/msg/Marker")(**{**self._defaults, **fields})
 
+    def ended(self, snapshot: Snapshot) -> list[tuple[str, int]]:
+        """(namespace, id) of every marker shown before that `snapshot` no longer has, sorted (each
+        gets a DELETE); what is shown becomes `snapshot`'s markers. Both encoders of /drvs/markers
+        (markers() here, drvs.ros2.cdr) call it once a snapshot."""
+        now: set[tuple[str, int]] = set()
+        for o in snapshot.objects:
+            now |= {(self.outline_ns, o.track_id), (self.label_ns, o.track_id)}
+            if moving(o):
+                now.add((self.velocity_ns, o.track_id))
+        ended = sorted(self.shown - now)
+        self.shown = now
+        return ended
+
     def markers(self, snapshot: Snapshot, style: Style, hdr: Any) -> Any:
         marker = self._marker
         out = []
-        now: set[tuple[str, int]] = set()
         for o in snapshot.objects:
             h = style.height(o)
-            ring = [_point(x, y, 0.02) for x, y in _outline(o).exterior.coords]
+            ring = [_point(x, y, OUTLINE_Z_M) for x, y in outline(o).exterior.coords]
             out.append(
                 marker(header=hdr, ns=self.outline_ns, id=o.track_id, type=LINE_STRIP, action=ADD, pose=self._origin,
                        points=ring, **self._outline)
@@ -227,20 +246,28 @@ class MarkerState:
             cx, cy = o.centroid_xy
             out.append(
                 marker(header=hdr, ns=self.label_ns, id=o.track_id, type=TEXT_VIEW_FACING, action=ADD,
-                       pose=_pose(cx, cy, h + 0.1), text=f"#{o.track_id} {style.object_type(o)}", **self._label)
+                       pose=_pose(cx, cy, h + LABEL_RAISE_M), text=label_text(o.track_id, style.object_type(o)),
+                       **self._label)
             )  # fmt: skip
-            now |= {(self.outline_ns, o.track_id), (self.label_ns, o.track_id)}
-            if o.speed_mps > 0:
+            if moving(o):
                 vx, vy = o.velocity_xy
                 out.append(
                     marker(header=hdr, ns=self.velocity_ns, id=o.track_id, type=ARROW, action=ADD, pose=self._origin,
                            points=[_point(cx, cy, h / 2), _point(cx + vx, cy + vy, h / 2)], **self._arrow)
                 )  # fmt: skip
-                now.add((self.velocity_ns, o.track_id))
-        for ns, track_id in sorted(self.shown - now):
+        for ns, track_id in self.ended(snapshot):
             out.append(marker(header=hdr, ns=ns, id=track_id, action=DELETE))
-        self.shown = now
         return ros("visualization_msgs/msg/MarkerArray", markers=out)
+
+
+def moving(o: WorldObject) -> bool:
+    """Whether the object gets a velocity arrow."""
+    return o.speed_mps > 0
+
+
+def label_text(track_id: int, object_type: str) -> str:
+    """A label marker's text: "#<track id> <object type>"."""
+    return f"#{track_id} {object_type}"
 
 
 def diagnostics(snapshot: Snapshot, hdr: Any, name: str = "drvs") -> Any:

@@ -10,7 +10,7 @@ from __future__ import annotations
 from typing import Any
 
 from cyclonedds._clayer import ddspy_write  # the call DataWriter.write makes with what it serialized
-from cyclonedds.core import DDSException
+from cyclonedds.core import DDSException, Listener
 from cyclonedds.domain import DomainParticipant
 from cyclonedds.pub import DataWriter
 from cyclonedds.qos import Policy, Qos
@@ -18,7 +18,7 @@ from cyclonedds.sub import DataReader
 from cyclonedds.topic import Topic
 from cyclonedds.util import duration
 
-from drvs.ros2.types import dds_topic_name, idl, to_cdr
+from drvs.ros2.types import dds_topic_name, idl
 
 #: --qos: reliable (what ROS 2's default profile asks: a default and a sensor-data subscriber both
 #: match it) or sensor (best effort, as rclcpp's SensorDataQoS).
@@ -58,19 +58,25 @@ class Node:
             self._topics[name] = Topic(self.participant, name, idl(ros_type))
         return self._topics[name]
 
-    def writer(self, ros_topic: str, ros_type: str, profile: str = "reliable") -> DataWriter[Any]:
-        return DataWriter(self.participant, self._topic(ros_topic, ros_type), qos(profile))
+    def writer(
+        self, ros_topic: str, ros_type: str, profile: str = "reliable", listener: Listener | None = None
+    ) -> DataWriter[Any]:
+        return DataWriter(self.participant, self._topic(ros_topic, ros_type), qos(profile), listener)
 
     def reader(self, ros_topic: str, ros_type: str, profile: str = "reliable") -> DataReader[Any]:
         return DataReader(self.participant, self._topic(ros_topic, ros_type), qos(profile))
 
 
-def write(writer: DataWriter[Any], message: Any) -> None:
-    """Publish a message (drvs.ros2.types.ros(), or an IDL struct) on the writer's topic, serialized
-    once by to_cdr: rosbags' generated serializer is several times faster than Cyclone's Python one
-    and gives the same bytes. Padded to 4 bytes as DataWriter.write pads what it serializes."""
-    payload = to_cdr(message)
-    payload += bytes(-len(payload) % 4)
+def write_cdr(writer: DataWriter[Any], payload: bytes | bytearray) -> None:
+    """Publish a message already serialized as ROS 2 CDR (encapsulation header first: to_cdr,
+    drvs.ros2.cdr), handed to Cyclone as it is: what DataWriter.write does after serializing (with
+    Cyclone's pure-Python serializer, several times slower), padded to 4 bytes as it pads. A
+    bytearray is padded in place."""
+    if len(payload) % 4:
+        if isinstance(payload, bytearray):
+            payload += bytes(-len(payload) % 4)
+        else:
+            payload = payload + bytes(-len(payload) % 4)
     code = ddspy_write(writer._ref, payload)
     if code < 0:
         raise DDSException(code, f"writing on {writer.topic.name}")
