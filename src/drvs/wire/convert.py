@@ -325,7 +325,7 @@ def world_object_to_pb(
     names its cameras (`camera_index`) when it names none outside it. Both are what make a snapshot
     small: 8-9 B an object less than an absolute Timestamp, 2 B (one camera) to 7 B (two) less
     than the cameras' names. The centroid, bounds and velocity go as millimetre integers
-    (`geometry_mm`): about 30 B an object less than three messages of 32-bit floats.
+    (`geometry_mm`): about 27 B an object less than three messages of 32-bit floats.
 
     Filled field by field rather than through the constructor: the constructor copies each
     sub-message it is given, and a snapshot's objects were copied again into the snapshot and the
