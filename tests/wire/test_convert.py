@@ -18,6 +18,7 @@ from drvs.core.model import (
     Detection,
     DetectionReport,
     DetectionRequest,
+    FusionOptions,
     PixelBox,
     Snapshot,
     WorldObject,
@@ -348,9 +349,10 @@ def fused(*objects: WorldObject, time: float = T, cameras: tuple[str, ...] = ("c
     return Snapshot(time=time, objects=objects, camera_ids=cameras, sequence=17, final=False, request_id="track-1")
 
 
-def wire(snapshot: Snapshot, outlines: bool = True) -> detection_pb2.WorldSnapshot:
-    """What a robot reads: the server's encoding, serialised and parsed."""
-    data = snapshot_to_pb(snapshot, outlines).SerializeToString()
+def wire(snapshot: Snapshot, outlines: bool = True, compact: bool = True) -> detection_pb2.WorldSnapshot:
+    """What a robot reads: the server's encoding, serialised and parsed (`compact`: for a robot that
+    asked for geometry_mm, as every DrvsClient does)."""
+    data = snapshot_to_pb(snapshot, outlines, compact=compact).SerializeToString()
     return detection_pb2.WorldSnapshot.FromString(data)
 
 
@@ -527,6 +529,31 @@ def test_centroid_bounds_and_velocity_travel_as_millimetre_integers() -> None:
     as_floats.CopyFrom(msg)
     floats(as_floats.objects[0], o)
     assert as_floats.ByteSize() - msg.ByteSize() == 27
+
+
+def test_a_robot_that_did_not_ask_for_millimetre_integers_gets_floats() -> None:
+    """An older robot reads only the three messages: a request without compact_geometry gets them,
+    and this package reads them the same."""
+    o = world_object(1, 18.7013)
+    msg = wire(fused(o), compact=False)
+    pb = msg.objects[0]
+    assert not pb.geometry_mm and pb.HasField("bounds") and pb.HasField("centroid") and pb.HasField("velocity")
+    assert (pb.centroid.x, pb.centroid.y) == pytest.approx(o.centroid_xy, rel=1e-7)
+    assert msg.ByteSize() - wire(fused(o)).ByteSize() >= 20  # what geometry_mm saves: 26 B here
+    assert snapshot_from_pb(msg, "track-1").objects[0].centroid_xy == pytest.approx(o.centroid_xy, rel=1e-7)
+
+
+def test_the_request_says_whether_the_robot_reads_millimetre_integers() -> None:
+    """A DrvsClient's fused request says so on the wire; an older robot's FusionOptions (the flag
+    unset) reads back as not asking."""
+    req = dataclasses.replace(request(box_region(0, 0, 1, 1)), callback_address="", fusion=FusionOptions())
+    pb = request_to_pb(req)
+    assert pb.fusion.compact_geometry
+    back = request_from_pb(pb)
+    assert back.fusion is not None and back.fusion.compact_geometry
+    pb.fusion.compact_geometry = False
+    back = request_from_pb(pb)
+    assert back.fusion is not None and not back.fusion.compact_geometry
 
 
 @pytest.mark.parametrize(

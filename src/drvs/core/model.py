@@ -250,10 +250,14 @@ class FusionOptions:
       may still count. 0: the default (2 s single shot, one period continuous).
     - `drop_after_s`: continuous requests: a track no camera has seen for this long is dropped.
       0: the default (1 s).
+    - `compact_geometry`: the server may send centroids, bounds and velocities as millimetre
+      integers (`WorldObject.geometry_mm`), which this package reads; False for a request from a
+      robot that did not say so (an older one), which gets them as floats.
     """
 
     deadline_s: float = 0.0
     drop_after_s: float = 0.0
+    compact_geometry: bool = True
 
     def validate(self) -> None:
         for name, value, most in (

@@ -53,12 +53,14 @@ class DetectionRequest(_message.Message):
     def __init__(self, request_id: _Optional[str] = ..., robot_id: _Optional[str] = ..., filter_def: _Optional[str] = ..., region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., callback_address: _Optional[str] = ..., continuous: _Optional[_Union[ContinuousMode, _Mapping]] = ..., omit_outlines: bool = ..., report_secret: _Optional[bytes] = ..., report_key: _Optional[bytes] = ..., cancel: bool = ..., fusion: _Optional[_Union[FusionOptions, _Mapping]] = ..., report_to_server: bool = ..., frame: _Optional[str] = ..., report_address: _Optional[str] = ..., requester: _Optional[str] = ...) -> None: ...
 
 class FusionOptions(_message.Message):
-    __slots__ = ("deadline_s", "drop_after_s")
+    __slots__ = ("deadline_s", "drop_after_s", "compact_geometry")
     DEADLINE_S_FIELD_NUMBER: _ClassVar[int]
     DROP_AFTER_S_FIELD_NUMBER: _ClassVar[int]
+    COMPACT_GEOMETRY_FIELD_NUMBER: _ClassVar[int]
     deadline_s: float
     drop_after_s: float
-    def __init__(self, deadline_s: _Optional[float] = ..., drop_after_s: _Optional[float] = ...) -> None: ...
+    compact_geometry: bool
+    def __init__(self, deadline_s: _Optional[float] = ..., drop_after_s: _Optional[float] = ..., compact_geometry: bool = ...) -> None: ...
 
 class WorldObject(_message.Message):
     __slots__ = ("track_id", "outline_xy", "bounds", "centroid", "velocity", "heading_deg", "uncertainty_m", "camera_ids", "marker_id", "label", "score", "area_m2", "last_seen", "marker_heading_deg", "last_seen_age_s", "camera_index", "geometry_mm")

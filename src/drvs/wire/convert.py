@@ -149,7 +149,11 @@ def request_to_pb(
         omit_outlines=req.omit_outlines,
         fusion=None
         if req.fusion is None
-        else detection_pb2.FusionOptions(deadline_s=req.fusion.deadline_s, drop_after_s=req.fusion.drop_after_s),
+        else detection_pb2.FusionOptions(
+            deadline_s=req.fusion.deadline_s,
+            drop_after_s=req.fusion.drop_after_s,
+            compact_geometry=req.fusion.compact_geometry,
+        ),
         frame="" if req.frame == DEFAULT_FRAME else req.frame,
     )
 
@@ -165,7 +169,9 @@ def request_from_pb(msg: detection_pb2.DetectionRequest, *, require_request_id: 
         continuous=ContinuousMode(msg.continuous.rate_hz, msg.continuous.duration_s),
         omit_outlines=msg.omit_outlines,
         report_key=msg.report_key,
-        fusion=FusionOptions(msg.fusion.deadline_s, msg.fusion.drop_after_s) if msg.HasField("fusion") else None,
+        fusion=FusionOptions(msg.fusion.deadline_s, msg.fusion.drop_after_s, msg.fusion.compact_geometry)
+        if msg.HasField("fusion")
+        else None,
         report_to_server=msg.report_to_server,
         report_address=msg.report_address,
         frame=check_frame(msg.frame),
@@ -318,21 +324,24 @@ def world_object_to_pb(
     *,
     time: float = 0.0,
     cameras: Mapping[str, int] | None = None,
+    compact: bool = False,
 ) -> detection_pb2.WorldObject:
     """`into`: a message to fill in place (a snapshot's `objects.add()`), instead of a new one.
     `time`: the snapshot's time as its message carries it, which `last_seen` is said relative to;
     `cameras`: the position of each camera in the snapshot's `camera_ids`, by which the object
     names its cameras (`camera_index`) when it names none outside it. Both are what make a snapshot
     small: 8-9 B an object less than an absolute Timestamp, 2 B (one camera) to 7 B (two) less
-    than the cameras' names. The centroid, bounds and velocity go as millimetre integers
-    (`geometry_mm`): about 27 B an object less than three messages of 32-bit floats.
+    than the cameras' names. `compact` (the robot's request set `FusionOptions.compact_geometry`:
+    it reads them): the centroid, bounds and velocity go as millimetre integers (`geometry_mm`),
+    about 27 B an object less than three messages of 32-bit floats; else as those floats, which a
+    robot older than geometry_mm reads.
 
     Filled field by field rather than through the constructor: the constructor copies each
     sub-message it is given, and a snapshot's objects were copied again into the snapshot and the
     snapshot into its reply; together that was most of a fused request's conversion cost."""
     msg = detection_pb2.WorldObject() if into is None else into
     msg.track_id = o.track_id
-    geometry = _geometry_mm(o)
+    geometry = _geometry_mm(o) if compact else None
     if geometry is not None:
         msg.geometry_mm.extend(geometry)
     else:  # beyond what a millimetre integer holds: as 32-bit floats
@@ -450,9 +459,14 @@ def _object_name(name: str | int) -> str:
 
 
 def snapshot_to_pb(
-    s: Snapshot, outlines: bool = True, into: detection_pb2.WorldSnapshot | None = None
+    s: Snapshot,
+    outlines: bool = True,
+    into: detection_pb2.WorldSnapshot | None = None,
+    *,
+    compact: bool = False,
 ) -> detection_pb2.WorldSnapshot:
-    """`into`: a message to fill in place (a reply's `snapshot`, cleared first), instead of a new one to copy there."""
+    """`into`: a message to fill in place (a reply's `snapshot`, cleared first), instead of a new one
+    to copy there. `compact`: objects' geometry as millimetre integers (see world_object_to_pb)."""
     if into is None:
         msg = detection_pb2.WorldSnapshot()
     else:
@@ -464,7 +478,7 @@ def snapshot_to_pb(
     time = _seconds(msg, "time")  # as a reader will see it: ages count back from this
     cameras = {c: i for i, c in enumerate(s.camera_ids)}
     for o in s.objects:
-        world_object_to_pb(o, outlines, msg.objects.add(), time=time, cameras=cameras)
+        world_object_to_pb(o, outlines, msg.objects.add(), time=time, cameras=cameras, compact=compact)
     for m in s.camera_errors.values():
         msg.missing_cameras.add(camera_id=m.camera_id, code=m.code, message=m.message)
     msg.camera_ids.extend(s.camera_ids)
