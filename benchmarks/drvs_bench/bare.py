@@ -216,7 +216,7 @@ async def capture_snapshots(
         region=geometry_pb2.Region(box=geometry_pb2.Box(x_lower=x0, y_lower=y0, x_upper=x1, y_upper=y1)),
         continuous=detection_pb2.ContinuousMode(rate_hz=rate, duration_s=1.0),
         omit_outlines=True,
-        fusion=detection_pb2.FusionOptions(),
+        fusion=detection_pb2.FusionOptions(compact_geometry=True),  # as a DrvsClient asks
     )
     kept: list[detection_pb2.DetectionReply] = []
     async with _grpc.insecure_channel(server) as channel:

@@ -88,3 +88,24 @@ def test_camera_errors_is_the_same_thing_on_a_detection_result() -> None:
     result = DetectionResult("r1", ("c1", "c2"), skipped={"c3": GONE})
     assert set(result.camera_errors) == {"c1", "c2", "c3"} and result.camera_errors["c3"] == GONE
     assert result.missing_cameras == set(result.camera_errors)
+
+
+def test_a_world_object_holds_each_argument_in_its_field() -> None:
+    # Its __init__ writes each field by name: a field added to the class and not to it fails here.
+    values = (
+        7, box(0, 0, 1, 1), (0.0, 0.0, 1.0, 1.0), (0.5, 0.5), (0.25, -0.5), 30.0, 0.03, ("cam1",), 12.5, 4, -90.0,
+        "marker", 0.9, 1.0,
+    )  # fmt: skip
+    obj = WorldObject(*values)
+    assert dataclasses.astuple(obj) == values
+    assert dataclasses.replace(obj) == obj and hash(dataclasses.replace(obj)) == hash(obj)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        obj.track_id = 8
+
+
+def test_a_snapshot_holds_each_argument_in_its_field() -> None:
+    errors = {"c2": LATE}
+    values = (12.5, (moving(),), errors, ("c1",), 3, False, "track-1", (box(0, 0, 1, 1),))
+    snapshot = Snapshot(*values)
+    assert tuple(getattr(snapshot, f.name) for f in dataclasses.fields(Snapshot)) == values
+    assert dataclasses.replace(snapshot) == snapshot

@@ -16,6 +16,7 @@ from drvs.robot import DrvsClient
 from drvs.sim.scene import RecordedCamera
 from drvs.tools.launch import start_server
 from drvs.v1 import detection_pb2
+from drvs.wire.convert import snapshot_from_pb
 from tests.fakes import start_recorded_camera
 from tests.helpers import CAM1_SEEN, YELLOW
 from tests.ros2.test_ros2 import STORE, TOPICS
@@ -86,14 +87,15 @@ def check_conversion(path: Path, count: int) -> None:
         assert objects.header.frame_id == "map"  # type: ignore[attr-defined]
         detections = objects.detections  # type: ignore[attr-defined]
         assert [d.id for d in detections] == [str(o.track_id) for o in snap.objects]
-        for d, o in zip(detections, snap.objects, strict=True):
+        read = snapshot_from_pb(snap).objects
+        for d, o in zip(detections, read, strict=True):
             position = d.results[0].pose.pose.position
-            assert (position.x, position.y) == (pytest.approx(o.centroid.x), pytest.approx(o.centroid.y))
+            assert (position.x, position.y) == (pytest.approx(o.centroid_xy[0]), pytest.approx(o.centroid_xy[1]))
             assert d.results[0].hypothesis.class_id == YELLOW  # no label: the request's filter
             assert d.results[0].hypothesis.score == pytest.approx(o.score)
         obstacles = tracks.obstacles  # type: ignore[attr-defined]
         assert [(ob.velocity.x, ob.velocity.y) for ob in obstacles] == [
-            (pytest.approx(o.velocity.x), pytest.approx(o.velocity.y)) for o in snap.objects
+            (pytest.approx(o.velocity_xy[0]), pytest.approx(o.velocity_xy[1])) for o in read
         ]
         outlines = {m.id for m in markers.markers if m.ns == f"drvs/outline/{reply.request_id}"}  # type: ignore[attr-defined]
         assert outlines == {o.track_id for o in snap.objects}

@@ -148,8 +148,12 @@ def cameras_of(snapshot: detection_pb2.WorldSnapshot, obj: detection_pb2.WorldOb
     return list(obj.camera_ids) or [snapshot.camera_ids[i] for i in obj.camera_index]
 
 
-def near(objects: Any, xy: tuple[float, float], within: float = 0.25) -> list[detection_pb2.WorldObject]:
-    return [o for o in objects if math.dist((o.centroid.x, o.centroid.y), xy) < within]
+def near(
+    snapshot: detection_pb2.WorldSnapshot, xy: tuple[float, float], within: float = 0.25
+) -> list[detection_pb2.WorldObject]:
+    """The snapshot's objects whose centroid (as a robot reads it) lies within `within` of `xy`."""
+    read = snapshot_from_pb(snapshot).objects
+    return [pb for pb, o in zip(snapshot.objects, read, strict=True) if math.dist(o.centroid_xy, xy) < within]
 
 
 def missing(snapshot: detection_pb2.WorldSnapshot) -> dict[str, str]:
@@ -181,7 +185,17 @@ async def test_two_overlapping_cameras_seeing_one_box_give_one_object(office: Sc
         bare = fused("three")
         bare.omit_outlines = True
         lean = await stub.DetectObjects(bare, timeout=20)
+        current = fused("four")
+        current.fusion.compact_geometry = True  # as a DrvsClient asks
+        compact = await stub.DetectObjects(current, timeout=20)
         call.cancel()
+    # A robot that did not say it reads millimetre integers (an older one) gets the three messages
+    # of floats it reads; one that did gets geometry_mm, the same places within a millimetre.
+    assert all(o.HasField("centroid") and not o.geometry_mm for o in unary.snapshot.objects)
+    assert all(len(o.geometry_mm) == 8 and not o.HasField("centroid") for o in compact.snapshot.objects)
+    for xy in (SHARED, LONE):
+        [old], [new] = near(unary.snapshot, xy), near(compact.snapshot, xy)
+        assert math.dist((old.centroid.x, old.centroid.y), [v / 1000 for v in new.geometry_mm[:2]]) < 0.002
     # A robot that asks for no outlines gets none, and the same two objects.
     assert len(lean.snapshot.objects) == 2 and all(not o.outline_xy for o in lean.snapshot.objects)
     for answer in (reply, unary):
@@ -190,9 +204,9 @@ async def test_two_overlapping_cameras_seeing_one_box_give_one_object(office: Sc
         assert answer.HasField("snapshot") and snapshot.final and snapshot.sequence == 0
         assert sorted(snapshot.camera_ids) == ["left", "right"] and not snapshot.missing_cameras
         assert len(snapshot.objects) == 2, snapshot.objects
-        [shared] = near(snapshot.objects, SHARED)
+        [shared] = near(snapshot, SHARED)
         assert sorted(cameras_of(snapshot, shared)) == ["left", "right"]
-        [lone] = near(snapshot.objects, LONE)
+        [lone] = near(snapshot, LONE)
         assert cameras_of(snapshot, lone) == ["left"]
         assert len(shared.outline_xy) >= 6
         # When each object was last seen travels as its age before the snapshot's time.
@@ -219,8 +233,8 @@ async def test_continuous_fused_request_tracks_at_its_rate_and_ends_final(office
     assert 0.1 < gaps[len(gaps) // 2] < 0.3, gaps  # the median period: the rate asked for
     ids = []
     for s in shots[1:]:  # the first period may come before both cameras' first look
-        [shared] = near(s.objects, SHARED)
-        [lone] = near(s.objects, LONE)
+        [shared] = near(s, SHARED)
+        [lone] = near(s, LONE)
         assert len(s.objects) == 2 and shared.track_id != lone.track_id
         ids.append((shared.track_id, lone.track_id))
     assert len(set(ids)) == 1, ids  # stable track ids
@@ -244,8 +258,8 @@ async def test_a_camera_killed_mid_request_is_missing_and_holds_back_nobody(offi
     # Silent for more than a period (0.2 s) and the grace (0.2 s): missing from then on.
     assert [missing(s) for s in after[-5:]] == [{"right": "DEADLINE_EXCEEDED"}] * 5
     for s in after[-5:]:
-        assert list(s.camera_ids) == ["left"] and near(s.objects, LONE)
-        [shared] = near(s.objects, SHARED)
+        assert list(s.camera_ids) == ["left"] and near(s, LONE)
+        [shared] = near(s, SHARED)
         assert cameras_of(s, shared) == ["left"]
 
 
@@ -298,7 +312,7 @@ async def test_a_waiting_fused_single_shot_does_not_delay_later_replies(office: 
         call.cancel()
     assert first.request_id == "later" and list(first.camera_ids) == ["left"] and not first.HasField("snapshot")
     assert second.request_id == "slow" and second.snapshot.final
-    assert "right" in missing(second.snapshot) and near(second.snapshot.objects, LONE)
+    assert "right" in missing(second.snapshot) and near(second.snapshot, LONE)
 
 
 async def dropped_at_least(ports: dict[str, int], count: int) -> None:
@@ -436,11 +450,11 @@ async def test_injected_reports_do_not_count(office: Scene) -> None:
     assert cancelled == [victim_id] * 4
     victim = [r.snapshot for r in replies if r.request_id == "victim"]
     assert len(victim) == 11 and victim[-1].final
-    assert all(not near(s.objects, fake, 0.3) for s in victim)
+    assert all(not near(s, fake, 0.3) for s in victim)
     assert all(set(cameras_of(s, o)) <= {"left", "right"} for s in victim for o in s.objects)
     [lured] = [r for r in replies if r.request_id == "lure"]
     assert [cameras_of(lured.snapshot, o) for o in lured.snapshot.objects] == [["evil"]]
-    assert near(lured.snapshot.objects, (21.0, 4.0))
+    assert near(lured.snapshot, (21.0, 4.0))
     values = await scrape(metrics_port(office.server))
     assert values['drvs_fusion_reports_total{outcome="rejected"}'] == 4.0
 

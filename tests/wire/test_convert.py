@@ -18,6 +18,7 @@ from drvs.core.model import (
     Detection,
     DetectionReport,
     DetectionRequest,
+    FusionOptions,
     PixelBox,
     Snapshot,
     WorldObject,
@@ -348,15 +349,19 @@ def fused(*objects: WorldObject, time: float = T, cameras: tuple[str, ...] = ("c
     return Snapshot(time=time, objects=objects, camera_ids=cameras, sequence=17, final=False, request_id="track-1")
 
 
-def wire(snapshot: Snapshot, outlines: bool = True) -> detection_pb2.WorldSnapshot:
-    """What a robot reads: the server's encoding, serialised and parsed."""
-    data = snapshot_to_pb(snapshot, outlines).SerializeToString()
+def wire(snapshot: Snapshot, outlines: bool = True, compact: bool = True) -> detection_pb2.WorldSnapshot:
+    """What a robot reads: the server's encoding, serialised and parsed (`compact`: for a robot that
+    asked for geometry_mm, as every DrvsClient does)."""
+    data = snapshot_to_pb(snapshot, outlines, compact=compact).SerializeToString()
     return detection_pb2.WorldSnapshot.FromString(data)
 
 
-def old_style(msg: detection_pb2.WorldSnapshot, snapshot: Snapshot) -> detection_pb2.WorldSnapshot:
+def old_style(
+    msg: detection_pb2.WorldSnapshot, snapshot: Snapshot, geometry: bool = True
+) -> detection_pb2.WorldSnapshot:
     """`msg` as a server before last_seen_age_s and camera_index wrote it: each object's absolute
-    last_seen and its cameras' names."""
+    last_seen and its cameras' names; `geometry`: and before geometry_mm, its bounds, centroid and
+    velocity as 32-bit floats."""
     old = detection_pb2.WorldSnapshot()
     old.CopyFrom(msg)
     for pb, o in zip(old.objects, snapshot.objects, strict=True):
@@ -365,7 +370,17 @@ def old_style(msg: detection_pb2.WorldSnapshot, snapshot: Snapshot) -> detection
         pb.camera_ids.extend(o.camera_ids)
         if o.last_seen:
             pb.last_seen.FromNanoseconds(round(o.last_seen * 1e9))
+        if geometry:
+            floats(pb, o)
     return old
+
+
+def floats(pb: detection_pb2.WorldObject, o: WorldObject) -> None:
+    """`pb`'s bounds, centroid and velocity as three messages of 32-bit floats, no geometry_mm."""
+    pb.ClearField("geometry_mm")
+    pb.bounds.x_lower, pb.bounds.y_lower, pb.bounds.x_upper, pb.bounds.y_upper = o.bounds
+    pb.centroid.x, pb.centroid.y = o.centroid_xy
+    pb.velocity.x, pb.velocity.y = o.velocity_xy
 
 
 def assert_same(got: Snapshot, sent: Snapshot, within_s: float) -> None:
@@ -457,6 +472,7 @@ def test_a_current_object_reads_with_its_snapshot_only() -> None:
         ({"last_seen_age_s": -0.5}, r"snapshot.objects\[1\].last_seen_age_s: -0.5 must be a finite number"),
         ({"last_seen_age_s": math.nan}, r"snapshot.objects\[1\].last_seen_age_s: nan must be a finite number"),
         ({"last_seen_age_s": math.inf}, r"snapshot.objects\[1\].last_seen_age_s: inf must be a finite number"),
+        ({"geometry_mm": [1, 2, 3]}, r"snapshot.objects\[1\].geometry_mm: 3 values; there must be 8 or none"),
     ],
 )
 def test_a_malformed_object_is_refused_naming_the_field(change: dict[str, object], message: str) -> None:
@@ -480,7 +496,7 @@ def test_a_three_object_two_camera_snapshot_is_48_bytes_smaller() -> None:
     time = 1_712_345_678.875
     snapshot = fused(*(world_object(i + 1, 2.0 * i, last_seen=time - 0.0166 - 0.01 * i) for i in range(3)), time=time)
     new = wire(snapshot, outlines=False)
-    old = old_style(new, snapshot)
+    old = old_style(new, snapshot, geometry=False)
     assert all(o.last_seen.nanos >= 2**28 for o in old.objects)  # 5 varint bytes each
     assert old.ByteSize() - new.ByteSize() == 3 * (9 + 7) == 48
     # The same on the robot's stream, and the same objects either way.
@@ -488,3 +504,72 @@ def test_a_three_object_two_camera_snapshot_is_48_bytes_smaller() -> None:
     new_reply = detection_pb2.DetectionReply(request_id="track-1", snapshot=new)
     assert old_reply.ByteSize() - new_reply.ByteSize() == 48
     assert_same(snapshot_from_pb(new), snapshot_from_pb(old), 1e-6)
+
+
+def test_centroid_bounds_and_velocity_travel_as_millimetre_integers() -> None:
+    """Eight zig-zag varints (the bounds less the centroid), not three messages of floats: 27 B an
+    object less here (field 17's tag is 2 B), each value within half a millimetre."""
+    o = dataclasses.replace(
+        world_object(1, 18.7013),
+        bounds=(18.7013, -4.19595, 19.2977, 4.80298),
+        centroid_xy=(18.99867, 4.49879),
+        velocity_xy=(0.0037, -0.01283),
+    )
+    msg = wire(fused(o))
+    pb = msg.objects[0]
+    assert list(pb.geometry_mm) == [18999, 4499, -298, -8695, 299, 304, 4, -13]
+    assert not (pb.HasField("bounds") or pb.HasField("centroid") or pb.HasField("velocity"))
+    got = snapshot_from_pb(msg, "track-1").objects[0]
+    assert got.centroid_xy == (18.999, 4.499) and got.velocity_xy == (0.004, -0.013)
+    assert got.bounds == (18.701, -4.196, 19.298, 4.803)
+    sent = (*o.bounds, *o.centroid_xy, *o.velocity_xy)
+    assert max(abs(a - b) for a, b in zip((*got.bounds, *got.centroid_xy, *got.velocity_xy), sent, strict=True)) <= 5e-4
+    assert dataclasses.replace(got, bounds=o.bounds, centroid_xy=o.centroid_xy, velocity_xy=o.velocity_xy) == o
+    as_floats = detection_pb2.WorldSnapshot()
+    as_floats.CopyFrom(msg)
+    floats(as_floats.objects[0], o)
+    assert as_floats.ByteSize() - msg.ByteSize() == 27
+
+
+def test_a_robot_that_did_not_ask_for_millimetre_integers_gets_floats() -> None:
+    """An older robot reads only the three messages: a request without compact_geometry gets them,
+    and this package reads them the same."""
+    o = world_object(1, 18.7013)
+    msg = wire(fused(o), compact=False)
+    pb = msg.objects[0]
+    assert not pb.geometry_mm and pb.HasField("bounds") and pb.HasField("centroid") and pb.HasField("velocity")
+    assert (pb.centroid.x, pb.centroid.y) == pytest.approx(o.centroid_xy, rel=1e-7)
+    assert msg.ByteSize() - wire(fused(o)).ByteSize() >= 20  # what geometry_mm saves: 26 B here
+    assert snapshot_from_pb(msg, "track-1").objects[0].centroid_xy == pytest.approx(o.centroid_xy, rel=1e-7)
+
+
+def test_the_request_says_whether_the_robot_reads_millimetre_integers() -> None:
+    """A DrvsClient's fused request says so on the wire; an older robot's FusionOptions (the flag
+    unset) reads back as not asking."""
+    req = dataclasses.replace(request(box_region(0, 0, 1, 1)), callback_address="", fusion=FusionOptions())
+    pb = request_to_pb(req)
+    assert pb.fusion.compact_geometry
+    back = request_from_pb(pb)
+    assert back.fusion is not None and back.fusion.compact_geometry
+    pb.fusion.compact_geometry = False
+    back = request_from_pb(pb)
+    assert back.fusion is not None and not back.fusion.compact_geometry
+
+
+@pytest.mark.parametrize(
+    "change",
+    [
+        {"centroid_xy": (2_200_000.0, 2.25)},  # past 2 000 km: no sint32 of millimetres holds it
+        {"bounds": (1.0, 2.0, 1.5, math.inf)},
+        {"velocity_xy": (math.nan, 0.0)},
+    ],
+)
+def test_a_value_no_millimetre_integer_holds_travels_as_floats(change: dict[str, object]) -> None:
+    o = dataclasses.replace(world_object(1, 1.0), **change)
+    msg = wire(fused(o))
+    pb = msg.objects[0]
+    assert not pb.geometry_mm and pb.HasField("bounds") and pb.HasField("centroid") and pb.HasField("velocity")
+    got = snapshot_from_pb(msg, "track-1").objects[0]
+    sent = (*o.bounds, *o.centroid_xy, *o.velocity_xy)
+    for a, b in zip((*got.bounds, *got.centroid_xy, *got.velocity_xy), sent, strict=True):
+        assert a == b or (math.isnan(a) and math.isnan(b)) or abs(a - b) <= 1e-7 * abs(b)

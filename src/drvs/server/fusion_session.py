@@ -126,6 +126,8 @@ class FusionSession:
         self._settled = False
         self.ended = False
         self.outlines = not request.omit_outlines
+        #: the robot reads geometry as millimetre integers (an older one asked without saying so)
+        self.compact = request.fusion is not None and request.fusion.compact_geometry
         self._init()
 
     def _init(self) -> None:
@@ -303,7 +305,7 @@ class SingleShot(FusionSession):
                 final=True,
                 request_id=self.request_id,
             )
-            snapshot_to_pb(snapshot, self.outlines, into=reply.snapshot)  # in place: no copy
+            snapshot_to_pb(snapshot, self.outlines, into=reply.snapshot, compact=self.compact)  # in place: no copy
         except Exception:
             log.exception("fused request %s: making its snapshot failed", self.request_id)
             reply = refusal(self.request_id, grpc.StatusCode.INTERNAL, FUSING_FAILED)
@@ -481,7 +483,7 @@ class Continuous(FusionSession):
             request_id=self.request_id,
         )
         reply = detection_pb2.DetectionReply(request_id=self.request_id)
-        snapshot_to_pb(snapshot, self.outlines, into=reply.snapshot)  # in place: no copy
+        snapshot_to_pb(snapshot, self.outlines, into=reply.snapshot, compact=self.compact)  # in place: no copy
         self._deliver(reply, last=final)
 
     def _track(self, reports: Sequence[DetectionReport], at: float) -> list[WorldObject]:

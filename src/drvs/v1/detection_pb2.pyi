@@ -53,15 +53,17 @@ class DetectionRequest(_message.Message):
     def __init__(self, request_id: _Optional[str] = ..., robot_id: _Optional[str] = ..., filter_def: _Optional[str] = ..., region: _Optional[_Union[_geometry_pb2.Region, _Mapping]] = ..., callback_address: _Optional[str] = ..., continuous: _Optional[_Union[ContinuousMode, _Mapping]] = ..., omit_outlines: bool = ..., report_secret: _Optional[bytes] = ..., report_key: _Optional[bytes] = ..., cancel: bool = ..., fusion: _Optional[_Union[FusionOptions, _Mapping]] = ..., report_to_server: bool = ..., frame: _Optional[str] = ..., report_address: _Optional[str] = ..., requester: _Optional[str] = ...) -> None: ...
 
 class FusionOptions(_message.Message):
-    __slots__ = ("deadline_s", "drop_after_s")
+    __slots__ = ("deadline_s", "drop_after_s", "compact_geometry")
     DEADLINE_S_FIELD_NUMBER: _ClassVar[int]
     DROP_AFTER_S_FIELD_NUMBER: _ClassVar[int]
+    COMPACT_GEOMETRY_FIELD_NUMBER: _ClassVar[int]
     deadline_s: float
     drop_after_s: float
-    def __init__(self, deadline_s: _Optional[float] = ..., drop_after_s: _Optional[float] = ...) -> None: ...
+    compact_geometry: bool
+    def __init__(self, deadline_s: _Optional[float] = ..., drop_after_s: _Optional[float] = ..., compact_geometry: bool = ...) -> None: ...
 
 class WorldObject(_message.Message):
-    __slots__ = ("track_id", "outline_xy", "bounds", "centroid", "velocity", "heading_deg", "uncertainty_m", "camera_ids", "marker_id", "label", "score", "area_m2", "last_seen", "marker_heading_deg", "last_seen_age_s", "camera_index")
+    __slots__ = ("track_id", "outline_xy", "bounds", "centroid", "velocity", "heading_deg", "uncertainty_m", "camera_ids", "marker_id", "label", "score", "area_m2", "last_seen", "marker_heading_deg", "last_seen_age_s", "camera_index", "geometry_mm")
     TRACK_ID_FIELD_NUMBER: _ClassVar[int]
     OUTLINE_XY_FIELD_NUMBER: _ClassVar[int]
     BOUNDS_FIELD_NUMBER: _ClassVar[int]
@@ -78,6 +80,7 @@ class WorldObject(_message.Message):
     MARKER_HEADING_DEG_FIELD_NUMBER: _ClassVar[int]
     LAST_SEEN_AGE_S_FIELD_NUMBER: _ClassVar[int]
     CAMERA_INDEX_FIELD_NUMBER: _ClassVar[int]
+    GEOMETRY_MM_FIELD_NUMBER: _ClassVar[int]
     track_id: int
     outline_xy: _containers.RepeatedScalarFieldContainer[float]
     bounds: _geometry_pb2.FloorBox
@@ -94,7 +97,8 @@ class WorldObject(_message.Message):
     marker_heading_deg: float
     last_seen_age_s: float
     camera_index: _containers.RepeatedScalarFieldContainer[int]
-    def __init__(self, track_id: _Optional[int] = ..., outline_xy: _Optional[_Iterable[float]] = ..., bounds: _Optional[_Union[_geometry_pb2.FloorBox, _Mapping]] = ..., centroid: _Optional[_Union[_geometry_pb2.FloorPoint, _Mapping]] = ..., velocity: _Optional[_Union[_geometry_pb2.FloorPoint, _Mapping]] = ..., heading_deg: _Optional[float] = ..., uncertainty_m: _Optional[float] = ..., camera_ids: _Optional[_Iterable[str]] = ..., marker_id: _Optional[int] = ..., label: _Optional[str] = ..., score: _Optional[float] = ..., area_m2: _Optional[float] = ..., last_seen: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., marker_heading_deg: _Optional[float] = ..., last_seen_age_s: _Optional[float] = ..., camera_index: _Optional[_Iterable[int]] = ...) -> None: ...
+    geometry_mm: _containers.RepeatedScalarFieldContainer[int]
+    def __init__(self, track_id: _Optional[int] = ..., outline_xy: _Optional[_Iterable[float]] = ..., bounds: _Optional[_Union[_geometry_pb2.FloorBox, _Mapping]] = ..., centroid: _Optional[_Union[_geometry_pb2.FloorPoint, _Mapping]] = ..., velocity: _Optional[_Union[_geometry_pb2.FloorPoint, _Mapping]] = ..., heading_deg: _Optional[float] = ..., uncertainty_m: _Optional[float] = ..., camera_ids: _Optional[_Iterable[str]] = ..., marker_id: _Optional[int] = ..., label: _Optional[str] = ..., score: _Optional[float] = ..., area_m2: _Optional[float] = ..., last_seen: _Optional[_Union[datetime.datetime, _timestamp_pb2.Timestamp, _Mapping]] = ..., marker_heading_deg: _Optional[float] = ..., last_seen_age_s: _Optional[float] = ..., camera_index: _Optional[_Iterable[int]] = ..., geometry_mm: _Optional[_Iterable[int]] = ...) -> None: ...
 
 class WorldSnapshot(_message.Message):
     __slots__ = ("time", "sequence", "final", "objects", "missing_cameras", "camera_ids")
