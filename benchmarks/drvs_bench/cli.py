@@ -65,8 +65,11 @@ def paper_main(args: argparse.Namespace) -> int:
 def service_main(args: argparse.Namespace) -> int:
     from .service import run_service
 
+    if args.rounds < 0:
+        print("drvs-bench service: --rounds must be >= 0 (0: the default)", file=sys.stderr)
+        return 2
     out = out_dir(args.out)
-    result = asyncio.run(run_service(out, args.quick))
+    result = asyncio.run(run_service(out, args.quick, args.rounds))
     # The medians (every figure's spread and rounds are in service.json) and the verdicts.
     keys = [
         k
@@ -138,6 +141,7 @@ def main(argv: list[str] | None = None) -> int:
     p.set_defaults(func=paper_main)
     s = sub.add_parser("service", help="DRVS's own latency, routing throughput, lookup scaling, CPU and memory")
     s.add_argument("--quick", action="store_true", help="a smoke run: 3 interleaved rounds of short runs (full: 5)")
+    s.add_argument("--rounds", type=int, default=0, help="override the number of interleaved rounds")
     s.add_argument("--out", type=Path, default=None)
     s.set_defaults(func=service_main)
     d = sub.add_parser("detectors", help="each detector's ms per frame, camera CPU at 10 requests/s, memory, accuracy")

@@ -3,7 +3,7 @@ in the same run on the same machine: this machine is shared and noisy.
 
 The comparisons (DRVS latency against its floor, routing against an echo and a bare proxy, a
 registry lookup at 10 000 against 100 cameras, camera CPU at 200 against 20 requests a second)
-run interleaved, mode by mode, for stats.FULL_ROUNDS rounds (QUICK_ROUNDS with --quick). Each
+run interleaved, mode by mode, for stats.FULL_ROUNDS rounds (QUICK_ROUNDS with --quick; --rounds N). Each
 figure and each ratio (taken within a round) is published as its median (under its old key, and
 `_median`), its spread ([min, max], `_spread`) and every round's value (`_runs`). Each run's work
 is counted and checked: a request that was refused, answered `busy`, reported an error or missed
@@ -160,7 +160,7 @@ def check_latency_run(name: str, run: dict[str, Any]) -> None:
     )
 
 
-async def measure_latency(quick: bool, out: dict[str, Any]) -> None:
+async def measure_latency(quick: bool, out: dict[str, Any], n_rounds: int) -> None:
     with tempfile.TemporaryDirectory(prefix="drvs-bench-") as tmp:
         scene = record_scene(Path(tmp), cameras=3)
         procs: list[ManagedProcess] = []
@@ -201,10 +201,10 @@ async def measure_latency(quick: bool, out: dict[str, Any]) -> None:
             )
             seconds = 2.0 if quick else 10.0
             n = int(LATENCY_RATE * seconds)
-            per_round: list[dict[str, Any]] = [{} for _ in range(rounds(quick))]
+            per_round: list[dict[str, Any]] = [{} for _ in range(n_rounds)]
             pooled: dict[str, dict[str, list[float]]] = {"drvs": {}, "drvs_moving": {}}
             modes = ("drvs", "drvs_moving", "bare", "bare_back_to_back")
-            for r, mode in interleaved(modes, rounds(quick)):
+            for r, mode in interleaved(modes, n_rounds):
                 fig = per_round[r]
                 rate_arg = str(LATENCY_RATE)
                 if mode in ("drvs", "drvs_moving"):
@@ -297,7 +297,7 @@ async def measure_latency(quick: bool, out: dict[str, Any]) -> None:
             rate_key = f"{LATENCY_RATE:g}"
             # 30 Hz: every round's requests pooled (each round's work was checked: none missing).
             runs[rate_key] = entry(LATENCY_RATE, pooled["drvs"]["first"], pooled["drvs"]["last"], LATENCY_RATE, 0)
-            runs[rate_key]["rounds"] = rounds(quick)
+            runs[rate_key]["rounds"] = n_rounds
             moving = pooled["drvs_moving"]
             out["latency_moving"] = {rate_key: entry(LATENCY_RATE, moving["first"], moving["last"], LATENCY_RATE, 0)}
             # The rates above: one run each, to find the highest rate sustained (a capacity search:
@@ -334,7 +334,7 @@ ROUTING_MODES = (
 )
 
 
-async def measure_routing(quick: bool, out: dict[str, Any]) -> None:
+async def measure_routing(quick: bool, out: dict[str, Any], n_rounds: int) -> None:
     cameras = 1000
     seconds = "1.5" if quick else "8"
     procs: list[ManagedProcess] = []
@@ -358,10 +358,10 @@ async def measure_routing(quick: bool, out: dict[str, Any]) -> None:
             await run_helper("load-warmup", "routing-load", "--target", target, "--seconds", "3" if quick else "6")
         await run_helper("register", "register", "--server", address, "--camera-address", ack_address,
                          "--count", str(cameras))  # fmt: skip
-        per_round: list[dict[str, float]] = [{} for _ in range(rounds(quick))]
+        per_round: list[dict[str, float]] = [{} for _ in range(n_rounds)]
         errors = 0
         # --quick runs the unary modes (reference figures) in one round only.
-        plan = list(interleaved(ROUTING_MODES, rounds(quick)))
+        plan = list(interleaved(ROUTING_MODES, n_rounds))
         if quick:
             plan = [(r, m) for r, m in plan if m[2] == "stream" or r == 0]
         for r, (name, target, mode, moving) in plan:
@@ -379,7 +379,7 @@ async def measure_routing(quick: bool, out: dict[str, Any]) -> None:
             if run["calls"] <= 0:
                 raise WorkMismatch(f"routing {name}, round {r + 1}: no request completed")
             per_round[r][name] = run["rps"]
-        routing: dict[str, Any] = {"registered_cameras": cameras, "cameras_per_request": 1, "rounds": rounds(quick)}
+        routing: dict[str, Any] = {"registered_cameras": cameras, "cameras_per_request": 1, "rounds": n_rounds}
         for name, *_ in ROUTING_MODES:
             publish(routing, f"{name}_rps", [f[name] for f in per_round if name in f])
         routing["errors"] = errors
@@ -411,7 +411,7 @@ async def measure_routing(quick: bool, out: dict[str, Any]) -> None:
             await p.stop()
 
 
-def measure_lookup(quick: bool, out: dict[str, Any]) -> None:
+def measure_lookup(quick: bool, out: dict[str, Any], n_rounds: int) -> None:
     from drvs.core.geometry import homography_from_pose
 
     h_cache = {}
@@ -427,8 +427,8 @@ def measure_lookup(quick: bool, out: dict[str, Any]) -> None:
             registry.register(f"c{i}", "127.0.0.1:9", h_cache[key], (640, 480), {"hsv"}, 6.0)
         registry.cameras_seeing(box(0, 0, 1, 1))  # builds the index
         registries[count] = registry
-    per_round: list[dict[int, float]] = [{} for _ in range(rounds(quick))]
-    for r, count in interleaved(counts, rounds(quick)):
+    per_round: list[dict[int, float]] = [{} for _ in range(n_rounds)]
+    for r, count in interleaved(counts, n_rounds):
         registry = registries[count]
         repeats = 4
         # New region objects every time: this measures the index, not the registry's memory of
@@ -454,7 +454,7 @@ CAMERA_MODES = (("idle", 0.0, False), ("20", 20.0, False), ("200", 200.0, False)
                 ("20_moving", 20.0, True), ("200_moving", 200.0, True))  # fmt: skip
 
 
-async def measure_camera_cpu(quick: bool, out: dict[str, Any]) -> None:
+async def measure_camera_cpu(quick: bool, out: dict[str, Any], n_rounds: int) -> None:
     seconds = 1.5 if quick else 10.0
     with tempfile.TemporaryDirectory(prefix="drvs-bench-") as tmp:
         rec = record_scene(Path(tmp), cameras=1)["cam1"]
@@ -464,13 +464,13 @@ async def measure_camera_cpu(quick: bool, out: dict[str, Any]) -> None:
             procs.append(server)
             cam = await start_camera("cam1", rec.video, rec.homography_file, address, "--max-range", "6")
             procs.append(cam)
-            per_round: list[dict[str, dict[str, float]]] = [{} for _ in range(rounds(quick))]
+            per_round: list[dict[str, dict[str, float]]] = [{} for _ in range(n_rounds)]
             counter = 1_000_000
             async with DrvsClient(address, listen="127.0.0.1:0") as client:
                 for w in range(WARMUP_REQUESTS):
                     await client.detect(moving_filter(w), ALL_REGION)
                 loop = asyncio.get_running_loop()
-                for r, (name, rate, moving) in interleaved(CAMERA_MODES, rounds(quick)):
+                for r, (name, rate, moving) in interleaved(CAMERA_MODES, n_rounds):
                     c0, t0 = cpu_seconds(cam.pid), loop.time()
                     n = int(rate * seconds)
                     if n == 0:  # the idle camera: it reads and decodes frames, no request comes
@@ -533,7 +533,8 @@ async def measure_camera_cpu(quick: bool, out: dict[str, Any]) -> None:
                 await p.stop()
 
 
-async def measure_server_memory(quick: bool, out: dict[str, Any]) -> None:
+async def measure_server_memory(quick: bool, out: dict[str, Any], n_rounds: int) -> None:
+    """n_rounds: unused (one registration run), as the other steps take it."""
     count = 2000 if quick else 10000
     procs: list[ManagedProcess] = []
     try:
@@ -558,8 +559,10 @@ async def measure_server_memory(quick: bool, out: dict[str, Any]) -> None:
             await p.stop()
 
 
-async def run_service(out_dir: Path, quick: bool) -> dict[str, Any]:
-    result: dict[str, Any] = {"benchmark": "service", "quick": quick, "rounds": rounds(quick)}
+async def run_service(out_dir: Path, quick: bool, n_rounds: int = 0) -> dict[str, Any]:
+    """n_rounds: the interleaved rounds of every comparison (0: --quick's or the full run's)."""
+    n_rounds = n_rounds or rounds(quick)
+    result: dict[str, Any] = {"benchmark": "service", "quick": quick, "rounds": n_rounds}
     steps = (
         ("latency", measure_latency),
         ("routing", measure_routing),
@@ -569,11 +572,11 @@ async def run_service(out_dir: Path, quick: bool) -> dict[str, Any]:
     t0 = time.perf_counter()
     for name, step in steps:
         print(f"drvs-bench service: {name} ... ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
-        await step(quick, result)
+        await step(quick, result, n_rounds)
     print(f"drvs-bench service: registry lookup ... ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
-    await asyncio.to_thread(measure_lookup, quick, result)
+    await asyncio.to_thread(measure_lookup, quick, result, n_rounds)
     print(f"drvs-bench service: registry churn ... ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
-    await asyncio.to_thread(measure_churn, quick, result)
+    await asyncio.to_thread(measure_churn, quick, result, n_rounds)
     print(f"drvs-bench service: done ({time.perf_counter() - t0:.0f} s)", file=sys.stderr, flush=True)
     result["verdicts"] = verdicts(result)
     result["machine"] = machine()

@@ -27,7 +27,7 @@ from .common import (
     peak_rss_bytes,
 )
 from .helpers import percentile
-from .stats import WorkMismatch, interleaved, publish, rounds, verdict
+from .stats import WorkMismatch, interleaved, publish, verdict
 
 #: Issue 27 item 8: the registry under churn. Cameras, registration changes a second, wall seconds of
 #: churn per run; --quick and full.
@@ -215,13 +215,13 @@ def churn_child(mode: str, cameras: int, seconds: float, seed: int) -> dict[str,
     return run
 
 
-def measure_churn(quick: bool, out: dict[str, Any]) -> None:
+def measure_churn(quick: bool, out: dict[str, Any], n_rounds: int) -> None:
     """Lookups while cameras come and go at CHURN_RATE changes a second: the registry against the floor
     that rebuilds its STRtree whole after each change, interleaved round by round."""
     cameras = CHURN_CAMERAS_QUICK if quick else CHURN_CAMERAS
     seconds = CHURN_SECONDS_QUICK if quick else CHURN_SECONDS
-    per_round: list[dict[str, dict[str, Any]]] = [{} for _ in range(rounds(quick))]
-    for r, mode in interleaved(("index", "rebuild_whole"), rounds(quick)):
+    per_round: list[dict[str, dict[str, Any]]] = [{} for _ in range(n_rounds)]
+    for r, mode in interleaved(("index", "rebuild_whole"), n_rounds):
         per_round[r][mode] = churn_child(mode, cameras, seconds, seed=r)
     churn: dict[str, Any] = {"cameras": cameras, "changes_per_s": CHURN_RATE, "seconds_per_run": seconds}
     for key in ("lookup_p50_us", "lookup_p99_us", "lookup_max_us", "register_us", "expire_us", "peak_rss_mb"):

@@ -20,29 +20,36 @@ from drvs.tools.launch import ManagedProcess, start_camera, start_server
 
 #: The people modes' requests per run in the smoke run: 3 s at 2 Hz instead of --quick's 8 s.
 SMOKE_PEOPLE_REQUESTS = 6
+#: Interleaved rounds in the paper and service smoke runs: two instead of --quick's three. Two
+#: rounds are enough to check what the rounds make (every round's value, the median, the spread
+#: [min, max], ratios taken within a round); each round is a third of these runs' time.
+SMOKE_ROUNDS = 2
 
 
 @pytest.mark.bench
 @pytest.mark.slow
-@pytest.mark.timeout(600)  # 30 runs, each a process of its own: two minutes alone, more on a loaded machine
+@pytest.mark.timeout(600)  # 26 runs, each a process of its own: 1.5 minutes alone, more on a loaded machine
 async def test_paper_benchmark_smoke(tmp_path: Path) -> None:
-    """--quick's three interleaved rounds (of 15 requests, 6 in the people modes, here), every mode
-    and floor, checked work; with vtest.avi installed, the people modes too."""
+    """Two interleaved rounds (of 15 requests, 6 in the people modes, here), every mode and floor,
+    checked work; with vtest.avi installed, the people modes too."""
     proc = ManagedProcess.entry_point(
-        "bench", "drvs-bench", "paper", "--quick", "--requests", "15",
+        "bench", "drvs-bench", "paper", "--quick", "--requests", "15", "--rounds", str(SMOKE_ROUNDS),
         "--people-requests", str(SMOKE_PEOPLE_REQUESTS), "--out", str(tmp_path),
     )  # fmt: skip
     await proc.start()
     assert await proc.wait(timeout=560) == 0, proc.output()
     result = json.loads((tmp_path / "paper.json").read_text())
-    assert result["rounds"] == QUICK_ROUNDS == 3
+    assert result["rounds"] == SMOKE_ROUNDS
     assert set(result["modes"]) == {"drvs", "drvs_boxes", "drvs_boxes_moving", "raw", "jpeg", "drvs_track"}
     for mode in result["modes"].values():
         assert mode["bytes"] > 0 and mode["cpu_s"] > 0 and mode["bytes_timeline"]
         # Wire bytes are the payload plus 66 B of headers a segment, in every run.
         runs = zip(mode["bytes_runs"], mode["payload_bytes_runs"], mode["segments_runs"], strict=True)
         assert all(wire == payload + 66 * segments for wire, payload, segments in runs)
-        assert len(mode["bytes_runs"]) == 3 and mode["bytes_spread"][0] <= mode["bytes"] <= mode["bytes_spread"][1]
+        assert (
+            len(mode["bytes_runs"]) == SMOKE_ROUNDS
+            and mode["bytes_spread"][0] <= mode["bytes"] <= mode["bytes_spread"][1]
+        )
         cores = os.cpu_count() or 1
         assert 0 < mode["robot_cpu_cores"] < cores and 0 < mode["machine_cpu_cores"] <= cores + 0.1  # 10 ms ticks
     for name in ("drvs_boxes", "drvs_boxes_moving"):
@@ -70,14 +77,14 @@ async def test_paper_benchmark_smoke(tmp_path: Path) -> None:
         "bandwidth_ratio_raw_track", "bandwidth_ratio_jpeg_track",
     ):  # fmt: skip
         assert result[key] > 1, key  # streaming video always costs the robot more than DRVS
-        assert result[f"{key}_median"] == result[key] and len(result[f"{key}_runs"]) == 3, key
+        assert result[f"{key}_median"] == result[key] and len(result[f"{key}_runs"]) == SMOKE_ROUNDS, key
         lo, hi = result[f"{key}_spread"]
         assert lo <= result[key] <= hi, key
     # Headers weigh far more on DRVS's small messages than on a stream's full segments.
     assert result["bandwidth_ratio_raw_payload"] > result["bandwidth_ratio_raw"]
     assert result["bandwidth_ratio_jpeg_track_payload"] > result["bandwidth_ratio_jpeg_track"]
     # The track's CPU over its floor's in every round; the floor carries the same messages, so about its bytes.
-    assert len(result["robot_cpu_track_over_receive_floor_runs"]) == 3
+    assert len(result["robot_cpu_track_over_receive_floor_runs"]) == SMOKE_ROUNDS
     assert result["robot_cpu_track_over_receive_floor"] > 0
     # The track carries about its floor's bytes plus its request and first reply (about 1.1 kB, a
     # fifth more than 15 snapshots of 320 B; a twentieth over --quick's 90).
@@ -156,8 +163,7 @@ def test_paper_work_check_fires_when_stream_work_is_missing() -> None:
         check_stream("jpeg", {"per_camera": [camera(20, 20, 40), camera(0, 0, 0)]}, [2, 1])
 
 
-@pytest.mark.bench
-@pytest.mark.slow
+@pytest.mark.slow  # not `bench`: it checks the work check, nothing it measures; it runs beside other tests
 @pytest.mark.timeout(240)
 async def test_paper_work_check_fires_on_a_real_run_with_a_camera_missing(tmp_path: Path) -> None:
     """Two cameras expected, one running: every request gets one report, and the check refuses the run."""
@@ -181,9 +187,11 @@ async def test_paper_work_check_fires_on_a_real_run_with_a_camera_missing(tmp_pa
 
 @pytest.mark.bench
 @pytest.mark.slow
-@pytest.mark.timeout(600)  # three interleaved rounds of every comparison: about three minutes
+@pytest.mark.timeout(600)  # two interleaved rounds of every comparison: about two minutes
 async def test_service_benchmark_smoke(tmp_path: Path) -> None:
-    proc = ManagedProcess.entry_point("bench", "drvs-bench", "service", "--quick", "--out", str(tmp_path))
+    proc = ManagedProcess.entry_point(
+        "bench", "drvs-bench", "service", "--quick", "--rounds", str(SMOKE_ROUNDS), "--out", str(tmp_path)
+    )
     await proc.start()
     assert await proc.wait(timeout=600) == 0, proc.output()
     result = json.loads((tmp_path / "service.json").read_text())
@@ -216,10 +224,18 @@ async def test_service_benchmark_smoke(tmp_path: Path) -> None:
     check_service_rounds(result)
 
 
+def test_service_benchmark_refuses_negative_rounds(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from drvs_bench.cli import main
+
+    assert main(["service", "--rounds", "-1", "--out", str(tmp_path / "out")]) == 2
+    assert "drvs-bench service: --rounds must be >= 0 (0: the default)" in capsys.readouterr().err
+    assert not (tmp_path / "out").exists()
+
+
 def check_service_rounds(result: dict[str, Any]) -> None:
-    """Issue 13's keys in a --quick run: three interleaved rounds; median, spread and every round
-    of each comparison; the moving-region variant; the floor named; marginal camera CPU; verdicts."""
-    assert result["rounds"] == 3
+    """Issue 13's keys in a --quick run: its interleaved rounds (SMOKE_ROUNDS); median, spread and every
+    round of each comparison; the moving-region variant; the floor named; marginal camera CPU; verdicts."""
+    assert result["rounds"] == SMOKE_ROUNDS
     for key in (
         "latency_p50_over_floor",
         "latency_moving_p50_over_floor",
@@ -232,14 +248,14 @@ def check_service_rounds(result: dict[str, Any]) -> None:
         "camera_cpu_200_over_20_moving",
     ):
         runs, (low, high) = result[f"{key}_runs"], result[f"{key}_spread"]
-        assert len(runs) == 3 and low <= result[f"{key}_median"] == result[key] <= high, key
+        assert len(runs) == SMOKE_ROUNDS and low <= result[f"{key}_median"] == result[key] <= high, key
         assert low == min(runs) and high == max(runs), key
     floor = result["latency_floor"]
     assert floor["floor_ms"] == floor["floor_ms_median"] > floor["select_ms_p50"] > 0
     assert "selection" in floor["definition"] and "this machine" in floor["holds_for"]
     assert result["latency_moving"]["30"]["first_report_ms"]["p50"] > 0
     for name in ("echo_stream", "routing_stream", "routing_moving_stream", "bare_proxy_stream"):
-        assert len(result["routing"][f"{name}_rps_runs"]) == 3, name
+        assert len(result["routing"][f"{name}_rps_runs"]) == SMOKE_ROUNDS, name
     for name in ("20", "200", "20_moving", "200_moving"):
         assert result["camera_cpu"][name]["marginal_cpu_ms_per_request_spread"], name
         assert f"camera_marginal_cpu_ms_per_request_{name}" in result

@@ -45,7 +45,6 @@ from dataclasses import dataclass
 import numpy as np
 import shapely
 from numpy.typing import NDArray
-from scipy.optimize import linear_sum_assignment
 from shapely.geometry import Polygon
 
 from drvs.core.errors import InvalidArgument
@@ -298,6 +297,10 @@ def _assign(groups: list[_Group], members: list[_Member], *, by_id: bool) -> Non
             if _overlap(groups[gi].outline, members[mi].det.outline) >= OVERLAP_FRACTION:
                 ok[gi, mi] = True
     cost = np.where(ok & np.isfinite(normalised), normalised, _UNMATCHED)
+    # Imported here, not at the top: a process that imports drvs.server without serving need not
+    # load scipy.optimize; DrvsServer.start imports it before a server serves.
+    from scipy.optimize import linear_sum_assignment
+
     rows, cols = linear_sum_assignment(cost)
     taken: set[int] = set()
     for r, c in zip(rows.tolist(), cols.tolist(), strict=True):

@@ -9,6 +9,7 @@ cameras' poses and pick-ups), listing.py (ListCameras) and servicers.py (the gRP
 from __future__ import annotations
 
 import asyncio
+import importlib
 import logging
 import time
 from collections.abc import Mapping
@@ -214,6 +215,12 @@ class DrvsServer(Lifecycle):
         add_servicers(server, self)
 
     async def start(self) -> None:
+        # The fused path's assignment solver (scipy.optimize, about half of this package's import
+        # time) is imported as the server starts, not with the package (drvs.server.fusion and
+        # .tracking import it where they use it): a process that only uses the registry or the
+        # config (the benchmarks' helper processes) never pays it, and a serving server never
+        # stalls its event loop on it at its first fused request.
+        importlib.import_module("scipy.optimize")
         await self.registrations.open()
         await self._endpoint.start()
         await self.registrations.serving()

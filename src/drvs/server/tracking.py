@@ -50,7 +50,6 @@ import cv2
 import numpy as np
 import shapely
 from numpy.typing import NDArray
-from scipy.optimize import linear_sum_assignment
 from shapely import affinity
 
 from drvs.core.errors import InvalidArgument
@@ -301,6 +300,8 @@ class Tracker:
             cost[ti] = np.where(ok, d2, _UNMATCHED)
         if skip:
             cost[:, sorted(skip)] = _UNMATCHED
+        from scipy.optimize import linear_sum_assignment  # on first use: see drvs.server.fusion
+
         rows, cols = linear_sum_assignment(cost)
         return [(r_, c) for r_, c in zip(rows.tolist(), cols.tolist(), strict=True) if cost[r_, c] < _UNMATCHED]
 
