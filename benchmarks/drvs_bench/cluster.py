@@ -77,7 +77,7 @@ from drvs.wire import _grpc
 
 from .common import YELLOW, bench_process, machine, pyplot, write_result
 from .etcd_writes import fleet_writes
-from .helpers import grid_position, one_camera_request, percentile, with_request_id
+from .helpers import grid_position, no_camera, one_camera_request, percentile, with_request_id
 from .stats import WorkMismatch, interleaved, publish, rounds
 
 #: The bench camera: 3 m up at the origin, looking 40° down along +y, 60° wide.
@@ -471,7 +471,7 @@ class StreamCaller:
                 return max(float(reply.error.retry_after_s), MIN_RETRY_S)
             raise RuntimeError(f"refused: {reply.error.code}: {reply.error.message}")
         if not reply.camera_ids:  # routed nowhere: not a request served
-            raise RuntimeError(f"request {reply.request_id} was dispatched to no camera")
+            raise RuntimeError(no_camera(reply))
         return None
 
     def close(self) -> None:

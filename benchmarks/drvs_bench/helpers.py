@@ -127,6 +127,16 @@ def one_camera_request(i: int, callback: str, moving: int | None = None) -> dete
     )
 
 
+def no_camera(reply: detection_pb2.DetectionReply) -> str:
+    """The error for a reply that dispatched its request to no camera, with the server's reasons
+    (each missing camera's code and message, whether the region was uncovered): a run that fails
+    on it says why."""
+    why = "; ".join(f"{m.camera_id}: {m.code} {m.message}" for m in reply.missing_cameras[:3])
+    if reply.uncovered:
+        why += f"{'; ' if why else ''}{len(reply.uncovered)} part(s) of the region uncovered"
+    return f"request {reply.request_id} was dispatched to no camera ({why or 'no reason given'})"
+
+
 class _Caller:
     """One request and its reply, as a unary call or as a message on a DetectStream of its own."""
 
@@ -138,14 +148,14 @@ class _Caller:
         if self._stream is None:
             unary = await self._stub.DetectObjects(message, timeout=10)
             if not unary.camera_ids:
-                raise RuntimeError(f"request {unary.request_id} was dispatched to no camera")
+                raise RuntimeError(no_camera(unary))
             return
         await self._stream.write(message)
         reply = await self._stream.read()
         if not isinstance(reply, detection_pb2.DetectionReply) or reply.HasField("error"):
             raise RuntimeError(f"stream refused or ended: {reply}")
         if not reply.camera_ids:  # routed nowhere: not a request served
-            raise RuntimeError(f"request {reply.request_id} was dispatched to no camera")
+            raise RuntimeError(no_camera(reply))
 
     def close(self) -> None:
         if self._stream is not None:
