@@ -214,6 +214,15 @@ _LABEL_BODY = struct.pack("<4d", 0, 0, 0, 1) + _look(*LABEL_LOOK) + _AFTER_LOOK 
 _DELETE_BODY = bytes(56) + _look((0, 0, 0), (0, 0, 0, 0)) + _AFTER_LOOK + _U32(0) + _NO_TEXT_END  # defaults
 
 
+def _marker_start(buf: bytearray, head: bytes, track_id: int, kind: int, action: int) -> None:
+    """A marker's header and namespace (`head`) from a 4-aligned place, then its id, type and
+    action, padded to 8 for the pose that follows."""
+    buf += _ZEROS[(4 - len(buf)) & 3]
+    buf += head
+    buf += _I32X3(track_id, kind, action)
+    buf += _ZEROS[(4 - len(buf)) & 7]
+
+
 def markers_cdr(snapshot: Snapshot, geo: Geometry, hdr: bytes, state: MarkerState) -> bytearray:
     """visualization_msgs/MarkerArray as MarkerState.markers builds it (it updates `state` alike)."""
     ended = state.ended(snapshot)
@@ -232,20 +241,14 @@ def markers_cdr(snapshot: Snapshot, geo: Geometry, hdr: bytes, state: MarkerStat
         track_id = o.track_id
         cx, cy = o.centroid_xy
         # The outline: a LINE_STRIP of the ring's points.
-        buf += _ZEROS[(4 - len(buf)) & 3]
-        buf += outline_head
-        buf += _I32X3(track_id, LINE_STRIP, ADD)
-        buf += _ZEROS[(4 - len(buf)) & 7]
+        _marker_start(buf, outline_head, track_id, LINE_STRIP, ADD)
         buf += _OUTLINE_BODY
         buf += _U32(end - start)
         buf += ring_blob[24 * start : 24 * end]
         buf += _NO_TEXT_END
         start = end
         # The label: TEXT_VIEW_FACING above the object.
-        buf += _ZEROS[(4 - len(buf)) & 3]
-        buf += label_head
-        buf += _I32X3(track_id, TEXT_VIEW_FACING, ADD)
-        buf += _ZEROS[(4 - len(buf)) & 7]
+        _marker_start(buf, label_head, track_id, TEXT_VIEW_FACING, ADD)
         buf += _F64X3(cx, cy, h + LABEL_RAISE_M)
         buf += _LABEL_BODY
         buf += cdr_string(label_text(track_id, kind))
@@ -253,18 +256,12 @@ def markers_cdr(snapshot: Snapshot, geo: Geometry, hdr: bytes, state: MarkerStat
         buf += _UNSET_TAIL
         if moving(o):  # an ARROW: one second of motion at half the height
             vx, vy = o.velocity_xy
-            buf += _ZEROS[(4 - len(buf)) & 3]
-            buf += arrow_head
-            buf += _I32X3(track_id, ARROW, ADD)
-            buf += _ZEROS[(4 - len(buf)) & 7]
+            _marker_start(buf, arrow_head, track_id, ARROW, ADD)
             buf += _ARROW_BODY
             buf += _F64X6(cx, cy, h / 2, cx + vx, cy + vy, h / 2)
             buf += _NO_TEXT_END
     for ns, track_id in ended:
-        buf += _ZEROS[(4 - len(buf)) & 3]
-        buf += heads[ns]
-        buf += _I32X3(track_id, ARROW, DELETE)
-        buf += _ZEROS[(4 - len(buf)) & 7]
+        _marker_start(buf, heads[ns], track_id, ARROW, DELETE)
         buf += _DELETE_BODY
     return buf
 
