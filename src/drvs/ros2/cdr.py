@@ -52,6 +52,7 @@ from drvs.ros2.convert import (
     label_text,
     moving,
     outline,
+    stamp_parts,
     track_uuid,
 )
 from drvs.ros2.types import to_cdr
@@ -87,9 +88,8 @@ def _aligned(parts: Sequence[bytes], start: int = 0) -> bytes:
 
 
 def header_cdr(at: float, frame_id: str) -> bytes:
-    """std_msgs/Header stamped `at` seconds (convert.stamp's rounding), 4-aligned where it goes."""
-    ns = round(at * 1e9)
-    return _STAMP(ns // 1_000_000_000, ns % 1_000_000_000) + cdr_string(frame_id)
+    """std_msgs/Header stamped `at` seconds (as convert.stamp), 4-aligned where it goes."""
+    return _STAMP(*stamp_parts(at)) + cdr_string(frame_id)
 
 
 _uuid = functools.lru_cache(maxsize=4096)(track_uuid)

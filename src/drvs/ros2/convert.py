@@ -63,10 +63,15 @@ class Style:
         return self.heights.get(kind, self.heights.get(self.filter_def, self.default_height_m))
 
 
+def stamp_parts(t: float) -> tuple[int, int]:
+    """builtin_interfaces/Time's sec and nanosec for `t` seconds (to the nearest nanosecond)."""
+    return divmod(round(t * 1e9), 1_000_000_000)
+
+
 def stamp(t: float) -> Any:
     """builtin_interfaces/Time for `t` seconds."""
-    ns = round(t * 1e9)
-    return ros("builtin_interfaces/msg/Time", sec=ns // 1_000_000_000, nanosec=ns % 1_000_000_000)
+    sec, nanosec = stamp_parts(t)
+    return ros("builtin_interfaces/msg/Time", sec=sec, nanosec=nanosec)
 
 
 def header(t: float, frame_id: str) -> Any:

@@ -70,13 +70,9 @@ class Node:
 def write_cdr(writer: DataWriter[Any], payload: bytes | bytearray) -> None:
     """Publish a message already serialized as ROS 2 CDR (encapsulation header first: to_cdr,
     drvs.ros2.cdr), handed to Cyclone as it is: what DataWriter.write does after serializing (with
-    Cyclone's pure-Python serializer, several times slower), padded to 4 bytes as it pads. A
-    bytearray is padded in place."""
-    if len(payload) % 4:
-        if isinstance(payload, bytearray):
-            payload += bytes(-len(payload) % 4)
-        else:
-            payload = payload + bytes(-len(payload) % 4)
+    Cyclone's pure-Python serializer, several times slower), padded to 4 bytes as it pads (a
+    bytearray in place: += extends it)."""
+    payload += bytes(-len(payload) % 4)
     code = ddspy_write(writer._ref, payload)
     if code < 0:
         raise DDSException(code, f"writing on {writer.topic.name}")
