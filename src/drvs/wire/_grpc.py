@@ -22,13 +22,20 @@ _FROM_STATUS = {code: cls for cls, code in _TO_STATUS.items()}
 
 #: Bound every message: reports and requests are small; anything near this is an attack or a bug.
 MAX_MESSAGE_BYTES = 4 * 1024 * 1024
+#: The least time one connection attempt gets to open TCP and hear the peer's HTTP/2 SETTINGS.
+CONNECT_ATTEMPT_S = 2.0
 CHANNEL_OPTIONS: list[tuple[str, Any]] = [
     ("grpc.max_send_message_length", MAX_MESSAGE_BYTES),
     ("grpc.max_receive_message_length", MAX_MESSAGE_BYTES),
     # Reconnect quickly after a peer restarts: the default backoff grows to two minutes.
     ("grpc.initial_reconnect_backoff_ms", 200),
     ("grpc.max_reconnect_backoff_ms", 2000),
-    ("grpc.min_reconnect_backoff_ms", 200),
+    # Despite its name, gRPC's minimum *connect timeout*: how long one attempt may take to open
+    # TCP and receive the peer's HTTP/2 SETTINGS (gRPC's default: 20 s). At 200 ms, a first
+    # connection to a camera on a loaded host or a slow link failed at once as UNAVAILABLE, and
+    # the server skipped that camera until its next heartbeat. The backoff above is unchanged: a
+    # refused connection still fails at once and is retried after 200 ms.
+    ("grpc.min_reconnect_backoff_ms", round(CONNECT_ATTEMPT_S * 1000)),
     # DRVS messages are small: bandwidth-delay probing cost a PING and its ack per burst of them
     # (a tenth of a robot's bytes) and gained nothing.
     ("grpc.http2.bdp_probe", 0),
