@@ -80,7 +80,8 @@ async def test_a_robot_hears_one_opaque_unavailable_whatever_listens_at_a_camera
             # The server's own log keeps what happened, for its operator.
             await server.wait_for_line(rf"camera closed could not be reached: UNAVAILABLE .*{ports[0]}", timeout=5)
             await server.wait_for_line(r"camera http1 could not be reached: UNAVAILABLE .*http1\.x", timeout=5)
-            await server.wait_for_line(r"camera silent could not be reached: DEADLINE_EXCEEDED .*no reply within 1 s", timeout=5)
+            silent = r"camera silent could not be reached: DEADLINE_EXCEEDED .*no reply within 1 s"
+            await server.wait_for_line(silent, timeout=5)
     finally:
         await server.stop()
     assert not [line for line in server.lines if re.search(r"Traceback", line)]
