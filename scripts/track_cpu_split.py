@@ -23,13 +23,14 @@ import statistics
 import subprocess
 import sys
 import time
+from typing import Any
 
 REGION = (0.0, 0.0, 5.0, 5.0)
 FILTER = "hsv_014110130035225200"
 RATE = 30.0
 
 
-def synthetic_snapshots() -> list:  # type: ignore[type-arg]
+def synthetic_snapshots() -> list[Any]:
     from drvs.v1 import detection_pb2
 
     replies = []
@@ -67,16 +68,16 @@ async def follow_drvs(address: str, snapshots: int, convert: bool) -> tuple[int,
     timings: list[int] = []
     real = track_module.snapshot_from_pb
 
-    def timed(msg, request_id, uncovered):  # type: ignore[no-untyped-def]
+    def timed(msg: Any, request_id: str, uncovered: Any) -> Snapshot:
         t = time.thread_time_ns()
         snapshot = real(msg, request_id, uncovered)
         timings.append(time.thread_time_ns() - t)
         return snapshot
 
-    def constant(msg, request_id, uncovered):  # type: ignore[no-untyped-def]
+    def constant(msg: Any, request_id: str, uncovered: Any) -> Snapshot:
         return Snapshot(0.0, (), {}, (), msg.sequence, msg.final, request_id)
 
-    track_module.snapshot_from_pb = timed if convert else constant  # type: ignore[assignment]
+    track_module.snapshot_from_pb = timed if convert else constant
     async with DrvsClient(address, robot_id="split") as client:
         async for _ in client.track(FILTER, REGION, rate_hz=RATE, duration_s=0.5, outlines=False):
             pass
