@@ -36,8 +36,13 @@ def paper_main(args: argparse.Namespace) -> int:
     if requests < 1 or rounds < 1 or not args.rate > 0 or people < 1:
         print("drvs-bench paper: --requests, --rounds, --people-requests and --rate must be > 0", file=sys.stderr)
         return 2
+    if args.fused and args.track_only:
+        print("drvs-bench paper: --fused and --track-only: choose one", file=sys.stderr)
+        return 2
     out = out_dir(args.out)
-    result = measured("paper", lambda: asyncio.run(run_paper(out, requests, args.rate, rounds, people, args.fused)))
+    result = measured(
+        "paper", lambda: asyncio.run(run_paper(out, requests, args.rate, rounds, people, args.fused, args.track_only))
+    )
     if result is None:
         return 1
     summary: dict[str, object] = {
@@ -58,7 +63,8 @@ def paper_main(args: argparse.Namespace) -> int:
         summary[f"{mode}_cpu_s"] = round(data["cpu_s"], 3)
     summary["targets"] = {k: v["verdict"] for k, v in result["targets"].items()}
     print(json.dumps(summary, indent=1))
-    print(f"written: {out / 'paper.json'}, {out / 'bandwidth.png'}, {out / 'cpu.png'}")
+    plots = "" if args.track_only else f", {out / 'bandwidth.png'}, {out / 'cpu.png'}"
+    print(f"written: {out / 'paper.json'}{plots}")
     return 0
 
 
@@ -136,6 +142,12 @@ def main(argv: list[str] | None = None) -> int:
         "--fused",
         action="store_true",
         help="also run the boxes-only requests with fused delivery (drvs_boxes_fused) in the same rounds",
+    )
+    p.add_argument(
+        "--track-only",
+        action="store_true",
+        help="run only the fused track and its receive floor (drvs_track, track_floor): "
+        "robot_cpu_track_over_receive_floor alone, in a fraction of the time",
     )
     p.add_argument("--out", type=Path, default=None)
     p.set_defaults(func=paper_main)

@@ -68,6 +68,7 @@ from .paper_figures import (
     PEOPLE_RATE,
     TRACK_FLOOR,
     TRACK_MODE,
+    summarise_track_only,
     write_outputs,
 )
 from .paper_figures import FULL_REQUESTS as FULL_REQUESTS
@@ -367,14 +368,16 @@ async def run_paper(
     rounds: int = FULL_ROUNDS,
     people_requests: int = PEOPLE_FULL_REQUESTS,
     fused: bool = False,
+    track_only: bool = False,
 ) -> dict[str, Any]:
-    """fused: run FUSED_MODES too, in the same rounds (needs a server with fused delivery)."""
+    """fused: run FUSED_MODES too, in the same rounds (needs a server with fused delivery);
+    track_only: run only the track and its floor (drvs_track, track_floor), interleaved as ever."""
     procs: list[ManagedProcess] = []
     runs: list[dict[str, dict[str, Any]]] = [{} for _ in range(rounds)]
     with tempfile.TemporaryDirectory(prefix="drvs-bench-") as tmp:
         scene = record_scene(Path(tmp))
-        footage = record_people(Path(tmp))
-        if footage is None:
+        footage = None if track_only else record_people(Path(tmp))
+        if footage is None and not track_only:
             print("drvs-bench paper: vtest.avi not installed (opencv-doc): no people modes", file=sys.stderr)
         try:
             # A new site: no previous run whose cameras could still be on their way back, so replies
@@ -410,12 +413,16 @@ async def run_paper(
             cpu_procs = {"cameras": camera_pids, "server": [server.pid]}
             per_camera = expected_detections([h for _, h in cameras.values()], YELLOW, BOTH_REGION)
             # The floors' long-lived processes: an ack-at-once server, and DRVS's message flow in bare grpc.aio.
-            ack, ack_address = await ack_server()
-            procs.append(ack)
-            bare_server = await start_bare_path(procs, len(cameras))
             track_floor = await start_track_floor(procs, address, rate, len(cameras))
-            fused_modes = FUSED_MODES if fused else ()
-            order = (*MODES, TRACK_MODE, *fused_modes, *people_modes, *FLOORS, TRACK_FLOOR)
+            if track_only:
+                ack_address = bare_server = ""
+                order: tuple[str, ...] = (TRACK_MODE, TRACK_FLOOR)
+            else:
+                ack, ack_address = await ack_server()
+                procs.append(ack)
+                bare_server = await start_bare_path(procs, len(cameras))
+                fused_modes = FUSED_MODES if fused else ()
+                order = (*MODES, TRACK_MODE, *fused_modes, *people_modes, *FLOORS, TRACK_FLOOR)
             for r, mode in interleaved(order, rounds):
                 print(f"drvs-bench paper: round {r + 1}/{rounds}: {mode} ...", file=sys.stderr, flush=True)
                 if mode in PEOPLE_MODES:
@@ -456,7 +463,10 @@ async def run_paper(
         finally:
             for proc in reversed(procs):
                 await proc.stop()
-    result = summarise(runs, requests, rate, len(scene), people_requests if people_modes else 0, fused)
+    if track_only:
+        result = summarise_track_only(runs, requests, rate, len(scene))
+    else:
+        result = summarise(runs, requests, rate, len(scene), people_requests if people_modes else 0, fused)
     await asyncio.to_thread(write_outputs, result, out)
     return result
 

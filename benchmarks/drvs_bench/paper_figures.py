@@ -264,18 +264,21 @@ def summarise_track(
     result: dict[str, Any],
     runs: list[dict[str, dict[str, Any]]],
     ratio: Callable[[str, str, str, Callable[[dict[str, Any]], float]], None],
+    track_only: bool = False,
 ) -> None:
     """The track's ratios (within each round) and targets: its wire bytes against the streams', the
     robot's CPU against the floor of receiving the same snapshot messages on a bare stream, and per
-    snapshot what the track and its floor carry."""
+    snapshot what the track and its floor carry. track_only: only the track and its floor ran (no
+    stream or single-shot ratios)."""
     track, floor = TRACK_MODE, TRACK_FLOOR
-    for name, num in (("bandwidth_ratio_raw_track", "raw"), ("bandwidth_ratio_jpeg_track", "jpeg")):
-        ratio(name, num, track, _figure("bytes_per_s"))
-        ratio(f"{name}_payload", num, track, _figure("payload_bytes_per_s"))
+    if not track_only:
+        for name, num in (("bandwidth_ratio_raw_track", "raw"), ("bandwidth_ratio_jpeg_track", "jpeg")):
+            ratio(name, num, track, _figure("bytes_per_s"))
+            ratio(f"{name}_payload", num, track, _figure("payload_bytes_per_s"))
+        ratio("robot_cpu_ratio_track", "raw", track, _cpu_rate)
+        ratio("robot_cpu_ratio_jpeg_track", "jpeg", track, _cpu_rate)
+        ratio("robot_cpu_track_over_single_shots", track, "drvs_boxes", _cpu_rate)
     ratio("robot_cpu_track_over_receive_floor", track, floor, _cpu_rate)
-    ratio("robot_cpu_ratio_track", "raw", track, _cpu_rate)
-    ratio("robot_cpu_ratio_jpeg_track", "jpeg", track, _cpu_rate)
-    ratio("robot_cpu_track_over_single_shots", track, "drvs_boxes", _cpu_rate)
     ratio("bytes_track_over_receive_floor", track, floor, _figure("bytes"))
     ratio("payload_bytes_track_over_receive_floor", track, floor, _figure("payload_bytes"))
     for mode, key in ((track, "track"), (floor, "receive_floor")):
@@ -292,7 +295,36 @@ def summarise_track(
         "only, each with its sequence and final flag set; through a counting relay like the track; no DRVS code"
     )
     result["robot_cpu_receive_floor"] = figures
-    add_targets(result, TRACK_TARGETS)
+    targets = TRACK_TARGETS
+    if track_only:
+        targets = {k: v for k, v in TRACK_TARGETS.items() if k == "robot_cpu_track_over_receive_floor"}
+    add_targets(result, targets)
+
+
+def summarise_track_only(
+    runs: list[dict[str, dict[str, Any]]], requests: int, rate: float, cameras: int
+) -> dict[str, Any]:
+    """paper.json from rounds of the track and its floor alone (`drvs-bench paper --track-only`):
+    the track's figures, its ratios to its floor and the robot CPU target."""
+    result: dict[str, Any] = {
+        "benchmark": "paper",
+        "track_only": True,
+        "requests": requests,
+        "rate_hz": rate,
+        "rounds": len(runs),
+        "order": [TRACK_MODE, TRACK_FLOOR],
+        "cameras": cameras,
+        "cpu": CPU_COVERAGE,
+        "modes": {TRACK_MODE: _mode_figures(runs, TRACK_MODE)},
+        "targets": {},
+    }
+
+    def ratio(name: str, num: str, den: str, figure: Callable[[dict[str, Any]], float]) -> None:
+        publish(result, name, [figure(run[num]) / figure(run[den]) for run in runs])
+
+    summarise_track(result, runs, ratio, track_only=True)
+    result["machine"] = machine()
+    return result
 
 
 def add_targets(result: dict[str, Any], targets: dict[str, tuple[float, bool]]) -> None:
@@ -308,7 +340,7 @@ def add_targets(result: dict[str, Any], targets: dict[str, tuple[float, bool]]) 
 
 
 def write_outputs(result: dict[str, Any], out: Path) -> None:
-    write_result(result, out, "paper", plot)
+    write_result(result, out, "paper", (lambda _result, _out: None) if result.get("track_only") else plot)
 
 
 def plot(result: dict[str, Any], out: Path) -> None:

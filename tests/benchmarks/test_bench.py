@@ -134,6 +134,37 @@ def _drvs_run(requests: int, **changes: Any) -> dict[str, Any]:
     return run
 
 
+@pytest.mark.bench
+@pytest.mark.slow
+@pytest.mark.timeout(300)
+async def test_paper_track_only_runs_the_track_and_its_floor_alone(tmp_path: Path) -> None:
+    """--track-only: two interleaved rounds of the fused track and its receive floor and nothing
+    else; the CPU ratio, its target and the per-snapshot figures under their usual keys, no plot."""
+    proc = ManagedProcess.entry_point(
+        "bench", "drvs-bench", "paper", "--quick", "--track-only", "--requests", "15", "--rounds", str(SMOKE_ROUNDS),
+        "--out", str(tmp_path),
+    )  # fmt: skip
+    await proc.start()
+    assert await proc.wait(timeout=280) == 0, proc.output()
+    result = json.loads((tmp_path / "paper.json").read_text())
+    assert result["track_only"] is True and result["rounds"] == SMOKE_ROUNDS
+    assert result["order"] == ["drvs_track", "track_floor"] and set(result["modes"]) == {"drvs_track"}
+    track = result["modes"]["drvs_track"]
+    assert track["snapshots"] == 15 and track["final_snapshots"] == 1 and track["dropped_snapshots"] == 0
+    assert result["robot_cpu_receive_floor"]["snapshots"] == 15
+    assert len(result["robot_cpu_track_over_receive_floor_runs"]) == SMOKE_ROUNDS
+    assert result["robot_cpu_track_over_receive_floor"] > 0 and result["wire_bytes_per_snapshot_track"] > 0
+    assert set(result["targets"]) == {"robot_cpu_track_over_receive_floor"}
+    assert "bandwidth_ratio_jpeg_track" not in result and not (tmp_path / "cpu.png").exists()
+
+
+def test_paper_track_only_and_fused_exit_2(tmp_path: Path) -> None:
+    from drvs_bench.cli import main
+
+    assert main(["paper", "--track-only", "--fused", "--out", str(tmp_path / "out")]) == 2
+    assert not (tmp_path / "out").exists()
+
+
 @pytest.mark.parametrize(
     ("changes", "named"),
     [
