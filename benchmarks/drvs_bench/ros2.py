@@ -337,6 +337,7 @@ def _plot(result: dict[str, Any], out: Path) -> None:
         floor = [r[f"dds_floor_{key}"] for r in result["runs"]]
         ax.plot(range(1, len(floor) + 1), floor, "s:", color="#777", label="DDS floor (pre-encoded bytes)")
         ax.axhline(TARGETS[key], color="#c33", linestyle="--", label="target")
+        ax.set_xticks(range(1, len(values) + 1))
         ax.set_xlabel("round")
         ax.set_title(label, fontsize=9)
         ax.set_ylim(bottom=0)
