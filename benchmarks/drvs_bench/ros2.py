@@ -15,7 +15,14 @@ taken. CLOCK_MONOTONIC is one clock for every process of the host, so
 - CPU per snapshot = this process's CPU time (every thread: Cyclone's own too) over the
   publishing phase divided by the snapshots; and, apart, the publishing thread's alone per call
   (p50, p99) and the publish call's wall time (p99: what the bridge itself adds to the tail,
-  apart from the subscriber's wake-up on a loaded machine).
+  apart from the subscriber's wake-up on a loaded machine);
+- the DDS floor: in the same round, with the same subscriber and writers, the same snapshots'
+  payloads of every topic, encoded by the bridge before the clock starts (stamped FLOOR_SHIFT_S
+  later so the subscriber tells them apart), written at the same rate with no bridge code between
+  (drvs.ros2.dds.write_cdr alone): the CPU and latency of Cyclone and the pacing loop themselves
+  (dds_floor_cpu_ms_per_snapshot, dds_floor_latency_p99_ms), the bridge's CPU over it
+  (cpu_over_dds_floor) and beyond it (cpu_ms_beyond_dds_floor). The two phases run one after the
+  other in each round, the bridge first in odd rounds, the floor first in even ones.
 
 Each round publishes SNAPSHOTS snapshots (QUICK_SNAPSHOTS with --quick) of OBJECTS moving objects
 (16-corner outlines, every topic: objects, obstacles, tracks, markers, diagnostics) at RATE_HZ,
@@ -37,6 +44,8 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -60,6 +69,10 @@ TOPIC = "/drvs/objects"
 MAX_LOST = 0.01
 #: The subscriber stops this long after the last /drvs/objects sample it took.
 QUIET_S = 3.0
+#: The DDS floor's samples are stamped this much later than the bridge's of the same snapshot.
+FLOOR_SHIFT_S = 1000.0
+#: The benchmark's snapshots lose camera cam3 every DIAGNOSED_EVERY-th (one second at RATE_HZ).
+DIAGNOSED_EVERY = 50
 CYCLONE_LOOPBACK = (
     '<CycloneDDS xmlns="https://cdds.io/config"><Domain Id="any"><General><Interfaces>'
     '<NetworkInterface name="lo"/></Interfaces><AllowMulticast>false</AllowMulticast></General>'
@@ -84,7 +97,7 @@ def snapshots(count: int, start: float) -> list[Snapshot]:
                 WorldObject(i + 1, outline, outline.bounds, (x, y), (vx, vy), math.degrees(heading[i]), 0.05,
                             ("cam1", "cam2"), t, label="person", score=0.9, area_m2=outline.area)
             )  # fmt: skip
-        missing = {"cam3": CameraError("UNAVAILABLE", "camera cam3: gone", "cam3")} if n % 50 == 0 else {}
+        missing = {"cam3": CameraError("UNAVAILABLE", "camera cam3: gone", "cam3")} if n % DIAGNOSED_EVERY == 0 else {}
         out.append(Snapshot(t, tuple(objects), missing, ("cam1", "cam2"), n, False, "bench"))
     return out
 
@@ -129,7 +142,65 @@ def subscriber(domain: int, count: int) -> int:
     return 0
 
 
-def one_round(domain: int, count: int, env: dict[str, str]) -> dict[str, Any]:
+@dataclass
+class Phase:
+    """What one paced phase of a round measured: per snapshot its stamp's send times (monotonic
+    and wall ns), the call's thread CPU and wall time; the process CPU over the phase."""
+
+    sent: dict[int, tuple[int, int]] = field(default_factory=dict)
+    thread_ns: list[int] = field(default_factory=list)
+    call_ns: list[int] = field(default_factory=list)
+    cpu_ns: int = 0
+
+
+def paced(call: Callable[[int], object], count: int) -> Phase:
+    """`call(n)` for n in range(count) at RATE_HZ, timed; the stamps sent are read back from the
+    subscriber's samples, so `call` returns the stamp (ns) of the snapshot it wrote."""
+    phase = Phase()
+    cpu0 = time.process_time_ns()
+    for n in range(count):
+        next_at = time.monotonic() + 1 / RATE_HZ
+        t0, wall0 = time.monotonic_ns(), time.time_ns()
+        c0 = time.thread_time_ns()
+        stamp = call(n)
+        phase.thread_ns.append(time.thread_time_ns() - c0)
+        phase.call_ns.append(time.monotonic_ns() - t0)
+        assert isinstance(stamp, int)
+        phase.sent[stamp] = (t0, wall0)
+        if n + 1 < count:
+            time.sleep(max(0.0, next_at - time.monotonic()))  # pacing at RATE_HZ, not synchronisation
+    phase.cpu_ns = time.process_time_ns() - cpu0
+    return phase
+
+
+def floor_payloads(made: list[Snapshot], style: Any, prefix: str) -> list[tuple[int, list[tuple[str, bytes]]]]:
+    """Per snapshot, its stamp (ns) FLOOR_SHIFT_S later and the bridge's payloads of every topic
+    for it (its own MarkerState: the bridge's stays untouched), /diagnostics where the bridge
+    sends it here (when the missing camera comes and goes: every DIAGNOSED_EVERY-th and the next)."""
+    from drvs.ros2.cdr import snapshot_payloads
+    from drvs.ros2.convert import MarkerState
+
+    markers = MarkerState()
+    out = []
+    for n, snapshot in enumerate(made):
+        at = snapshot.time + FLOOR_SHIFT_S
+        payloads = snapshot_payloads(snapshot, style, markers, at, prefix, with_diagnostics=n % DIAGNOSED_EVERY < 2)
+        # Padded as write_cdr pads: it then hands these very bytes to Cyclone (+= b"" on bytes is a no-op).
+        out.append((round(at * 1e9), [(topic, bytes(p) + bytes(-len(p) % 4)) for topic, p in payloads]))
+    return out
+
+
+def write_all(publisher: Any, pre: tuple[int, list[tuple[str, bytes]]]) -> int:
+    """The floor's call: a snapshot's pre-encoded payloads written through the bridge's writers."""
+    from drvs.ros2.dds import write_cdr
+
+    stamp, payloads = pre
+    for topic, payload in payloads:
+        write_cdr(publisher.writers[topic], payload)
+    return stamp
+
+
+def one_round(domain: int, count: int, env: dict[str, str], bridge_first: bool = True) -> dict[str, Any]:
     from cyclonedds.core import DDSStatus, WaitSet
     from cyclonedds.util import duration
 
@@ -140,7 +211,7 @@ def one_round(domain: int, count: int, env: dict[str, str]) -> dict[str, Any]:
     node = Node(domain)
     publisher = Publisher(node, Style(heights={"person": 1.8}), "/drvs")
     sub = subprocess.Popen(
-        [sys.executable, "-m", "drvs_bench.ros2", "subscriber", "--domain", str(domain), "--count", str(count)],
+        [sys.executable, "-m", "drvs_bench.ros2", "subscriber", "--domain", str(domain), "--count", str(2 * count)],
         stdout=subprocess.PIPE, text=True, env=env,
     )  # fmt: skip
     try:
@@ -158,22 +229,17 @@ def one_round(domain: int, count: int, env: dict[str, str]) -> dict[str, Any]:
                 raise WorkMismatch("ros2: the subscriber never matched every writer")
             waitset.wait(duration(milliseconds=200))
         made = snapshots(count, time.time())
-        sent: dict[int, tuple[int, int]] = {}
-        thread_ns: list[int] = []
-        call_ns: list[int] = []
-        cpu0 = time.process_time_ns()
-        for n, snapshot in enumerate(made):
-            next_at = time.monotonic() + 1 / RATE_HZ
-            stamp = round(snapshot.time * 1e9)
-            t0, wall0 = time.monotonic_ns(), time.time_ns()
-            c0 = time.thread_time_ns()
-            publisher.publish(snapshot)
-            thread_ns.append(time.thread_time_ns() - c0)
-            call_ns.append(time.monotonic_ns() - t0)
-            sent[stamp] = (t0, wall0)
-            if n + 1 < count:
-                time.sleep(max(0.0, next_at - time.monotonic()))  # pacing at RATE_HZ, not synchronisation
-        cpu_ns = time.process_time_ns() - cpu0
+        # The floor's bytes: the same snapshots encoded before either clock starts, stamped FLOOR_SHIFT_S
+        # later (the subscriber tells the two phases apart by the stamp).
+        floor = floor_payloads(made, publisher.style, publisher.prefix)
+
+        def publish(n: int) -> int:
+            publisher.publish(made[n])
+            return round(made[n].time * 1e9)
+
+        phases = {"bridge": publish, "floor": lambda n: write_all(publisher, floor[n])}
+        order = ("bridge", "floor") if bridge_first else ("floor", "bridge")
+        measured_phases = {phase: paced(phases[phase], count) for phase in order}
         out, _ = sub.communicate(timeout=120)
     finally:
         if sub.poll() is None:
@@ -181,27 +247,39 @@ def one_round(domain: int, count: int, env: dict[str, str]) -> dict[str, Any]:
             sub.wait()
     said = json.loads(out.strip().splitlines()[-1])
     taken = {int(k): (v[0], v[1]) for k, v in said["taken"].items()}
-    lost = len(set(sent) - set(taken))
-    if set(taken) - set(sent) or lost > count * MAX_LOST:
+    bridge, floor_run = measured_phases["bridge"], measured_phases["floor"]
+    sent = {**bridge.sent, **floor_run.sent}
+    lost = {phase: len(set(m.sent) - set(taken)) for phase, m in measured_phases.items()}
+    if set(taken) - set(sent) or max(lost.values()) > count * MAX_LOST:
         raise WorkMismatch(f"ros2: the subscriber took {len(set(taken) & set(sent))} of {len(sent)} snapshots")
-    both = [s for s in sent if s in taken]
-    latencies = [(taken[s][0] - sent[s][0]) / 1e6 for s in both]
+    both = [s for s in bridge.sent if s in taken]
+    latencies = [(taken[s][0] - bridge.sent[s][0]) / 1e6 for s in both]
     # Cyclone stamps a sample with the wall clock as it is written: the bridge's share of the latency.
-    written = [(taken[s][1] - sent[s][1]) / 1e6 for s in both]
+    written = [(taken[s][1] - bridge.sent[s][1]) / 1e6 for s in both]
     delivered = [lat - w for lat, w in zip(latencies, written, strict=True)]
+    floor_latencies = [(taken[s][0] - floor_run.sent[s][0]) / 1e6 for s in floor_run.sent if s in taken]
+    cpu = bridge.cpu_ns / count / 1e6
+    floor_cpu = floor_run.cpu_ns / count / 1e6
     return {
         "snapshots": count,
-        "lost": lost,
+        "lost": lost["bridge"],
         "latency_p50_ms": percentile(latencies, 50),
         "latency_p99_ms": percentile(latencies, 99),
         "latency_max_ms": max(latencies),
         "objects_written_ms_p50": percentile(written, 50),
         "objects_written_ms_p99": percentile(written, 99),
         "delivery_ms_p99": percentile(delivered, 99),
-        "cpu_ms_per_snapshot": cpu_ns / count / 1e6,
-        "publish_thread_cpu_ms_p50": percentile([n / 1e6 for n in thread_ns], 50),
-        "publish_thread_cpu_ms_p99": percentile([n / 1e6 for n in thread_ns], 99),
-        "publish_call_ms_p99": percentile([n / 1e6 for n in call_ns], 99),
+        "cpu_ms_per_snapshot": cpu,
+        "publish_thread_cpu_ms_p50": percentile([n / 1e6 for n in bridge.thread_ns], 50),
+        "publish_thread_cpu_ms_p99": percentile([n / 1e6 for n in bridge.thread_ns], 99),
+        "publish_call_ms_p99": percentile([n / 1e6 for n in bridge.call_ns], 99),
+        "dds_floor_cpu_ms_per_snapshot": floor_cpu,
+        "dds_floor_thread_cpu_ms_p50": percentile([n / 1e6 for n in floor_run.thread_ns], 50),
+        "dds_floor_latency_p99_ms": percentile(floor_latencies, 99),
+        "dds_floor_lost": lost["floor"],
+        "cpu_over_dds_floor": cpu / floor_cpu,
+        "cpu_ms_beyond_dds_floor": cpu - floor_cpu,
+        "first": order[0],
         "other_topics_taken": said["others"],
     }
 
@@ -215,8 +293,8 @@ def run_ros2(out: Path, quick: bool, rounds: int) -> dict[str, Any]:
         os.environ["CYCLONEDDS_URI"] = config.as_uri()  # before this process's first participant
         env = dict(os.environ)
         env["PYTHONPATH"] = os.pathsep.join([p for p in sys.path if p])
-        for r in range(rounds):
-            runs.append(one_round(random.randint(100, 230), count, env))
+        for r in range(rounds):  # which phase goes first alternates
+            runs.append(one_round(random.randint(100, 230), count, env, bridge_first=r % 2 == 0))
             print(f"round {r + 1}/{rounds}: {runs[-1]}", file=sys.stderr, flush=True)
     result: dict[str, Any] = {
         "machine": machine(), "rounds": rounds, "objects": OBJECTS, "rate_hz": RATE_HZ, "runs": runs,
@@ -232,6 +310,11 @@ def run_ros2(out: Path, quick: bool, rounds: int) -> dict[str, Any]:
         "publish_thread_cpu_ms_p50",
         "publish_thread_cpu_ms_p99",
         "publish_call_ms_p99",
+        "dds_floor_cpu_ms_per_snapshot",
+        "dds_floor_thread_cpu_ms_p50",
+        "dds_floor_latency_p99_ms",
+        "cpu_over_dds_floor",
+        "cpu_ms_beyond_dds_floor",
     ):
         publish(result, key, [r[key] for r in runs])
     result["targets"] = {
@@ -250,12 +333,15 @@ def _plot(result: dict[str, Any], out: Path) -> None:
         (axes[1], "cpu_ms_per_snapshot", "bridge CPU per snapshot (ms)"),
     ):
         values = [r[key] for r in result["runs"]]
-        ax.plot(range(1, len(values) + 1), values, "o-")
+        ax.plot(range(1, len(values) + 1), values, "o-", label="bridge")
+        floor = [r[f"dds_floor_{key}"] for r in result["runs"]]
+        ax.plot(range(1, len(floor) + 1), floor, "s:", color="#777", label="DDS floor (pre-encoded bytes)")
         ax.axhline(TARGETS[key], color="#c33", linestyle="--", label="target")
+        ax.set_xticks(range(1, len(values) + 1))
         ax.set_xlabel("round")
         ax.set_title(label, fontsize=9)
         ax.set_ylim(bottom=0)
-        ax.legend()
+        ax.legend(fontsize=7)
     fig.suptitle(f"drvs-ros2, {result['objects']} objects a snapshot at {result['rate_hz']:g} Hz")
     fig.tight_layout()
     fig.savefig(out / "ros2.png", dpi=100)
@@ -271,7 +357,11 @@ def ros2_main(args: argparse.Namespace) -> int:
     result = measured("ros2", lambda: run_ros2(out, args.quick, rounds))
     if result is None:
         return 1
-    summary = {k: v for k, v in result.items() if k.endswith(("_ms", "_snapshot", "_spread", "_p50", "_p99"))}
+    summary = {
+        k: v
+        for k, v in result.items()
+        if k.endswith(("_ms", "_snapshot", "_spread", "_p50", "_p99", "_floor")) and not k.endswith("_median")
+    }
     summary["targets"] = {k: v["verdict"] for k, v in result["targets"].items()}
     print(json.dumps(summary, indent=1))
     print(f"written: {out / 'ros2.json'}, {out / 'ros2.png'}")

@@ -1,5 +1,6 @@
 """drvs-bench ros2 --quick end to end: the bridge's publishing half and a subscriber process on
-loopback Cyclone; every snapshot reaches the subscriber, the figures and verdicts are written.
+loopback Cyclone; every snapshot reaches the subscriber, the figures and verdicts are written, and
+the DDS floor (the same snapshots' bytes written with no bridge code) is measured in the round.
 No timing is asserted: the targets are the benchmark's verdicts, not tests; on a DDS domain of its own,
 it runs beside other tests (not marked `bench`)."""
 
@@ -27,8 +28,16 @@ def test_ros2_bench_quick_writes_its_figures_and_verdicts(tmp_path: Path) -> Non
     # The bridge's share (call start to Cyclone's write of /drvs/objects) is a part of the latency.
     assert 0 < run["objects_written_ms_p50"] <= run["objects_written_ms_p99"] <= run["latency_max_ms"]
     assert run["cpu_ms_per_snapshot"] > 0 and run["publish_thread_cpu_ms_p50"] > 0
-    for key in ("latency_p99_ms", "cpu_ms_per_snapshot"):
+    # The DDS floor (the same snapshots' bytes written with no bridge code) ran in the same round.
+    assert run["dds_floor_lost"] <= 1 and run["first"] == "bridge"
+    assert run["dds_floor_cpu_ms_per_snapshot"] > 0 and run["dds_floor_latency_p99_ms"] > 0
+    assert run["cpu_over_dds_floor"] == pytest.approx(run["cpu_ms_per_snapshot"] / run["dds_floor_cpu_ms_per_snapshot"])
+    assert run["cpu_ms_beyond_dds_floor"] == pytest.approx(
+        run["cpu_ms_per_snapshot"] - run["dds_floor_cpu_ms_per_snapshot"]
+    )
+    for key in ("latency_p99_ms", "cpu_ms_per_snapshot", "dds_floor_cpu_ms_per_snapshot", "cpu_over_dds_floor"):
         assert result[f"{key}_spread"] == [run[key], run[key]]
+    for key in ("latency_p99_ms", "cpu_ms_per_snapshot"):
         assert result["targets"][key]["verdict"] in ("met", "missed", "spread crosses target")
 
 

@@ -1,7 +1,8 @@
 """drvs.ros2.cdr, the bridge's hand-made CDR, against rosbags: for every topic the bytes equal
 rosbags' serialize_cdr of the messages drvs.ros2.convert builds from the same snapshot, over
-snapshot after snapshot of varied objects (none, one, twenty, long and degenerate outlines, holes,
-unicode ids and types, stopping and ended tracks), and rosbags reads them back to the same bytes."""
+snapshot after snapshot of varied objects (none, one, twenty, long, flat and degenerate outlines,
+repeated corners, holes, unicode ids and types, stopping and ended tracks), and rosbags reads them
+back to the same bytes."""
 
 from __future__ import annotations
 
@@ -48,6 +49,8 @@ def outlines(rng: random.Random) -> Iterator[Polygon]:
         yield Polygon()  # outlines left out: the bounds stand in
         yield box(x, y, x + 2, y + 2).difference(box(x + 0.5, y + 0.5, x + 1.5, y + 1.5))  # a hole
         yield Polygon([(x, y), (x + 7.3, y + 0.1), (x + 0.2, y + 5.9)])  # long edges: many cloud points
+        yield Polygon([(x, y), (x + 1, y), (x + 2, y)])  # flat: no area, its ring still drawn
+        yield Polygon([(x, y), (x, y), (x + 0.3, y), (x + 0.3, y + 0.3)])  # a repeated corner
 
 
 LABELS = ["", "person", "Fußgänger", "🤖 robot", "a" * 37]

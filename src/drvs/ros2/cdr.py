@@ -24,6 +24,7 @@ a sequence's or string's length); a string is its uint32 length with the NUL, it
 from __future__ import annotations
 
 import functools
+import itertools
 import struct
 from collections.abc import Container, Iterator, Sequence
 from typing import Any
@@ -105,23 +106,28 @@ _OBSTACLE = struct.Struct("<5d8x3dd24xd32x72x").pack
 
 class Geometry:
     """What several topics use of a snapshot's objects: heights, object types, and the outline
-    rings of all of them (shapely's vectorised functions: one call for all objects)."""
+    rings of all of them (shapely's vectorised functions: one call for all objects).
+
+    Paced at 50 Hz the bridge wakes onto cold caches, where each distinct numpy or shapely code
+    path costs tens of microseconds the first time however little it does: the points are taken
+    with few of them, and a path once taken is reused (per-ring slices rather than masks)."""
 
     def __init__(self, snapshot: Snapshot, style: Style) -> None:
         objects = snapshot.objects
         self.heights = [style.height(o) for o in objects]
         self.types = [style.object_type(o) for o in objects]
-        outlines = np.array([o.outline for o in objects], dtype=object)
-        if shapely.is_empty(outlines).any():  # outlines left out: their bounds (convert.outline)
-            outlines = np.array([outline(o) for o in objects], dtype=object)
-        self.rings = shapely.get_exterior_ring(outlines)
+        self.rings = shapely.get_exterior_ring([o.outline for o in objects])
+        if shapely.is_empty(self.rings).any():  # outlines left out: their bounds (convert.outline)
+            self.rings = shapely.get_exterior_ring([outline(o) for o in objects])
 
-    def ring_points(self, step_m: float | None) -> tuple[np.ndarray[Any, Any], np.ndarray[Any, Any]]:
+    def ring_points(self, step_m: float | None) -> tuple[np.ndarray[Any, Any], list[int]]:
         """Every object's outline ring as one (k, 2) array of x, y, closing points included (every
-        `step_m` metres along it when given: LinearRing.segmentize), and the object of each point."""
+        `step_m` metres along it when given: LinearRing.segmentize), and where each object's points
+        start (and, last, where they end)."""
         rings = self.rings if step_m is None else shapely.segmentize(self.rings, step_m)
         xy, owner = shapely.get_coordinates(rings, return_index=True)
-        return xy, owner
+        starts: list[int] = np.searchsorted(owner, np.arange(len(self.heights) + 1)).tolist()
+        return xy, starts
 
 
 def detections_cdr(snapshot: Snapshot, geo: Geometry, hdr: bytes) -> bytearray:
@@ -153,13 +159,13 @@ _CLOUD_FIELDS = _aligned([_U32(3)] + [
 
 def obstacle_cloud_cdr(geo: Geometry, hdr: bytes, step_m: float) -> bytearray:
     """sensor_msgs/PointCloud2 as convert.obstacle_cloud builds it."""
-    xy, owner = geo.ring_points(step_m)
+    xy, starts = geo.ring_points(step_m)
     points = np.empty((len(xy), 3), dtype="<f4")
     points[:, :2] = xy
-    points[:, 2] = np.asarray(geo.heights, dtype=np.float64)[owner] / 2
-    closing = np.ones(len(xy), dtype=bool)  # each ring's last point, its first again, is left out
-    closing[:-1] = owner[:-1] != owner[1:]
-    data = points[~closing].tobytes()
+    for h, start, end in zip(geo.heights, starts, starts[1:], strict=False):
+        points[start:end, 2] = h / 2
+    # Each ring's last point, its first again, is left out.
+    data = b"".join([points[start : end - 1].tobytes() for start, end in itertools.pairwise(starts)])
     buf = bytearray(ENCAPSULATION)
     buf += hdr
     buf += _ZEROS[(4 - len(buf)) & 3]
@@ -229,15 +235,13 @@ def markers_cdr(snapshot: Snapshot, geo: Geometry, hdr: bytes, state: MarkerStat
     # A marker's header and namespace from a 4-aligned place, padded for the id after them.
     heads = {ns: _aligned([hdr, cdr_string(ns), b""]) for ns in (state.outline_ns, state.label_ns, state.velocity_ns)}
     outline_head, label_head, arrow_head = heads[state.outline_ns], heads[state.label_ns], heads[state.velocity_ns]
-    xy, owner = geo.ring_points(None)
+    xy, starts = geo.ring_points(None)
     ring = np.full((len(xy), 3), OUTLINE_Z_M)
     ring[:, :2] = xy
     ring_blob = ring.tobytes()
-    ends = np.searchsorted(owner, np.arange(1, len(snapshot.objects) + 1)).tolist()  # each ring's end
     buf = bytearray(ENCAPSULATION)
     buf += _U32(2 * len(snapshot.objects) + sum(moving(o) for o in snapshot.objects) + len(ended))
-    start = 0
-    for o, h, kind, end in zip(snapshot.objects, geo.heights, geo.types, ends, strict=True):
+    for o, h, kind, start, end in zip(snapshot.objects, geo.heights, geo.types, starts, starts[1:], strict=False):
         track_id = o.track_id
         cx, cy = o.centroid_xy
         # The outline: a LINE_STRIP of the ring's points.
@@ -246,7 +250,6 @@ def markers_cdr(snapshot: Snapshot, geo: Geometry, hdr: bytes, state: MarkerStat
         buf += _U32(end - start)
         buf += ring_blob[24 * start : 24 * end]
         buf += _NO_TEXT_END
-        start = end
         # The label: TEXT_VIEW_FACING above the object.
         _marker_start(buf, label_head, track_id, TEXT_VIEW_FACING, ADD)
         buf += _F64X3(cx, cy, h + LABEL_RAISE_M)
