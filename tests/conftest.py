@@ -12,7 +12,7 @@ import pytest_asyncio
 from drvs.sim.scene import RecordedCamera
 from drvs.tools.launch import running
 
-from .helpers import CAMERA_POSES, Office, record_floor, start_office, stop_office
+from .helpers import CAMERA_POSES, Office, once_per_run, record_floor, start_office, stop_office
 
 if TYPE_CHECKING:
     from .live.office_view import OfficeRun
@@ -67,9 +67,9 @@ async def office(request: pytest.FixtureRequest, recorded: dict[str, RecordedCam
 
 @pytest_asyncio.fixture(scope="session", loop_scope="session")
 async def default_office(tmp_path_factory: pytest.TempPathFactory) -> OfficeRun:
-    """One run of the office as it ships, watched live (tests/live/office_view.py): the tests that
-    read it are marked xdist_group(office_view.GROUP), so one worker runs it once. Its processes
-    are all stopped before the first test that asks for it starts."""
-    from .live.office_view import run_default_office
+    """One run of the office as it ships, watched live (tests/live/office_view.py), made once per
+    test run (once_per_run: one worker makes it, another that asks reads it). Its processes are all
+    stopped before the first test that asks for it starts."""
+    from .live.office_view import OfficeRun, run_default_office
 
-    return await run_default_office(tmp_path_factory.mktemp("default-office"))
+    return OfficeRun(**await once_per_run(tmp_path_factory, "default-office", run_default_office))

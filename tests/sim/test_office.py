@@ -15,6 +15,7 @@ from shapely.geometry import LineString, Point, Polygon, box
 
 from drvs.sim.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
 from drvs.tools.launch import ManagedProcess
+from tests.helpers import once_per_run
 
 SMALL_ROOM = Path(__file__).parents[1] / "scenarios" / "small_room.yaml"
 TWO_CAMERAS = Path(__file__).parents[1] / "scenarios" / "two_cameras.yaml"
@@ -49,20 +50,23 @@ def check_map(out: Path) -> None:
 
 
 #: The seeded small-room run that two tests read: the navigation's checks, and the first of the
-#: two runs that must agree (one worker makes it: xdist_group, `./run test`'s --dist loadgroup).
+#: two runs that must agree (made once per test run: tests/helpers.py's once_per_run).
 SEEDED = ("--scenario", str(SMALL_ROOM), "--seed", "7")
-SEEDED_GROUP = "small_room_seed_7"
+
+
+async def seeded_run(out: Path) -> dict[str, Any]:
+    code, result, log = await run_office(out, *SEEDED)
+    return {"out": str(out), "code": code, "result": result, "log": log}
 
 
 @pytest_asyncio.fixture(scope="module", loop_scope="module")
 async def seeded_small_room(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, int, dict[str, Any], str]:
     """drvs-office on the small room with --seed 7, to its end: (its --out, exit code, result, log)."""
-    out = tmp_path_factory.mktemp("seeded-small-room")
-    return (out, *await run_office(out, *SEEDED))
+    run = await once_per_run(tmp_path_factory, "seeded-small-room", seeded_run)
+    return Path(run["out"]), run["code"], run["result"], run["log"]
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group(SEEDED_GROUP)
 def test_navigate_with_drvs_avoids_the_unknown_obstacle(
     seeded_small_room: tuple[Path, int, dict[str, Any], str],
 ) -> None:
@@ -143,7 +147,6 @@ async def test_bad_scenario_is_refused_naming_the_key(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group(SEEDED_GROUP)
 async def test_same_seed_same_run(seeded_small_room: tuple[Path, int, dict[str, Any], str], tmp_path: Path) -> None:
     """A second run with the same seed, made here, against the seeded run the navigation's test reads."""
     _, code, a, log = seeded_small_room

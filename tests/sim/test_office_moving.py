@@ -12,7 +12,6 @@ import pytest
 from shapely.geometry import LineString, Point, Polygon
 
 from drvs.sim.scenario import load_scenario
-from tests.live import office_view
 from tests.live.office_view import OfficeRun
 from tests.sim.test_office import GOAL_TOLERANCE_M, check_map, run_office
 
@@ -57,7 +56,6 @@ async def test_a_robot_that_ignores_velocity_drives_into_the_trolley(tmp_path: P
 
 
 @pytest.mark.slow
-@pytest.mark.xdist_group(office_view.GROUP)
 @pytest.mark.timeout(300)  # the run is the office's whole mission: over a minute on a loaded machine
 def test_the_default_office_with_its_trolley(default_office: OfficeRun) -> None:
     """`./run office` as it ships: the trolley crosses the hallway about when the robot gets there;
