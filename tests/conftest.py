@@ -4,6 +4,7 @@ The constants and builders they use live in tests/helpers.py."""
 from __future__ import annotations
 
 from collections.abc import AsyncIterator, Generator, Iterator
+from typing import TYPE_CHECKING
 
 import pytest
 import pytest_asyncio
@@ -11,7 +12,10 @@ import pytest_asyncio
 from drvs.sim.scene import RecordedCamera
 from drvs.tools.launch import running
 
-from .helpers import CAMERA_POSES, Office, record_floor, start_office, stop_office
+from .helpers import CAMERA_POSES, Office, once_per_run, record_floor, start_office, stop_office
+
+if TYPE_CHECKING:
+    from .live.office_view import OfficeRun
 
 
 @pytest.fixture(autouse=True)
@@ -59,3 +63,13 @@ async def office(request: pytest.FixtureRequest, recorded: dict[str, RecordedCam
         yield o
     finally:
         await stop_office(o)
+
+
+@pytest_asyncio.fixture(scope="session", loop_scope="session")
+async def default_office(tmp_path_factory: pytest.TempPathFactory) -> OfficeRun:
+    """One run of the office as it ships, watched live (tests/live/office_view.py), made once per
+    test run (once_per_run: one worker makes it, another that asks reads it). Its processes are all
+    stopped before the first test that asks for it starts."""
+    from .live.office_view import OfficeRun, run_default_office
+
+    return OfficeRun(**await once_per_run(tmp_path_factory, "default-office", run_default_office))

@@ -5,13 +5,15 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import fcntl
+import json
 import math
 import os
 import re
 import shutil
 import time
 import urllib.request
-from collections.abc import AsyncIterator, Callable, Sequence
+from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from contextlib import AbstractAsyncContextManager
 from dataclasses import dataclass
 from pathlib import Path
@@ -361,3 +363,30 @@ def without(*names: str) -> dict[str, str]:
     """An environment whose Python's cv2 lacks `names` (see tests/data/cv2_without)."""
     path = os.pathsep.join([str(CV2_WITHOUT), os.environ.get("PYTHONPATH", "")])
     return {**os.environ, "PYTHONPATH": path, "DRVS_TEST_CV2_WITHOUT": ",".join(names)}
+
+
+async def once_per_run(
+    tmp_path_factory: pytest.TempPathFactory, name: str, make: Callable[[Path], Awaitable[dict[str, Any]]]
+) -> dict[str, Any]:
+    """`make(folder)` once for the whole test run, for the tests that read the same run of something
+    (each checking its own part of it), also across pytest-xdist's workers: under xdist the first
+    worker to ask makes it in a folder every worker shares, holding a lock there; another that asks
+    meanwhile waits on the lock, then reads what the first left (`make`'s JSON). If `make` fails,
+    the next to ask makes it anew. Without xdist: `make` in a new folder (callers cache it in a fixture)."""
+    if os.environ.get("PYTEST_XDIST_WORKER") is None:
+        return await make(tmp_path_factory.mktemp(name))
+    shared = tmp_path_factory.getbasetemp().parent  # this run's, above every worker's own
+    done = shared / f"{name}.json"
+    with (shared / f"{name}.lock").open("w") as lock:
+        await asyncio.to_thread(fcntl.flock, lock, fcntl.LOCK_EX)
+        try:
+            if done.exists():
+                return dict(json.loads(done.read_text()))
+            folder = shared / name
+            shutil.rmtree(folder, ignore_errors=True)  # a failed try's leftovers
+            folder.mkdir()
+            value = await make(folder)
+            done.write_text(json.dumps(value))
+            return value
+        finally:
+            fcntl.flock(lock, fcntl.LOCK_UN)

@@ -105,8 +105,11 @@ def detectors_main(args: argparse.Namespace) -> int:
         print(f"drvs-bench detectors: --detectors: {', '.join(unknown) or 'none'}: name some of "
               f"{', '.join(dict.fromkeys([*REGISTRY, *INPUTS]))}", file=sys.stderr)  # fmt: skip
         return 2
+    if args.rounds < 0:
+        print("drvs-bench detectors: --rounds must be >= 0 (0: the default)", file=sys.stderr)
+        return 2
     out = out_dir(args.out)
-    result = measured("detectors", lambda: asyncio.run(run_detectors(out, args.quick, only)))
+    result = measured("detectors", lambda: asyncio.run(run_detectors(out, args.quick, only, args.rounds)))
     if result is None:
         return 1
     # The medians (every figure's spread and rounds are in detectors.json) and the accuracy.
@@ -158,6 +161,7 @@ def main(argv: list[str] | None = None) -> int:
     s.set_defaults(func=service_main)
     d = sub.add_parser("detectors", help="each detector's ms per frame, camera CPU at 10 requests/s, memory, accuracy")
     d.add_argument("--quick", action="store_true", help="a smoke run: 3 rounds of short runs (full: 5)")
+    d.add_argument("--rounds", type=int, default=0, help="override the number of interleaved rounds")
     d.add_argument(
         "--detectors", default=None, help="comma-separated detector prefixes (default: every registered one)"
     )

@@ -78,7 +78,7 @@ from drvs.wire import _grpc
 from .common import YELLOW, bench_process, machine, pyplot, write_result
 from .etcd_writes import fleet_writes
 from .helpers import grid_position, no_camera, one_camera_request, percentile, with_request_id
-from .stats import WorkMismatch, interleaved, publish, rounds
+from .stats import FULL_ROUNDS, QUICK_ROUNDS, WorkMismatch, interleaved, publish, rounds
 
 #: The bench camera: 3 m up at the origin, looking 40° down along +y, 60° wide.
 HOMOGRAPHY = homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
@@ -223,11 +223,11 @@ async def failover(rounds: int) -> dict[str, Any]:
     }
 
 
-async def throughput(quick: bool) -> dict[str, Any]:
+async def throughput(quick: bool, n_rounds: int | None = None) -> dict[str, Any]:
     from .service import CAPACITY_NOT_POLICY, ack_server, run_helper
 
     seconds = 2.0 if quick else 8.0
-    n_rounds = rounds(quick)
+    n_rounds = n_rounds or rounds(quick)
     procs: list[Any] = []
     async with running_etcd() as members:
         try:
@@ -386,14 +386,14 @@ async def scaling_run(group: WorkerGroup, n_loads: int, seconds: float, others: 
     }
 
 
-async def workers_scaling(quick: bool, workers_list: list[int]) -> dict[str, Any]:
+async def workers_scaling(quick: bool, workers_list: list[int], n_rounds: int | None = None) -> dict[str, Any]:
     """drvs-server --workers N for each N in `workers_list`: routed requests a second at saturation."""
     from .service import CAPACITY_NOT_POLICY, ack_server
 
     cores = os.cpu_count() or 1
     n_acks, n_loads = harness_size(cores)
     seconds = 2.0 if quick else 8.0
-    n_rounds = rounds(quick)
+    n_rounds = n_rounds or rounds(quick)
     procs: list[Any] = []
     async with running_etcd() as members:
         try:
@@ -569,9 +569,9 @@ def run_cluster(
     if "failover" in parts:
         result["failover"] = asyncio.run(failover(rounds or (QUICK_FAILOVERS if quick else FULL_FAILOVERS)))
     if "throughput" in parts:
-        result["throughput"] = asyncio.run(throughput(quick))
+        result["throughput"] = asyncio.run(throughput(quick, rounds))
         listed = workers_list or list(QUICK_WORKERS_LIST if quick else WORKERS_LIST)
-        result["workers"] = asyncio.run(workers_scaling(quick, listed))
+        result["workers"] = asyncio.run(workers_scaling(quick, listed, rounds))
     if "writes" in parts:  # what a fleet writes to etcd (etcd_writes.py)
         result["writes"] = asyncio.run(fleet_writes(quick))
     return result
@@ -678,7 +678,8 @@ def add_cluster_parser(sub: Any) -> None:
     )
     c.add_argument("--parts", default=",".join(PARTS), help=f"comma-separated parts (default: {','.join(PARTS)})")
     c.add_argument("--registrations", type=int, default=0, help=f"override (full: {FULL_REGISTRATIONS})")
-    c.add_argument("--rounds", type=int, default=0, help=f"fail-overs (full: {FULL_FAILOVERS})")
+    rounds_help = f"fail-overs (full: {FULL_FAILOVERS}); throughput rounds (full: {FULL_ROUNDS}, quick: {QUICK_ROUNDS})"
+    c.add_argument("--rounds", type=int, default=0, help=rounds_help)
     c.add_argument(
         "--workers-list",
         default=None,

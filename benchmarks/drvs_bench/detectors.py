@@ -1,7 +1,7 @@
 """drvs-bench detectors: what each detector plug-in costs and how well it finds what it should.
 
 For every detector in `drvs.detectors.REGISTRY` that this module has inputs for (`INPUTS`), in
-interleaved rounds (stats.FULL_ROUNDS, QUICK_ROUNDS with --quick):
+interleaved rounds (stats.FULL_ROUNDS, QUICK_ROUNDS with --quick, or --rounds):
 
 - **find ms per 640x480 frame**: the detector's `find` on real frames (rendered office frames for
   hsv, aruco and foreground, real footage for people, the office frames for a model), in this
@@ -492,9 +492,12 @@ def gather_inputs(work: Work, only: Sequence[str] | None = None) -> tuple[dict[s
     return found, left_out
 
 
-async def run_detectors(out_dir: Path, quick: bool, only: Sequence[str] | None = None) -> dict[str, Any]:
-    """The benchmark; `only`: these detector prefixes (default: every registered one)."""
-    rounds = QUICK_ROUNDS if quick else FULL_ROUNDS
+async def run_detectors(
+    out_dir: Path, quick: bool, only: Sequence[str] | None = None, n_rounds: int = 0
+) -> dict[str, Any]:
+    """The benchmark; `only`: these detector prefixes (default: every registered one); `n_rounds`:
+    the interleaved rounds (0: QUICK_ROUNDS with `quick`, else FULL_ROUNDS)."""
+    rounds = n_rounds or (QUICK_ROUNDS if quick else FULL_ROUNDS)
     result: dict[str, Any] = {"benchmark": "detectors", "quick": quick, "rounds": rounds, "rate_hz": RATE_HZ}
     # The machine is shared: how loaded it was (1-minute load average, 2 cores) when the run began and ended.
     result["load_average_at_start"] = os.getloadavg()[0]

@@ -14,14 +14,14 @@ from drvs_bench.load_figures import Sampler, check_load_work, summarise
 from drvs_bench.load_robots import expected_requests, schedule
 from drvs_bench.paper import check_drvs, check_stream, run_mode
 from drvs_bench.service import check_latency_run
-from drvs_bench.stats import QUICK_ROUNDS, WorkMismatch
+from drvs_bench.stats import WorkMismatch
 
 from drvs.tools.launch import ManagedProcess, start_camera, start_server
 
 #: The people modes' requests per run in the smoke run: 3 s at 2 Hz instead of --quick's 8 s.
 SMOKE_PEOPLE_REQUESTS = 6
-#: Interleaved rounds in the paper and service smoke runs: two instead of --quick's three. Two
-#: rounds are enough to check what the rounds make (every round's value, the median, the spread
+#: Interleaved rounds in the paper, service and detectors smoke runs: two instead of --quick's three.
+#: Two rounds are enough to check what the rounds make (every round's value, the median, the spread
 #: [min, max], ratios taken within a round); each round is a third of these runs' time.
 SMOKE_ROUNDS = 2
 
@@ -255,11 +255,12 @@ async def test_service_benchmark_smoke(tmp_path: Path) -> None:
     check_service_rounds(result)
 
 
-def test_service_benchmark_refuses_negative_rounds(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+@pytest.mark.parametrize("bench", ["service", "detectors"])
+def test_benchmark_refuses_negative_rounds(bench: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     from drvs_bench.cli import main
 
-    assert main(["service", "--rounds", "-1", "--out", str(tmp_path / "out")]) == 2
-    assert "drvs-bench service: --rounds must be >= 0 (0: the default)" in capsys.readouterr().err
+    assert main([bench, "--rounds", "-1", "--out", str(tmp_path / "out")]) == 2
+    assert f"drvs-bench {bench}: --rounds must be >= 0 (0: the default)" in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
 
 
@@ -465,25 +466,27 @@ def test_load_work_check_fires_when_requests_are_missing() -> None:
 
 @pytest.mark.bench
 @pytest.mark.slow
-@pytest.mark.timeout(480)  # five detectors' cameras, three short rounds, accuracy on small sets: ~2 minutes
+@pytest.mark.timeout(480)  # five detectors' cameras, two short rounds, accuracy on small sets: ~1.5 minutes
 async def test_detectors_benchmark_smoke(tmp_path: Path) -> None:
-    """--quick over every registered detector: each one's figures in interleaved rounds, side by side
-    with its idle camera, the memory of a camera with all of them, and the accuracy figures."""
+    """--quick over every registered detector: each one's figures in interleaved rounds (SMOKE_ROUNDS),
+    side by side with its idle camera, the memory of a camera with all of them, and the accuracy figures."""
     from drvs_bench.detectors import INPUTS, VTEST
 
     from drvs.detectors import REGISTRY
 
-    proc = ManagedProcess.entry_point("bench", "drvs-bench", "detectors", "--quick", "--out", str(tmp_path))
+    proc = ManagedProcess.entry_point(
+        "bench", "drvs-bench", "detectors", "--quick", "--rounds", str(SMOKE_ROUNDS), "--out", str(tmp_path)
+    )
     await proc.start()
     assert await proc.wait(timeout=450) == 0, proc.output()
     result = json.loads((tmp_path / "detectors.json").read_text())
-    assert result["rounds"] == QUICK_ROUNDS and result["rate_hz"] == 10
+    assert result["rounds"] == SMOKE_ROUNDS and result["rate_hz"] == 10
     expected = {p for p in REGISTRY if p in INPUTS} - (set() if VTEST.is_file() else {"people"})
     assert set(result["detectors"]) == expected and {"hsv", "aruco", "foreground"} <= expected
     assert set(result["left_out"]) == set(REGISTRY) - expected
     for name, entry in result["detectors"].items():
         for key in ("find_ms", "camera_cpu_idle_cores", "camera_cpu_10hz_cores", "camera_cpu_10hz_over_idle"):
-            assert entry[key] > 0 and len(entry[f"{key}_runs"]) == QUICK_ROUNDS, (name, key)
+            assert entry[key] > 0 and len(entry[f"{key}_runs"]) == SMOKE_ROUNDS, (name, key)
             lo, hi = entry[f"{key}_spread"]
             assert lo <= entry[key] == entry[f"{key}_median"] <= hi, (name, key)
         # Requests cost the camera CPU on top of reading frames.

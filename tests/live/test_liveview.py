@@ -18,17 +18,17 @@ from typing import Any
 import pytest
 from grpc import aio
 from mcap.reader import make_reader
-from mcap.records import Schema
 from mcap_protobuf.decoder import DecoderFactory
 
 from drvs.core.filters import HsvRange
-from drvs.live.foxglove_client import Channel, FoxgloveClient
+from drvs.live.foxglove_client import FoxgloveClient
 from drvs.live.liveview import SCENE_TOPICS, foxglove_layout
 from drvs.sim.scene import FloorPatch, RecordedCamera
-from drvs.tools.launch import LIVE_READY, ManagedProcess, free_ports, start_server
+from drvs.tools.launch import LIVE_READY, ManagedProcess, start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
 from tests.fakes import start_recorded_camera
 from tests.helpers import YELLOW, record_facing
+from tests.live.office_view import OfficeRun, decoder
 
 POSES = {"left": (-1.5, 0.0, 3.0), "right": (1.5, 0.0, 3.0)}
 SHARED = (0.0, 4.5)
@@ -47,14 +47,6 @@ floor_plan:
 def overlap(tmp_path_factory: pytest.TempPathFactory) -> dict[str, RecordedCamera]:
     yellow = HsvRange.parse(YELLOW).centre_bgr()
     return record_facing(tmp_path_factory.mktemp("liveview"), POSES, [FloorPatch.disc(SHARED, 0.3, yellow)])
-
-
-def decoder(channel: Channel) -> Any:
-    """Decode a live view channel's messages with the schema it advertised, as Foxglove does."""
-    schema = Schema(id=1, name=channel.schema_name, encoding=channel.schema_encoding, data=channel.schema)
-    decode = DecoderFactory().decoder_for(channel.encoding, schema)
-    assert decode is not None, channel
-    return decode
 
 
 def box(region: tuple[float, float, float, float]) -> geometry_pb2.Region:
@@ -219,44 +211,20 @@ async def test_a_camera_that_leaves_is_deleted_from_the_view(
 
 
 @pytest.mark.slow
-async def test_the_office_live_the_way_foxglove_sees_it_and_its_recording(tmp_path: Path) -> None:
+@pytest.mark.timeout(300)  # the run is the office's whole mission, watched: over a minute on a loaded machine
+async def test_the_office_live_the_way_foxglove_sees_it_and_its_recording(default_office: OfficeRun) -> None:
     """drvs-office --foxglove: a client receives the advertised channels and the office moving (the
     walls, cameras, requests, tracks, the robot's pose and paths) while the mission runs; the run's
-    run.mcap holds the same channels and agrees with result.json."""
-    out = tmp_path / "office"
-    office = await ManagedProcess.entry_point(
-        "office",
-        "drvs-office",
-        "--out",
-        str(out),
-        "--foxglove",
-        str(free_ports(1)[0]),  # (it wants a fixed port, as Foxglove's users do)
-    ).start()
-    seen: Counter[str] = Counter()
-    poses: list[Any] = []
-    robot_entities: set[str] = set()
-    try:
-        url = (await office.wait_for_line(r"live view\s+(ws://\S+)", timeout=60)).group(1)
-        async with await FoxgloveClient.connect(url) as client:
-            topics = [*SCENE_TOPICS, "/robot/pose", "/robot/paths"]
-            channels = await client.wait_for_topics(topics, timeout=60)
-            await client.subscribe(channels.values())
-            decoders = {t: decoder(c) for t, c in channels.items()}
-            # Until the robot has moved a metre with tracks in view: the office, moving, live.
-            while not (len(poses) > 1 and abs(poses[-1].pose.position.x - poses[0].pose.position.x) > 1.0
-                       and seen["/drvs/tracks"] and seen["/drvs/cameras"]):  # fmt: skip
-                message = await client.next_message(timeout=30)
-                decoded = decoders[message.channel.topic](message.data)
-                seen[message.channel.topic] += 1
-                if message.channel.topic == "/robot/pose":
-                    poses.append(decoded)
-                    assert decoded.frame_id == "map"
-                if message.channel.topic == "/robot/paths":
-                    robot_entities |= {e.id for e in decoded.entities}
-        assert robot_entities == {"robot/sim-robot", "robot/sim-robot/planned", "robot/sim-robot/driven"}
-        assert await office.wait(timeout=120) == 0
-    finally:
-        await office.stop()
+    run.mcap holds the same channels and agrees with result.json. (The run is shared with the
+    trolley's test, tests/sim/test_office_moving.py: see tests/live/office_view.py.)"""
+    if default_office.live_error is not None:
+        pytest.fail(default_office.live_error)
+    assert default_office.seen.get("/drvs/tracks") and default_office.seen.get("/drvs/cameras")
+    assert abs(default_office.pose_xs[-1] - default_office.pose_xs[0]) > 1.0 and default_office.pose_frames == ["map"]
+    robot_entities = set(default_office.robot_entities)
+    assert robot_entities == {"robot/sim-robot", "robot/sim-robot/planned", "robot/sim-robot/driven"}
+    assert default_office.code == 0, default_office.log
+    out = Path(default_office.out)
     result = json.loads((out / "result.json").read_text())
     assert result["reached_goal"] and result["recording"]["file"] == "run.mcap"
     with (out / "run.mcap").open("rb") as f:

@@ -10,10 +10,12 @@ from typing import Any
 
 import cv2
 import pytest
+import pytest_asyncio
 from shapely.geometry import LineString, Point, Polygon, box
 
 from drvs.sim.scenario import DEFAULT_SCENARIO, Scenario, load_scenario
 from drvs.tools.launch import ManagedProcess
+from tests.helpers import once_per_run
 
 SMALL_ROOM = Path(__file__).parents[1] / "scenarios" / "small_room.yaml"
 TWO_CAMERAS = Path(__file__).parents[1] / "scenarios" / "two_cameras.yaml"
@@ -47,9 +49,28 @@ def check_map(out: Path) -> None:
     assert image is not None and image.shape[0] > 400 and image.shape[1] > 800
 
 
+#: The seeded small-room run that two tests read: the navigation's checks, and the first of the
+#: two runs that must agree (made once per test run: tests/helpers.py's once_per_run).
+SEEDED = ("--scenario", str(SMALL_ROOM), "--seed", "7")
+
+
+async def seeded_run(out: Path) -> dict[str, Any]:
+    code, result, log = await run_office(out, *SEEDED)
+    return {"out": str(out), "code": code, "result": result, "log": log}
+
+
+@pytest_asyncio.fixture(scope="module", loop_scope="module")
+async def seeded_small_room(tmp_path_factory: pytest.TempPathFactory) -> tuple[Path, int, dict[str, Any], str]:
+    """drvs-office on the small room with --seed 7, to its end: (its --out, exit code, result, log)."""
+    run = await once_per_run(tmp_path_factory, "seeded-small-room", seeded_run)
+    return Path(run["out"]), run["code"], run["result"], run["log"]
+
+
 @pytest.mark.slow
-async def test_navigate_with_drvs_avoids_the_unknown_obstacle(tmp_path: Path) -> None:
-    code, result, log = await run_office(tmp_path, "--scenario", str(SMALL_ROOM))
+def test_navigate_with_drvs_avoids_the_unknown_obstacle(
+    seeded_small_room: tuple[Path, int, dict[str, Any], str],
+) -> None:
+    out, code, result, log = seeded_small_room
     assert code == 0, log
     scenario = load_scenario(SMALL_ROOM)
     assert result["mission"] == "navigate" and result["drvs"] is True and result["detector"] == "hsv"
@@ -76,7 +97,7 @@ async def test_navigate_with_drvs_avoids_the_unknown_obstacle(tmp_path: Path) ->
     assert result["bytes_to_robot"] > 0 and result["robot_cpu_s"] > 0
     # On an Ethernet link the same payload comes with a header per segment.
     assert result["wire_bytes_to_robot"] > result["bytes_to_robot"]
-    check_map(tmp_path)
+    check_map(out)
 
 
 @pytest.mark.slow
@@ -126,13 +147,12 @@ async def test_bad_scenario_is_refused_naming_the_key(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-async def test_same_seed_same_run(tmp_path: Path) -> None:
-    runs = []
-    for name in ("a", "b"):
-        code, result, log = await run_office(tmp_path / name, "--scenario", str(SMALL_ROOM), "--seed", "7")
-        assert code == 0, log
-        runs.append(result)
-    a, b = runs
+async def test_same_seed_same_run(seeded_small_room: tuple[Path, int, dict[str, Any], str], tmp_path: Path) -> None:
+    """A second run with the same seed, made here, against the seeded run the navigation's test reads."""
+    _, code, a, log = seeded_small_room
+    assert code == 0, log
+    code, b, log = await run_office(tmp_path, *SEEDED)
+    assert code == 0, log
     assert a["path"] == b["path"] and a["planned_paths"] == b["planned_paths"]
     assert a["detections"] == b["detections"] and a["replans"] == b["replans"]
 

@@ -12,6 +12,7 @@ import pytest
 from shapely.geometry import LineString, Point, Polygon
 
 from drvs.sim.scenario import load_scenario
+from tests.live.office_view import OfficeRun
 from tests.sim.test_office import GOAL_TOLERANCE_M, check_map, run_office
 
 CROSSING = Path(__file__).parents[1] / "scenarios" / "crossing.yaml"
@@ -55,11 +56,13 @@ async def test_a_robot_that_ignores_velocity_drives_into_the_trolley(tmp_path: P
 
 
 @pytest.mark.slow
-async def test_the_default_office_with_its_trolley(tmp_path: Path) -> None:
+@pytest.mark.timeout(300)  # the run is the office's whole mission: over a minute on a loaded machine
+def test_the_default_office_with_its_trolley(default_office: OfficeRun) -> None:
     """`./run office` as it ships: the trolley crosses the hallway about when the robot gets there;
     the robot reaches the goal without touching anything, having followed the trolley as a
-    moving track and then seen it left standing by the south wall."""
-    code, result, log = await run_office(tmp_path)
+    moving track and then seen it left standing by the south wall. (The run, watched live, is
+    shared with the live view's test: see tests/live/office_view.py.)"""
+    code, result, log = default_office.code, default_office.result, default_office.log
     assert code == 0, log
     assert result["reached_goal"] is True and result["collisions"] == 0, result.get("contacts")
     trolley = [t for t in moving_tracks(result) if float(t["max_speed_mps"]) > 0.2]
