@@ -17,6 +17,8 @@ from drvs.core.errors import InvalidArgument
 from drvs.core.model import CameraError, Snapshot, WorldObject
 from drvs.ros2.bridge import SimClock
 from drvs.ros2.convert import (
+    ADD,
+    ARROW_MIN_MPS,
     DELETE,
     LABEL_NS,
     OUTLINE_NS,
@@ -121,6 +123,17 @@ def test_markers_of_ended_tracks_and_stopped_motion_are_deleted() -> None:
     deleted = {(m.ns, m.id) for m in second.markers if m.action == DELETE}
     assert deleted == {(VELOCITY_NS, 1), (OUTLINE_NS, 2), (LABEL_NS, 2)}
     assert state.markers(snap(thing(1, 0, 0)), style, hdr).markers[-1].action != DELETE  # nothing more to delete
+
+
+def test_a_standing_objects_jitter_draws_no_arrow() -> None:
+    """A tracked object that stands still reports a few mm/s of jitter, now and then exactly 0: it
+    gets no arrow to flicker on and off (nor a DELETE each time its speed reads 0)."""
+    state, style, hdr = MarkerState(), Style(), header(1.0, "map")
+    for vx in (0.004, 0.0, 0.003, ARROW_MIN_MPS / 2, 0.0):
+        shown = state.markers(snap(thing(1, 0, 0, vx=vx)), style, hdr).markers
+        assert {(m.ns, m.action) for m in shown} == {(OUTLINE_NS, ADD), (LABEL_NS, ADD)}, vx
+    walking = state.markers(snap(thing(1, 0, 0, vx=ARROW_MIN_MPS)), style, hdr).markers
+    assert (VELOCITY_NS, ADD) in {(m.ns, m.action) for m in walking}
 
 
 def test_diagnostics_warn_per_missing_camera_and_for_floor_no_camera_sees() -> None:

@@ -265,9 +265,15 @@ class MarkerState:
         return ros("visualization_msgs/msg/MarkerArray", markers=out)
 
 
+#: The least speed that gets a velocity arrow: a standing object's tracked velocity jitters by a
+#: few mm/s (and, as millimetre integers on the wire, is now and then exactly 0), which would make
+#: its arrow, one second of motion long and so a few millimetres, flicker on and off in RViz.
+ARROW_MIN_MPS = 0.05
+
+
 def moving(o: WorldObject) -> bool:
-    """Whether the object gets a velocity arrow."""
-    return o.speed_mps > 0
+    """Whether the object gets a velocity arrow: it moves at ARROW_MIN_MPS or faster."""
+    return o.speed_mps >= ARROW_MIN_MPS
 
 
 def label_text(track_id: int, object_type: str) -> str:
