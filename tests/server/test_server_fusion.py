@@ -190,12 +190,14 @@ async def test_two_overlapping_cameras_seeing_one_box_give_one_object(office: Sc
         compact = await stub.DetectObjects(current, timeout=20)
         call.cancel()
     # A robot that did not say it reads millimetre integers (an older one) gets the three messages
-    # of floats it reads; one that did gets geometry_mm, the same places within a millimetre.
+    # of floats it reads; one that did gets geometry_mm, the same places: within 1 cm, since the two
+    # single shots read different frames (a centroid moves by a few mm between frames; the rounding
+    # to millimetres is checked exactly in tests/wire/test_convert.py).
     assert all(o.HasField("centroid") and not o.geometry_mm for o in unary.snapshot.objects)
     assert all(len(o.geometry_mm) == 8 and not o.HasField("centroid") for o in compact.snapshot.objects)
     for xy in (SHARED, LONE):
         [old], [new] = near(unary.snapshot, xy), near(compact.snapshot, xy)
-        assert math.dist((old.centroid.x, old.centroid.y), [v / 1000 for v in new.geometry_mm[:2]]) < 0.002
+        assert math.dist((old.centroid.x, old.centroid.y), [v / 1000 for v in new.geometry_mm[:2]]) < 0.01
     # A robot that asks for no outlines gets none, and the same two objects.
     assert len(lean.snapshot.objects) == 2 and all(not o.outline_xy for o in lean.snapshot.objects)
     for answer in (reply, unary):
