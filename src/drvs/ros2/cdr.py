@@ -162,7 +162,7 @@ def obstacle_cloud_cdr(geo: Geometry, hdr: bytes, step_m: float) -> bytearray:
     xy, starts = geo.ring_points(step_m)
     points = np.empty((len(xy), 3), dtype="<f4")
     points[:, :2] = xy
-    for h, start, end in zip(geo.heights, starts, starts[1:], strict=False):
+    for h, (start, end) in zip(geo.heights, itertools.pairwise(starts), strict=True):
         points[start:end, 2] = h / 2
     # Each ring's last point, its first again, is left out.
     data = b"".join([points[start : end - 1].tobytes() for start, end in itertools.pairwise(starts)])
@@ -241,7 +241,9 @@ def markers_cdr(snapshot: Snapshot, geo: Geometry, hdr: bytes, state: MarkerStat
     ring_blob = ring.tobytes()
     buf = bytearray(ENCAPSULATION)
     buf += _U32(2 * len(snapshot.objects) + sum(moving(o) for o in snapshot.objects) + len(ended))
-    for o, h, kind, start, end in zip(snapshot.objects, geo.heights, geo.types, starts, starts[1:], strict=False):
+    for o, h, kind, (start, end) in zip(
+        snapshot.objects, geo.heights, geo.types, itertools.pairwise(starts), strict=True
+    ):
         track_id = o.track_id
         cx, cy = o.centroid_xy
         # The outline: a LINE_STRIP of the ring's points.
