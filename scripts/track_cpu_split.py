@@ -91,27 +91,16 @@ async def follow_drvs(address: str, snapshots: int, convert: bool) -> tuple[int,
 
 
 async def follow_floor(address: str, snapshots: int) -> tuple[int, float, float, list[int]]:
-    from drvs.v1 import detection_pb2, detection_pb2_grpc
+    from drvs_bench.bare import follow_track
+
+    from drvs.v1 import detection_pb2_grpc
     from drvs.wire import _grpc
 
     async with _grpc.insecure_channel(address) as channel:
         call = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
-
-        async def follow(request_id: str, count: int) -> int:
-            duration = max(1, count - 1) / RATE
-            continuous = detection_pb2.ContinuousMode(rate_hz=RATE, duration_s=duration)
-            await call.write(detection_pb2.DetectionRequest(request_id=request_id, continuous=continuous))
-            received = 0
-            async for reply in call:
-                if reply.HasField("snapshot"):
-                    received += 1
-                    if reply.snapshot.final:
-                        break
-            return received
-
-        await follow("warm", 15)
+        await follow_track(call, "warm", 15, RATE)
         cpu, thread = time.process_time(), time.thread_time()
-        count = await follow("measured", snapshots)
+        count = await follow_track(call, "measured", snapshots, RATE)
         return count, time.process_time() - cpu, time.thread_time() - thread, []
 
 

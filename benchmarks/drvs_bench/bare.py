@@ -275,6 +275,21 @@ async def track_floor_server(args: argparse.Namespace) -> None:
     await serve_detection(_TrackFloorServer(snapshots))
 
 
+async def follow_track(call: aio.StreamStreamCall[Any, Any], request_id: str, snapshots: int, rate: float) -> int:
+    """One track of `snapshots` at `rate` on the DetectStream `call`, its snapshot messages only
+    received (protobuf-parsed by the stub, nothing more) until the final one; returns how many came."""
+    duration = max(1, snapshots - 1) / rate
+    continuous = detection_pb2.ContinuousMode(rate_hz=rate, duration_s=duration)
+    await call.write(detection_pb2.DetectionRequest(request_id=request_id, continuous=continuous))
+    received = 0
+    async for reply in call:
+        if reply.HasField("snapshot"):
+            received += 1
+            if reply.snapshot.final:
+                break
+    return received
+
+
 async def track_floor_robot(args: argparse.Namespace) -> None:
     """The floor of a robot that follows a track: one request on a long-lived DetectStream, then only
     receiving the snapshot messages pushed on it (protobuf-parsed by the stub, nothing more) until
@@ -286,26 +301,11 @@ async def track_floor_robot(args: argparse.Namespace) -> None:
         call = detection_pb2_grpc.DetectObjectBoundaryStub(channel).DetectStream()
         print("READY 0", flush=True)
 
-        async def follow(k: int, snapshots: int) -> int:
-            duration = max(1, snapshots - 1) / args.rate
-            message = detection_pb2.DetectionRequest(
-                request_id=f"{prefix}{k:x}",
-                continuous=detection_pb2.ContinuousMode(rate_hz=args.rate, duration_s=duration),
-            )
-            await call.write(message)
-            received = 0
-            async for reply in call:
-                if reply.HasField("snapshot"):
-                    received += 1
-                    if reply.snapshot.final:
-                        break
-            return received
-
-        await follow(0, args.warmup_snapshots)
+        await follow_track(call, f"{prefix}0", args.warmup_snapshots, args.rate)
         print("START", flush=True)
         cpu_start = time.process_time()
         start = loop.time()
-        received = await follow(1, args.requests)
+        received = await follow_track(call, f"{prefix}1", args.requests, args.rate)
         cpu = time.process_time() - cpu_start
         wall = loop.time() - start
         call.cancel()
