@@ -14,6 +14,7 @@ a camera's stream to the robot is open. Pure logic.
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import hmac
 import secrets
@@ -29,6 +30,12 @@ def new_secret() -> bytes:
     return secrets.token_bytes(SECRET_BYTES)
 
 
+#: Secrets and cameras whose keys are kept: a robot's secret lasts its stream, so the server derives
+#: the same few keys for every request it forwards (an HMAC each, per camera, before this).
+KEYS_CACHED = 256
+
+
+@functools.lru_cache(maxsize=KEYS_CACHED)
 def report_key(secret: bytes, camera_id: str) -> bytes:
     """The key camera `camera_id` presents to the robot whose secret this is; empty without one."""
     if not secret:
