@@ -179,6 +179,7 @@ def floor_payloads(made: list[Snapshot], style: Any, prefix: str) -> list[tuple[
     sends it here (when the missing camera comes and goes: every DIAGNOSED_EVERY-th and the next)."""
     from drvs.ros2.cdr import snapshot_payloads
     from drvs.ros2.convert import MarkerState
+    from drvs.ros2.dds import cdr_padding
 
     markers = MarkerState()
     out = []
@@ -186,7 +187,7 @@ def floor_payloads(made: list[Snapshot], style: Any, prefix: str) -> list[tuple[
         at = snapshot.time + FLOOR_SHIFT_S
         payloads = snapshot_payloads(snapshot, style, markers, at, prefix, with_diagnostics=n % DIAGNOSED_EVERY < 2)
         # Padded as write_cdr pads: it then hands these very bytes to Cyclone (+= b"" on bytes is a no-op).
-        out.append((round(at * 1e9), [(topic, bytes(p) + bytes(-len(p) % 4)) for topic, p in payloads]))
+        out.append((round(at * 1e9), [(topic, bytes(p) + cdr_padding(len(p))) for topic, p in payloads]))
     return out
 
 

@@ -67,12 +67,17 @@ class Node:
         return DataReader(self.participant, self._topic(ros_topic, ros_type), qos(profile))
 
 
+def cdr_padding(length: int) -> bytes:
+    """The zeros Cyclone pads a serialized sample of `length` bytes with, to a multiple of 4."""
+    return bytes(-length % 4)
+
+
 def write_cdr(writer: DataWriter[Any], payload: bytes | bytearray) -> None:
     """Publish a message already serialized as ROS 2 CDR (encapsulation header first: to_cdr,
     drvs.ros2.cdr), handed to Cyclone as it is: what DataWriter.write does after serializing (with
     Cyclone's pure-Python serializer, several times slower), padded to 4 bytes as it pads (a
     bytearray in place: += extends it)."""
-    payload += bytes(-len(payload) % 4)
+    payload += cdr_padding(len(payload))
     code = ddspy_write(writer._ref, payload)
     if code < 0:
         raise DDSException(code, f"writing on {writer.topic.name}")
