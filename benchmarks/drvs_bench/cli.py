@@ -25,6 +25,13 @@ from .stats import measured, out_dir
 from .workload import add_workload_arguments, workload_main
 
 
+def bad_rounds(benchmark: str, rounds: int) -> bool:
+    """Whether `--rounds` is negative (0 is the benchmark's default), said on stderr when it is."""
+    if rounds < 0:
+        print(f"drvs-bench {benchmark}: --rounds must be >= 0 (0: the default)", file=sys.stderr)
+    return rounds < 0
+
+
 def paper_main(args: argparse.Namespace) -> int:
     from .paper import run_paper
     from .paper_figures import FULL_REQUESTS, PEOPLE_FULL_REQUESTS, PEOPLE_QUICK_REQUESTS, QUICK_REQUESTS
@@ -71,8 +78,7 @@ def paper_main(args: argparse.Namespace) -> int:
 def service_main(args: argparse.Namespace) -> int:
     from .service import run_service
 
-    if args.rounds < 0:
-        print("drvs-bench service: --rounds must be >= 0 (0: the default)", file=sys.stderr)
+    if bad_rounds("service", args.rounds):
         return 2
     out = out_dir(args.out)
     result = asyncio.run(run_service(out, args.quick, args.rounds))
@@ -105,8 +111,7 @@ def detectors_main(args: argparse.Namespace) -> int:
         print(f"drvs-bench detectors: --detectors: {', '.join(unknown) or 'none'}: name some of "
               f"{', '.join(dict.fromkeys([*REGISTRY, *INPUTS]))}", file=sys.stderr)  # fmt: skip
         return 2
-    if args.rounds < 0:
-        print("drvs-bench detectors: --rounds must be >= 0 (0: the default)", file=sys.stderr)
+    if bad_rounds("detectors", args.rounds):
         return 2
     out = out_dir(args.out)
     result = measured("detectors", lambda: asyncio.run(run_detectors(out, args.quick, only, args.rounds)))
