@@ -137,6 +137,19 @@ def _mode_figures(runs: list[dict[str, dict[str, Any]]], mode: str) -> dict[str,
     return data
 
 
+Ratio = Callable[[str, str, str, Callable[[dict[str, Any]], float]], None]
+
+
+def ratios(result: dict[str, Any], runs: list[dict[str, dict[str, Any]]]) -> Ratio:
+    """`ratio(name, num, den, figure)`: publishes in `result` under `name` the ratio of mode
+    `num`'s `figure` to mode `den`'s, within each round of `runs`."""
+
+    def ratio(name: str, num: str, den: str, figure: Callable[[dict[str, Any]], float]) -> None:
+        publish(result, name, [figure(run[num]) / figure(run[den]) for run in runs])
+
+    return ratio
+
+
 def summarise(
     runs: list[dict[str, dict[str, Any]]],
     requests: int,
@@ -172,9 +185,7 @@ def summarise(
         [run["jpeg"]["payload_bytes_to_robot"] / max(1, run["jpeg"]["frames"]) for run in runs],
     )
 
-    def ratio(name: str, num: str, den: str, figure: Callable[[dict[str, Any]], float]) -> None:
-        publish(result, name, [figure(run[num]) / figure(run[den]) for run in runs])
-
+    ratio = ratios(result, runs)
     for name, (num, den) in _BANDWIDTH.items():
         ratio(name, num, den, _figure("bytes_per_s"))
         ratio(f"{name}_payload", num, den, _figure("payload_bytes_per_s"))
@@ -234,7 +245,7 @@ def summarise_fused(
     result: dict[str, Any],
     runs: list[dict[str, dict[str, Any]]],
     requests: int,
-    ratio: Callable[[str, str, str, Callable[[dict[str, Any]], float]], None],
+    ratio: Ratio,
 ) -> None:
     """The fused mode's ratios (within each round, as every other) and targets: the robot's CPU
     against raw frames and against the floor of one bare round trip per request, its wire bytes
@@ -263,7 +274,7 @@ def summarise_fused(
 def summarise_track(
     result: dict[str, Any],
     runs: list[dict[str, dict[str, Any]]],
-    ratio: Callable[[str, str, str, Callable[[dict[str, Any]], float]], None],
+    ratio: Ratio,
     track_only: bool = False,
 ) -> None:
     """The track's ratios (within each round) and targets: its wire bytes against the streams', the
@@ -319,10 +330,7 @@ def summarise_track_only(
         "targets": {},
     }
 
-    def ratio(name: str, num: str, den: str, figure: Callable[[dict[str, Any]], float]) -> None:
-        publish(result, name, [figure(run[num]) / figure(run[den]) for run in runs])
-
-    summarise_track(result, runs, ratio, track_only=True)
+    summarise_track(result, runs, ratios(result, runs), track_only=True)
     result["machine"] = machine()
     return result
 
