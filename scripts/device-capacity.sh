@@ -56,7 +56,7 @@ run() {
   local log="$out/capacity.log"
   local py
   if [ "${DRVS_DEVICE_LOCAL:-}" = 1 ]; then
-    py=.venv/bin/python
+    py=${DRVS_VENV:-.venv}/bin/python
   else
     py=python3
     python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
