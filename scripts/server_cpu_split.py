@@ -24,9 +24,8 @@ import tempfile
 from pathlib import Path
 
 from drvs_bench import fusion_cost
-from drvs_bench.common import bench_process
 
-from drvs.tools.launch import ManagedProcess, start_camera, start_server
+from drvs.tools.launch import ManagedProcess
 
 MODES = ("per_camera", "fused", "bare")
 
@@ -48,37 +47,17 @@ def thread_cpu(pid: int) -> tuple[float, float]:
     return main, rest
 
 
-async def bare_processes(procs: list[ManagedProcess]) -> tuple[ManagedProcess, str]:
-    cameras: list[str] = []
-    for k in range(2):
-        camera = await bench_process(f"bare-camera{k}", "bare-camera", "--id", f"bare{k}").start()
-        procs.append(camera)
-        cameras += ["--camera", (await camera.wait_for_line(r"^LISTENING (\S+)", timeout=30)).group(1)]
-    server = await bench_process("bare-server", "bare-server", *cameras).start()
-    procs.append(server)
-    return server, (await server.wait_for_line(r"^LISTENING (\S+)", timeout=30)).group(1)
-
-
 async def main(requests: int, rounds: int) -> None:
     procs: list[ManagedProcess] = []
     out: dict[str, dict[str, list[float]]] = {m: {"ms": [], "loop_share": []} for m in MODES}
     with tempfile.TemporaryDirectory(prefix="drvs-cpu-split-") as tmp:
-        recorded = await asyncio.to_thread(fusion_cost.record_overlap, Path(tmp))
         try:
-            server, address = await start_server("--warm-up", "0")
-            procs.append(server)
-            cameras = []
-            for camera_id, (video, hfile) in recorded.items():
-                camera = await start_camera(camera_id, video, hfile, address, "--max-range", "6.5")
-                procs.append(camera)
-                cameras.append(camera.pid)
-            bare, bare_address = await bare_processes(procs)
-            pids = {"server": [server.pid], "cameras": cameras, "bare": [bare.pid]}
+            started = await fusion_cost.start_cost_processes(Path(tmp), procs)
             for r in range(rounds):
                 for mode in MODES:
-                    pid, target = (bare.pid, bare_address) if mode == "bare" else (server.pid, address)
+                    pid = started.pids["bare" if mode == "bare" else "server"][0]
                     before = thread_cpu(pid)
-                    run = await fusion_cost.run_robot(mode, target, requests, pids)
+                    run = await fusion_cost.run_robot(mode, started.target(mode), requests, started.pids)
                     after = thread_cpu(pid)
                     main_s, rest_s = after[0] - before[0], after[1] - before[1]
                     served = run.get("server_requests", requests)

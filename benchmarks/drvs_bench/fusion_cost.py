@@ -26,6 +26,7 @@ import asyncio
 import json
 import sys
 import tempfile
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -125,33 +126,51 @@ def check_run(mode: str, run: dict[str, Any], requests: int) -> None:
         check_work(mode, {"completed": requests}, {"completed": run["completed"]})
 
 
+@dataclass
+class CostProcesses:
+    """What the cost runs ask: a drvs-server with two drvs-cameras playing the still discs, and the
+    bare floor's server with its two bare cameras; `pids` by role (server, cameras, bare)."""
+
+    address: str
+    bare_address: str
+    pids: dict[str, list[int]]
+
+    def target(self, mode: str) -> str:
+        return self.bare_address if mode == "bare" else self.address
+
+
+async def start_cost_processes(tmp: Path, procs: list[ManagedProcess]) -> CostProcesses:
+    """The cost runs' processes, recorded into `tmp`, each appended to `procs` (the caller stops them)."""
+    recorded = await asyncio.to_thread(record_overlap, tmp)
+    server, address = await start_server("--warm-up", "0")
+    procs.append(server)
+    camera_pids = []
+    for camera_id, (video, hfile) in recorded.items():
+        cam = await start_camera(camera_id, video, hfile, address, "--max-range", "6.5")
+        procs.append(cam)
+        camera_pids.append(cam.pid)
+    bare_cameras: list[str] = []
+    for k in range(2):
+        bare = await bench_process(f"bare-camera{k}", "bare-camera", "--id", f"bare{k}").start()
+        procs.append(bare)
+        bare_cameras += ["--camera", (await bare.wait_for_line(r"^LISTENING (\S+)", timeout=30)).group(1)]
+    bare_server = await bench_process("bare-server", "bare-server", *bare_cameras).start()
+    procs.append(bare_server)
+    bare_address = (await bare_server.wait_for_line(r"^LISTENING (\S+)", timeout=30)).group(1)
+    pids = {"server": [server.pid], "cameras": camera_pids, "bare": [bare_server.pid]}
+    return CostProcesses(address, bare_address, pids)
+
+
 async def run_cost(result: dict[str, Any], rounds: int, quick: bool, requests: int = 0) -> dict[str, Any]:
     requests = requests or (QUICK_COST_REQUESTS if quick else FULL_COST_REQUESTS)
     procs: list[ManagedProcess] = []
     runs: list[dict[str, dict[str, Any]]] = [{} for _ in range(rounds)]
     with tempfile.TemporaryDirectory(prefix="drvs-bench-fusion-") as tmp:
-        recorded = await asyncio.to_thread(record_overlap, Path(tmp))
         try:
-            server, address = await start_server("--warm-up", "0")
-            procs.append(server)
-            camera_pids = []
-            for camera_id, (video, hfile) in recorded.items():
-                cam = await start_camera(camera_id, video, hfile, address, "--max-range", "6.5")
-                procs.append(cam)
-                camera_pids.append(cam.pid)
-            pids = {"server": [server.pid], "cameras": camera_pids}
-            bare_cameras: list[str] = []
-            for k in range(2):
-                bare = await bench_process(f"bare-camera{k}", "bare-camera", "--id", f"bare{k}").start()
-                procs.append(bare)
-                bare_cameras += ["--camera", (await bare.wait_for_line(r"^LISTENING (\S+)", timeout=30)).group(1)]
-            bare_server = await bench_process("bare-server", "bare-server", *bare_cameras).start()
-            procs.append(bare_server)
-            bare_address = (await bare_server.wait_for_line(r"^LISTENING (\S+)", timeout=30)).group(1)
+            started = await start_cost_processes(Path(tmp), procs)
             for r, mode in interleaved(COST_MODES, rounds):
                 print(f"drvs-bench fusion: round {r + 1}/{rounds}: cost, {mode} ...", file=sys.stderr, flush=True)
-                target = bare_address if mode == "bare" else address
-                run = await run_robot(mode, target, requests, {**pids, "bare": [bare_server.pid]})
+                run = await run_robot(mode, started.target(mode), requests, started.pids)
                 check_run(mode, run, requests)
                 runs[r][mode] = run
         finally:
