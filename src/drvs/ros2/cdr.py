@@ -110,24 +110,34 @@ class Geometry:
 
     Paced at 50 Hz the bridge wakes onto cold caches, where each distinct numpy or shapely code
     path costs tens of microseconds the first time however little it does: the points are taken
-    with few of them, and a path once taken is reused (per-ring slices rather than masks)."""
+    with few of them, and a path once taken is reused (the rings' coordinate counts, from which
+    empty rings and where each object's points start are both read, rather than an emptiness
+    test, a search and masks). The rings are made when a topic first asks for them."""
 
     def __init__(self, snapshot: Snapshot, style: Style) -> None:
-        objects = snapshot.objects
-        self.heights = [style.height(o) for o in objects]
-        self.types = [style.object_type(o) for o in objects]
-        self.rings = shapely.get_exterior_ring([o.outline for o in objects])
-        if shapely.is_empty(self.rings).any():  # outlines left out: their bounds (convert.outline)
-            self.rings = shapely.get_exterior_ring([outline(o) for o in objects])
+        self.objects = snapshot.objects
+        self.heights = [style.height(o) for o in self.objects]
+        self.types = [style.object_type(o) for o in self.objects]
+
+    @functools.cached_property
+    def _rings(self) -> tuple[np.ndarray[Any, Any], list[int]]:
+        """The outlines' exterior rings, and how many points each has."""
+        rings = shapely.get_exterior_ring([o.outline for o in self.objects])
+        counts: list[int] = shapely.get_num_coordinates(rings).tolist()
+        if 0 in counts:  # outlines left out (an empty ring): their bounds (convert.outline)
+            rings = shapely.get_exterior_ring([outline(o) for o in self.objects])
+            counts = shapely.get_num_coordinates(rings).tolist()
+        return rings, counts
 
     def ring_points(self, step_m: float | None) -> tuple[np.ndarray[Any, Any], list[int]]:
         """Every object's outline ring as one (k, 2) array of x, y, closing points included (every
         `step_m` metres along it when given: LinearRing.segmentize), and where each object's points
         start (and, last, where they end)."""
-        rings = self.rings if step_m is None else shapely.segmentize(self.rings, step_m)
-        xy, owner = shapely.get_coordinates(rings, return_index=True)
-        starts: list[int] = np.searchsorted(owner, np.arange(len(self.heights) + 1)).tolist()
-        return xy, starts
+        rings, counts = self._rings
+        if step_m is not None:
+            rings = shapely.segmentize(rings, step_m)
+            counts = shapely.get_num_coordinates(rings).tolist()
+        return shapely.get_coordinates(rings), list(itertools.accumulate(counts, initial=0))
 
 
 def detections_cdr(snapshot: Snapshot, geo: Geometry, hdr: bytes) -> bytearray:
