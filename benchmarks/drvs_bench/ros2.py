@@ -22,7 +22,9 @@ taken. CLOCK_MONOTONIC is one clock for every process of the host, so
   (drvs.ros2.dds.write_cdr alone): the CPU and latency of Cyclone and the pacing loop themselves
   (dds_floor_cpu_ms_per_snapshot, dds_floor_latency_p99_ms), the bridge's CPU over it
   (cpu_over_dds_floor) and beyond it (cpu_ms_beyond_dds_floor). The two phases run one after the
-  other in each round, the bridge first in odd rounds, the floor first in even ones.
+  other in each round, the bridge first in odd rounds, the floor first in even ones. What the
+  benchmark made before the clock is frozen out of the garbage collector for both phases
+  (gc.freeze), so that no full collection of it lands in one of them.
 
 Each round publishes SNAPSHOTS snapshots (QUICK_SNAPSHOTS with --quick) of OBJECTS moving objects
 (16-corner outlines, every topic: objects, obstacles, tracks, markers, diagnostics) at RATE_HZ,
@@ -35,6 +37,7 @@ A round may lose up to MAX_LOST of its /drvs/objects samples to a starved subscr
 from __future__ import annotations
 
 import argparse
+import gc
 import json
 import math
 import os
@@ -240,7 +243,15 @@ def one_round(domain: int, count: int, env: dict[str, str], bridge_first: bool =
 
         phases = {"bridge": publish, "floor": lambda n: write_all(publisher, floor[n])}
         order = ("bridge", "floor") if bridge_first else ("floor", "bridge")
-        measured_phases = {phase: paced(phases[phase], count) for phase in order}
+        # What this process made before the clock (the rounds' snapshots and the floor's payloads)
+        # is set aside from the garbage collector: a full collection walking it, whose moment
+        # follows from every allocation before it, would otherwise land in one phase or the other.
+        gc.collect()
+        gc.freeze()
+        try:
+            measured_phases = {phase: paced(phases[phase], count) for phase in order}
+        finally:
+            gc.unfreeze()
         out, _ = sub.communicate(timeout=120)
     finally:
         if sub.poll() is None:

@@ -63,10 +63,7 @@ ENCAPSULATION = b"\x00\x01\x00\x00"
 #: Padding by length; `_ZEROS[(4 - len(buf)) & 7]` pads a payload `buf` (header included) to 8.
 _ZEROS = tuple(bytes(n) for n in range(8))
 _U32 = struct.Struct("<I").pack
-_I32X3 = struct.Struct("<iii").pack
 _F32 = struct.Struct("<f").pack
-_F64X3 = struct.Struct("<3d").pack
-_F64X6 = struct.Struct("<6d").pack
 _STAMP = struct.Struct("<iI").pack
 _ONE = _U32(1)
 
@@ -110,24 +107,35 @@ class Geometry:
 
     Paced at 50 Hz the bridge wakes onto cold caches, where each distinct numpy or shapely code
     path costs tens of microseconds the first time however little it does: the points are taken
-    with few of them, and a path once taken is reused (per-ring slices rather than masks)."""
+    with few of them, and a path once taken is reused (the rings' coordinate counts, from which
+    empty rings and where each object's points start are both read, rather than an emptiness
+    test, a search and masks). The rings are made when a topic first asks for them."""
 
     def __init__(self, snapshot: Snapshot, style: Style) -> None:
-        objects = snapshot.objects
-        self.heights = [style.height(o) for o in objects]
-        self.types = [style.object_type(o) for o in objects]
-        self.rings = shapely.get_exterior_ring([o.outline for o in objects])
-        if shapely.is_empty(self.rings).any():  # outlines left out: their bounds (convert.outline)
-            self.rings = shapely.get_exterior_ring([outline(o) for o in objects])
+        self.objects = snapshot.objects
+        self.heights = [style.height(o) for o in self.objects]
+        self.types = [style.object_type(o) for o in self.objects]
+        self.moving = [moving(o) for o in self.objects]
+
+    @functools.cached_property
+    def _rings(self) -> tuple[np.ndarray[Any, Any], list[int]]:
+        """The outlines' exterior rings, and how many points each has."""
+        rings = shapely.get_exterior_ring([o.outline for o in self.objects])
+        counts: list[int] = shapely.get_num_coordinates(rings).tolist()
+        if 0 in counts:  # outlines left out (an empty ring): their bounds (convert.outline)
+            rings = shapely.get_exterior_ring([outline(o) for o in self.objects])
+            counts = shapely.get_num_coordinates(rings).tolist()
+        return rings, counts
 
     def ring_points(self, step_m: float | None) -> tuple[np.ndarray[Any, Any], list[int]]:
         """Every object's outline ring as one (k, 2) array of x, y, closing points included (every
         `step_m` metres along it when given: LinearRing.segmentize), and where each object's points
         start (and, last, where they end)."""
-        rings = self.rings if step_m is None else shapely.segmentize(self.rings, step_m)
-        xy, owner = shapely.get_coordinates(rings, return_index=True)
-        starts: list[int] = np.searchsorted(owner, np.arange(len(self.heights) + 1)).tolist()
-        return xy, starts
+        rings, counts = self._rings
+        if step_m is not None:
+            rings = shapely.segmentize(rings, step_m)
+            counts = shapely.get_num_coordinates(rings).tolist()
+        return shapely.get_coordinates(rings), list(itertools.accumulate(counts, initial=0))
 
 
 def detections_cdr(snapshot: Snapshot, geo: Geometry, hdr: bytes) -> bytearray:
@@ -220,54 +228,67 @@ _LABEL_BODY = struct.pack("<4d", 0, 0, 0, 1) + _look(*LABEL_LOOK) + _AFTER_LOOK 
 _DELETE_BODY = bytes(56) + _look((0, 0, 0), (0, 0, 0, 0)) + _AFTER_LOOK + _U32(0) + _NO_TEXT_END  # defaults
 
 
-def _marker_start(buf: bytearray, head: bytes, track_id: int, kind: int, action: int) -> None:
-    """A marker's header and namespace (`head`) from a 4-aligned place, then its id, type and
-    action, padded to 8 for the pose that follows."""
-    buf += _ZEROS[(4 - len(buf)) & 3]
-    buf += head
-    buf += _I32X3(track_id, kind, action)
-    buf += _ZEROS[(4 - len(buf)) & 7]
+@functools.lru_cache(maxsize=4096)
+def _label_tail(track_id: int, object_type: str) -> bytes:
+    """A label marker from its orientation on: the constant fields, its text ("#ID TYPE") and the
+    fields after the text. The text starts 4-aligned (the fields before it end so), so the
+    padding after it follows from its length alone."""
+    text = cdr_string(label_text(track_id, object_type))
+    return _LABEL_BODY + text + _ZEROS[-len(text) & 3] + _UNSET_TAIL
+
+
+@functools.lru_cache(maxsize=64)
+def _marker_starts(head_len: int, then: str) -> tuple[struct.Struct, ...]:
+    """By a marker's offset mod 8 (from the end of the encapsulation header) where it starts: how
+    its start packs: padding to 4, its header and namespace (an `s` of `head_len` bytes, padded to
+    4 already), its id, type and action, padding to 8 for the pose, then `then`. One pack a marker
+    in place of a handful of appends (the markers are most of the bridge's Python per snapshot)."""
+    starts = []
+    for at in range(8):
+        to4 = -at & 3
+        to8 = -(at + to4 + head_len + 12) & 7
+        starts.append(struct.Struct(f"<{to4}x{head_len}s3i{to8}x{then}"))
+    return tuple(starts)
 
 
 def markers_cdr(snapshot: Snapshot, geo: Geometry, hdr: bytes, state: MarkerState) -> bytearray:
     """visualization_msgs/MarkerArray as MarkerState.markers builds it (it updates `state` alike)."""
-    ended = state.ended(snapshot)
+    ended = state.ended(snapshot, geo.moving)
     # A marker's header and namespace from a 4-aligned place, padded for the id after them.
     heads = {ns: _aligned([hdr, cdr_string(ns), b""]) for ns in (state.outline_ns, state.label_ns, state.velocity_ns)}
     outline_head, label_head, arrow_head = heads[state.outline_ns], heads[state.label_ns], heads[state.velocity_ns]
+    # Each kind's start by where it starts (mod 8), with what follows its id in the same pack.
+    outline_at = _marker_starts(len(outline_head), f"{len(_OUTLINE_BODY)}sI")  # the body, the points' count
+    label_at = _marker_starts(len(label_head), "3d")  # its position
+    arrow_at = _marker_starts(len(arrow_head), f"{len(_ARROW_BODY)}s6d")  # the body, the two points
     xy, starts = geo.ring_points(None)
     ring = np.full((len(xy), 3), OUTLINE_Z_M)
     ring[:, :2] = xy
     ring_blob = ring.tobytes()
     buf = bytearray(ENCAPSULATION)
-    buf += _U32(2 * len(snapshot.objects) + sum(moving(o) for o in snapshot.objects) + len(ended))
-    for o, h, kind, (start, end) in zip(
-        snapshot.objects, geo.heights, geo.types, itertools.pairwise(starts), strict=True
+    buf += _U32(2 * len(snapshot.objects) + sum(geo.moving) + len(ended))
+    for o, h, kind, moves, (start, end) in zip(
+        snapshot.objects, geo.heights, geo.types, geo.moving, itertools.pairwise(starts), strict=True
     ):
         track_id = o.track_id
         cx, cy = o.centroid_xy
         # The outline: a LINE_STRIP of the ring's points.
-        _marker_start(buf, outline_head, track_id, LINE_STRIP, ADD)
-        buf += _OUTLINE_BODY
-        buf += _U32(end - start)
+        buf += outline_at[(len(buf) + 4) & 7].pack(outline_head, track_id, LINE_STRIP, ADD, _OUTLINE_BODY, end - start)
         buf += ring_blob[24 * start : 24 * end]
         buf += _NO_TEXT_END
         # The label: TEXT_VIEW_FACING above the object.
-        _marker_start(buf, label_head, track_id, TEXT_VIEW_FACING, ADD)
-        buf += _F64X3(cx, cy, h + LABEL_RAISE_M)
-        buf += _LABEL_BODY
-        buf += cdr_string(label_text(track_id, kind))
-        buf += _ZEROS[(4 - len(buf)) & 3]
-        buf += _UNSET_TAIL
-        if moving(o):  # an ARROW: one second of motion at half the height
+        buf += label_at[(len(buf) + 4) & 7].pack(label_head, track_id, TEXT_VIEW_FACING, ADD, cx, cy, h + LABEL_RAISE_M)
+        buf += _label_tail(track_id, kind)
+        if moves:  # an ARROW: one second of motion at half the height
             vx, vy = o.velocity_xy
-            _marker_start(buf, arrow_head, track_id, ARROW, ADD)
-            buf += _ARROW_BODY
-            buf += _F64X6(cx, cy, h / 2, cx + vx, cy + vy, h / 2)
+            buf += arrow_at[(len(buf) + 4) & 7].pack(arrow_head, track_id, ARROW, ADD, _ARROW_BODY,
+                                                     cx, cy, h / 2, cx + vx, cy + vy, h / 2)  # fmt: skip
             buf += _NO_TEXT_END
     for ns, track_id in ended:
-        _marker_start(buf, heads[ns], track_id, ARROW, DELETE)
-        buf += _DELETE_BODY
+        head = heads[ns]
+        buf += _marker_starts(len(head), f"{len(_DELETE_BODY)}s")[(len(buf) + 4) & 7].pack(
+            head, track_id, ARROW, DELETE, _DELETE_BODY
+        )
     return buf
 
 

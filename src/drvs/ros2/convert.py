@@ -9,7 +9,7 @@ from __future__ import annotations
 import functools
 import math
 import uuid
-from collections.abc import Iterable, Iterator
+from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -225,14 +225,18 @@ class MarkerState:
     def _marker(self, **fields: Any) -> Any:
         return message_class("visualization_msgs/msg/Marker")(**{**self._defaults, **fields})
 
-    def ended(self, snapshot: Snapshot) -> list[tuple[str, int]]:
+    def ended(self, snapshot: Snapshot, moves: Sequence[bool] | None = None) -> list[tuple[str, int]]:
         """(namespace, id) of every marker shown before that `snapshot` no longer has, sorted (each
         gets a DELETE); what is shown becomes `snapshot`'s markers. Both encoders of /drvs/markers
-        (markers() here, drvs.ros2.cdr) call it once a snapshot."""
+        (markers() here, drvs.ros2.cdr) call it once a snapshot; `moves`: moving() of each object,
+        when the caller has it already."""
+        if moves is None:
+            moves = [moving(o) for o in snapshot.objects]
         now: set[tuple[str, int]] = set()
-        for o in snapshot.objects:
-            now |= {(self.outline_ns, o.track_id), (self.label_ns, o.track_id)}
-            if moving(o):
+        for o, moves_now in zip(snapshot.objects, moves, strict=True):
+            now.add((self.outline_ns, o.track_id))
+            now.add((self.label_ns, o.track_id))
+            if moves_now:
                 now.add((self.velocity_ns, o.track_id))
         ended = sorted(self.shown - now)
         self.shown = now
