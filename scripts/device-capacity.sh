@@ -4,7 +4,7 @@
 # repository, at most 10 minutes a command and 8 files back).
 #
 #   scripts/device-capacity.sh prepare      here: the wheels and Debian's etcd-server the runs need,
-#                                           into .whl/ (ignored by git; about 30 MB)
+#                                           into .whl/ (in .gitignore; about 26 MB)
 #   scripts/device-capacity.sh run [DIR]    there (or here, to try it: DRVS_DEVICE_LOCAL=1 uses this
 #                                           machine's .venv and etcd): every run below, each under its
 #                                           own time limit, results packed into DIR (default $OUT)
@@ -34,7 +34,6 @@ PLATFORMS=(manylinux_2_34_x86_64 manylinux_2_28_x86_64 manylinux_2_27_x86_64 man
   manylinux2014_x86_64 manylinux1_x86_64)
 
 prepare() {
-  grep -qx '/.whl/' .git/info/exclude 2>/dev/null || echo '/.whl/' >>.git/info/exclude
   mkdir -p .whl
   local platform_args=()
   for p in "${PLATFORMS[@]}"; do platform_args+=(--platform "$p"); done
