@@ -17,7 +17,7 @@ from collections.abc import AsyncIterator, Awaitable, Callable, Sequence
 from contextlib import AbstractAsyncContextManager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import numpy as np
 import pytest
@@ -188,14 +188,32 @@ async def scrape(port: int) -> dict[str, float]:
     return values
 
 
-async def metrics_at_least(port: int, name: str, value: float, timeout: float = 10.0) -> dict[str, float]:
-    """The metrics on `port` once `name` has reached `value`. Another process's counter tells no
-    one when it moves: this polls its scrape endpoint, failing after `timeout` s."""
+T = TypeVar("T")
+
+
+async def poll(
+    read: Callable[[], Awaitable[T]],
+    until: Callable[[T], object] = bool,
+    *,
+    what: str,
+    timeout: float = 10.0,
+    every: float = 0.05,
+) -> T:
+    """`await read()` every `every` s until `until` holds for what it returns, and return that: for
+    another process's state (a server's routing, its metrics), which tells no one when it changes.
+    Fails after `timeout` s, saying `what` was awaited and what was read last."""
     deadline = time.monotonic() + timeout
-    while (values := await scrape(port)).get(name, 0.0) < value:
-        assert time.monotonic() < deadline, f"{name} is {values.get(name, 0.0)}, not {value}, after {timeout} s"
-        await asyncio.sleep(0.05)
-    return values
+    while not until(value := await read()):
+        assert time.monotonic() < deadline, f"still not {what} after {timeout} s (last read: {value!r})"
+        await asyncio.sleep(every)
+    return value
+
+
+async def metrics_at_least(port: int, name: str, value: float, timeout: float = 10.0) -> dict[str, float]:
+    """The metrics on `port` once `name` has reached `value` (polled: another process's counter)."""
+    return await poll(
+        lambda: scrape(port), lambda values: values.get(name, 0.0) >= value, what=f"{name} >= {value}", timeout=timeout
+    )
 
 
 async def wait_until(check: Callable[[], object], what: str = "the condition", timeout: float = 5.0) -> None:

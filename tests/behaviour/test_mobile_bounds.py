@@ -21,7 +21,7 @@ from drvs.core.model import Pose2
 from drvs.sim.scenario import parse_scenario
 from drvs.tools.launch import running_server
 from drvs.v1 import registry_pb2_grpc
-from tests.helpers import MOUNT, YELLOW
+from tests.helpers import MOUNT, YELLOW, poll
 from tests.server.test_mobile_pickup import AWAY, IN, REGION, SCENE, frame, mobile_message, pose_message
 
 TOKEN = "scout-token-0123456789abcdef"
@@ -91,10 +91,7 @@ async def test_a_mobile_camera_that_turns_off_the_region_leaves_the_request_unti
         async with node, DrvsClient.connect(address, robot_id="turtle") as drvs:
             await asyncio.wait_for(node.registered.wait(), 10)
             node.push_pose(IN, t)
-            deadline = time.monotonic() + 10
-            while not await drvs.cameras(box(*REGION)):
-                assert time.monotonic() < deadline, "the server never routed the scout"
-                await asyncio.sleep(0.02)
+            await poll(lambda: drvs.cameras(box(*REGION)), what="the server routing the scout", every=0.02)
             async with drvs.track(YELLOW, REGION, rate_hz=4, duration_s=8) as tracking:
                 assert tracking.camera_ids == ("scout",)
                 snapshots = aiter(tracking)  # read, not closed: leaving `async for` would end the request

@@ -24,7 +24,7 @@ from drvs.core.model import Pose2
 from drvs.sim.scenario import parse_scenario
 from drvs.sim.scene import record_camera
 from drvs.tools.launch import ManagedProcess, start_server
-from tests.helpers import MOBILE_SCENE, MOBILE_SIZE, MOBILE_TARGET, MOUNT, YELLOW, mounted_camera, mounted_frame
+from tests.helpers import MOBILE_SCENE, MOBILE_SIZE, MOBILE_TARGET, MOUNT, YELLOW, mounted_camera, mounted_frame, poll
 
 SIZE = MOBILE_SIZE
 TARGET = MOBILE_TARGET
@@ -66,10 +66,12 @@ async def test_a_fixed_object_lands_in_one_place_from_every_pose_of_a_moving_cam
             node.push_pose(pose, t)
             source.push(frame(scenario, pose, k), t)
             # The server routes the floor ahead of this pose to the camera once its update arrives.
-            deadline = time.monotonic() + 10
-            while not (cams := await drvs.cameras(box(*REGION))) or cams[0].pose != pose:
-                assert time.monotonic() < deadline, cams
-                await asyncio.sleep(0.02)
+            await poll(
+                lambda: drvs.cameras(box(*REGION)),
+                lambda cams: bool(cams) and cams[0].pose == pose,  # noqa: B023 (awaited within this pass)
+                what=f"the floor routed to the camera at {pose}",
+                every=0.02,
+            )
             result = await drvs.detect(YELLOW, REGION, timeout_s=5)
             assert result.camera_ids == ("scout-cam",) and not result.errors, result
             (report,) = result.reports
@@ -90,10 +92,7 @@ async def test_a_frame_with_no_pose_near_its_capture_is_not_used(server: str) ->
     source.push(frame(scenario, pose, 0), t)
     async with node, DrvsClient.connect(server, robot_id="turtle") as drvs:
         node.push_pose(pose, t)
-        deadline = time.monotonic() + 10
-        while not await drvs.cameras(box(*REGION)):
-            assert time.monotonic() < deadline
-            await asyncio.sleep(0.02)
+        await poll(lambda: drvs.cameras(box(*REGION)), what="the floor routed to the camera", every=0.02)
         assert not (await drvs.detect(YELLOW, REGION, timeout_s=5)).errors
         # A newer frame whose capture no pose is near: reported as UNAVAILABLE, not mapped.
         source.push(frame(scenario, pose, 1), t + 1.0)

@@ -37,7 +37,7 @@ from drvs.wire import _grpc
 from drvs.wire.convert import snapshot_to_pb
 from drvs.wire.request_stream import StreamContext, refusal
 from tests.fakes import start_recorded_camera
-from tests.helpers import YELLOW, Scene, metrics_port, record_facing, scrape, serving_detection, wait_until
+from tests.helpers import YELLOW, Scene, metrics_port, poll, record_facing, scrape, serving_detection, wait_until
 
 DOC = Path(__file__).resolve().parents[2] / "docs" / "validation.md"
 #: Filters the in-test server treats specially.
@@ -589,8 +589,5 @@ async def test_end_to_end_leaving_a_track_early_stops_the_cameras(fused_office: 
             await proc.wait_for_line(cancelled, timeout=10)
         # ... and the server has no fused session left.
         port = metrics_port(fused_office.server)
-        loop = asyncio.get_running_loop()
-        end = loop.time() + 10
-        while (await scrape(port)).get("drvs_fusion_sessions") != 0.0:
-            assert loop.time() < end, "the server still holds the fused session"
-            await asyncio.sleep(0.05)
+        await poll(lambda: scrape(port), lambda values: values.get("drvs_fusion_sessions") == 0.0,
+                   what="the server's fused session ended")  # fmt: skip

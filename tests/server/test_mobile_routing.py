@@ -25,6 +25,7 @@ from drvs.server.registry import Registry
 from drvs.tools.launch import running_server
 from drvs.v1 import detection_pb2, geometry_pb2, registry_pb2, registry_pb2_grpc
 from tests.fakes import AckingCamera, serve_camera
+from tests.helpers import poll
 from tests.server.test_registry import SIZE, Clock, camera_at
 
 #: A camera 0.8 m up on a robot, looking forward, 30° down, 70° wide: sees the floor from about
@@ -242,10 +243,8 @@ async def test_a_real_server_routes_a_mobile_camera_where_its_pose_puts_it() -> 
                 forwarded = await asyncio.wait_for(camera.requests.get(), 10)
                 assert forwarded.request_id.startswith(sub.request_id)
                 # ... and, once its pose is stale, not any more (polled: the lease runs on the server's clock).
-                deadline = asyncio.get_running_loop().time() + 10
-                while "scout" in await routed(address, ahead(here)):
-                    assert asyncio.get_running_loop().time() < deadline
-                    await asyncio.sleep(0.1)
+                await poll(lambda: routed(address, ahead(here)), lambda ids: "scout" not in ids,
+                           what="the scout unrouted once its pose is stale", every=0.1)  # fmt: skip
                 listed = {c.camera_id: c for c in await drvs.cameras()}
                 assert listed["scout"].unroutable.startswith("pose stale")
                 result = await drvs.detect("hsv_014110130035225200", ahead(here).bounds, timeout_s=0.5)

@@ -43,9 +43,11 @@ from tests.helpers import (
     Scene,
     metrics_at_least,
     metrics_port,
+    poll,
     record_facing,
     register_message,
     scrape,
+    wait_until,
 )
 
 #: Two cameras 3 m apart, both 3 m up looking along +y: at y = 4.5 "left" sees x -4.6..1.6 and
@@ -320,13 +322,12 @@ async def test_a_waiting_fused_single_shot_does_not_delay_later_replies(office: 
 async def dropped_at_least(ports: dict[str, int], count: int) -> None:
     """Until every camera has dropped `count` reports of a request its server cancelled (at most 10 s)."""
     name = 'drvs_reports_sent_total{outcome="dropped"}'
-    deadline = time.monotonic() + 10
-    while True:
-        values = {c: (await scrape(port)).get(name, 0.0) for c, port in ports.items()}
-        if all(v >= count for v in values.values()):
-            return
-        assert time.monotonic() < deadline, f"cameras dropped {values}, not {count} each, within 10 s"
-        await asyncio.sleep(0.1)  # polling the cameras' metrics, not waiting for anything to happen
+
+    async def dropped() -> dict[str, float]:
+        return {c: (await scrape(port)).get(name, 0.0) for c, port in ports.items()}
+
+    await poll(dropped, lambda values: all(v >= count for v in values.values()), what=f"{count} dropped by each camera",
+               every=0.1)  # fmt: skip
 
 
 @pytest.mark.slow
@@ -645,10 +646,7 @@ async def test_fused_requests_are_bounded_and_end_with_their_stream(monkeypatch:
         assert server.fusion.count == 2 and len(server.limits._active) == 0
         call.cancel()
         other.cancel()
-        deadline = time.monotonic() + 10
-        while server.fusion.count:
-            assert time.monotonic() < deadline, server.fusion.count
-            await asyncio.sleep(0.05)  # polling the server's state
+        await wait_until(lambda: not server.fusion.count, "the server's fusion sessions all ended", timeout=10)
 
 
 def crowd(request_id: str, camera_id: str, key: bytes, count: int) -> detection_pb2.DetectionReport:

@@ -39,7 +39,7 @@ from drvs.tools.launch import (
     start_server,
 )
 from drvs.tools.meter import MeteredClient
-from tests.helpers import CAM1_REGION, CAM1_SEEN, MAX_RANGE, MOBILE_SIZE, MOUNT, YELLOW, nearest, roi, run_robot
+from tests.helpers import CAM1_REGION, CAM1_SEEN, MAX_RANGE, MOBILE_SIZE, MOUNT, YELLOW, nearest, poll, roi, run_robot
 
 needs_etcd = pytest.mark.skipif(
     shutil.which("etcd") is None, reason="etcd is not installed (./run test installs it as root)"
@@ -283,10 +283,8 @@ async def test_a_mobile_cameras_poses_and_deregistration_go_on_through_the_list(
             async def routed_ahead_of(p: Pose2) -> None:
                 """Until B lists the scout as seeing 2.5 m north of `p` (polled: no one tells the test)."""
                 ahead = box(p.x - 0.3, p.y + 2.2, p.x + 0.3, p.y + 2.8)
-                deadline = time.monotonic() + 15
-                while [c.pose for c in await drvs.cameras(ahead)] != [p]:
-                    assert time.monotonic() < deadline, f"B does not route the scout at {p}"
-                    await asyncio.sleep(0.1)
+                await poll(lambda: drvs.cameras(ahead), lambda cams: [c.pose for c in cams] == [p],
+                           what=f"B routing the scout at {p}", timeout=15, every=0.1)  # fmt: skip
 
             await routed_ahead_of(pose[-1])
             a.kill()
