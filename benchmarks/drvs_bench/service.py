@@ -70,10 +70,13 @@ TARGETS: dict[str, tuple[float, bool]] = {
 #: fails the run's work check. It lifts the per-robot budget of forwarded bytes too, and has no
 #: warm-up after start (a fresh server has no previous run's cameras to wait for), so replies are
 #: what they are in steady state. On a registry in etcd, the per-identity write rates are lifted too.
+#: So is the limit of calls open at once on one connection (100; the bare proxy has none): a loaded
+#: server counts the calls it has answered and not yet released, and refuses a load process's 64
+#: concurrent unary calls with REFUSED_STREAM (UNAVAILABLE) now and then (docs/operations.md, limits).
 CAPACITY_NOT_POLICY = (
     *NO_RATE_LIMIT, "--forward-timeout", "60", "--max-queued-forwards", "100000",
     "--max-forward-bytes", "1e12", "--warm-up", "0", "--admission-target", "0",
-    "--registration-rate", "1e9", "--pose-write-rate", "1e9",
+    "--registration-rate", "1e9", "--pose-write-rate", "1e9", "--max-streams-per-connection", "0",
 )  # fmt: skip
 #: Where the floors hold.
 FLOOR_HOLDS = (
