@@ -218,10 +218,11 @@ async def metrics_at_least(port: int, name: str, value: float, timeout: float = 
 
 async def wait_until(check: Callable[[], object], what: str = "the condition", timeout: float = 5.0) -> None:
     """Poll `check()` (a state the test cannot be told about) until true; fail after `timeout` s."""
-    deadline = time.monotonic() + timeout
-    while not check():
-        assert time.monotonic() < deadline, f"still not {what} after {timeout} s"
-        await asyncio.sleep(0.01)
+
+    async def read() -> object:
+        return check()
+
+    await poll(read, what=what, timeout=timeout, every=0.01)
 
 
 # --- real footage ------------------------------------------------------------------------------
