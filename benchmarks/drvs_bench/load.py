@@ -23,7 +23,12 @@ scheduled send to the refusal is recorded); incomplete (dispatched, but a camera
 fused snapshot's missing camera, carried an error: counted by code); lost (DeadlineExceeded,
 Unavailable, or a camera's final report that never came). Goodput is complete requests a second.
 `--delivery fused` asks `snapshot(...)` fused single shots instead (complete: a snapshot that
-names no missing camera). `--overload 2,4` runs --robots (taken as capacity) and then 2x and 4x the
+names no missing camera); `--delivery fused-unary` sends them as unary DetectObjects calls on a plain
+gRPC stub, one connection per robot, as a client without DrvsClient does (no request stream, no
+client-side throttle): a refusal that reached such a robot as UNAVAILABLE (REFUSED_STREAM) or
+CANCELLED (dropped by gRPC before the server took the call in) counts as refused but misses the
+overload target, which asks for RESOURCE_EXHAUSTED. `--server-arg` passes a flag to drvs-server.
+`--overload 2,4` runs --robots (taken as capacity) and then 2x and 4x the
 robots, each on fresh processes, and judges issue 27's overload targets; `--sweep` bisects the most
 robots that complete every request, each probe a short run on fresh processes. Both write a
 `capacity` section: robots per server core at capacity, per delivery.
@@ -102,13 +107,14 @@ async def run_load(
     delivery: str = "per-camera",
     throttle: bool = True,
     deployed: bool = False,
+    server_flags: tuple[str, ...] = (),
 ) -> dict[str, Any]:
     """One run: fresh server and cameras, the robots, and with `abuse` (the abuser's extra
     arguments) the abuse mix beside them from the start to the end of the robots' schedule.
     `delivery`: per-camera reports or fused snapshots; `throttle` False: the robots' client-side
     throttling off (throttle_k=inf), so only the server's door refuses. `deployed`: the server on an
     etcd registry (a real etcd, started here) with its live view on, as a building runs it: what
-    the abuse mix's etcd churn and live-view floods need to reach."""
+    the abuse mix's etcd churn and live-view floods need to reach. `server_flags`: more drvs-server flags."""
     workers = max(1, min(workers, robots))
     procs: list[ManagedProcess] = []
     abuser: ManagedProcess | None = None
@@ -122,7 +128,7 @@ async def run_load(
                 if deployed:
                     members = await stack.enter_async_context(running_etcd())
                     server_args = ["--registry", "etcd://" + members[0].address, "--foxglove", "127.0.0.1:0"]
-                server, address = await start_server(*server_args)
+                server, address = await start_server(*server_args, *server_flags)
                 procs.append(server)
                 if deployed:
                     live_view = next(m.group(1) for line in server.lines if (m := LIVE_READY.search(line)))
@@ -201,10 +207,15 @@ async def run_load(
     recorded = sum(1 for r in records if len(r) > 7 and r[7] == "refused_local")
     result["refused_locally_client_count"] = counted
     result["local_refusals_match_client_count"] = counted == recorded
+    if delivery == "fused-unary":
+        client_throttle = "none: a plain gRPC stub, the retry hint ignored"
+    else:
+        client_throttle = f"adaptive, throttle_k={DEFAULT_K:g}" if throttle else "off (throttle_k=inf)"
     result = {
         "benchmark": "load",
         "delivery": delivery,
-        "client_throttle": f"adaptive, throttle_k={DEFAULT_K:g}" if throttle else "off (throttle_k=inf)",
+        "client_throttle": client_throttle,
+        "server_flags": list(server_flags),
         "robots": robots,
         "workers": workers,
         "rate_hz": rate,
@@ -296,10 +307,11 @@ def load_main(args: argparse.Namespace) -> int:
               "be > 0, --warmup >= 0", file=sys.stderr)  # fmt: skip
         return 2
     throttle = not args.no_throttle
-    base = "load" + ("-fused" if args.delivery == "fused" else "") + ("" if throttle else "-no-throttle")
+    delivered = "" if args.delivery == "per-camera" else f"-{args.delivery}"
+    base = "load" + delivered + ("" if throttle else "-no-throttle")
     key = args.delivery + ("" if throttle else " (no client throttle)")
     settings = dict(workers=workers, rate=args.rate, seconds=seconds, warmup=warmup, timeout=args.timeout,
-                    delivery=args.delivery, throttle=throttle)  # fmt: skip
+                    delivery=args.delivery, throttle=throttle, server_flags=tuple(args.server_arg))  # fmt: skip
     extra_keys: list[str] = []
     if args.sweep:
         sweep = asyncio.run(run_sweep(out, base, robots, args.sweep_max, settings))
@@ -442,7 +454,15 @@ def add_load_parser(sub: Any) -> None:
         "--delivery",
         choices=DELIVERIES,
         default="per-camera",
-        help="per-camera reports (subscribe; default) or fused single shots (snapshot())",
+        help="per-camera reports (subscribe; default), fused single shots (snapshot()), or fused single shots as "
+        "unary DetectObjects calls on a plain gRPC stub (fused-unary: a client without DrvsClient)",
+    )
+    p.add_argument(
+        "--server-arg",
+        action="append",
+        default=[],
+        metavar="FLAG",
+        help="a drvs-server flag or value for every run (repeat it: --server-arg=--max-pending-calls --server-arg=0)",
     )
     p.add_argument(
         "--overload",

@@ -17,7 +17,7 @@ from drvs.tools.launch import ManagedProcess
 
 from .common import cpu_seconds, pyplot
 from .helpers import percentile
-from .load_robots import CAMERAS, OUTCOMES, expected_requests
+from .load_robots import CAMERAS, NOT_RESOURCE_EXHAUSTED, OUTCOMES, expected_requests
 from .stats import check_work, publish, verdict
 
 #: Issue 27's overload targets, at each multiple of the capacity.
@@ -337,7 +337,10 @@ def overload_verdicts(levels: list[dict[str, Any]]) -> dict[str, Any]:
         goodput_ratios = [g / base["goodput_hz"] if base["goodput_hz"] else math.nan for g in level["goodput_hz_runs"]]
         p99_ratios = [p / base["latency_p99_ms"] for p in level["latency_p99_ms_runs"]]
         others = level["requests"] - level["outcomes"]["complete"]
-        refused = level["outcomes"]["refused_server"] + level["outcomes"]["refused_local"]
+        # A refusal counts only if it came as RESOURCE_EXHAUSTED: not UNAVAILABLE (REFUSED_STREAM),
+        # not CANCELLED (dropped by gRPC before the server took the call in).
+        not_exhausted = sum(level["refused_by_reason"].get(k, 0) for k in NOT_RESOURCE_EXHAUSTED)
+        refused = level["outcomes"]["refused_server"] + level["outcomes"]["refused_local"] - not_exhausted
         out[f"goodput_ratio_{tag}"] = round(statistics.median(goodput_ratios), 3)
         out[f"goodput_ratio_{tag}_runs"] = [round(r, 3) for r in goodput_ratios]
         out[f"latency_p99_ratio_{tag}"] = round(statistics.median(p99_ratios), 3)

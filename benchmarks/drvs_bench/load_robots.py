@@ -11,14 +11,22 @@ import time
 from pathlib import Path
 from typing import Any
 
+import grpc
+
 from drvs.core.errors import DrvsError, ResourceExhausted
 from drvs.robot import DetectionResult, DrvsClient, Snapshot
 from drvs.robot.throttle import DEFAULT_K
+from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
+from drvs.wire import _grpc
+from drvs.wire.convert import snapshot_from_pb
 
 from .common import ALL_REGION, YELLOW
 
 CAMERAS = 3
-DELIVERIES = ("per-camera", "fused")
+#: fused-unary: fused single shots as unary DetectObjects calls on a plain gRPC stub, one
+#: connection per robot, as a client without DrvsClient (another language, grpcurl) sends them:
+#: no request stream, no client-side throttle, the retry hint ignored.
+DELIVERIES = ("per-camera", "fused", "fused-unary")
 #: Outcomes of one request, in the order they are published.
 OUTCOMES = ("complete", "refused_server", "refused_local", "incomplete", "lost")
 #: A refusal's reason, from its message (diagnostics only: outcomes do not depend on it).
@@ -28,7 +36,12 @@ REFUSAL_REASONS = (
     ("overloaded: camera", "camera_link"),
     ("overloaded: fused delivery", "fused_delivery"),
     ("busy: camera", "camera_queue"),
+    ("REFUSED_STREAM", "refused_stream"),
+    ("dropped before it was taken in", "dropped_pending"),
 )
+#: The refusals that did not come as RESOURCE_EXHAUSTED on the wire (a fused-unary robot's raw
+#: status: UNAVAILABLE REFUSED_STREAM, and CANCELLED from gRPC's queue of calls not taken in).
+NOT_RESOURCE_EXHAUSTED = ("refused_stream", "dropped_pending")
 
 
 # --- the worker process: N robots -----------------------------------------------------------------
@@ -61,10 +74,27 @@ def refusal_reason(exc: ResourceExhausted) -> str:
     return "no_retry_hint" if exc.retry_after_s == 0 else "other"
 
 
+def classify_snapshot(record: list[Any], snapshot: Snapshot, elapsed_s: float) -> None:
+    """A fused request's record from its snapshot, `elapsed_s` after its scheduled send."""
+    missing = set(snapshot.camera_errors)
+    record[2] = min(CAMERAS, len(set(snapshot.camera_ids) - missing))
+    record[3] = len(snapshot.camera_errors)
+    if not missing and len(snapshot.camera_ids) == CAMERAS:
+        record[4] = round(elapsed_s * 1000, 2)
+        record[7] = "complete"
+    else:
+        codes = sorted(m.code for m in snapshot.camera_errors.values())
+        record[7] = "incomplete"
+        record[9] = ",".join(codes) or f"merged_{len(snapshot.camera_ids)}_cameras"
+
+
 async def robots_worker(args: argparse.Namespace) -> None:
     """`drvs-bench load-robots`: start N robots, say READY, wait for the start time in --go-file,
     run the schedule, print DONE with one record per request."""
     loop = asyncio.get_running_loop()
+    if args.delivery == "fused-unary":
+        await unary_worker(args)
+        return
     fused = args.delivery == "fused"
     clients = [
         DrvsClient(
@@ -113,18 +143,6 @@ async def robots_worker(args: argparse.Namespace) -> None:
                 record[7] = "incomplete"
                 record[9] = ",".join(codes) or f"dispatched_to_{len(result.camera_ids)}_cameras"
 
-        def classify_snapshot(record: list[Any], snapshot: Snapshot, scheduled: float) -> None:
-            missing = set(snapshot.camera_errors)
-            record[2] = min(CAMERAS, len(set(snapshot.camera_ids) - missing))
-            record[3] = len(snapshot.camera_errors)
-            if not missing and len(snapshot.camera_ids) == CAMERAS:
-                record[4] = round((loop.time() - scheduled) * 1000, 2)
-                record[7] = "complete"
-            else:
-                codes = sorted(m.code for m in snapshot.camera_errors.values())
-                record[7] = "incomplete"
-                record[9] = ",".join(codes) or f"merged_{len(snapshot.camera_ids)}_cameras"
-
         async def one(client: DrvsClient, offset: float) -> None:
             scheduled = start + offset
             sent = loop.time()
@@ -161,7 +179,7 @@ async def robots_worker(args: argparse.Namespace) -> None:
                 record[5] = record[9] = type(exc).__name__
                 return
             if fused:
-                classify_snapshot(record, snapshot, scheduled)
+                classify_snapshot(record, snapshot, loop.time() - scheduled)
             else:
                 classify_result(record, result, scheduled)
 
@@ -189,6 +207,86 @@ async def robots_worker(args: argparse.Namespace) -> None:
     finally:
         for client in clients:
             await client.close()
+
+
+class UnaryRobot:
+    """A fused-unary robot: one channel (its own connection), DetectObjects with fusion."""
+
+    def __init__(self, server: str, robot_id: str) -> None:
+        self.robot_id = robot_id
+        self.channel = _grpc.insecure_channel(server)
+        self.stub = detection_pb2_grpc.DetectObjectBoundaryStub(self.channel)
+        self.sent = 0
+        x0, y0, x1, y1 = ALL_REGION
+        self.region = geometry_pb2.Region(box=geometry_pb2.Box(x_lower=x0, y_lower=y0, x_upper=x1, y_upper=y1))
+
+    async def snapshot(self, timeout_s: float) -> Snapshot:
+        """One fused single shot; the failure as DrvsClient would raise it (drvs.wire._grpc)."""
+        self.sent += 1
+        message = detection_pb2.DetectionRequest(
+            request_id=f"{self.robot_id}-{self.sent}", robot_id=self.robot_id, filter_def=YELLOW, region=self.region,
+            fusion=detection_pb2.FusionOptions(compact_geometry=True),
+        )  # fmt: skip
+        try:
+            reply = await self.stub.DetectObjects(message, timeout=timeout_s)
+        except grpc.RpcError as exc:
+            raise _grpc.from_rpc_error(exc, f"request {message.request_id}") from None
+        if reply.HasField("error"):
+            raise _grpc.error_from_code(reply.error.code, reply.error.message, reply.error.retry_after_s)
+        return snapshot_from_pb(reply.snapshot, message.request_id)
+
+
+async def unary_worker(args: argparse.Namespace) -> None:
+    """robots_worker for --delivery fused-unary: the same schedule, records and outcomes."""
+    loop = asyncio.get_running_loop()
+    robots = [UnaryRobot(args.server, f"{args.name}-{i}") for i in range(args.robots)]
+    try:
+        for robot in robots:  # connections up, one round each
+            await robot.snapshot(10)
+        go = asyncio.Event()
+        loop.add_signal_handler(signal.SIGUSR1, go.set)
+        print("READY", flush=True)
+        await go.wait()
+        start_wall = float(await asyncio.to_thread(Path(args.go_file).read_text))
+        start = loop.time() + (start_wall - time.time())
+        records: list[list[Any]] = []
+
+        async def one(robot: UnaryRobot, offset: float) -> None:
+            scheduled = start + offset
+            record: list[Any] = [round(offset, 4), round((loop.time() - scheduled) * 1000, 2), 0, 0, -1.0, "",
+                                 offset < args.warmup, "lost", -1.0, ""]  # fmt: skip
+            records.append(record)
+            try:
+                snapshot = await robot.snapshot(args.timeout)
+            except ResourceExhausted as exc:
+                record[5], record[7] = type(exc).__name__, "refused_server"
+                record[8] = round((loop.time() - scheduled) * 1000, 2)
+                record[9] = refusal_reason(exc)
+                return
+            except DrvsError as exc:
+                record[5] = record[9] = type(exc).__name__
+                return
+            classify_snapshot(record, snapshot, loop.time() - scheduled)
+
+        tasks: list[asyncio.Task[None]] = []
+        cpu_at_warmup = [time.process_time()]
+        loop.call_at(start + args.warmup, lambda: cpu_at_warmup.__setitem__(0, time.process_time()))
+
+        async def run(index: int, robot: UnaryRobot) -> None:
+            for offset in schedule(args.index_offset + index, args.total_robots, args.rate, args.warmup + args.seconds):
+                delay = start + offset - loop.time()
+                if delay > 0:
+                    await asyncio.sleep(delay)
+                tasks.append(loop.create_task(one(robot, offset)))
+
+        await asyncio.gather(*(run(i, r) for i, r in enumerate(robots)))
+        await asyncio.gather(*tasks)
+        done = {"records": records, "cpu_s": time.process_time() - cpu_at_warmup[0],
+                "wall_s": loop.time() - (start + args.warmup), "refused_locally": 0}  # fmt: skip
+        print("DONE " + json.dumps(done), flush=True)
+    finally:
+        for robot in robots:
+            await robot.channel.close()
 
 
 def add_worker_parser(sub: Any) -> None:

@@ -73,10 +73,13 @@ TARGETS: dict[str, tuple[float, bool]] = {
 #: So is the limit of calls open at once on one connection (100; the bare proxy has none): a loaded
 #: server counts the calls it has answered and not yet released, and refuses a load process's 64
 #: concurrent unary calls with REFUSED_STREAM (UNAVAILABLE) now and then (docs/operations.md, limits).
+#: And the calls that may wait to be taken in (64 a method): a load process's 64 concurrent calls
+#: may all wait there at once.
 CAPACITY_NOT_POLICY = (
     *NO_RATE_LIMIT, "--forward-timeout", "60", "--max-queued-forwards", "100000",
     "--max-forward-bytes", "1e12", "--warm-up", "0", "--admission-target", "0",
     "--registration-rate", "1e9", "--pose-write-rate", "1e9", "--max-streams-per-connection", "0",
+    "--max-pending-calls", "0",
 )  # fmt: skip
 #: Where the floors hold.
 FLOOR_HOLDS = (

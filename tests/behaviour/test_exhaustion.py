@@ -20,7 +20,7 @@ from drvs_bench.amplification import measure
 from grpc import aio
 
 from drvs.camera.node import CameraNode
-from drvs.core.errors import InvalidArgument, ResourceExhausted
+from drvs.core.errors import DrvsError, InvalidArgument, ResourceExhausted, Unavailable
 from drvs.core.geometry import MAX_REGION_VERTICES, homography_from_pose, polygon_region
 from drvs.core.model import ContinuousMode
 from drvs.detectors import Frame
@@ -30,7 +30,7 @@ from drvs.server.policy import RequestLimits
 from drvs.sim.scene import RecordedCamera
 from drvs.tools.launch import ManagedProcess, start_server
 from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2, registry_pb2, registry_pb2_grpc
-from drvs.wire import convert
+from drvs.wire import _grpc, convert
 from drvs.wire.convert import MAX_REGION_BYTES, RegionCache, region_to_pb
 from tests.fakes import server_process, start_recorded_camera
 from tests.helpers import CAM1_REGION, YELLOW
@@ -375,6 +375,70 @@ async def test_streams_per_connection_are_capped_and_idle_connections_closed() -
         assert channel.get_state() == grpc.ChannelConnectivity.READY
         await asyncio.wait_for(channel.wait_for_state_change(grpc.ChannelConnectivity.READY), 10)
         assert channel.get_state() != grpc.ChannelConnectivity.READY
+
+
+async def unary_burst(address: str, connections: int, calls: int) -> tuple[dict[str, int], list[Exception]]:
+    """`calls` unary DetectObjects at once, spread over `connections` connections of their own (a
+    plain stub, as a client without DrvsClient): the count of each status, and the domain errors
+    DrvsClient's mapping (from_rpc_error) makes of the failures."""
+    own = [("grpc.use_local_subchannel_pool", 1)]
+    channels = [aio.insecure_channel(address, options=own) for _ in range(connections)]
+    codes: dict[str, int] = {}
+    mapped: list[Exception] = []
+
+    async def one(stub: detection_pb2_grpc.DetectObjectBoundaryStub, i: int) -> None:
+        try:
+            await stub.DetectObjects(request(f"b{i}", BOX), timeout=60)
+            code = "OK"
+        except grpc.RpcError as exc:
+            code = exc.code().name
+            mapped.append(_grpc.from_rpc_error(exc, f"request b{i}"))
+        codes[code] = codes.get(code, 0) + 1
+
+    try:
+        for channel in channels:
+            await channel.channel_ready()
+        stubs = [detection_pb2_grpc.DetectObjectBoundaryStub(c) for c in channels]
+        await asyncio.gather(*(one(stubs[i % connections], i) for i in range(calls)))
+    finally:
+        for channel in channels:
+            await channel.close()
+    return codes, mapped
+
+
+@pytest.mark.slow
+async def test_calls_past_the_pending_limit_are_dropped_at_once_and_read_as_refusals() -> None:
+    # 400 unary calls at once on 20 connections: far more than the server takes in at a time (a few
+    # passes of its event loop each), so they queue in gRPC's core. With --max-pending-calls 1 the
+    # core drops what would queue beyond it (CANCELLED), and DrvsClient's mapping reads that as a
+    # refusal with a retry hint, not an unknown failure; with 0 (no limit) every call waits its turn.
+    async with server_process("--max-pending-calls", "1", "--rate-limit", "1e6") as address:
+        codes, mapped = await unary_burst(address, 20, 400)
+    assert codes.get("CANCELLED", 0) > 0, codes
+    assert set(codes) <= {"OK", "CANCELLED"}, codes
+    assert codes["OK"] > 0, codes
+    assert all(isinstance(e, ResourceExhausted) and e.retry_after_s > 0 for e in mapped), mapped[:3]
+    assert "dropped before it was taken in" in str(mapped[0])
+    async with server_process("--max-pending-calls", "0", "--rate-limit", "1e6") as address:
+        codes, mapped = await unary_burst(address, 20, 400)
+    assert codes == {"OK": 400}, (codes, mapped[:3])
+
+
+def test_a_refused_stream_and_a_dropped_call_read_as_refusals_and_other_failures_do_not() -> None:
+    def failed(code: grpc.StatusCode, details: str) -> aio.AioRpcError:
+        return aio.AioRpcError(code, aio.Metadata(), aio.Metadata(), details)
+
+    refused = _grpc.from_rpc_error(
+        failed(grpc.StatusCode.UNAVAILABLE, "Stream removed (RST_STREAM (Received RST_STREAM with error code 7))"), "s"
+    )
+    assert isinstance(refused, ResourceExhausted) and refused.retry_after_s == _grpc.REFUSED_RETRY_S
+    assert "REFUSED_STREAM" in str(refused)
+    dropped = _grpc.from_rpc_error(failed(grpc.StatusCode.CANCELLED, "CANCELLED"), "s")
+    assert isinstance(dropped, ResourceExhausted) and dropped.retry_after_s == _grpc.REFUSED_RETRY_S
+    # A server that went away is still Unavailable, and a call cancelled here is no refusal.
+    assert type(_grpc.from_rpc_error(failed(grpc.StatusCode.UNAVAILABLE, "Socket closed"), "s")) is Unavailable
+    local = _grpc.from_rpc_error(failed(grpc.StatusCode.CANCELLED, "Locally cancelled by application!"), "s")
+    assert type(local) is DrvsError
 
 
 @pytest.mark.slow

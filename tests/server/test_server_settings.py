@@ -50,7 +50,7 @@ def test_every_field_is_a_declared_setting_and_only_default_max_range_m_has_no_f
         "--max-connection-age-grace", "--trust-network", "--registration-grace", "--max-cameras-per-identity",
         "--max-fov-range", "--max-fov-area", "--pose-lease", "--max-pose-lease", "--min-pose-interval",
         "--registry", "--registration-rate", "--pose-write-rate", "--advertise", "--etcd-ca", "--etcd-cert",
-        "--etcd-key", "--workers", "--admission-target",
+        "--etcd-key", "--workers", "--admission-target", "--max-pending-calls",
     }  # fmt: skip
     assert ENVIRONMENT == {
         "listen": "DRVS_SERVER_LISTEN",

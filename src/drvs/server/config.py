@@ -220,6 +220,17 @@ class ServerConfig:
         group=CONNECTIONS,
         help="calls one connection may have open at once; more wait on the client (default %(default)s)",
     )
+    max_pending_calls: int = setting(
+        _grpc.DEFAULT_MAX_PENDING_CALLS,
+        flag="--max-pending-calls",
+        range=(0, 1e6),
+        unit=" (0: no limit)",
+        metavar="N",
+        group=CONNECTIONS,
+        help="calls of one method that may wait for the server to take them in; past N gRPC drops new ones at once "
+        "(CANCELLED), some up to 2N and all beyond, so that a busy server's callers do not wait there until their "
+        "deadline (default %(default)s)",
+    )
     max_connection_idle_s: float = setting(
         _grpc.DEFAULT_MAX_CONNECTION_IDLE_S,
         flag="--max-connection-idle",
@@ -488,6 +499,7 @@ class ServerConfig:
     def connection_limits(self) -> _grpc.ConnectionLimits:
         return _grpc.ConnectionLimits(
             max_streams=self.max_streams_per_connection,
+            max_pending_calls=self.max_pending_calls,
             max_idle_s=self.max_connection_idle_s,
             max_age_s=self.max_connection_age_s,
             age_grace_s=self.max_connection_age_grace_s,

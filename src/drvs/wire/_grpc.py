@@ -52,6 +52,10 @@ SERVER_OPTIONS: list[tuple[str, Any]] = [
 
 #: Server-wide connection limits of the DRVS server (drvs-server flags of the same names).
 DEFAULT_MAX_STREAMS_PER_CONNECTION = 100
+#: Calls of one method that may wait to be taken in (see ConnectionLimits.max_pending_calls).
+DEFAULT_MAX_PENDING_CALLS = 64
+#: gRPC's "no limit" for the pending calls (a C int).
+_NO_PENDING_LIMIT = 2**31 - 1
 DEFAULT_MAX_CONNECTION_IDLE_S = 300.0
 DEFAULT_MAX_CONNECTION_AGE_S = 3600.0
 DEFAULT_MAX_CONNECTION_AGE_GRACE_S = 60.0
@@ -62,15 +66,23 @@ class ConnectionLimits:
     """What one client connection may hold: streams open at once (more wait on the client), how
     long it may stay without a call before the server closes it, and how long it may live at all
     (after which the server asks the client to reconnect, and ends its calls `age_grace_s` later).
-    0 means no limit. Without these a client can hold connections and streams open forever."""
+    0 means no limit. Without these a client can hold connections and streams open forever.
+
+    `max_pending_calls`, server-wide: the calls of one method that may wait in gRPC's core for the
+    server to take them in (grpc.aio takes in one call a few passes of its event loop, so a
+    server busy with work it has taken takes in new calls slowly). Past it gRPC's core drops new
+    calls at once, at random beyond `max_pending_calls` and every one at twice it: the caller gets
+    CANCELLED. Without it (gRPC's own 1000 and 3000) unary calls queue there for seconds, unseen by
+    the server's admission (drvs.server.admission), and most end at their deadline."""
 
     max_streams: int = DEFAULT_MAX_STREAMS_PER_CONNECTION
     max_idle_s: float = DEFAULT_MAX_CONNECTION_IDLE_S
     max_age_s: float = DEFAULT_MAX_CONNECTION_AGE_S
     age_grace_s: float = DEFAULT_MAX_CONNECTION_AGE_GRACE_S
+    max_pending_calls: int = DEFAULT_MAX_PENDING_CALLS
 
     def __post_init__(self) -> None:
-        for name in ("max_streams", "max_idle_s", "max_age_s", "age_grace_s"):
+        for name in ("max_streams", "max_idle_s", "max_age_s", "age_grace_s", "max_pending_calls"):
             value = getattr(self, name)
             if not (value >= 0 and value <= 1e9):
                 raise errors.InvalidArgument(f"{name}: {value} must be a number in [0, 1e9] (0: no limit)")
@@ -84,6 +96,9 @@ class ConnectionLimits:
         if self.max_age_s:
             out.append(("grpc.max_connection_age_ms", round(self.max_age_s * 1000)))
             out.append(("grpc.max_connection_age_grace_ms", round(self.age_grace_s * 1000)))
+        pending = int(self.max_pending_calls) or _NO_PENDING_LIMIT
+        out.append(("grpc.server.max_pending_requests", pending))
+        out.append(("grpc.server.max_pending_requests_hard_limit", min(2 * pending, _NO_PENDING_LIMIT)))
         return out
 
 
@@ -101,6 +116,15 @@ def status_of(exc: errors.DrvsError) -> grpc.StatusCode:
 #: What grpc.aio says when an operation hits a call whose connection has just failed (the peer
 #: went away): not a fault of the peer but a broken link, which callers retry as Unavailable.
 CORE_BREAK = "Internal error from Core"
+#: How gRPC says the peer refused a call before reading it: HTTP/2 REFUSED_STREAM (error code 7,
+#: "closed prior to any processing", RFC 9113 8.7) comes as UNAVAILABLE with this in its details
+#: (a loaded server counts calls it has answered and not yet released against its limit of calls
+#: open on one connection); and a call that gRPC's core dropped while it waited to be taken in
+#: (ConnectionLimits.max_pending_calls) ends CANCELLED with these details and nothing else.
+REFUSED_STREAM = "RST_STREAM with error code 7"
+DROPPED_PENDING = "CANCELLED"
+#: The wait asked of a caller after either (no hint travels with them): the door's shortest.
+REFUSED_RETRY_S = 0.1
 
 
 def from_rpc_error(exc: grpc.RpcError, what: str) -> errors.DrvsError:
@@ -111,6 +135,20 @@ def from_rpc_error(exc: grpc.RpcError, what: str) -> errors.DrvsError:
         return errors.Unavailable(f"{what}: the connection broke during the call")
     if code == grpc.StatusCode.RESOURCE_EXHAUSTED:
         return errors.ResourceExhausted(f"{what}: {details or code.name}", retry_after_s=retry_hint(exc))
+    # Refused before the peer's code saw the call, for load: a refusal as the door's are (so a
+    # robot's throttle backs off), not a dead server (UNAVAILABLE) or an unknown failure.
+    if code == grpc.StatusCode.UNAVAILABLE and REFUSED_STREAM in (details or ""):
+        return errors.ResourceExhausted(
+            f"{what}: refused before it was read (HTTP/2 REFUSED_STREAM: the peer is at its limit of calls "
+            f"open on this connection); retry in {REFUSED_RETRY_S * 1000:.0f} ms",
+            retry_after_s=REFUSED_RETRY_S,
+        )
+    if code == grpc.StatusCode.CANCELLED and details == DROPPED_PENDING:
+        return errors.ResourceExhausted(
+            f"{what}: dropped before it was taken in (CANCELLED: the peer's queue of calls waiting to be taken "
+            f"in was full, or it was stopping); retry in {REFUSED_RETRY_S * 1000:.0f} ms",
+            retry_after_s=REFUSED_RETRY_S,
+        )
     cls = _FROM_STATUS.get(code, errors.DrvsError)
     return cls(f"{what}: {details or code.name}")
 
