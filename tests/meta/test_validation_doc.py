@@ -485,6 +485,11 @@ def cli_cases(tmp: Path) -> list[CliCase]:
             ("--max-connection-idle", "-1"),
             "max_connection_idle_s (--max-connection-idle): … must be in [0, 1e9] (0: no limit)",
         ),
+        CliCase(
+            "drvs-server",
+            ("--max-pending-calls", "-1"),
+            "max_pending_calls (--max-pending-calls): … must be in [0, 1e6] (0: no limit)",
+        ),
         CliCase("drvs-server", ("--metrics-port", "nowhere"), "--metrics-port: '…' is not host:port"),
         CliCase("drvs-server", ("--pose-lease", "0"), "pose_lease_s (--pose-lease): … must be in (0, 3600] seconds"),
         CliCase(
