@@ -439,6 +439,12 @@ def test_a_refused_stream_and_a_dropped_call_read_as_refusals_and_other_failures
     assert type(_grpc.from_rpc_error(failed(grpc.StatusCode.UNAVAILABLE, "Socket closed"), "s")) is Unavailable
     local = _grpc.from_rpc_error(failed(grpc.StatusCode.CANCELLED, "Locally cancelled by application!"), "s")
     assert type(local) is DrvsError
+    # What a camera's registration logs as "busy" rather than "unreachable": these two only.
+    refused_stream = "Stream removed (RST_STREAM (Received RST_STREAM with error code 7))"
+    assert _grpc.refused_before_read(failed(grpc.StatusCode.UNAVAILABLE, refused_stream))
+    assert _grpc.refused_before_read(failed(grpc.StatusCode.CANCELLED, "CANCELLED"))
+    assert not _grpc.refused_before_read(failed(grpc.StatusCode.UNAVAILABLE, "Socket closed"))
+    assert not _grpc.refused_before_read(failed(grpc.StatusCode.CANCELLED, "Locally cancelled by application!"))
 
 
 @pytest.mark.slow

@@ -21,6 +21,7 @@ from drvs.core.mobile import PoseBuffer
 from drvs.core.model import Pose2
 from drvs.core.net import parse_address_list
 from drvs.v1 import registry_pb2, registry_pb2_grpc
+from drvs.wire import _grpc
 from drvs.wire.channels import check_role, open_channel
 from drvs.wire.convert import pose_to_pb
 from drvs.wire.security import SERVER, Security
@@ -174,6 +175,10 @@ class Registration:
                 elif code in (grpc.StatusCode.INVALID_ARGUMENT, grpc.StatusCode.UNAUTHENTICATED):
                     registered = False
                     log.error("camera %s: server refused registration: %s", self.camera_id, details(exc))
+                elif _grpc.refused_before_read(exc):
+                    # Dropped or refused before the server read it (too busy to take it in): the
+                    # server is there; tried again after the backoff.
+                    log.warning("camera %s: server %s busy: %s", self.camera_id, self.server_address, details(exc))
                 else:
                     log.warning(
                         "camera %s: server %s unreachable: %s", self.camera_id, self.server_address, details(exc)

@@ -137,20 +137,29 @@ def from_rpc_error(exc: grpc.RpcError, what: str) -> errors.DrvsError:
         return errors.ResourceExhausted(f"{what}: {details or code.name}", retry_after_s=retry_hint(exc))
     # Refused before the peer's code saw the call, for load: a refusal as the door's are (so a
     # robot's throttle backs off), not a dead server (UNAVAILABLE) or an unknown failure.
-    if code == grpc.StatusCode.UNAVAILABLE and REFUSED_STREAM in (details or ""):
-        return errors.ResourceExhausted(
-            f"{what}: refused before it was read (HTTP/2 REFUSED_STREAM: the peer is at its limit of calls "
-            f"open on this connection); retry in {REFUSED_RETRY_S * 1000:.0f} ms",
-            retry_after_s=REFUSED_RETRY_S,
+    if refused_before_read(exc):
+        why = (
+            "refused before it was read (HTTP/2 REFUSED_STREAM: the peer is at its limit of calls open on this "
+            "connection)"
+            if code == grpc.StatusCode.UNAVAILABLE
+            else "dropped before it was taken in (CANCELLED: the peer's queue of calls waiting to be taken in was "
+            "full, or it was stopping)"
         )
-    if code == grpc.StatusCode.CANCELLED and details == DROPPED_PENDING:
         return errors.ResourceExhausted(
-            f"{what}: dropped before it was taken in (CANCELLED: the peer's queue of calls waiting to be taken "
-            f"in was full, or it was stopping); retry in {REFUSED_RETRY_S * 1000:.0f} ms",
-            retry_after_s=REFUSED_RETRY_S,
+            f"{what}: {why}; retry in {REFUSED_RETRY_S * 1000:.0f} ms", retry_after_s=REFUSED_RETRY_S
         )
     cls = _FROM_STATUS.get(code, errors.DrvsError)
     return cls(f"{what}: {details or code.name}")
+
+
+def refused_before_read(exc: grpc.RpcError) -> bool:
+    """Whether the peer refused or dropped the call before its code read it (REFUSED_STREAM, or
+    CANCELLED by gRPC's core while the call waited to be taken in): busy, not gone."""
+    code = exc.code() if hasattr(exc, "code") else grpc.StatusCode.UNKNOWN
+    details = (exc.details() if hasattr(exc, "details") else "") or ""
+    return (code == grpc.StatusCode.UNAVAILABLE and REFUSED_STREAM in details) or (
+        code == grpc.StatusCode.CANCELLED and details == DROPPED_PENDING
+    )
 
 
 #: The trailer a refusal's retry hint travels in on a unary call: gRPC's own name for it (its
