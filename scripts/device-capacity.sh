@@ -17,8 +17,10 @@
 #   2. drvs-bench load --overload 2,4 at the per-camera capacity found: goodput, p99 and refusals;
 #   3. drvs-bench load --robots 100: the fleet that once collapsed, as first measured;
 #   4. drvs-bench cluster --parts throughput --workers-list 1,2,4,8: what --workers gains;
-#   5. drvs-bench fusion --parts cost: server CPU per request beside the bare-proxy floor;
+#   5. drvs-bench load --delivery fused-unary --overload 2,4 at the fused capacity found: the issue's
+#      own measurement (unary fused calls, a connection a robot) with --max-pending-calls' default;
 #   6. drvs-bench service --quick (routing over the bare proxy), if time is left.
+# (Server CPU per request, drvs-bench fusion --parts cost, is measured on 2 cores as well.)
 # Each step's limit is its run's time on 16 cores with room; all of them end inside DEADLINE_S.
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -90,8 +92,9 @@ google.protobuf.__version__, "numpy", numpy.__version__, "opencv", cv2.__version
   }
   step sweep-per-camera 150 load --sweep --robots 16 --sweep-max 128 --seconds 6 --warmup 2 --workers 8
   step sweep-fused 130 load --sweep --delivery fused --robots 8 --sweep-max 128 --seconds 6 --warmup 2 --workers 8
-  local capacity
-  capacity=$("$py" - "$work/sweep-per-camera" <<'EOF'
+  # found DIR: the robots at capacity the sweep in DIR found (nothing if it found none).
+  found() {
+    "$py" - "$1" <<'EOF'
 import json, pathlib, sys
 for path in sorted(pathlib.Path(sys.argv[1]).glob("*.json")):
     sweep = json.loads(path.read_text()).get("sweep") or {}
@@ -99,12 +102,16 @@ for path in sorted(pathlib.Path(sys.argv[1]).glob("*.json")):
         print(sweep["capacity_robots"])
         break
 EOF
-)
-  echo "## the per-camera capacity found: ${capacity:-none} robots" >>"$log"
+  }
+  local capacity fused
+  capacity=$(found "$work/sweep-per-camera")
+  fused=$(found "$work/sweep-fused")
+  echo "## the capacity found: per camera ${capacity:-none}, fused ${fused:-none} robots" >>"$log"
   step overload-per-camera 80 load --overload 2,4 --robots "${capacity:-25}" --seconds 8 --warmup 2 --workers 12
   step load-100 45 load --robots 100 --seconds 10 --warmup 3 --workers 12
   step cluster-workers 120 cluster --parts throughput --workers-list 1,2,4,8 --rounds 1
-  step fusion-cost 60 fusion --quick --parts cost
+  step overload-fused-unary 60 load --delivery fused-unary --overload 2,4 --robots "${fused:-8}" --seconds 8 \
+    --warmup 2 --workers 12
   step service 100 service --quick --rounds 1
   echo "# done after $((SECONDS - started)) s" >>"$log"
   rm -rf "$work"

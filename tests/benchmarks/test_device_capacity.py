@@ -23,8 +23,8 @@ def test_with_no_time_left_every_step_is_left_out_and_logged(tmp_path: Path) -> 
     done = run_script("run", str(tmp_path), DRVS_DEVICE_LOCAL="1", DRVS_DEVICE_DEADLINE_S="0")
     assert done.returncode == 0, done.stderr
     log = (tmp_path / "capacity.log").read_text()
-    steps = ["sweep-per-camera", "sweep-fused", "overload-per-camera", "load-100", "cluster-workers", "fusion-cost",
-             "service"]  # fmt: skip
+    steps = ["sweep-per-camera", "sweep-fused", "overload-per-camera", "load-100", "cluster-workers",
+             "overload-fused-unary", "service"]  # fmt: skip
     for step in steps:
         assert re.search(rf"^## {step}: left out, (0|-\d+) s left$", log, re.M), log
     assert "drvs-bench" not in log.split("cores,", 1)[1]  # no run started
