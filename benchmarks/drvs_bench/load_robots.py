@@ -8,8 +8,9 @@ import asyncio
 import json
 import signal
 import time
+from collections.abc import Callable, Coroutine, Sequence
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 import grpc
 
@@ -23,6 +24,7 @@ from drvs.wire.convert import snapshot_from_pb
 from .common import ALL_REGION, YELLOW
 
 CAMERAS = 3
+R = TypeVar("R")
 #: fused-unary: fused single shots as unary DetectObjects calls on a plain gRPC stub, one
 #: connection per robot, as a client without DrvsClient (another language, grpcurl) sends them:
 #: no request stream, no client-side throttle, the retry hint ignored.
@@ -74,6 +76,54 @@ def refusal_reason(exc: ResourceExhausted) -> str:
     return "no_retry_hint" if exc.retry_after_s == 0 else "other"
 
 
+async def started(args: argparse.Namespace) -> float:
+    """Say READY, wait for SIGUSR1, and return the start time the coordinator wrote into --go-file
+    (its wall clock) on this loop's clock."""
+    loop = asyncio.get_running_loop()
+    go = asyncio.Event()
+    loop.add_signal_handler(signal.SIGUSR1, go.set)
+    print("READY", flush=True)
+    await go.wait()
+    start_wall = float(await asyncio.to_thread(Path(args.go_file).read_text))
+    return loop.time() + (start_wall - time.time())
+
+
+async def run_schedule(
+    args: argparse.Namespace, start: float, robots: Sequence[R], one: Callable[[R, float], Coroutine[Any, Any, None]]
+) -> tuple[float, float]:
+    """Every robot's requests on its schedule from `start`, each `one(robot, offset)` in a task of its
+    own (open loop), all awaited: this process's CPU seconds and the wall seconds from the end of
+    the warm-up (it exits before the coordinator's last sample)."""
+    loop = asyncio.get_running_loop()
+    tasks: list[asyncio.Task[None]] = []
+    cpu_at_warmup = [time.process_time()]
+    loop.call_at(start + args.warmup, lambda: cpu_at_warmup.__setitem__(0, time.process_time()))
+
+    async def robot(index: int, who: R) -> None:
+        for offset in schedule(args.index_offset + index, args.total_robots, args.rate, args.warmup + args.seconds):
+            delay = start + offset - loop.time()
+            if delay > 0:
+                await asyncio.sleep(delay)
+            tasks.append(loop.create_task(one(who, offset)))
+
+    await asyncio.gather(*(robot(i, r) for i, r in enumerate(robots)))
+    await asyncio.gather(*tasks)
+    return time.process_time() - cpu_at_warmup[0], loop.time() - (start + args.warmup)
+
+
+def classify_failure(record: list[Any], exc: DrvsError, elapsed_s: float, local: bool = False) -> None:
+    """A request's record from the error it raised, `elapsed_s` after its scheduled send: a refusal
+    (ResourceExhausted: by the server, or by the robot's own throttle when `local`) with its time and
+    reason; anything else lost, by its kind."""
+    record[5] = type(exc).__name__
+    if isinstance(exc, ResourceExhausted):
+        record[7] = "refused_local" if local else "refused_server"
+        record[8] = round(elapsed_s * 1000, 2)
+        record[9] = refusal_reason(exc)
+    else:
+        record[9] = record[5]
+
+
 def classify_snapshot(record: list[Any], snapshot: Snapshot, elapsed_s: float) -> None:
     """A fused request's record from its snapshot, `elapsed_s` after its scheduled send."""
     missing = set(snapshot.camera_errors)
@@ -113,13 +163,7 @@ async def robots_worker(args: argparse.Namespace) -> None:
                 await client.snapshot(YELLOW, ALL_REGION, timeout_s=10)
             else:
                 await client.detect(YELLOW, ALL_REGION, timeout_s=10)
-        go = asyncio.Event()
-        loop.add_signal_handler(signal.SIGUSR1, go.set)
-        print("READY", flush=True)
-        await go.wait()  # the coordinator has written the start time (wall clock) into --go-file
-        start_wall = float(await asyncio.to_thread(Path(args.go_file).read_text))
-        start = loop.time() + (start_wall - time.time())
-        end_offset = args.warmup + args.seconds
+        start = await started(args)
         refused_locally_before = sum(c.throttle.refused_locally for c in clients)
         # Per request: [0] scheduled offset from the start (s), [1] lag of the send behind schedule
         # (ms), [2] final reports (fused: cameras merged) without error, [3] with error (fused:
@@ -168,37 +212,17 @@ async def robots_worker(args: argparse.Namespace) -> None:
                 else:
                     sub = await client.subscribe(YELLOW, ALL_REGION, timeout_s=args.timeout)
                     result = await sub.collect()
-            except ResourceExhausted as exc:
-                local = client.throttle.refused_locally > refused_before and exc.retry_after_s == 0
-                record[5] = type(exc).__name__
-                record[7] = "refused_local" if local else "refused_server"
-                record[8] = round((loop.time() - scheduled) * 1000, 2)
-                record[9] = refusal_reason(exc)
-                return
             except DrvsError as exc:
-                record[5] = record[9] = type(exc).__name__
+                hinted = isinstance(exc, ResourceExhausted) and exc.retry_after_s > 0
+                local = client.throttle.refused_locally > refused_before and not hinted
+                classify_failure(record, exc, loop.time() - scheduled, local)
                 return
             if fused:
                 classify_snapshot(record, snapshot, loop.time() - scheduled)
             else:
                 classify_result(record, result, scheduled)
 
-        tasks: list[asyncio.Task[None]] = []
-        # This process's CPU time from the end of the warm-up (it exits before the coordinator's last sample).
-        cpu_at_warmup = [time.process_time()]
-        loop.call_at(start + args.warmup, lambda: cpu_at_warmup.__setitem__(0, time.process_time()))
-
-        async def robot(index: int, client: DrvsClient) -> None:
-            for offset in schedule(args.index_offset + index, args.total_robots, args.rate, end_offset):
-                delay = start + offset - loop.time()
-                if delay > 0:
-                    await asyncio.sleep(delay)
-                tasks.append(loop.create_task(one(client, offset)))
-
-        await asyncio.gather(*(robot(i, c) for i, c in enumerate(clients)))
-        await asyncio.gather(*tasks)
-        cpu_s = time.process_time() - cpu_at_warmup[0]
-        wall_s = loop.time() - (start + args.warmup)
+        cpu_s, wall_s = await run_schedule(args, start, clients, one)
         # The clients' own count of requests they refused over the whole schedule (warm-up included):
         # the coordinator checks the records' refused_local against it.
         refused_locally = sum(c.throttle.refused_locally for c in clients) - refused_locally_before
@@ -243,12 +267,7 @@ async def unary_worker(args: argparse.Namespace) -> None:
     try:
         for robot in robots:  # connections up, one round each
             await robot.snapshot(10)
-        go = asyncio.Event()
-        loop.add_signal_handler(signal.SIGUSR1, go.set)
-        print("READY", flush=True)
-        await go.wait()
-        start_wall = float(await asyncio.to_thread(Path(args.go_file).read_text))
-        start = loop.time() + (start_wall - time.time())
+        start = await started(args)
         records: list[list[Any]] = []
 
         async def one(robot: UnaryRobot, offset: float) -> None:
@@ -258,31 +277,13 @@ async def unary_worker(args: argparse.Namespace) -> None:
             records.append(record)
             try:
                 snapshot = await robot.snapshot(args.timeout)
-            except ResourceExhausted as exc:
-                record[5], record[7] = type(exc).__name__, "refused_server"
-                record[8] = round((loop.time() - scheduled) * 1000, 2)
-                record[9] = refusal_reason(exc)
-                return
             except DrvsError as exc:
-                record[5] = record[9] = type(exc).__name__
+                classify_failure(record, exc, loop.time() - scheduled)
                 return
             classify_snapshot(record, snapshot, loop.time() - scheduled)
 
-        tasks: list[asyncio.Task[None]] = []
-        cpu_at_warmup = [time.process_time()]
-        loop.call_at(start + args.warmup, lambda: cpu_at_warmup.__setitem__(0, time.process_time()))
-
-        async def run(index: int, robot: UnaryRobot) -> None:
-            for offset in schedule(args.index_offset + index, args.total_robots, args.rate, args.warmup + args.seconds):
-                delay = start + offset - loop.time()
-                if delay > 0:
-                    await asyncio.sleep(delay)
-                tasks.append(loop.create_task(one(robot, offset)))
-
-        await asyncio.gather(*(run(i, r) for i, r in enumerate(robots)))
-        await asyncio.gather(*tasks)
-        done = {"records": records, "cpu_s": time.process_time() - cpu_at_warmup[0],
-                "wall_s": loop.time() - (start + args.warmup), "refused_locally": 0}  # fmt: skip
+        cpu_s, wall_s = await run_schedule(args, start, robots, one)
+        done = {"records": records, "cpu_s": cpu_s, "wall_s": wall_s, "refused_locally": 0}
         print("DONE " + json.dumps(done), flush=True)
     finally:
         for robot in robots:
