@@ -73,7 +73,9 @@ class ConnectionLimits:
     server busy with work it has taken takes in new calls slowly). Past it gRPC's core drops new
     calls at once, at random beyond `max_pending_calls` and every one at twice it: the caller gets
     CANCELLED. Without it (gRPC's own 1000 and 3000) unary calls queue there for seconds, unseen by
-    the server's admission (drvs.server.admission), and most end at their deadline."""
+    the server's admission (drvs.server.admission), and most end at their deadline. (gRPC 1.85's core
+    applies these limits under its experiment optimization_04, on by default; tests/behaviour/
+    test_exhaustion.py fails if a gRPC release stops applying them.)"""
 
     max_streams: int = DEFAULT_MAX_STREAMS_PER_CONNECTION
     max_idle_s: float = DEFAULT_MAX_CONNECTION_IDLE_S
