@@ -44,6 +44,9 @@ DOC = Path(__file__).resolve().parents[2] / "docs" / "validation.md"
 REFUSED = "hsv_000000000010010010"  # answered RESOURCE_EXHAUSTED
 BREAKS = "hsv_001001001011011011"  # its track's stream ends after two snapshots
 STALLS = "hsv_002002002012012012"  # its track never sends the final snapshot
+#: Its track's stream ends after two snapshots; the stream the track is sent again on ends before
+#: any reply; sent a third time, it runs to its end.
+BREAKS_TWICE = "hsv_003003003013013013"
 
 OBJECT_KEYS = {
     "track_id", "centroid", "bounds", "velocity", "heading_deg", "uncertainty_m", "cameras", "marker_id",
@@ -86,6 +89,8 @@ class FusingServer(detection_pb2_grpc.DetectObjectBoundaryServicer):
     #: request id -> snapshots it has sent
     sent: dict[str, int] = field(default_factory=dict)
     per_camera: list[str] = field(default_factory=list)
+    #: request id -> times a track with it was sent
+    attempts: dict[str, int] = field(default_factory=dict)
 
     async def DetectStream(
         self, request_iterator: AsyncIterator[detection_pb2.DetectionRequest], context: aio.ServicerContext[Any, Any]
@@ -123,6 +128,10 @@ class FusingServer(detection_pb2_grpc.DetectObjectBoundaryServicer):
                     reply.snapshot.CopyFrom(snapshot_to_pb(snapshot))
                     out.put_nowait(reply)
                 else:
+                    self.attempts[rid] = self.attempts.get(rid, 0) + 1
+                    if message.filter_def == BREAKS_TWICE and self.attempts[rid] == 2:
+                        out.put_nowait(detection_pb2.DetectionReply(request_id="END"))  # no reply
+                        continue
                     reply = detection_pb2.DetectionReply(request_id=rid, camera_ids=["camA", "camB"])
                     reply.missing_cameras.add(camera_id="camM", code="UNAVAILABLE", message="camera camM: gone")
                     out.put_nowait(reply)
@@ -148,7 +157,7 @@ class FusingServer(detection_pb2_grpc.DetectObjectBoundaryServicer):
         for n in range(count):
             if n:
                 await asyncio.sleep(1 / rate)
-            if message.filter_def == BREAKS and n == 2:
+            if message.filter_def in (BREAKS, BREAKS_TWICE) and n == 2 and self.attempts.get(rid, 1) == 1:
                 out.put_nowait(detection_pb2.DetectionReply(request_id="END"))
                 return
             final = n == count - 1
@@ -291,6 +300,20 @@ async def test_a_stream_that_ends_mid_track_raises_unavailable_after_what_came(
         assert seen == [0, 1]
         # The next request opens a new stream.
         assert (await robot.snapshot(YELLOW, (0, 0, 5, 5))).objects
+
+
+async def test_a_resumed_track_whose_new_stream_ends_too_is_sent_again(fusing: tuple[FusingServer, str]) -> None:
+    # Through a server list (here the one server twice: the client fails over all the same) the
+    # track is sent again when its stream ends. The stream it was sent again on ends too, before
+    # any reply (as one that went to the dying server before the channel knew): the track is sent a
+    # third time and runs to its final snapshot. (The stream's end reached the track while it was
+    # being sent again, and it gave up: Unavailable, once in a full suite run.)
+    servicer, address = fusing
+    async with DrvsClient.connect(f"{address},{address}", robot_id="r1") as robot:
+        async with robot.track(BREAKS_TWICE, (0, 0, 5, 5), rate_hz=20, duration_s=1) as track:
+            seen = [snapshot.final async for snapshot in track]
+        assert seen[-1] and len(seen) >= 3, seen
+        assert servicer.attempts[track.request_id] == 3 and track.resumes == 1, servicer.attempts
 
 
 async def test_a_track_without_its_final_snapshot_raises_deadline_exceeded(fusing: tuple[FusingServer, str]) -> None:

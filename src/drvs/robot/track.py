@@ -83,6 +83,8 @@ class Track(_Delivery):
         self._last_snapshot_at: float | None = None
         self._ends_at = 0.0
         self._resuming: asyncio.Task[None] | None = None
+        #: The error that ended the stream a resumed request was sent on, while `_resume` waits.
+        self._resume_broke: DrvsError | None = None
         self.camera_ids: tuple[str, ...] = ()
         #: camera id -> why the server did not ask it (it sees the region).
         self.camera_errors: dict[str, CameraError] = {}
@@ -163,7 +165,12 @@ class Track(_Delivery):
         if self.closed or self.finished:
             return
         if isinstance(item, DrvsError):
-            if self._client.fails_over and self._message is not None and self._resuming is None:
+            if self._resuming is not None:
+                # The stream the resumed request went on ended too (it may have gone to the dead
+                # server before the channel knew): `_resume` sends it again.
+                self._resume_broke = item
+                return
+            if self._client.fails_over and self._message is not None:
                 # Several servers share the registry: ask another for what remains of the track.
                 self._broke_at = self._last_snapshot_at or asyncio.get_running_loop().time()
                 self._resuming = asyncio.get_running_loop().create_task(self._resume(item))
@@ -210,8 +217,11 @@ class Track(_Delivery):
                 message.continuous.duration_s = remaining
                 requests = self._client._requests
                 assert requests is not None
+                self._resume_broke = None
                 try:
                     reply = await requests.request(message, self._rpc_timeout_s, self._take)
+                    if self._resume_broke is not None:  # answered, then its stream ended
+                        raise Unavailable(str(self._resume_broke))
                 except Unavailable as exc:
                     log.info(
                         "request %s: no server answers yet (%s); again in %.2f s", self.request_id, exc, backoff.current
