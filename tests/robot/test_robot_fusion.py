@@ -47,6 +47,9 @@ STALLS = "hsv_002002002012012012"  # its track never sends the final snapshot
 #: Its track's stream ends after two snapshots; the stream the track is sent again on ends before
 #: any reply; sent a third time, it runs to its end.
 BREAKS_TWICE = "hsv_003003003013013013"
+#: Its track's stream ends after two snapshots; the track sent again is refused for load (with a
+#: retry hint); sent a third time, it runs to its end.
+BREAKS_THEN_BUSY = "hsv_004004004014014014"
 
 OBJECT_KEYS = {
     "track_id", "centroid", "bounds", "velocity", "heading_deg", "uncertainty_m", "cameras", "marker_id",
@@ -132,6 +135,11 @@ class FusingServer(detection_pb2_grpc.DetectObjectBoundaryServicer):
                     if message.filter_def == BREAKS_TWICE and self.attempts[rid] == 2:
                         out.put_nowait(detection_pb2.DetectionReply(request_id="END"))  # no reply
                         continue
+                    if message.filter_def == BREAKS_THEN_BUSY and self.attempts[rid] == 2:
+                        busy = refusal(rid, _grpc.status_of(ResourceExhausted("x")), "overloaded: past its capacity")
+                        busy.error.retry_after_s = 0.2
+                        out.put_nowait(busy)
+                        continue
                     reply = detection_pb2.DetectionReply(request_id=rid, camera_ids=["camA", "camB"])
                     reply.missing_cameras.add(camera_id="camM", code="UNAVAILABLE", message="camera camM: gone")
                     out.put_nowait(reply)
@@ -157,7 +165,7 @@ class FusingServer(detection_pb2_grpc.DetectObjectBoundaryServicer):
         for n in range(count):
             if n:
                 await asyncio.sleep(1 / rate)
-            if message.filter_def in (BREAKS, BREAKS_TWICE) and n == 2 and self.attempts.get(rid, 1) == 1:
+            if message.filter_def in (BREAKS, BREAKS_TWICE, BREAKS_THEN_BUSY) and n == 2 and self.attempts[rid] == 1:
                 out.put_nowait(detection_pb2.DetectionReply(request_id="END"))
                 return
             final = n == count - 1
@@ -314,6 +322,18 @@ async def test_a_resumed_track_whose_new_stream_ends_too_is_sent_again(fusing: t
             seen = [snapshot.final async for snapshot in track]
         assert seen[-1] and len(seen) >= 3, seen
         assert servicer.attempts[track.request_id] == 3 and track.resumes == 1, servicer.attempts
+
+
+async def test_a_resumed_track_refused_for_load_is_sent_again_after_the_hint(fusing: tuple[FusingServer, str]) -> None:
+    # The server a track is sent again to refuses it for load (its door, with a retry hint: the
+    # survivors take the dead server's robots): the track is sent again no sooner than the hint
+    # asks, and runs to its end, where it used to end with Unavailable.
+    servicer, address = fusing
+    async with DrvsClient.connect(f"{address},{address}", robot_id="r1") as robot:
+        async with robot.track(BREAKS_THEN_BUSY, (0, 0, 5, 5), rate_hz=20, duration_s=1.5) as track:
+            seen = [snapshot.final async for snapshot in track]
+        assert seen[-1] and servicer.attempts[track.request_id] == 3 and track.resumes == 1, servicer.attempts
+        assert track.gaps_s[0] >= 0.2  # waited the hint
 
 
 async def test_a_track_without_its_final_snapshot_raises_deadline_exceeded(fusing: tuple[FusingServer, str]) -> None:

@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 from shapely.geometry import Polygon
 
 from drvs.core.backoff import Backoff
-from drvs.core.errors import DeadlineExceeded, DrvsError, Unavailable
+from drvs.core.errors import DeadlineExceeded, DrvsError, ResourceExhausted, Unavailable
 from drvs.core.model import CameraError, DetectionRequest, Snapshot
 from drvs.robot.handles import _Delivery, _Sending
 from drvs.robot.limits import DEFAULT_RPC_TIMEOUT_S
@@ -201,8 +201,10 @@ class Track(_Delivery):
     async def _resume(self, why: DrvsError) -> None:
         """Send the track again, through the client's channel (which moves on to a server that
         answers), for what remains of its duration; the robot's iteration goes on. Track ids start
-        anew (another server's tracker). Gives up, as a single-server track does (Unavailable),
-        when less than a period remains or no server answers before the track would have ended."""
+        anew (another server's tracker). A server that is down, or refuses it for load (with a retry
+        hint), is asked again after a backoff. Gives up, as a single-server track does (Unavailable),
+        when less than a period remains, no server takes it before the track would have ended, or a
+        server refuses it for good."""
         assert self._message is not None
         loop = asyncio.get_running_loop()
         period = 1.0 / self.request.continuous.rate_hz
@@ -222,11 +224,15 @@ class Track(_Delivery):
                     reply = await requests.request(message, self._rpc_timeout_s, self._take)
                     if self._resume_broke is not None:  # answered, then its stream ended
                         raise Unavailable(str(self._resume_broke))
-                except Unavailable as exc:
-                    log.info(
-                        "request %s: no server answers yet (%s); again in %.2f s", self.request_id, exc, backoff.current
-                    )
-                    await backoff.sleep()
+                except (Unavailable, ResourceExhausted) as exc:
+                    hint = exc.retry_after_s if isinstance(exc, ResourceExhausted) else 0.0
+                    if isinstance(exc, ResourceExhausted) and not hint:
+                        raise  # the robot's own budget (no hint), not the server's load: final
+                    # Down, or refused for load (the survivors take the dead server's robots): again
+                    # after the backoff, and no sooner than the refusal asked.
+                    wait = max(backoff.next(), hint)
+                    log.info("request %s: no server takes it yet (%s); again in %.2f s", self.request_id, exc, wait)
+                    await asyncio.sleep(wait)
                     continue
                 self.resumes += 1
                 log.info(
