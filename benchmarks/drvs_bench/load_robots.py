@@ -15,11 +15,12 @@ from typing import Any, TypeVar
 import grpc
 
 from drvs.core.errors import DrvsError, ResourceExhausted
+from drvs.core.geometry import box_region
 from drvs.robot import DetectionResult, DrvsClient, Snapshot
 from drvs.robot.throttle import DEFAULT_K
-from drvs.v1 import detection_pb2, detection_pb2_grpc, geometry_pb2
+from drvs.v1 import detection_pb2, detection_pb2_grpc
 from drvs.wire import _grpc
-from drvs.wire.convert import snapshot_from_pb
+from drvs.wire.convert import region_to_pb, snapshot_from_pb
 
 from .common import ALL_REGION, YELLOW
 
@@ -241,8 +242,7 @@ class UnaryRobot:
         self.channel = _grpc.insecure_channel(server)
         self.stub = detection_pb2_grpc.DetectObjectBoundaryStub(self.channel)
         self.sent = 0
-        x0, y0, x1, y1 = ALL_REGION
-        self.region = geometry_pb2.Region(box=geometry_pb2.Box(x_lower=x0, y_lower=y0, x_upper=x1, y_upper=y1))
+        self.region = region_to_pb(box_region(*ALL_REGION))
 
     async def snapshot(self, timeout_s: float) -> Snapshot:
         """One fused single shot; the failure as DrvsClient would raise it (drvs.wire._grpc)."""
