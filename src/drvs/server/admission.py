@@ -57,6 +57,10 @@ LOOP_MIN_ARRIVALS = 10
 LINK_MIN_SAMPLES = 8
 
 
+#: A camera link's last 1/QUEUE_RESERVE of --max-queued-forwards is kept for callers below their
+#: fair part (Door.check_queue).
+QUEUE_RESERVE = 4
+
 #: Callers whose arrival rates are tracked at once; past this, new ones share one bucket (and so,
 #: together, one fair part: spraying identities buys no more than one).
 MAX_CALLERS = 4096
@@ -65,6 +69,8 @@ RATE_WEIGHT = 0.5
 #: A caller whose estimate falls below this (requests an interval) is forgotten.
 RATE_FLOOR = 0.01
 OTHERS = "\x00others"
+#: Every caller not yet measured (first seen this interval), as one: its arrivals this interval.
+NEW = "\x00new"
 
 
 class FairShares:
@@ -72,7 +78,13 @@ class FairShares:
     all requests can be: max-min fair (water-filling). With rates r_i and budget B = share * sum(r),
     the fair level f solves sum(min(r_i, f)) = B; caller i is admitted with probability
     min(1, f / r_i). Equal callers are all admitted `share`, as with no fairness; a caller at twice
-    the others' rate loses its excess first. A caller not yet measured is admitted `share`."""
+    the others' rate loses its excess first.
+
+    Callers not yet measured (first seen in this interval) are, together, one caller whose rate is
+    their arrivals so far this interval: a robot that joins while another floods is admitted as the
+    modest caller it is, not refused its first requests at the flood's share; identities sprayed to
+    look new share about one part an interval (the k-th new arrival is admitted level / k), as those
+    past `max_callers` share one. Before anything is measured every caller is admitted `share`."""
 
     __slots__ = ("_clock", "_counts", "_levels", "_rates", "_sorted", "_until", "interval_s", "max_callers")
 
@@ -94,8 +106,11 @@ class FairShares:
     def arrived(self, caller: str) -> None:
         self._roll()
         counts = self._counts
-        if caller not in counts and caller not in self._rates and len(self._rates) + len(counts) >= self.max_callers:
-            caller = OTHERS
+        if caller not in self._rates:
+            if caller not in counts and len(self._rates) + len(counts) >= self.max_callers:
+                caller = OTHERS
+            elif caller != OTHERS:
+                counts[NEW] = counts.get(NEW, 0) + 1
         counts[caller] = counts.get(caller, 0) + 1
 
     def admit(self, caller: str, share: float) -> float:
@@ -103,8 +118,14 @@ class FairShares:
         if share >= 1.0:
             return 1.0
         self._roll()
-        rate = self._rates.get(caller if caller in self._rates else OTHERS, 0.0)
-        if rate <= 0.0:
+        rates = self._rates
+        rate = rates.get(caller, 0.0)
+        if not rate:
+            if caller in self._counts:
+                rate = float(self._counts[NEW])
+            else:  # past max_callers: their bucket's
+                rate = max(rates.get(OTHERS, 0.0), float(self._counts.get(OTHERS, 0)))
+        if rate <= 0.0 or not self._sorted:
             return share
         level = self._levels.get(share)
         if level is None:
@@ -135,7 +156,8 @@ class FairShares:
         rates = {caller: rate * keep for caller, rate in self._rates.items()}
         fresh = RATE_WEIGHT * (1.0 - RATE_WEIGHT) ** (passed - 1)
         for caller, count in self._counts.items():
-            rates[caller] = rates.get(caller, 0.0) + fresh * count
+            if caller != NEW:  # (its arrivals are in their callers' counts too)
+                rates[caller] = rates.get(caller, 0.0) + fresh * count
         self._rates = {caller: rate for caller, rate in rates.items() if rate >= RATE_FLOOR}
         self._sorted = sorted(self._rates.values())
         self._levels = {}
@@ -307,6 +329,24 @@ class Door:
                 f"retry in {hint * 1000:.0f} ms",
                 retry_after_s=hint,
             )
+
+    def check_queue(self, camera_id: str, waiting: int, most: int, caller: str = "") -> None:
+        """ResourceExhausted if a camera link with `waiting` forwards (of at most `most`) cannot take
+        `caller`'s request. At `most`, nobody's. In its last quarter (QUEUE_RESERVE), a fair part of a
+        share that falls from 1 to 0 as it fills: a caller flooding the link is refused there, so
+        that its requests do not fill the link to the limit, where everyone is refused alike."""
+        reserve = most // QUEUE_RESERVE if self.target_s else 0
+        if waiting < most - reserve:
+            return
+        if waiting < most:
+            share = (most - waiting) / (reserve + 1)
+            if self._draw() < self.fair.admit(caller, share):
+                return
+        refused("queue").inc()
+        raise ResourceExhausted(
+            f"busy: camera {camera_id} has {waiting} requests already waiting for it (limit {most}); retry in 100 ms",
+            retry_after_s=0.1,
+        )
 
     def check_cameras(self, links: Iterable[tuple[str, Shedder]], fused: bool = False, caller: str = "") -> None:
         """Then, once routed: ResourceExhausted if a camera the request needs sheds it (or, for a

@@ -10,7 +10,6 @@ import logging
 import time
 from collections.abc import Callable
 
-from drvs.core.errors import ResourceExhausted
 from drvs.core.geometry import Homography
 from drvs.core.model import CameraError, DetectionRequest
 from drvs.server.admission import Door
@@ -245,12 +244,7 @@ class Dispatcher:
             waiting = link.requests.in_flight
             if waiting >= most:
                 link.delay.shedder.congested()
-                metrics.ADMISSION_REFUSED("queue").inc()
-                raise ResourceExhausted(
-                    f"busy: camera {camera_id} has {waiting} requests already waiting for it "
-                    f"(limit {most}); retry in 100 ms",
-                    retry_after_s=0.1,
-                )
+            self.door.check_queue(camera_id, waiting, most, caller)
         self.door.check_cameras(((camera_id, link.delay.shedder) for camera_id, link in links), fused, caller)
 
     def _homography_of(self, camera_id: str) -> Homography | None:
