@@ -122,7 +122,7 @@ class FairShares:
         rate = rates.get(caller, 0.0)
         if not rate:
             if caller in self._counts:
-                rate = float(self._counts[NEW])
+                rate = float(self._counts.get(NEW, 0))
             else:  # past max_callers: their bucket's
                 rate = max(rates.get(OTHERS, 0.0), float(self._counts.get(OTHERS, 0)))
         if rate <= 0.0 or not self._sorted:
