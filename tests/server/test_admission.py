@@ -146,15 +146,24 @@ def test_the_door_draws_once_against_the_busiest_camera_and_hints_a_wait() -> No
     off.check_cameras([("cam-b", busy)])
 
 
+def arrive(fair: FairShares, counts: tuple[tuple[str, int], ...]) -> None:
+    """`fair` hears each (caller, count): count arrivals of that caller."""
+    for caller, count in counts:
+        for _ in range(count):
+            fair.arrived(caller)
+
+
+#: Rates 2, 2 and 46 an interval once measured: at 20 % admissible, a fair level of 6.
+FLOODED = (("a", 4), ("b", 4), ("flood", 92))
+
+
 def test_fair_shares_refuse_the_heaviest_caller_first() -> None:
     """Max-min fairness: rates 2, 2 and 46 a tenth of a second, 20 % admissible (a budget of 10):
     the two light callers stay under the fair level (6) and are always admitted, the heavy one gets
     what is left (6 of 46). Equal callers are each admitted the share, as without fairness."""
     clock = Clock()
     fair = FairShares(clock=clock)
-    for caller, count in (("a", 4), ("b", 4), ("flood", 92)):
-        for _ in range(count):
-            fair.arrived(caller)
+    arrive(fair, FLOODED)
     assert fair.admit("a", 0.2) == 0.2  # nothing measured yet: the share, as without fairness
     clock.now += INTERVAL_S
     assert fair.rate("a") == pytest.approx(2) and fair.rate("flood") == pytest.approx(46)
@@ -183,9 +192,7 @@ def test_a_caller_that_joins_during_a_flood_is_admitted_as_the_modest_caller_it_
 
     def flooded() -> FairShares:
         fair = FairShares(clock=clock)
-        for caller, count in (("a", 4), ("b", 4), ("flood", 92)):
-            for _ in range(count):
-                fair.arrived(caller)
+        arrive(fair, FLOODED)
         clock.now += INTERVAL_S
         return fair
 
@@ -195,9 +202,7 @@ def test_a_caller_that_joins_during_a_flood_is_admitted_as_the_modest_caller_it_
     fair.arrived("joiner")  # its second: still below the level
     assert fair.admit("joiner", 0.2) == 1.0
     # Measured at the next interval, on its own rate (two requests: 1 an interval), still admitted.
-    for caller, count in (("a", 4), ("b", 4), ("flood", 92)):
-        for _ in range(count):
-            fair.arrived(caller)
+    arrive(fair, FLOODED)
     clock.now += INTERVAL_S
     assert fair.rate("joiner") == pytest.approx(1.0)
     fair.arrived("joiner")
@@ -220,9 +225,7 @@ def test_a_links_last_quarter_is_kept_for_callers_below_their_fair_part() -> Non
     clock = Clock()
     door = Door(draw=lambda: 0.5)
     door.fair = FairShares(clock=clock)
-    for caller, count in (("flood", 200), ("robot", 2)):
-        for _ in range(count):
-            door.fair.arrived(caller)
+    arrive(door.fair, (("flood", 200), ("robot", 2)))
     clock.now += INTERVAL_S
     door.check_queue("cam", 47, 64, "flood")
     door.check_queue("cam", 48, 64, "flood")  # share 16/17: the flood's fair part is most of it
@@ -259,10 +262,7 @@ def test_the_door_refuses_a_flooding_caller_and_not_the_robot_beside_it() -> Non
     draws = iter([0.5] * 10_000)
     door = Door(draw=lambda: next(draws))
     door.fair = FairShares(clock=clock)
-    for _ in range(90):
-        door.fair.arrived("flood")
-    for _ in range(3):
-        door.fair.arrived("robot")
+    arrive(door.fair, (("flood", 90), ("robot", 3)))
     clock.now += INTERVAL_S
     door.loop.shedder.admit = 0.2
     door.check_server("robot")
