@@ -10,11 +10,13 @@ import shutil
 from collections.abc import AsyncIterator
 from pathlib import Path
 
+import grpc
 import pytest
 import pytest_asyncio
+from grpc import aio
 
 from drvs.core.errors import InvalidArgument, Unavailable
-from drvs.server.etcd import Endpoints, EtcdClient, Event
+from drvs.server.etcd import Endpoints, EtcdClient, Event, wait_ready
 from drvs.tools.launch import EtcdMember, start_etcd
 
 pytestmark = pytest.mark.skipif(
@@ -110,6 +112,50 @@ async def test_a_three_member_cluster_answers_through_one_channel_when_a_member_
     finally:
         for m in members:
             await m.stop()
+
+
+async def test_reads_a_failing_member_drops_go_again_and_writes_do_not(one: list[EtcdMember]) -> None:
+    """A member that fails every call UNAVAILABLE (a real gRPC server on etcd's KV service, listed
+    beside a real etcd: what a member killed with calls on its connection answers) costs a read
+    nothing, the client sends it again and the channel's round robin takes it to etcd, while a
+    write that landed there fails once, not sent again (it might have been applied)."""
+    seen: dict[str, int] = {"Range": 0, "Put": 0}
+
+    def failing(name: str) -> grpc.RpcMethodHandler[bytes, bytes]:
+        async def handle(request: bytes, context: aio.ServicerContext[bytes, bytes]) -> bytes:
+            seen[name] += 1
+            await context.abort(grpc.StatusCode.UNAVAILABLE, "Stream removed")
+            raise AssertionError("abort returns no answer")
+
+        return grpc.unary_unary_rpc_method_handler(handle)
+
+    dying = aio.server()
+    dying.add_generic_rpc_handlers(
+        [grpc.method_handlers_generic_handler("etcdserverpb.KV", {n: failing(n) for n in seen})]
+    )
+    port = dying.add_insecure_port("127.0.0.1:0")
+    await dying.start()
+    try:
+        both = Endpoints.parse(f"etcd://{one[0].address},127.0.0.1:{port}")
+        async with EtcdClient(both, timeout_s=5.0) as etcd:
+            await wait_ready(endpoints(one), 10.0)
+            written = failed = 0
+            while not written:  # a write: sent once, wherever the channel picks
+                try:
+                    await etcd.put(b"/drvs/r/k", b"v")
+                    written += 1
+                except Unavailable as exc:
+                    assert "UNAVAILABLE" in str(exc) and f"127.0.0.1:{port}" in str(exc)
+                    failed += 1
+            for _ in range(40):  # reads, until the failing member has failed three of them
+                assert (await etcd.get(b"/drvs/r/k")) == (b"v", 0)
+                assert (await etcd.get_prefix(b"/drvs/r/"))[0] == [(b"/drvs/r/k", b"v", 0)]
+                if seen["Range"] >= 3:
+                    break
+            assert seen["Range"] >= 3, seen  # the reads did meet the failing member, and went again
+            assert seen["Put"] == failed  # each failed write was sent once
+    finally:
+        await dying.stop(None)
 
 
 async def test_etcd_gone_is_unavailable_naming_the_endpoints(tmp_path: Path) -> None:

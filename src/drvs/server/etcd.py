@@ -14,6 +14,7 @@ a camera id), and a watch of the prefix from a revision (every server keeps its 
 
 from __future__ import annotations
 
+import asyncio
 import logging
 from collections.abc import AsyncIterator, Sequence
 from dataclasses import dataclass
@@ -27,6 +28,10 @@ from drvs.core.net import format_address, grpc_target, parse_address
 
 log = logging.getLogger("drvs.server.etcd")
 SCHEME = "etcd://"
+#: A read failed UNAVAILABLE is sent this many times in all (EtcdClient._call), the first pause
+#: READ_BACKOFF_S and doubling.
+READ_ATTEMPTS = 3
+READ_BACKOFF_S = 0.05
 #: How long one call to etcd may take, seconds.
 CALL_TIMEOUT_S = 5.0
 
@@ -126,15 +131,34 @@ class EtcdClient:
     async def __aexit__(self, *exc: object) -> None:
         await self.close()
 
-    async def _call(self, method: Any, request: Any, what: str) -> Any:
-        try:
-            return await method(request, timeout=self.timeout_s, metadata=self._metadata, wait_for_ready=False)
-        except aio.AioRpcError as exc:
-            raise Unavailable(f"etcd {self.endpoints}: {what}: {exc.code().name} {exc.details()}") from None
+    async def _call(self, method: Any, request: Any, what: str, *, repeatable: bool = False) -> Any:
+        """One call within timeout_s. A `repeatable` one (a read: etcd answers it alike however
+        often it is sent) is sent again when it fails UNAVAILABLE, up to READ_ATTEMPTS times in
+        all, READ_BACKOFF_S apart and doubling, within the same timeout: a member killed or cut
+        off with the call on its connection fails it so ("Stream removed"), and the next attempt
+        goes where the channel picks next. A write is not: it may have been applied (etcd's own
+        clientv3 retries on Unavailable only the calls it calls repeatable alike)."""
+        loop = asyncio.get_running_loop()
+        deadline = loop.time() + self.timeout_s
+        attempt = 1
+        while True:
+            left = deadline - loop.time()
+            try:
+                return await method(request, timeout=left, metadata=self._metadata, wait_for_ready=False)
+            except aio.AioRpcError as exc:
+                pause = READ_BACKOFF_S * 2 ** (attempt - 1)
+                again = repeatable and exc.code() == grpc.StatusCode.UNAVAILABLE and attempt < READ_ATTEMPTS
+                if not again or deadline - loop.time() <= pause:
+                    raise Unavailable(f"etcd {self.endpoints}: {what}: {exc.code().name} {exc.details()}") from None
+                log.debug(
+                    "etcd %s: %s failed UNAVAILABLE (%s): again in %g s", self.endpoints, what, exc.details(), pause
+                )
+            await asyncio.sleep(pause)
+            attempt += 1
 
     async def status(self) -> Any:
         """The answering member's status (its version, the cluster's revision); Unavailable if none answers."""
-        return await self._call(self.maintenance.Status, self._rpc.StatusRequest(), "status")
+        return await self._call(self.maintenance.Status, self._rpc.StatusRequest(), "status", repeatable=True)
 
     async def grant(self, ttl_s: float) -> int:
         """A new lease of `ttl_s` seconds (etcd counts whole seconds: rounded up, at least 1); its id."""
@@ -170,7 +194,7 @@ class EtcdClient:
 
     async def get(self, key: bytes) -> tuple[bytes, int] | None:
         """A key's value and its lease, or None."""
-        reply = await self._call(self.kv.Range, self._rpc.RangeRequest(key=key), "get")
+        reply = await self._call(self.kv.Range, self._rpc.RangeRequest(key=key), "get", repeatable=True)
         if not reply.kvs:
             return None
         return bytes(reply.kvs[0].value), int(reply.kvs[0].lease)
@@ -178,7 +202,10 @@ class EtcdClient:
     async def get_prefix(self, prefix: bytes) -> tuple[list[tuple[bytes, bytes, int]], int]:
         """Every (key, value, lease) under `prefix`, and the revision they were read at."""
         reply = await self._call(
-            self.kv.Range, self._rpc.RangeRequest(key=prefix, range_end=_prefix_end(prefix)), "get prefix"
+            self.kv.Range,
+            self._rpc.RangeRequest(key=prefix, range_end=_prefix_end(prefix)),
+            "get prefix",
+            repeatable=True,
         )
         return [(bytes(kv.key), bytes(kv.value), int(kv.lease)) for kv in reply.kvs], int(reply.header.revision)
 
