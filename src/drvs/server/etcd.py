@@ -137,7 +137,7 @@ class EtcdClient:
         all, READ_BACKOFF_S apart and doubling, within the same timeout: a member killed or cut
         off with the call on its connection fails it so ("Stream removed"), and the next attempt
         goes where the channel picks next. A write is not: it may have been applied (etcd's own
-        clientv3 retries on Unavailable only the calls it calls repeatable alike)."""
+        Go client, clientv3, likewise retries on Unavailable only the calls it marks repeatable)."""
         loop = asyncio.get_running_loop()
         deadline = loop.time() + self.timeout_s
         attempt = 1
