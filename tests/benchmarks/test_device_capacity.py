@@ -9,6 +9,8 @@ import re
 import subprocess
 from pathlib import Path
 
+import pytest
+
 ROOT = Path(__file__).resolve().parents[2]
 SCRIPT = ROOT / "scripts" / "device-capacity.sh"
 
@@ -19,12 +21,18 @@ def run_script(*args: str, **env: str) -> subprocess.CompletedProcess[str]:
     )
 
 
-def test_with_no_time_left_every_step_is_left_out_and_logged(tmp_path: Path) -> None:
-    done = run_script("run", str(tmp_path), DRVS_DEVICE_LOCAL="1", DRVS_DEVICE_DEADLINE_S="0")
+@pytest.mark.parametrize(
+    ("job", "steps"),
+    [
+        ("run", ["sweep-per-camera", "sweep-fused", "overload-per-camera", "load-100", "cluster-workers",
+                 "overload-fused-unary", "service"]),
+        ("ros2", ["ros2-quick", "ros2"]),
+    ],
+)  # fmt: skip
+def test_with_no_time_left_every_step_is_left_out_and_logged(job: str, steps: list[str], tmp_path: Path) -> None:
+    done = run_script(job, str(tmp_path), DRVS_DEVICE_LOCAL="1", DRVS_DEVICE_DEADLINE_S="0")
     assert done.returncode == 0, done.stderr
     log = (tmp_path / "capacity.log").read_text()
-    steps = ["sweep-per-camera", "sweep-fused", "overload-per-camera", "load-100", "cluster-workers",
-             "overload-fused-unary", "service"]  # fmt: skip
     for step in steps:
         assert re.search(rf"^## {step}: left out, (0|-\d+) s left$", log, re.M), log
     assert "drvs-bench" not in log.split("cores,", 1)[1]  # no run started
@@ -33,4 +41,4 @@ def test_with_no_time_left_every_step_is_left_out_and_logged(tmp_path: Path) -> 
 
 def test_a_wrong_verb_is_refused_with_the_usage(tmp_path: Path) -> None:
     done = run_script("sweep")
-    assert done.returncode == 2 and "usage: scripts/device-capacity.sh prepare | run [DIR]" in done.stderr
+    assert done.returncode == 2 and "usage: scripts/device-capacity.sh prepare | run [DIR] | ros2 [DIR]" in done.stderr
