@@ -21,7 +21,7 @@ from .liveview import add_liveview_parser
 from .load import add_load_parser
 from .mobile import add_mobile_parser
 from .ros2 import add_ros2_parser
-from .stats import measured, out_dir
+from .stats import measured, out_dir, out_problem
 from .workload import add_workload_arguments, workload_main
 
 
@@ -184,6 +184,10 @@ def main(argv: list[str] | None = None) -> int:
     add_workload_arguments(r)
     r.set_defaults(func=workload_main)
     args = parser.parse_args(argv)
+    problem = out_problem(getattr(args, "out", None))
+    if problem is not None:
+        print(f"drvs-bench {args.bench}: --out {args.out}: {problem}", file=sys.stderr)
+        return 2
     return int(args.func(args))
 
 

@@ -264,6 +264,25 @@ def test_benchmark_refuses_negative_rounds(bench: str, tmp_path: Path, capsys: p
     assert not (tmp_path / "out").exists()
 
 
+@pytest.mark.parametrize(
+    "bench", ["paper", "service", "detectors", "fusion", "load", "mobile", "cluster", "liveview", "ros2"]
+)
+def test_an_out_folder_that_cannot_be_made_is_refused_before_anything_runs(
+    bench: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A run of minutes must not end on a folder it cannot write: --out under a file, or a file
+    itself, is refused at once (exit 2, saying why), and nothing is made or changed."""
+    from drvs_bench.cli import main
+
+    afile = tmp_path / "afile"
+    afile.write_text("kept")
+    assert main([bench, "--out", str(afile / "out")]) == 2
+    assert f"drvs-bench {bench}: --out {afile / 'out'}: {afile} is not a folder" in capsys.readouterr().err
+    assert main([bench, "--out", str(afile)]) == 2
+    assert f"drvs-bench {bench}: --out {afile}: it is there and is not a folder" in capsys.readouterr().err
+    assert afile.read_text() == "kept" and [p.name for p in tmp_path.iterdir()] == ["afile"]
+
+
 def check_service_rounds(result: dict[str, Any]) -> None:
     """Issue 13's keys in a --quick run: its interleaved rounds (SMOKE_ROUNDS); median, spread and every
     round of each comparison; the moving-region variant; the floor named; marginal camera CPU; verdicts."""
