@@ -13,6 +13,8 @@ import json
 import sys
 from pathlib import Path
 
+from drvs.core._files import folder_problem
+
 from .bare import add_bare_parsers
 from .cluster import add_cluster_parser
 from .fusion import add_fusion_parser
@@ -21,7 +23,7 @@ from .liveview import add_liveview_parser
 from .load import add_load_parser
 from .mobile import add_mobile_parser
 from .ros2 import add_ros2_parser
-from .stats import measured, out_dir, out_problem
+from .stats import measured, out_dir
 from .workload import add_workload_arguments, workload_main
 
 
@@ -184,8 +186,8 @@ def main(argv: list[str] | None = None) -> int:
     add_workload_arguments(r)
     r.set_defaults(func=workload_main)
     args = parser.parse_args(argv)
-    problem = out_problem(getattr(args, "out", None))
-    if problem is not None:
+    out = getattr(args, "out", None)
+    if out is not None and (problem := folder_problem(out)) is not None:
         print(f"drvs-bench {args.bench}: --out {args.out}: {problem}", file=sys.stderr)
         return 2
     return int(args.func(args))

@@ -8,7 +8,6 @@ modes interleaved (A B C A B C …) for several rounds and publish, for each fig
 
 from __future__ import annotations
 
-import os
 import statistics
 import sys
 import time
@@ -33,23 +32,6 @@ def interleaved(modes: Sequence[T], rounds: int) -> Iterator[tuple[int, T]]:
 def out_dir(given: Path | None) -> Path:
     """Where a benchmark writes: --out, else a new bench-YYYYmmdd-HHMMSS folder here."""
     return given or Path(time.strftime("bench-%Y%m%d-%H%M%S"))
-
-
-def out_problem(given: Path | None) -> str | None:
-    """Why a benchmark could not write into --out `given`, or None (it can, or none was given).
-    Asked before anything runs, so that a run of minutes does not end on a folder it cannot make,
-    and without making one: a refused command leaves nothing behind."""
-    if given is None:
-        return None
-    path = given.absolute()
-    if path.exists() and not path.is_dir():
-        return "it is there and is not a folder"
-    there = path if path.exists() else next(p for p in path.parents if p.exists())
-    if not there.is_dir():
-        return f"{there} is not a folder"
-    if not os.access(there, os.W_OK | os.X_OK):
-        return f"{there} is not writable"
-    return None
 
 
 def measured(name: str, work: Callable[[], T]) -> T | None:

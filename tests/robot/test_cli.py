@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import sys
 from pathlib import Path
 
@@ -157,3 +158,18 @@ async def test_every_cli_refuses_bad_input_with_exit_2_and_no_traceback(
     await proc.start()
     assert_refused(await proc.wait(timeout=60), proc.output(), message)
     assert not out.exists() or not any(out.iterdir())
+
+
+@pytest.mark.parametrize("command", [["drvs-office"], ["drvs-certs"], ["drvs-bench", "ros2"]])
+async def test_an_out_folder_under_a_file_is_refused_before_anything_runs(tmp_path: Path, command: list[str]) -> None:
+    """The tools that write a folder (drvs-office ended in a NotADirectoryError traceback): --out
+    under a file is refused at once, exit 2, saying which path is not a folder; the file stays."""
+    afile = tmp_path / "afile"
+    afile.write_text("kept")
+    proc = ManagedProcess.entry_point("out", command[0], *command[1:], "--out", str(afile / "out"))
+    await proc.start()
+    label = " ".join(command)
+    assert_refused(
+        await proc.wait(timeout=60), proc.output(), f"{label}: --out {afile / 'out'}: {afile} is not a folder"
+    )
+    assert afile.read_text() == "kept" and os.listdir(tmp_path) == ["afile"]

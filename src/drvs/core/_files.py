@@ -1,7 +1,9 @@
-"""Reading the YAML/JSON files people write (homographies, calibration points, camera configs)."""
+"""Reading the YAML/JSON files people write (homographies, calibration points, camera configs), and
+checking the folders the tools write into (drvs-office, drvs-certs, drvs-bench --out)."""
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 from typing import Any
 
@@ -23,3 +25,18 @@ def read_yaml(path: str | Path, label: str) -> Any:
         return yaml.safe_load(text)
     except yaml.YAMLError as exc:
         raise InvalidArgument(f"{label} {p}: not JSON or YAML ({exc})") from None
+
+
+def folder_problem(path: Path) -> str | None:
+    """Why files could not be written into the folder `path` (made with its parents where missing),
+    or None when they can. Asked before any work and without making anything, so that a run of
+    minutes does not end on a folder it cannot make, and a refused command leaves nothing behind."""
+    path = path.absolute()
+    if path.exists() and not path.is_dir():
+        return "it is there and is not a folder"
+    there = path if path.exists() else next(p for p in path.parents if p.exists())
+    if not there.is_dir():
+        return f"{there} is not a folder"
+    if not os.access(there, os.W_OK | os.X_OK):
+        return f"{there} is not writable"
+    return None

@@ -18,6 +18,7 @@ from typing import Any, TextIO
 import cv2
 import yaml
 
+from drvs.core._files import folder_problem
 from drvs.core.errors import DrvsError
 from drvs.core.homography_file import save_homography
 from drvs.live.liveview import parse_listen
@@ -343,6 +344,8 @@ def main(argv: list[str] | None = None) -> int:
     scenario_path = args.scenario or DEFAULT_SCENARIO
     out = args.out or Path(time.strftime("drvs-out-%Y%m%d-%H%M%S"))
     try:
+        if (problem := folder_problem(out)) is not None:
+            raise DrvsError(f"--out {out}: {problem}")
         if args.kill_camera:
             args.kill_camera = parse_kill(args.kill_camera)
         if args.foxglove is not None:

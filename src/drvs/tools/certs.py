@@ -36,6 +36,7 @@ from cryptography.hazmat.primitives import hashes, serialization
 from cryptography.hazmat.primitives.asymmetric import ec
 from cryptography.x509.oid import ExtendedKeyUsageOID, NameOID
 
+from drvs.core._files import folder_problem
 from drvs.core.errors import InvalidArgument
 from drvs.core.model import check_id
 from drvs.wire.security import ROLES
@@ -239,6 +240,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--days", type=int, default=DEFAULT_DAYS, help="validity (default %(default)s)")
     args = p.parse_args(argv)
     try:
+        if (problem := folder_problem(args.out)) is not None:
+            raise InvalidArgument(f"--out {args.out}: {problem}")
         roles = args.role or ([] if args.camera or args.robot or args.etcd else list(DEFAULT_ROLES))
         role_hosts = {"server": args.server_host, "camera": args.camera_host, "robot": args.robot_host}
         etcd_hosts = args.etcd_host if args.etcd or args.etcd_host else None
