@@ -246,11 +246,14 @@ async def test_the_office_live_the_way_foxglove_sees_it_and_its_recording(defaul
     assert {t["track_id"] for t in result["tracks"]} <= tracked
 
 
-@pytest.mark.parametrize("what", ["busy port", "record into a folder", "walls that are no polygons"])
+@pytest.mark.parametrize(
+    "what", ["busy port", "record into a folder", "record under a file", "walls that are no polygons"]
+)
 async def test_a_live_view_that_cannot_start_stops_the_server_before_it_serves(tmp_path: Path, what: str) -> None:
     """Exit 2 and one line naming the flag and the cause; the gRPC port was never opened."""
     plan = tmp_path / "plan.yaml"
     plan.write_text("walls: [[[0, 0], [1, 0]]]\n" if what.startswith("walls") else FLOOR_PLAN)
+    under = plan / "run" / "x.mcap"  # a recording in a folder under a file
     with socket.socket() as busy:
         busy.bind(("127.0.0.1", 0))
         busy.listen()
@@ -258,6 +261,7 @@ async def test_a_live_view_that_cannot_start_stops_the_server_before_it_serves(t
         args = {
             "busy port": ["--foxglove", f"127.0.0.1:{port}"],
             "record into a folder": ["--record", str(tmp_path)],
+            "record under a file": ["--record", str(under)],
             "walls that are no polygons": ["--foxglove", "0", "--floor-plan", str(plan)],
         }[what]
         proc = await ManagedProcess.entry_point("server", "drvs-server", "--listen", "127.0.0.1:0", *args).start()
@@ -268,6 +272,7 @@ async def test_a_live_view_that_cannot_start_stops_the_server_before_it_serves(t
     expected = {
         "busy port": f"--foxglove: cannot listen on 127.0.0.1:{port}",
         "record into a folder": f"--record: cannot write {tmp_path}",
+        "record under a file": f"--record: cannot write {under}: {under.parent}: {plan} is not a folder",
         "walls that are no polygons": f"--floor-plan {plan}: walls[0]: not a simple polygon with an area",
     }[what]
     assert expected in output

@@ -33,6 +33,7 @@ from collections.abc import Iterable, Sequence
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
+from drvs.core._files import folder_problem
 from drvs.core.errors import FailedPrecondition, InvalidArgument
 from drvs.core.net import is_loopback_host, parse_address
 
@@ -229,8 +230,10 @@ class LiveHub:
         #: Messages `admit` turned away (over MAX_MESSAGE_BYTES, or beyond the budget).
         self.dropped = 0
         if record is not None:
-            record.parent.mkdir(parents=True, exist_ok=True)
+            if (problem := folder_problem(record.parent)) is not None:
+                raise InvalidArgument(f"--record: cannot write {record}: {record.parent}: {problem}")
             try:
+                record.parent.mkdir(parents=True, exist_ok=True)
                 self.writer = foxglove.open_mcap(
                     record,
                     allow_overwrite=True,
