@@ -176,22 +176,30 @@ def paced(call: Callable[[int], object], count: int) -> Phase:
     return phase
 
 
-def floor_payloads(made: list[Snapshot], style: Any, prefix: str) -> list[tuple[int, list[tuple[str, bytes]]]]:
+def floor_payloads(
+    made: list[Snapshot], style: Any, prefix: str
+) -> tuple[list[tuple[int, list[tuple[str, bytes]]]], list[int]]:
     """Per snapshot, its stamp (ns) FLOOR_SHIFT_S later and the bridge's payloads of every topic
     for it (its own MarkerState: the bridge's stays untouched), /diagnostics where the bridge
-    sends it here (when the missing camera comes and goes: every DIAGNOSED_EVERY-th and the next)."""
+    sends it here (when the missing camera comes and goes: every DIAGNOSED_EVERY-th and the next);
+    and the thread CPU (ns) each snapshot's encoding took, the snapshots encoded back to back."""
     from drvs.ros2.cdr import snapshot_payloads
     from drvs.ros2.convert import MarkerState
     from drvs.ros2.dds import cdr_padding
 
     markers = MarkerState()
     out = []
+    encode_ns = []
     for n, snapshot in enumerate(made):
         at = snapshot.time + FLOOR_SHIFT_S
-        payloads = snapshot_payloads(snapshot, style, markers, at, prefix, with_diagnostics=n % DIAGNOSED_EVERY < 2)
+        c0 = time.thread_time_ns()
+        payloads = list(
+            snapshot_payloads(snapshot, style, markers, at, prefix, with_diagnostics=n % DIAGNOSED_EVERY < 2)
+        )
+        encode_ns.append(time.thread_time_ns() - c0)
         # Padded as write_cdr pads: it then hands these very bytes to Cyclone (+= b"" on bytes is a no-op).
         out.append((round(at * 1e9), [(topic, bytes(p) + cdr_padding(len(p))) for topic, p in payloads]))
-    return out
+    return out, encode_ns
 
 
 def write_all(publisher: Any, pre: tuple[int, list[tuple[str, bytes]]]) -> int:
@@ -235,7 +243,7 @@ def one_round(domain: int, count: int, env: dict[str, str], bridge_first: bool =
         made = snapshots(count, time.time())
         # The floor's bytes: the same snapshots encoded before either clock starts, stamped FLOOR_SHIFT_S
         # later (the subscriber tells the two phases apart by the stamp).
-        floor = floor_payloads(made, publisher.style, publisher.prefix)
+        floor, encode_ns = floor_payloads(made, publisher.style, publisher.prefix)
 
         def publish(n: int) -> int:
             publisher.publish(made[n])
@@ -272,6 +280,11 @@ def one_round(domain: int, count: int, env: dict[str, str], bridge_first: bool =
     floor_latencies = [(taken[s][0] - floor_run.sent[s][0]) / 1e6 for s in floor_run.sent if s in taken]
     cpu = bridge.cpu_ns / count / 1e6
     floor_cpu = floor_run.cpu_ns / count / 1e6
+    thread_p50 = percentile([n / 1e6 for n in bridge.thread_ns], 50)
+    floor_thread_p50 = percentile([n / 1e6 for n in floor_run.thread_ns], 50)
+    # The encoding, paced: the publish call's thread CPU less the same writes' with nothing to encode.
+    encode_paced = thread_p50 - floor_thread_p50
+    encode_back_to_back = percentile([n / 1e6 for n in encode_ns], 50)
     return {
         "snapshots": count,
         "lost": lost["bridge"],
@@ -282,11 +295,14 @@ def one_round(domain: int, count: int, env: dict[str, str], bridge_first: bool =
         "objects_written_ms_p99": percentile(written, 99),
         "delivery_ms_p99": percentile(delivered, 99),
         "cpu_ms_per_snapshot": cpu,
-        "publish_thread_cpu_ms_p50": percentile([n / 1e6 for n in bridge.thread_ns], 50),
+        "publish_thread_cpu_ms_p50": thread_p50,
         "publish_thread_cpu_ms_p99": percentile([n / 1e6 for n in bridge.thread_ns], 99),
         "publish_call_ms_p99": percentile([n / 1e6 for n in bridge.call_ns], 99),
         "dds_floor_cpu_ms_per_snapshot": floor_cpu,
-        "dds_floor_thread_cpu_ms_p50": percentile([n / 1e6 for n in floor_run.thread_ns], 50),
+        "dds_floor_thread_cpu_ms_p50": floor_thread_p50,
+        "encode_back_to_back_ms_p50": encode_back_to_back,
+        "encode_paced_ms_p50": encode_paced,
+        "encode_paced_over_back_to_back": encode_paced / encode_back_to_back,
         "dds_floor_latency_p99_ms": percentile(floor_latencies, 99),
         "dds_floor_lost": lost["floor"],
         "cpu_over_dds_floor": cpu / floor_cpu,
@@ -327,6 +343,9 @@ def run_ros2(out: Path, quick: bool, rounds: int) -> dict[str, Any]:
         "dds_floor_latency_p99_ms",
         "cpu_over_dds_floor",
         "cpu_ms_beyond_dds_floor",
+        "encode_back_to_back_ms_p50",
+        "encode_paced_ms_p50",
+        "encode_paced_over_back_to_back",
     ):
         publish(result, key, [r[key] for r in runs])
     result["targets"] = {

@@ -35,7 +35,17 @@ def test_ros2_bench_quick_writes_its_figures_and_verdicts(tmp_path: Path) -> Non
     assert run["cpu_ms_beyond_dds_floor"] == pytest.approx(
         run["cpu_ms_per_snapshot"] - run["dds_floor_cpu_ms_per_snapshot"]
     )
-    for key in ("latency_p99_ms", "cpu_ms_per_snapshot", "dds_floor_cpu_ms_per_snapshot", "cpu_over_dds_floor"):
+    # The encoding alone: back to back before the clock, and paced (the publish call's thread CPU less
+    # the floor's, the same writes with nothing to encode), and the one over the other.
+    assert run["encode_back_to_back_ms_p50"] > 0
+    assert run["encode_paced_ms_p50"] == pytest.approx(
+        run["publish_thread_cpu_ms_p50"] - run["dds_floor_thread_cpu_ms_p50"]
+    )
+    assert run["encode_paced_over_back_to_back"] == pytest.approx(
+        run["encode_paced_ms_p50"] / run["encode_back_to_back_ms_p50"]
+    )
+    for key in ("latency_p99_ms", "cpu_ms_per_snapshot", "dds_floor_cpu_ms_per_snapshot", "cpu_over_dds_floor",
+                "encode_paced_over_back_to_back"):  # fmt: skip
         assert result[f"{key}_spread"] == [run[key], run[key]]
     for key in ("latency_p99_ms", "cpu_ms_per_snapshot"):
         assert result["targets"][key]["verdict"] in ("met", "missed", "spread crosses target")
