@@ -97,6 +97,26 @@ async def test_connect_returns_a_started_client_of_a_real_server() -> None:
         assert await server.stop() == 0
 
 
+async def test_wrong_python_types_are_invalid_arguments_naming_the_argument() -> None:
+    """Robot code's Python mistakes (a number for the filter, a string or a number for the region)
+    raise InvalidArgument naming the argument and the type given, not a TypeError from inside the
+    client; the client goes on serving the next request."""
+    server, address = await start_server()
+    try:
+        async with DrvsClient.connect(address, robot_id="r") as robot:
+            with pytest.raises(InvalidArgument, match=r"^filter_def: expected a string, got int$"):
+                await robot.detect(123, (0, 0, 1, 1))  # type: ignore[call-overload]
+            wrong: list[tuple[Any, str]] = [("0,0,1,1", "str"), (5, "int"), (None, "NoneType")]
+            for region, kind in wrong:
+                with pytest.raises(InvalidArgument, match=rf"^region: expected a shapely Polygon, .*, got {kind}$"):
+                    await robot.detect(YELLOW, region)
+                with pytest.raises(InvalidArgument, match=rf", got {kind}$"):
+                    robot.track(YELLOW, region, rate_hz=5, duration_s=1)  # refused as it is asked for
+            assert (await robot.detect(YELLOW, (0, 0, 1, 1), timeout_s=1)).complete
+    finally:
+        assert await server.stop() == 0
+
+
 def test_constructing_a_client_does_no_network_work(monkeypatch: pytest.MonkeyPatch) -> None:
     """No name is resolved and no socket is opened until the client starts."""
 

@@ -515,6 +515,8 @@ class DetectionRequest:
             raise InvalidArgument("request_id: empty")
         check_id(self.request_id, "request_id", allow_empty=not require_request_id)
         check_id(self.robot_id, "robot_id", allow_empty=True)
+        if not isinstance(self.filter_def, str):  # robot code's Python, before the wire's types check it
+            raise InvalidArgument(f"filter_def: expected a string, got {type(self.filter_def).__name__}")
         if not (unknown_types and self.filter_def and not is_known_type(self.filter_def)):
             detector_kind(self.filter_def)
         elif len(self.filter_def) > MAX_ID_LENGTH:

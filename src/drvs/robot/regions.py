@@ -4,7 +4,7 @@ and the client's cache of the ones it built and encoded."""
 from __future__ import annotations
 
 import collections
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from typing import Any, TypeAlias
 
 from shapely.geometry import Polygon
@@ -21,16 +21,21 @@ REGION_CACHE_SIZE = 256
 RegionLike: TypeAlias = "Polygon | Sequence[float] | Sequence[Sequence[float]]"
 
 
+REGION_EXPECTED = "region: expected a shapely Polygon, a box (x0, y0, x1, y1) or a list of [x, y] points"
+
+
 def as_region(region: RegionLike) -> Polygon:
     """A shapely polygon, a box (x0, y0, x1, y1), or a list of [x, y] points (metres) as a validated Polygon."""
     if isinstance(region, Polygon):
         return polygon_region(list(region.exterior.coords), "region")
+    if isinstance(region, (str, bytes)) or not isinstance(region, Iterable):
+        raise InvalidArgument(f"{REGION_EXPECTED}, got {type(region).__name__}")
     items: list[Any] = list(region)
     if len(items) == 4 and all(isinstance(v, (int, float)) for v in items):
         return box_region(*items)
     if items and all(isinstance(p, Sequence) for p in items):
         return polygon_region(items, "region")
-    raise InvalidArgument("region: expected a shapely Polygon, a box (x0, y0, x1, y1) or a list of [x, y] points")
+    raise InvalidArgument(REGION_EXPECTED)
 
 
 class _Regions:
