@@ -98,14 +98,24 @@ async def test_connect_returns_a_started_client_of_a_real_server() -> None:
 
 
 async def test_wrong_python_types_are_invalid_arguments_naming_the_argument() -> None:
-    """Robot code's Python mistakes (a number for the filter, a string or a number for the region)
-    raise InvalidArgument naming the argument and the type given, not a TypeError from inside the
-    client; the client goes on serving the next request."""
+    """Robot code's Python mistakes (a number for the filter, an id or a frame, a string or a number
+    for the region) raise InvalidArgument naming the argument and the type given, not a TypeError
+    from inside the client (or, for robot_id, nothing until a request carried it); the client goes on
+    serving the next request."""
     server, address = await start_server()
     try:
+        wrong_id: Any = 5
+        with pytest.raises(InvalidArgument, match=r"^robot_id: expected a string, got int$"):
+            DrvsClient(address, robot_id=wrong_id)
+        with pytest.raises(InvalidArgument, match=r"^frame: expected a string, got int$"):
+            DrvsClient(address, frame=wrong_id)
         async with DrvsClient.connect(address, robot_id="r") as robot:
             with pytest.raises(InvalidArgument, match=r"^filter_def: expected a string, got int$"):
                 await robot.detect(123, (0, 0, 1, 1))  # type: ignore[call-overload]
+            with pytest.raises(InvalidArgument, match=r"^request_id: expected a string, got int$"):
+                await robot.detect(YELLOW, (0, 0, 1, 1), request_id=wrong_id)
+            with pytest.raises(InvalidArgument, match=r"^frame: expected a string, got int$"):
+                await robot.cameras(frame=wrong_id)
             wrong: list[tuple[Any, str]] = [("0,0,1,1", "str"), (5, "int"), (None, "NoneType")]
             for region, kind in wrong:
                 with pytest.raises(InvalidArgument, match=rf"^region: expected a shapely Polygon, .*, got {kind}$"):

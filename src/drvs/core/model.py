@@ -541,6 +541,8 @@ class DetectionRequest:
 def check_frame(value: str, name: str = "frame") -> str:
     """A frame: one or more ids joined by "/" ("building-a/floor-2"), at most MAX_FRAME_LENGTH
     characters; "" is the default, "map". InvalidArgument naming `name` otherwise."""
+    if not isinstance(value, str):  # robot and camera code's Python, before the wire's types
+        raise InvalidArgument(f"{name}: expected a string, got {type(value).__name__}")
     if not value:
         return DEFAULT_FRAME
     if len(value) > MAX_FRAME_LENGTH:
@@ -557,6 +559,8 @@ def check_frame(value: str, name: str = "frame") -> str:
 def check_id(value: str, name: str, *, allow_empty: bool = False) -> str:
     """`value` if it is a valid id (at most MAX_ID_LENGTH characters: letters, digits, - _ . :),
     else InvalidArgument naming `name`."""
+    if not isinstance(value, str):  # robot and camera code's Python, before the wire's types
+        raise InvalidArgument(f"{name}: expected a string, got {type(value).__name__}")
     if not value:
         if allow_empty:
             return value

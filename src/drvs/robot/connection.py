@@ -17,7 +17,7 @@ from typing import Any, TypeVar
 from grpc import aio
 
 from drvs.core.errors import DrvsError, InvalidArgument
-from drvs.core.model import DEFAULT_FRAME, check_frame
+from drvs.core.model import DEFAULT_FRAME, check_frame, check_id
 from drvs.core.net import dialable_address, format_address, host_of, local_ip_towards, parse_address, parse_address_list
 from drvs.robot.handles import health_check
 from drvs.robot.limits import DEFAULT_CONNECT_TIMEOUT_S
@@ -65,7 +65,8 @@ class ClientConnection:
         #: Several servers given, or a DNS name (which may stand for several): a track whose
         #: server's stream ends is sent again through the channel, which moves on to one that answers.
         self.fails_over = len(self.servers) > 1 or not _is_ip_literal(self.servers[0])
-        self.robot_id = robot_id
+        #: Its requests' robot_id ("" for none): checked here, not first by the request that carries it.
+        self.robot_id = check_id(robot_id, "robot_id", allow_empty=True)
         #: The floor plan this robot's regions are in ("building-a/floor-2"; "map" by default): its
         #: requests go only to cameras of this frame. Set it when the robot changes floors.
         self.frame = check_frame(frame)
