@@ -162,6 +162,33 @@ def test_heartbeat_never_outlives_the_lease(tmp_path: Path) -> None:
     assert CameraNode("b", VideoSource("0"), h, "127.0.0.1:1").registration.heartbeat_interval(9.0) == 3.0
 
 
+@pytest.mark.parametrize(
+    ("wrong", "message"),
+    [
+        ({"server": 50051}, r"^server: expected a string such as 'host:50051', got int$"),
+        ({"source": "0"}, r"^source: expected a frame source \(VideoSource, PushSource, any FrameSource\), got str$"),
+        ({"homography": [[1, 0, 0], [0, 1, 0], [0, 0, 1]]}, r"^homography: expected a Homography .*, got list$"),
+        ({"resolution": (640, 0)}, r"^resolution: \(640, 0\) is not \(width, height\) in whole pixels above 0$"),
+        ({"resolution": "640x480"}, r"^resolution: '640x480' is not"),
+        ({"detector_options": {"poeple": {}}}, r"^detector_options: \['poeple'\]: no such detector"),
+        ({"detector_options": {"people": 1.8}}, r"^detector_options: expected \{prefix: \{option: value\}\}"),
+    ],
+)  # fmt: skip
+def test_camera_node_refuses_wrong_arguments_naming_them(wrong: dict[str, object], message: str) -> None:
+    """CameraNode(...) from Python: an argument of the wrong kind is refused where it is made,
+    naming it, where it was an AttributeError at start(), a failure after the first frame, or
+    (a detector's options under a misspelt name) silently ignored."""
+    from drvs.camera.node import CameraNode
+    from drvs.camera.source import PushSource
+    from drvs.core.geometry import homography_from_pose
+
+    h = homography_from_pose((0.0, 0.0, 3.0), 90.0, 40.0, 60.0, (640, 480))
+    arguments: dict[str, object] = {"camera_id": "a", "source": PushSource(), "homography": h, "server": "127.0.0.1:1"}
+    with pytest.raises(InvalidArgument, match=message):
+        CameraNode(**{**arguments, **wrong})  # type: ignore[arg-type]
+    CameraNode(**arguments)  # type: ignore[arg-type]
+
+
 @pytest.mark.office_cameras()
 async def test_a_source_of_another_size_is_refused(office: Office) -> None:
     rec = office.recorded["cam1"]

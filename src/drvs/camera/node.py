@@ -134,13 +134,25 @@ class CameraNode(Lifecycle):
         self.frame = check_frame(frame)
         #: Continuous requests one robot (as the server knows it) may have running here at once.
         self.max_continuous = max_continuous
+        if resolution is not None and not (
+            isinstance(resolution, tuple) and len(resolution) == 2
+            and all(isinstance(v, int) and not isinstance(v, bool) and v > 0 for v in resolution)
+        ):  # fmt: skip
+            raise InvalidArgument(f"resolution: {resolution!r} is not (width, height) in whole pixels above 0")
         self.resolution = resolution
         #: Detector prefixes to run (default: every built-in); options per prefix from the config.
         self.detectors = default_detectors() if detectors is None else tuple(detectors)
         unknown = [d for d in self.detectors if d not in REGISTRY]
         if unknown or not self.detectors:
             raise InvalidArgument(f"detectors: {unknown or 'none'}; must be some of {', '.join(prefixes())}")
-        self.detector_options = dict(detector_options or {})
+        options = detector_options or {}
+        if not isinstance(options, Mapping) or not all(isinstance(o, Mapping) for o in options.values()):
+            raise InvalidArgument("detector_options: expected {prefix: {option: value}}, e.g. {'people': {...}}")
+        if stray := sorted(str(k) for k in options if k not in REGISTRY):  # a typo would be ignored
+            raise InvalidArgument(
+                f"detector_options: {stray}: no such detector; must be some of {', '.join(prefixes())}"
+            )
+        self.detector_options = dict(options)
         self.detect_workers = detect_workers
         self._heavy_pool: concurrent.futures.ThreadPoolExecutor | None = None
         #: Running detector instances by prefix, and by the routing kinds they serve.
@@ -152,10 +164,20 @@ class CameraNode(Lifecycle):
         self._heavy_running: dict[str, FrameAnalysis] = {}
         self.heartbeat_s = heartbeat_s
         self.camera_id = check_id(camera_id, "camera_id")
+        if not all(callable(getattr(source, m, None)) for m in ("start", "stop", "latest", "wait_first_frame")):
+            kind = type(source).__name__
+            raise InvalidArgument(
+                f"source: expected a frame source (VideoSource, PushSource, any FrameSource), got {kind}"
+            )
         self.source = source
         if (homography is None) == (mount is None):
             raise InvalidArgument(
                 "homography: give a fixed camera's homography, or a mobile camera's mount (not both, not neither)"
+            )
+        if homography is not None and not isinstance(homography, Homography):
+            raise InvalidArgument(
+                f"homography: expected a Homography (Homography.from_values, a homography file's), "
+                f"got {type(homography).__name__}"
             )
         self.homography: Homography = homography if homography is not None else Homography.from_values(np.eye(3))
         #: The server, or several (a,b,...: servers sharing one registry in etcd) tried in turn.

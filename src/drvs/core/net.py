@@ -114,6 +114,8 @@ def is_loopback_host(host: str) -> bool:
 def parse_address_list(text: str, name: str) -> list[str]:
     """`HOST:PORT[,HOST:PORT...]`: several peers of one role (servers, etcd members), each checked
     as parse_address does; InvalidArgument naming `name`."""
+    if not isinstance(text, str):  # code's Python, before anything splits it
+        raise InvalidArgument(f"{name}: expected a string such as 'host:50051', got {type(text).__name__}")
     parts = [p.strip() for p in text.split(",")]
     if not all(parts):
         raise InvalidArgument(f"{name}: {text[:80]!r} has an empty address in its list")
