@@ -95,3 +95,22 @@ def test_the_server_constructor_refuses_what_only_it_takes() -> None:
     assert refusal(lambda: DrvsServer(config=ServerConfig(), forward_timeout_s=5)) == (
         "config: give the settings either as a ServerConfig or as keywords, not both"
     )
+
+
+@pytest.mark.parametrize(
+    ("keywords", "message"),
+    [
+        ({"listen": 50051}, "listen (--listen, DRVS_SERVER_LISTEN): expected a string, got int"),
+        ({"registry": 5}, "registry (--registry, DRVS_REGISTRY): expected a string, got int"),
+        ({"advertise": 7}, "advertise (--advertise, DRVS_SERVER_ADVERTISE): expected a string, got int"),
+        ({"allow_callback": "10.0.0.0/8"}, "allow_callback (--allow-callback): expected a list of networks, got str"),
+        ({"allow_callback": [8]}, "allow_callback (--allow-callback): expected networks as strings, got int"),
+    ],
+)
+def test_the_server_constructor_refuses_a_setting_of_the_wrong_type_naming_it(
+    keywords: dict[str, Any], message: str
+) -> None:
+    """DrvsServer(...) from Python: a number for a text setting, or one network as a string where
+    a list is asked for, is refused naming the setting (an AttributeError, a TypeError or 'listen:
+    empty' before, or the string read as one network a character)."""
+    assert refusal(lambda: DrvsServer(**keywords)) == message

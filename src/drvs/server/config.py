@@ -413,11 +413,24 @@ class ServerConfig:
     )
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "allow_callback", tuple(self.allow_callback))
+        callbacks = self.allow_callback
+        if isinstance(callbacks, str) or not isinstance(callbacks, typing.Iterable):
+            raise InvalidArgument(
+                f"{described('allow_callback')}: expected a list of networks, got {type(callbacks).__name__}"
+            )
+        object.__setattr__(self, "allow_callback", tuple(callbacks))
         self.validate()
 
     def validate(self) -> None:
         """Refuse the first bad setting: InvalidArgument('name (--flag): value must be …')."""
+        for declared in dataclasses.fields(self):  # DrvsServer(...) from Python: a text setting given a number
+            if declared.type == "str" and not isinstance(value := getattr(self, declared.name), str):
+                raise InvalidArgument(f"{described(declared.name)}: expected a string, got {type(value).__name__}")
+        for network in self.allow_callback:
+            if not isinstance(network, str):
+                raise InvalidArgument(
+                    f"{described('allow_callback')}: expected networks as strings, got {type(network).__name__}"
+                )
         parse_address(self.listen, described("listen"), allow_port_zero=True)
         for s in SETTINGS.values():
             if s.range is not None:
