@@ -104,7 +104,7 @@ def test_the_server_constructor_refuses_what_only_it_takes() -> None:
         ({"registry": 5}, "registry (--registry, DRVS_REGISTRY): expected a string, got int"),
         ({"advertise": 7}, "advertise (--advertise, DRVS_SERVER_ADVERTISE): expected a string, got int"),
         ({"allow_callback": "10.0.0.0/8"}, "allow_callback (--allow-callback): expected a list of networks, got str"),
-        ({"allow_callback": [8]}, "allow_callback (--allow-callback): expected networks as strings, got int"),
+        ({"allow_callback": [8]}, "allow_callback (--allow-callback): expected a string such as '10.0.0.0/8', got int"),
     ],
 )
 def test_the_server_constructor_refuses_a_setting_of_the_wrong_type_naming_it(

@@ -34,6 +34,16 @@ class InvalidArgument(DrvsError):
     code = "INVALID_ARGUMENT"
 
 
+def expect_str(value: object, name: str, example: str = "") -> str:
+    """`value` if it is a str, else InvalidArgument naming `name` and the type given (`name: expected
+    a string EXAMPLE, got int`): code's Python, before anything calls a string method on it."""
+    if not isinstance(value, str):
+        raise InvalidArgument(
+            f"{name}: expected a string{' ' + example if example else ''}, got {type(value).__name__}"
+        )
+    return value
+
+
 class NotFound(DrvsError):
     """The named thing (a camera, a request) is not known (NOT_FOUND)."""
 

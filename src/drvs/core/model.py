@@ -12,7 +12,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, overload
 
 from shapely.geometry import Point, Polygon
 
-from drvs.core.errors import DrvsError, InvalidArgument, error_for
+from drvs.core.errors import DrvsError, InvalidArgument, error_for, expect_str
 from drvs.core.net import parse_address
 from drvs.core.object_types import detector_kind, is_known_type
 
@@ -515,8 +515,7 @@ class DetectionRequest:
             raise InvalidArgument("request_id: empty")
         check_id(self.request_id, "request_id", allow_empty=not require_request_id)
         check_id(self.robot_id, "robot_id", allow_empty=True)
-        if not isinstance(self.filter_def, str):  # robot code's Python, before the wire's types check it
-            raise InvalidArgument(f"filter_def: expected a string, got {type(self.filter_def).__name__}")
+        expect_str(self.filter_def, "filter_def")  # robot code's Python, before the wire's types check it
         if not (unknown_types and self.filter_def and not is_known_type(self.filter_def)):
             detector_kind(self.filter_def)
         elif len(self.filter_def) > MAX_ID_LENGTH:
@@ -541,8 +540,7 @@ class DetectionRequest:
 def check_frame(value: str, name: str = "frame") -> str:
     """A frame: one or more ids joined by "/" ("building-a/floor-2"), at most MAX_FRAME_LENGTH
     characters; "" is the default, "map". InvalidArgument naming `name` otherwise."""
-    if not isinstance(value, str):  # robot and camera code's Python, before the wire's types
-        raise InvalidArgument(f"{name}: expected a string, got {type(value).__name__}")
+    expect_str(value, name)  # robot and camera code's Python, before the wire's types
     if not value:
         return DEFAULT_FRAME
     if len(value) > MAX_FRAME_LENGTH:
@@ -559,8 +557,7 @@ def check_frame(value: str, name: str = "frame") -> str:
 def check_id(value: str, name: str, *, allow_empty: bool = False) -> str:
     """`value` if it is a valid id (at most MAX_ID_LENGTH characters: letters, digits, - _ . :),
     else InvalidArgument naming `name`."""
-    if not isinstance(value, str):  # robot and camera code's Python, before the wire's types
-        raise InvalidArgument(f"{name}: expected a string, got {type(value).__name__}")
+    expect_str(value, name)  # robot and camera code's Python, before the wire's types
     if not value:
         if allow_empty:
             return value

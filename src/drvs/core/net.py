@@ -8,7 +8,7 @@ import re
 import socket
 from collections.abc import Sequence
 
-from drvs.core.errors import InvalidArgument
+from drvs.core.errors import InvalidArgument, expect_str
 
 _HOST_RE = re.compile(
     r"^(?=.{1,253}$)[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?(\.[A-Za-z0-9]([A-Za-z0-9-]{0,61}[A-Za-z0-9])?)*$"
@@ -114,8 +114,7 @@ def is_loopback_host(host: str) -> bool:
 def parse_address_list(text: str, name: str) -> list[str]:
     """`HOST:PORT[,HOST:PORT...]`: several peers of one role (servers, etcd members), each checked
     as parse_address does; InvalidArgument naming `name`."""
-    if not isinstance(text, str):  # code's Python, before anything splits it
-        raise InvalidArgument(f"{name}: expected a string such as 'host:50051', got {type(text).__name__}")
+    expect_str(text, name, "such as 'host:50051'")  # code's Python, before anything splits it
     parts = [p.strip() for p in text.split(",")]
     if not all(parts):
         raise InvalidArgument(f"{name}: {text[:80]!r} has an empty address in its list")

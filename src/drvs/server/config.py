@@ -27,7 +27,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from drvs.core import settings
-from drvs.core.errors import InvalidArgument
+from drvs.core.errors import InvalidArgument, expect_str
 from drvs.core.geometry import DEFAULT_MAX_RANGE_M
 from drvs.core.net import host_of, parse_address
 from drvs.server.admission import DEFAULT_TARGET_S
@@ -424,13 +424,10 @@ class ServerConfig:
     def validate(self) -> None:
         """Refuse the first bad setting: InvalidArgument('name (--flag): value must be …')."""
         for declared in dataclasses.fields(self):  # DrvsServer(...) from Python: a text setting given a number
-            if declared.type == "str" and not isinstance(value := getattr(self, declared.name), str):
-                raise InvalidArgument(f"{described(declared.name)}: expected a string, got {type(value).__name__}")
+            if declared.type == "str":
+                expect_str(getattr(self, declared.name), described(declared.name))
         for network in self.allow_callback:
-            if not isinstance(network, str):
-                raise InvalidArgument(
-                    f"{described('allow_callback')}: expected networks as strings, got {type(network).__name__}"
-                )
+            expect_str(network, described("allow_callback"), "such as '10.0.0.0/8'")
         parse_address(self.listen, described("listen"), allow_port_zero=True)
         for s in SETTINGS.values():
             if s.range is not None:
