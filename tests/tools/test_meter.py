@@ -57,8 +57,12 @@ async def test_relay_counts_payload_and_ethernet_segments(side: str) -> None:
     assert segs_from + segs_to <= 2 * math.ceil((UP + DOWN) / PAYLOAD_PER_SEGMENT)
     header = ETHERNET_HEADER + IPV4_HEADER + TCP_HEADER + TCP_TIMESTAMPS
     # The kernel's payload counts (a SYN and a FIN each count one sequence byte), and wire = payload
-    # + 66 B a segment.
-    assert abs(wire.payload_from_host - sent) <= 2 and abs(wire.payload_to_host - received) <= 2
+    # + 66 B a segment. What the relay sent the host is tcpi_bytes_sent, retransmissions included
+    # (the wire carries them twice): on a loaded machine the peer's ACK can come late enough for a
+    # tail loss probe to send the last segment again (a full run here once counted 1 160 bytes more,
+    # a partial last segment), so that side may exceed by a few segments.
+    assert abs(wire.payload_from_host - sent) <= 2
+    assert -2 <= wire.payload_to_host - received <= 4 * PAYLOAD_PER_SEGMENT
     assert wire.from_host == wire.payload_from_host + header * segs_from
     assert wire.to_host == wire.payload_to_host + header * segs_to
     # The timelines add up to the totals.
